@@ -1,0 +1,212 @@
+//! The blob: one diamond's coded details plus side information (spec:
+//! `docs/blob-format.md`).
+//!
+//! ```text
+//! byte 0      version (high 4 bits) | log2(N) (low 4 bits)
+//! bytes 1..3  CRC-16/CCITT (little-endian) over key ‖ byte 0 ‖ payload
+//! bytes 3..   range-coded payload: side-information classes of the children this
+//!             diamond owns, then the quantised detail matrix
+//! ```
+//! The payload length is the blob length minus 3: there is no length field, so no
+//! allocation is ever sized from untrusted bytes. The key in the checksum makes a blob
+//! served under the wrong id fail to decode.
+
+use crate::entropy::{self, CodecModel, EntropyError, ModelDecoder, ModelEncoder};
+use crate::lifting::DiamondMask;
+
+/// Current blob format version.
+pub const VERSION: u8 = 1;
+/// Bytes before the payload.
+pub const HEADER_BYTES: usize = 3;
+
+/// Why a blob could not be decoded.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum DecodeError {
+    /// Fewer bytes than the header.
+    #[error("blob of {0} bytes is shorter than its header")]
+    TooShort(usize),
+    /// Unknown format version.
+    #[error("blob version {0} is not supported (expected {VERSION})")]
+    Version(u8),
+    /// The blob's diamond size differs from the repository's.
+    #[error("blob diamond size 2^{got} does not match the repository's N = {expected}")]
+    Size {
+        /// log2 N in the blob
+        got: u8,
+        /// the repository's N
+        expected: usize,
+    },
+    /// Checksum mismatch: corrupted, truncated, or served for another id.
+    #[error("checksum mismatch (stored {stored:#06x}, computed {computed:#06x})")]
+    Checksum {
+        /// stored CRC
+        stored: u16,
+        /// computed CRC
+        computed: u16,
+    },
+    /// The coded payload is malformed.
+    #[error(transparent)]
+    Entropy(#[from] EntropyError),
+}
+
+/// What the decoder must know about a diamond besides its bytes (all derivable from the
+/// id and the repository metadata).
+#[derive(Clone, Copy, Debug)]
+pub struct BlobContext<'a> {
+    /// The diamond's storage key.
+    pub key: &'a [u8],
+    /// Diamond size `N`.
+    pub n: usize,
+    /// Level group (see [`entropy::group`]).
+    pub group: usize,
+    /// Valid cells (`None` = all).
+    pub mask: Option<&'a DiamondMask>,
+    /// Number of children whose side information this diamond carries.
+    pub owned_children: usize,
+}
+
+/// A decoded blob.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BlobContent {
+    /// Side-information class of each owned child (see [`entropy::class_bound`]): a bound
+    /// on how far that child's finer surface departs from its own grid.
+    pub child_classes: Vec<u8>,
+    /// Quantised details, `N x N` row-major.
+    pub q: Vec<i32>,
+}
+
+/// CRC-16/CCITT-FALSE.
+pub fn crc16(parts: &[&[u8]]) -> u16 {
+    let mut crc: u16 = 0xFFFF;
+    for part in parts {
+        for &b in *part {
+            crc ^= (b as u16) << 8;
+            for _ in 0..8 {
+                crc = if crc & 0x8000 != 0 {
+                    (crc << 1) ^ 0x1021
+                } else {
+                    crc << 1
+                };
+            }
+        }
+    }
+    crc
+}
+
+/// Encodes a blob.
+pub fn encode(
+    ctx: &BlobContext<'_>,
+    model: &CodecModel,
+    child_classes: &[u8],
+    q: &[i32],
+) -> Vec<u8> {
+    let mut e = ModelEncoder::new(model);
+    entropy::write_gammas(&mut e, ctx.group, child_classes);
+    entropy::write_matrix(
+        &mut e,
+        ctx.group,
+        ctx.n,
+        q,
+        ctx.mask.map(DiamondMask::cells),
+    );
+    let payload = e.finish();
+    let head = (VERSION << 4) | ctx.n.trailing_zeros() as u8;
+    let crc = crc16(&[ctx.key, &[head], &payload]);
+    let mut out = Vec::with_capacity(HEADER_BYTES + payload.len());
+    out.push(head);
+    out.extend_from_slice(&crc.to_le_bytes());
+    out.extend_from_slice(&payload);
+    out
+}
+
+/// Decodes a blob into `q` (resized to `N x N`), returning the child classes.
+pub fn decode_into(
+    bytes: &[u8],
+    ctx: &BlobContext<'_>,
+    model: &CodecModel,
+    q: &mut Vec<i32>,
+) -> Result<Vec<u8>, DecodeError> {
+    if bytes.len() < HEADER_BYTES {
+        return Err(DecodeError::TooShort(bytes.len()));
+    }
+    let head = bytes[0];
+    if head >> 4 != VERSION {
+        return Err(DecodeError::Version(head >> 4));
+    }
+    if (head & 15) as u32 != ctx.n.trailing_zeros() {
+        return Err(DecodeError::Size {
+            got: head & 15,
+            expected: ctx.n,
+        });
+    }
+    let stored = u16::from_le_bytes([bytes[1], bytes[2]]);
+    let payload = &bytes[HEADER_BYTES..];
+    let computed = crc16(&[ctx.key, &[head], payload]);
+    if stored != computed {
+        return Err(DecodeError::Checksum { stored, computed });
+    }
+    let mut d = ModelDecoder::new(model, payload);
+    let classes = entropy::read_gammas(&mut d, ctx.group, ctx.owned_children);
+    q.resize(ctx.n * ctx.n, 0);
+    entropy::read_matrix(
+        &mut d,
+        ctx.group,
+        ctx.n,
+        q,
+        ctx.mask.map(DiamondMask::cells),
+    )?;
+    d.finish()?;
+    Ok(classes)
+}
+
+/// Decodes a blob.
+pub fn decode(
+    bytes: &[u8],
+    ctx: &BlobContext<'_>,
+    model: &CodecModel,
+) -> Result<BlobContent, DecodeError> {
+    let mut q = Vec::new();
+    let child_classes = decode_into(bytes, ctx, model, &mut q)?;
+    Ok(BlobContent { child_classes, q })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blob_round_trips_and_rejects_a_foreign_key() {
+        let model = CodecModel::default();
+        let ctx = BlobContext {
+            key: b"\x05abc",
+            n: 32,
+            group: 1,
+            mask: None,
+            owned_children: 2,
+        };
+        let q: Vec<i32> = (0..1024)
+            .map(|k| if k % 37 == 0 { (k % 11) as i32 - 5 } else { 0 })
+            .collect();
+        let bytes = encode(&ctx, &model, &[3, 0], &q);
+        let got = decode(&bytes, &ctx, &model).unwrap();
+        assert_eq!(
+            got,
+            BlobContent {
+                child_classes: vec![3, 0],
+                q
+            }
+        );
+        let other = BlobContext {
+            key: b"\x05abd",
+            ..ctx
+        };
+        assert!(matches!(
+            decode(&bytes, &other, &model),
+            Err(DecodeError::Checksum { .. })
+        ));
+        assert!(matches!(
+            decode(&bytes[..2], &ctx, &model),
+            Err(DecodeError::TooShort(2))
+        ));
+    }
+}

@@ -1,0 +1,819 @@
+//! Whole-raster encoder and decoder in memory: a grid of heights in metres becomes a root
+//! grid, per-level quantiser steps, a trained [`CodecModel`] and one blob per diamond
+//! with data, and back.
+//!
+//! Rate modes:
+//! - **Lossless**: bit-exact (integer data, or float data on a decimal grid).
+//! - **RMS tolerance**: open-loop uniform quantisation of details with per-level steps
+//!   `step_l = q / sqrt(G_l)` (`G_l` the synthesis energy gain of level `l`, measured),
+//!   `q` found by bisection on a gain-weighted error estimate and then corrected on the
+//!   measured error of a real decode until `rms <= tolerance`.
+//! - **Max-error tolerance**: the values are quantised to bins of width `2 E` (integer
+//!   data: `floor(2E) + 1` integer steps, centred), then coded losslessly: the bound
+//!   `|error| <= E` holds by construction and is measured anyway.
+//!
+//! Nodata samples are filled smoothly before coding ([`crate::fill`]); errors are measured
+//! over valid samples only.
+
+use std::collections::BTreeMap;
+use std::sync::{Mutex, OnceLock};
+
+use rayon::prelude::*;
+
+use crate::blob::{self, BlobContext, DecodeError};
+use crate::entropy::{self, CodecModel, ContextCounts};
+use crate::raster::{RasterError, RasterGeometry};
+
+/// How the encoder trades rate for accuracy.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RateMode {
+    /// Bit-exact.
+    Lossless,
+    /// Root-mean-square error over valid samples at most this many metres.
+    RmsM(f64),
+    /// Absolute error of every valid sample at most this many metres.
+    MaxErrorM(f64),
+}
+
+/// A grid of heights to encode.
+#[derive(Clone, Debug)]
+pub struct Grid {
+    /// Samples per row.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// Row-major heights in metres; `NaN` marks nodata.
+    pub values_m: Vec<f64>,
+    /// The quantum the data is known to be a multiple of (1 m for integer SRTM); `None`
+    /// for float data of unknown precision.
+    pub quantum_m: Option<f64>,
+}
+
+/// Encoder settings.
+#[derive(Clone, Copy, Debug)]
+pub struct EncodeOptions {
+    /// Diamond size `N` (cells per side; a power of two).
+    pub n: usize,
+    /// Rate mode.
+    pub mode: RateMode,
+}
+
+/// Why a grid could not be encoded.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum EncodeError {
+    /// Geometry problem.
+    #[error(transparent)]
+    Raster(#[from] RasterError),
+    /// No valid sample at all.
+    #[error("the grid has no valid samples (all nodata)")]
+    AllNodata,
+    /// Values do not fit the codec's integer range after scaling.
+    #[error("values span {0} quanta, more than the codec's 2^24")]
+    Range(f64),
+    /// Lossless coding of float data that is not on a decimal grid.
+    #[error(
+        "float data is not on a decimal grid of 1 mm or coarser: lossless coding is impossible; use a max-error tolerance"
+    )]
+    NotOnGrid,
+    /// A tolerance is not a positive finite number.
+    #[error("tolerance {0} is not a positive finite number of metres")]
+    BadTolerance(f64),
+    /// The value count does not match the dimensions.
+    #[error("expected {expected} values, got {got}")]
+    WrongLength {
+        /// width x height
+        expected: usize,
+        /// values given
+        got: usize,
+    },
+}
+
+/// What the encoder achieved, measured on a real decode.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct EncodeReport {
+    /// Grid samples (width x height, no padding).
+    pub samples: usize,
+    /// Valid (non-nodata) samples.
+    pub valid_samples: usize,
+    /// Diamonds with a blob.
+    pub blob_count: usize,
+    /// Bytes of all blobs.
+    pub blob_bytes: usize,
+    /// Bytes of the serialised root grid.
+    pub root_bytes: usize,
+    /// Bytes of the serialised model and quantiser steps.
+    pub model_bytes: usize,
+    /// `8 (blob_bytes + root_bytes + model_bytes) / samples`.
+    pub bits_per_sample: f64,
+    /// RMS error over valid samples, metres.
+    pub rms_m: f64,
+    /// Largest absolute error over valid samples, metres.
+    pub max_abs_m: f64,
+}
+
+/// A grid encoded in memory: everything a decoder needs.
+#[derive(Clone, Debug)]
+pub struct Encoded {
+    /// Grid width.
+    pub width: usize,
+    /// Grid height.
+    pub height: usize,
+    /// Diamond size.
+    pub n: usize,
+    /// Metres per integer unit.
+    pub value_scale_m: f64,
+    /// Metres at integer 0.
+    pub value_offset_m: f64,
+    /// Quantiser step per detail level, in 1/256 integer units.
+    pub steps: Vec<u32>,
+    /// Root vertex grid, `(N+1)^2` (zeros at invalid vertices).
+    pub root: Vec<i32>,
+    /// Trained starting probabilities.
+    pub model: CodecModel,
+    /// Blob of each diamond of each detail level (`None` = no data below it).
+    pub blobs: Vec<Vec<Option<Vec<u8>>>>,
+    /// Measured results.
+    pub report: EncodeReport,
+}
+
+/// Quantises a detail with step `s` (1/256 units): round to nearest, no dead zone.
+#[inline]
+pub fn quantize(h: i32, s: u32) -> i32 {
+    if s == 256 {
+        return h;
+    }
+    let a = h.unsigned_abs() as u64;
+    let q = ((a * 256 + s as u64 / 2) / s as u64) as i64;
+    (if h < 0 { -q } else { q }) as i32
+}
+
+/// Inverse of [`quantize`] (reconstruction at the bin centre).
+#[inline]
+pub fn dequantize(q: i32, s: u32) -> i32 {
+    if s == 256 {
+        return q;
+    }
+    let a = (q.unsigned_abs() as u64 * s as u64 + 128) >> 8;
+    let a = a.min(i32::MAX as u64) as i32;
+    if q < 0 { -a } else { a }
+}
+
+/// Synthesis energy gain of a unit detail `d` levels above the finest, for diamond size `n`
+/// (measured once per `n` on an impulse, extrapolated geometrically past the probe depth).
+pub fn synthesis_gains(n: usize, levels: usize) -> Vec<f64> {
+    static CACHE: OnceLock<Mutex<BTreeMap<usize, Vec<f64>>>> = OnceLock::new();
+    let cache = CACHE.get_or_init(|| Mutex::new(BTreeMap::new()));
+    let measured = {
+        let mut guard = cache.lock().unwrap_or_else(|e| e.into_inner());
+        guard.entry(n).or_insert_with(|| measure_gains(n)).clone()
+    };
+    let mut g = measured;
+    while g.len() < levels {
+        let k = g.len();
+        let ratio = if k >= 2 { g[k - 1] / g[k - 2] } else { 2.0 };
+        g.push(g[k - 1] * ratio);
+    }
+    g.truncate(levels.max(1));
+    g
+}
+
+fn measure_gains(n: usize) -> Vec<f64> {
+    const K: usize = 4;
+    let side = n * (1 << K) + 1;
+    let Ok(geom) = RasterGeometry::new(side, side, n) else {
+        return vec![1.0];
+    };
+    let levels = geom.detail_levels();
+    let amp = 1 << 12;
+    let mut gains = Vec::new();
+    // Skip the two coarsest levels of the probe (border half diamonds only).
+    for d in 0..levels.saturating_sub(2) {
+        let level = levels - 1 - d;
+        let slots = geom.level(level);
+        let Some(pick) = slots
+            .iter()
+            .position(|s| s.mask.is_none())
+            .map(|p| p + (slots.len() / 2).min(slots.len() - 1 - p) / 2)
+        else {
+            break;
+        };
+        let mut raster = vec![0; side * side];
+        let centre = (n / 2) * n + n / 2;
+        let ok = geom.synthesize::<RasterError>(&mut raster, |l, i, h| {
+            if l == level && i == pick {
+                h.iter_mut().for_each(|x| *x = 0);
+                h[centre] = amp;
+                Ok(true)
+            } else {
+                Ok(false)
+            }
+        });
+        if ok.is_err() {
+            break;
+        }
+        let e: f64 = raster.iter().map(|&x| (x as f64) * (x as f64)).sum();
+        gains.push(e / (amp as f64 * amp as f64));
+    }
+    if gains.is_empty() { vec![1.0] } else { gains }
+}
+
+/// The integer representation of a grid: `metres = offset + value * scale`.
+struct Integerised {
+    values: Vec<i32>,
+    valid: Vec<bool>,
+    scale: f64,
+    offset: f64,
+}
+
+fn integerise(grid: &Grid, mode: RateMode) -> Result<Integerised, EncodeError> {
+    let valid: Vec<bool> = grid.values_m.iter().map(|v| v.is_finite()).collect();
+    let mut vals = grid.values_m.clone();
+    if !crate::fill::push_pull(grid.width, grid.height, &mut vals, &valid) {
+        return Err(EncodeError::AllNodata);
+    }
+    let lo = vals.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = vals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let integral = |q: f64| {
+        grid.values_m
+            .iter()
+            .filter(|v| v.is_finite())
+            .all(|&v| ((v / q).round() * q - v).abs() <= q * 1e-6)
+    };
+    let native = match grid.quantum_m {
+        Some(q) if q > 0.0 && integral(q) => Some(q),
+        _ => [1.0, 0.1, 0.01, 0.001].into_iter().find(|&q| integral(q)),
+    };
+    let (scale, offset) = match mode {
+        RateMode::Lossless => (native.ok_or(EncodeError::NotOnGrid)?, 0.0),
+        RateMode::RmsM(t) => match native {
+            Some(q) if q <= t / 4.0 => (q, 0.0),
+            _ => (t / 16.0, 0.0),
+        },
+        RateMode::MaxErrorM(e) => match native {
+            Some(q) => {
+                let bins = (2.0 * e / q + 1e-9).floor() + 1.0;
+                (bins * q, (lo / q).round() * q + (bins - 1.0) / 2.0 * q)
+            }
+            None => (2.0 * e * (1.0 - 1e-9), 0.0),
+        },
+    };
+    if (hi - lo) / scale > (1u64 << 24) as f64 {
+        return Err(EncodeError::Range((hi - lo) / scale));
+    }
+    let values = match (mode, native) {
+        // Integer data in max-error mode: bins of whole quanta, floor so every bin holds
+        // exactly `bins` values.
+        (RateMode::MaxErrorM(_), Some(q)) => {
+            let base = (lo / q).round() * q;
+            vals.iter()
+                .map(|&v| (((v - base) / q).round() / (scale / q)).floor() as i32)
+                .collect()
+        }
+        _ => vals
+            .iter()
+            .map(|&v| ((v - offset) / scale).round() as i32)
+            .collect(),
+    };
+    let offset = match (mode, native) {
+        (RateMode::MaxErrorM(_), Some(q)) => (lo / q).round() * q + (scale / q - 1.0) / 2.0 * q,
+        _ => offset,
+    };
+    Ok(Integerised {
+        values,
+        valid,
+        scale,
+        offset,
+    })
+}
+
+/// Per-diamond measurements made during the verification decode.
+#[derive(Clone, Copy, Debug)]
+struct Measure {
+    grid_min: i64,
+    grid_max: i64,
+    fine_min: i64,
+    fine_max: i64,
+    /// Twice the largest departure of the refined lattice from the diamond's own
+    /// piecewise-linear surface.
+    delta2: i64,
+}
+
+fn measure(
+    n: usize,
+    mask: Option<&crate::lifting::DiamondMask>,
+    coarse: &[i32],
+    fine: &[i32],
+    cells: &[i32],
+) -> Measure {
+    let w = n + 1;
+    let mut m = Measure {
+        grid_min: i64::MAX,
+        grid_max: i64::MIN,
+        fine_min: i64::MAX,
+        fine_max: i64::MIN,
+        delta2: 0,
+    };
+    for i in 0..=n {
+        for j in 0..=n {
+            if mask.is_some_and(|mk| !mk.vertex(i, j)) {
+                continue;
+            }
+            let (c, f) = (coarse[i * w + j] as i64, fine[i * w + j] as i64);
+            m.grid_min = m.grid_min.min(c);
+            m.grid_max = m.grid_max.max(c);
+            m.fine_min = m.fine_min.min(f);
+            m.fine_max = m.fine_max.max(f);
+            m.delta2 = m.delta2.max(2 * (f - c).abs());
+        }
+    }
+    for i in 0..n {
+        for j in 0..n {
+            if mask.is_some_and(|mk| !mk.cell(i, j)) {
+                continue;
+            }
+            let v = cells[i * n + j] as i64;
+            m.fine_min = m.fine_min.min(v);
+            m.fine_max = m.fine_max.max(v);
+            let valid_diag = mask.is_none_or(|mk| mk.vertex(i, j) && mk.vertex(i + 1, j + 1));
+            if valid_diag {
+                let t2 = coarse[i * w + j] as i64 + coarse[(i + 1) * w + j + 1] as i64;
+                m.delta2 = m.delta2.max((2 * v - t2).abs());
+            }
+        }
+    }
+    if m.grid_min > m.grid_max {
+        m.grid_min = m.fine_min;
+        m.grid_max = m.fine_max;
+    }
+    m
+}
+
+/// Encodes a grid.
+pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> {
+    let expected = grid.width * grid.height;
+    if grid.values_m.len() != expected {
+        return Err(EncodeError::WrongLength {
+            expected,
+            got: grid.values_m.len(),
+        });
+    }
+    match opts.mode {
+        RateMode::RmsM(t) | RateMode::MaxErrorM(t) if !(t.is_finite() && t > 0.0) => {
+            return Err(EncodeError::BadTolerance(t));
+        }
+        _ => {}
+    }
+    let geom = RasterGeometry::new(grid.width, grid.height, opts.n)?;
+    let ints = integerise(grid, opts.mode)?;
+    let mut raster = ints.values.clone();
+    let details = geom.analyze(&mut raster)?;
+    let root = geom.gather_root(&raster);
+    let levels = geom.detail_levels();
+    let n = opts.n;
+
+    let error_of = |decoded: &[i32]| -> (f64, f64) {
+        let (sum, max) = decoded
+            .par_iter()
+            .zip(&grid.values_m)
+            .filter(|(_, v)| v.is_finite())
+            .map(|(&d, &v)| {
+                let e = (ints.offset + d as f64 * ints.scale - v).abs();
+                (e * e, e)
+            })
+            .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1.max(b.1)));
+        let count = ints.valid.iter().filter(|&&b| b).count().max(1);
+        ((sum / count as f64).sqrt(), max)
+    };
+
+    let mut steps = vec![256u32; levels];
+    let mut quantized: Vec<Vec<Vec<i32>>> = details.clone();
+    let mut decoded;
+    let measures;
+    let quantize_all = |steps: &[u32]| -> Vec<Vec<Vec<i32>>> {
+        details
+            .par_iter()
+            .enumerate()
+            .map(|(l, ds)| {
+                ds.iter()
+                    .map(|h| h.iter().map(|&x| quantize(x, steps[l])).collect())
+                    .collect()
+            })
+            .collect()
+    };
+    let decode_measure = |q: &[Vec<Vec<i32>>],
+                          steps: &[u32]|
+     -> Result<(Vec<i32>, Vec<Vec<Measure>>), EncodeError> {
+        let deq: Vec<Vec<Vec<i32>>> = q
+            .par_iter()
+            .enumerate()
+            .map(|(l, ds)| {
+                ds.iter()
+                    .map(|m| m.iter().map(|&x| dequantize(x, steps[l])).collect())
+                    .collect()
+            })
+            .collect();
+        let mut out = vec![0; expected];
+        geom.scatter_root(&root, &mut out);
+        let ms = geom.synthesize_par(&mut out, &deq, |l, i, coarse, fine, cells| {
+            measure(n, geom.level(l)[i].mask.as_ref(), coarse, fine, cells)
+        })?;
+        Ok((out, ms))
+    };
+
+    if let RateMode::RmsM(target) = opts.mode {
+        let gains = synthesis_gains(n, levels);
+        let step_of = |q: f64, l: usize| -> u32 {
+            let g = gains[levels - 1 - l].max(1e-6);
+            ((q / g.sqrt()) * 256.0).round().clamp(256.0, 1e9) as u32
+        };
+        // Histogram of |detail| per level for fast error estimates.
+        let hist: Vec<Vec<(u32, u64)>> = details
+            .par_iter()
+            .map(|ds| {
+                let mut m: BTreeMap<u32, u64> = BTreeMap::new();
+                for h in ds {
+                    for &x in h {
+                        *m.entry(x.unsigned_abs()).or_insert(0) += 1;
+                    }
+                }
+                m.into_iter().collect()
+            })
+            .collect();
+        let valid_count = ints.valid.iter().filter(|&&b| b).count().max(1) as f64;
+        let estimate = |q: f64| -> f64 {
+            let mut mse = 0.0;
+            for (l, hl) in hist.iter().enumerate() {
+                let s = step_of(q, l);
+                let g = gains[levels - 1 - l];
+                let e: f64 = hl
+                    .iter()
+                    .map(|&(a, c)| {
+                        let r = dequantize(quantize(a as i32, s), s) as f64;
+                        let d = a as f64 - r;
+                        d * d * c as f64
+                    })
+                    .sum();
+                mse += g * e;
+            }
+            (mse / valid_count).sqrt() * ints.scale
+        };
+        let (mut lo, mut hi) = (1e-3f64, 1e7f64);
+        for _ in 0..50 {
+            let mid = (lo * hi).sqrt();
+            if estimate(mid) <= target {
+                lo = mid
+            } else {
+                hi = mid
+            }
+        }
+        let mut q = lo;
+        let mut best: Option<(
+            f64,
+            Vec<u32>,
+            Vec<Vec<Vec<i32>>>,
+            Vec<i32>,
+            Vec<Vec<Measure>>,
+        )> = None;
+        for _ in 0..8 {
+            let st: Vec<u32> = (0..levels).map(|l| step_of(q, l)).collect();
+            let qd = quantize_all(&st);
+            let (dec, ms) = decode_measure(&qd, &st)?;
+            let (rms, _) = error_of(&dec);
+            if rms <= target {
+                best = Some((q, st, qd, dec, ms));
+                if rms >= target * 0.985 {
+                    break;
+                }
+                q *= (target / rms.max(1e-12)).min(1.5) * 0.997;
+            } else {
+                if best.is_some() {
+                    break;
+                }
+                q *= (target / rms) * 0.99;
+            }
+        }
+        let (_, st, qd, dec, ms) = match best {
+            Some(b) => b,
+            None => {
+                // Fall back to the finest steps (integer lossless) if nothing met the target.
+                let st = vec![256; levels];
+                let qd = quantize_all(&st);
+                let (dec, ms) = decode_measure(&qd, &st)?;
+                (0.0, st, qd, dec, ms)
+            }
+        };
+        steps = st;
+        quantized = qd;
+        decoded = dec;
+        measures = ms;
+    } else {
+        let (dec, ms) = decode_measure(&quantized, &steps)?;
+        decoded = dec;
+        measures = ms;
+    }
+    let (rms_m, max_abs_m) = error_of(&decoded);
+    drop(std::mem::take(&mut decoded));
+
+    // Bottom-up: subtree bounds, side information, which diamonds have data.
+    let mut gamma: Vec<Vec<u64>> = vec![Vec::new(); levels];
+    let mut has_data: Vec<Vec<bool>> = vec![Vec::new(); levels];
+    let mut bounds: Vec<Vec<(i64, i64)>> = vec![Vec::new(); levels];
+    for l in (0..levels).rev() {
+        let slots = geom.level(l);
+        let mut g = Vec::with_capacity(slots.len());
+        let mut hd = Vec::with_capacity(slots.len());
+        let mut bd = Vec::with_capacity(slots.len());
+        for (i, s) in slots.iter().enumerate() {
+            let m = &measures[l][i];
+            let (mut lo, mut hi) = (m.grid_min.min(m.fine_min), m.grid_max.max(m.fine_max));
+            let mut gam = (m.delta2 + 1) / 2;
+            let mut data = quantized[l][i].iter().any(|&x| x != 0);
+            if l + 1 < levels {
+                for &k in &s.children {
+                    lo = lo.min(bounds[l + 1][k].0);
+                    hi = hi.max(bounds[l + 1][k].1);
+                    gam = gam.max(gamma[l + 1][k] as i64);
+                    data |= has_data[l + 1][k];
+                }
+            }
+            gam = gam.max(m.grid_min - lo).max(hi - m.grid_max);
+            g.push(gam as u64);
+            hd.push(data);
+            bd.push((lo, hi));
+        }
+        gamma[l] = g;
+        has_data[l] = hd;
+        bounds[l] = bd;
+    }
+    drop(measures);
+
+    let context_of = |l: usize, i: usize| -> BlobContext<'_> {
+        let s = &geom.level(l)[i];
+        BlobContext {
+            key: &s.key,
+            n,
+            group: entropy::group(levels - 1 - l),
+            mask: s.mask.as_ref(),
+            owned_children: s.owned.len(),
+        }
+    };
+    let classes_of = |l: usize, i: usize| -> Vec<u8> {
+        geom.level(l)[i]
+            .owned
+            .iter()
+            .map(|&k| entropy::gamma_class(gamma[l + 1][k]))
+            .collect()
+    };
+    // Train the model on every blob, then code.
+    let counts = (0..levels)
+        .into_par_iter()
+        .flat_map(|l| {
+            (0..geom.level(l).len())
+                .into_par_iter()
+                .map(move |i| (l, i))
+        })
+        .filter(|&(l, i)| has_data[l][i])
+        .fold(ContextCounts::default, |mut acc, (l, i)| {
+            let ctx = context_of(l, i);
+            entropy::write_gammas(&mut acc, ctx.group, &classes_of(l, i));
+            entropy::write_matrix(
+                &mut acc,
+                ctx.group,
+                n,
+                &quantized[l][i],
+                ctx.mask.map(crate::lifting::DiamondMask::cells),
+            );
+            acc
+        })
+        .reduce(ContextCounts::default, |mut a, b| {
+            a.merge(&b);
+            a
+        });
+    let model = CodecModel::from_counts(&counts);
+    let blobs: Vec<Vec<Option<Vec<u8>>>> = (0..levels)
+        .map(|l| {
+            (0..geom.level(l).len())
+                .into_par_iter()
+                .map(|i| {
+                    has_data[l][i].then(|| {
+                        blob::encode(
+                            &context_of(l, i),
+                            &model,
+                            &classes_of(l, i),
+                            &quantized[l][i],
+                        )
+                    })
+                })
+                .collect()
+        })
+        .collect();
+
+    let blob_bytes: usize = blobs.iter().flatten().flatten().map(Vec::len).sum();
+    let blob_count = blobs.iter().flatten().flatten().count();
+    let root_bytes = root_grid_bytes(&root).len();
+    let model_bytes = model.to_bytes().len() + 4 * steps.len() + 16;
+    let report = EncodeReport {
+        samples: expected,
+        valid_samples: ints.valid.iter().filter(|&&b| b).count(),
+        blob_count,
+        blob_bytes,
+        root_bytes,
+        model_bytes,
+        bits_per_sample: 8.0 * (blob_bytes + root_bytes + model_bytes) as f64 / expected as f64,
+        rms_m,
+        max_abs_m,
+    };
+    Ok(Encoded {
+        width: grid.width,
+        height: grid.height,
+        n,
+        value_scale_m: ints.scale,
+        value_offset_m: ints.offset,
+        steps,
+        root,
+        model,
+        blobs,
+        report,
+    })
+}
+
+/// Serialises a root grid: zigzag LEB128 varints of row-wise differences.
+pub fn root_grid_bytes(root: &[i32]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut prev = 0i64;
+    for &v in root {
+        let d = v as i64 - prev;
+        prev = v as i64;
+        let mut z = ((d << 1) ^ (d >> 63)) as u64;
+        loop {
+            let b = (z & 0x7F) as u8;
+            z >>= 7;
+            if z == 0 {
+                out.push(b);
+                break;
+            }
+            out.push(b | 0x80);
+        }
+    }
+    out
+}
+
+impl From<RasterError> for DecodeError {
+    fn from(e: RasterError) -> Self {
+        DecodeError::Entropy(entropy::EntropyError::BadModel(match e {
+            RasterError::WrongLength { .. } => "raster length",
+            _ => "geometry",
+        }))
+    }
+}
+
+/// Decodes to integer values (full resolution, one thread).
+pub fn decode_integers(enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
+    let geom = RasterGeometry::new(enc.width, enc.height, enc.n)?;
+    decode_integers_with(&geom, enc)
+}
+
+/// Decodes with a prepared geometry.
+pub fn decode_integers_with(geom: &RasterGeometry, enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
+    let levels = geom.detail_levels();
+    let mut raster = vec![0; enc.width * enc.height];
+    geom.scatter_root(&enc.root, &mut raster);
+    let mut q = Vec::with_capacity(enc.n * enc.n);
+    geom.synthesize::<DecodeError>(&mut raster, |l, i, h| {
+        let Some(bytes) = enc
+            .blobs
+            .get(l)
+            .and_then(|b| b.get(i))
+            .and_then(Option::as_deref)
+        else {
+            return Ok(false);
+        };
+        let s = &geom.level(l)[i];
+        let ctx = BlobContext {
+            key: &s.key,
+            n: enc.n,
+            group: entropy::group(levels - 1 - l),
+            mask: s.mask.as_ref(),
+            owned_children: s.owned.len(),
+        };
+        blob::decode_into(bytes, &ctx, &enc.model, &mut q)?;
+        let step = enc.steps.get(l).copied().unwrap_or(256);
+        for (dst, &x) in h.iter_mut().zip(q.iter()) {
+            *dst = dequantize(x, step);
+        }
+        Ok(true)
+    })?;
+    Ok(raster)
+}
+
+/// Decodes to metres.
+pub fn decode(enc: &Encoded) -> Result<Vec<f64>, DecodeError> {
+    Ok(decode_integers(enc)?
+        .into_iter()
+        .map(|v| enc.value_offset_m + v as f64 * enc.value_scale_m)
+        .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn synthetic(w: usize, h: usize) -> Grid {
+        let values_m = (0..w * h)
+            .map(|k| {
+                let (x, y) = ((k % w) as f64, (k / w) as f64);
+                (300.0 * (x / 17.0).sin() * (y / 23.0).cos() + 0.5 * x + ((k * 7919) % 13) as f64)
+                    .round()
+            })
+            .collect();
+        Grid {
+            width: w,
+            height: h,
+            values_m,
+            quantum_m: Some(1.0),
+        }
+    }
+
+    #[test]
+    fn lossless_round_trip_is_bit_exact() {
+        let g = synthetic(130, 97);
+        let enc = encode(
+            &g,
+            EncodeOptions {
+                n: 32,
+                mode: RateMode::Lossless,
+            },
+        )
+        .unwrap();
+        assert_eq!(decode(&enc).unwrap(), g.values_m);
+        assert_eq!(enc.report.max_abs_m, 0.0);
+    }
+
+    #[test]
+    fn max_error_mode_meets_its_bound() {
+        let g = synthetic(200, 150);
+        for e in [0.5, 1.0, 2.5, 10.0] {
+            let enc = encode(
+                &g,
+                EncodeOptions {
+                    n: 32,
+                    mode: RateMode::MaxErrorM(e),
+                },
+            )
+            .unwrap();
+            let dec = decode(&enc).unwrap();
+            let max = dec
+                .iter()
+                .zip(&g.values_m)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(max <= e + 1e-9, "e={e} max={max}");
+        }
+    }
+
+    #[test]
+    fn rms_mode_meets_its_target() {
+        let g = synthetic(257, 257);
+        for t in [1.0, 5.0] {
+            let enc = encode(
+                &g,
+                EncodeOptions {
+                    n: 32,
+                    mode: RateMode::RmsM(t),
+                },
+            )
+            .unwrap();
+            let dec = decode(&enc).unwrap();
+            let mse = dec
+                .iter()
+                .zip(&g.values_m)
+                .map(|(a, b)| (a - b) * (a - b))
+                .sum::<f64>()
+                / dec.len() as f64;
+            assert!(mse.sqrt() <= t, "t={t} rms={}", mse.sqrt());
+            assert!((enc.report.rms_m - mse.sqrt()).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn nodata_is_filled_and_excluded_from_errors() {
+        let mut g = synthetic(100, 80);
+        for k in (0..8000).step_by(37) {
+            g.values_m[k] = f64::NAN;
+        }
+        let enc = encode(
+            &g,
+            EncodeOptions {
+                n: 16,
+                mode: RateMode::Lossless,
+            },
+        )
+        .unwrap();
+        let dec = decode(&enc).unwrap();
+        for (a, b) in dec.iter().zip(&g.values_m) {
+            if b.is_finite() {
+                assert_eq!(a, b);
+            }
+        }
+    }
+}

@@ -1,0 +1,645 @@
+//! The coefficient coder: context-modelled binary range coding of one diamond's quantised
+//! detail matrix, with per-repository trained priors.
+//!
+//! Design (why): blobs are small (tens of bytes at 0.2 bits/sample), so an adaptive coder
+//! that starts from flat probabilities learns nothing before the blob ends. Each context's
+//! starting probability is therefore trained on the whole repository at build time and
+//! shipped once in its metadata ([`CodecModel`], ~1 KB); within a blob the probabilities
+//! still adapt. Decoding is built for weak clients: all-zero regions are skipped by a
+//! quadtree of 4x4 blocks (one or two binary decisions for a flat diamond), and each
+//! coefficient costs one decision when zero, about three when small.
+//!
+//! Binarisation of a matrix (level group `g` = distance from the finest level, capped):
+//! 1. `nonzero` flag; 2. quadtree significance of 4x4 blocks (the last candidate child of
+//! a significant node is inferred), context = node size and significant left/upper
+//! neighbours; 3. per valid cell of a significant block, in raster order: significance
+//! (context: activity `2|W| + 2|N| + |NW| + |NE|` of already coded neighbours), sign
+//! (context: signs of W and N), magnitude - 1 in unary over 14 context-coded bins, then
+//! Exp-Golomb in bypass bits.
+
+pub mod range;
+
+use range::{Decoder, Encoder, HALF, Prob};
+
+/// Number of level groups with their own contexts (distance from the finest level,
+/// capped at `GROUPS - 1`).
+pub const GROUPS: usize = 6;
+
+const NONZERO: usize = 0;
+const GAMMA_ZERO: usize = 1;
+const GAMMA_UNARY: usize = 2; // 16
+const QUAD: usize = 18; // 4 sizes x 3
+const SIG: usize = 30; // 10 classes
+const SIGN: usize = 40; // 9
+const MAG: usize = 49; // 3 buckets x 14 bins
+const MAG_BINS: usize = 14;
+const PER_GROUP: usize = 91;
+
+/// Total number of contexts.
+pub const CONTEXTS: usize = GROUPS * PER_GROUP;
+
+/// Why a coded matrix could not be decoded.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum EntropyError {
+    /// An escape code announced more than 32 bits.
+    #[error("magnitude escape longer than 32 bits")]
+    EscapeTooLong,
+    /// The decoder read past the end of the payload by more than the coder's lookahead.
+    #[error("coded data ends early")]
+    Truncated,
+    /// The model bytes are malformed.
+    #[error("codec model: {0}")]
+    BadModel(&'static str),
+}
+
+/// Starting probabilities of every context: trained per repository, shipped once.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CodecModel {
+    probs: Vec<Prob>,
+}
+
+impl Default for CodecModel {
+    fn default() -> Self {
+        CodecModel {
+            probs: vec![HALF; CONTEXTS],
+        }
+    }
+}
+
+impl CodecModel {
+    /// A model from per-context counts of zeros and ones.
+    pub fn from_counts(counts: &ContextCounts) -> Self {
+        let probs = counts
+            .counts
+            .iter()
+            .map(|&[n0, n1]| {
+                let p = (n0 as f64 + 0.4) / (n0 as f64 + n1 as f64 + 0.8);
+                (p * 65536.0).round().clamp(32.0, 65504.0) as Prob
+            })
+            .collect();
+        CodecModel { probs }
+    }
+
+    /// Serialised form: one little-endian `u16` per context.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        self.probs.iter().flat_map(|p| p.to_le_bytes()).collect()
+    }
+
+    /// Parses [`CodecModel::to_bytes`].
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, EntropyError> {
+        if bytes.len() != 2 * CONTEXTS {
+            return Err(EntropyError::BadModel("wrong length"));
+        }
+        let probs: Vec<Prob> = bytes
+            .chunks_exact(2)
+            .map(|c| u16::from_le_bytes([c[0], c[1]]))
+            .collect();
+        if probs.iter().any(|&p| !(32..=65504).contains(&p)) {
+            return Err(EntropyError::BadModel("probability out of range"));
+        }
+        Ok(CodecModel { probs })
+    }
+}
+
+/// Per-context counts of coded zeros and ones (for training a [`CodecModel`]).
+#[derive(Clone, Debug)]
+pub struct ContextCounts {
+    counts: Vec<[u64; 2]>,
+}
+
+impl Default for ContextCounts {
+    fn default() -> Self {
+        ContextCounts {
+            counts: vec![[0; 2]; CONTEXTS],
+        }
+    }
+}
+
+impl ContextCounts {
+    /// Adds another set of counts.
+    pub fn merge(&mut self, other: &ContextCounts) {
+        for (a, b) in self.counts.iter_mut().zip(&other.counts) {
+            a[0] += b[0];
+            a[1] += b[1];
+        }
+    }
+}
+
+/// Where binary decisions go: a range encoder or a counter.
+pub trait BitSink {
+    /// A context-coded decision.
+    fn bit(&mut self, ctx: usize, bit: bool);
+    /// `count` equiprobable bits of `value`, most significant first.
+    fn bypass(&mut self, value: u32, count: u32);
+}
+
+impl BitSink for ContextCounts {
+    fn bit(&mut self, ctx: usize, bit: bool) {
+        self.counts[ctx][bit as usize] += 1;
+    }
+    fn bypass(&mut self, _value: u32, _count: u32) {}
+}
+
+/// A range encoder with its own copy of the model's probabilities.
+pub struct ModelEncoder {
+    enc: Encoder,
+    probs: Vec<Prob>,
+}
+
+impl ModelEncoder {
+    /// Starts a payload.
+    pub fn new(model: &CodecModel) -> Self {
+        ModelEncoder {
+            enc: Encoder::new(),
+            probs: model.probs.clone(),
+        }
+    }
+
+    /// Ends the payload.
+    pub fn finish(self) -> Vec<u8> {
+        self.enc.finish()
+    }
+}
+
+impl BitSink for ModelEncoder {
+    #[inline(always)]
+    fn bit(&mut self, ctx: usize, bit: bool) {
+        self.enc.bit(&mut self.probs[ctx], bit);
+    }
+    fn bypass(&mut self, value: u32, count: u32) {
+        self.enc.bypass(value, count);
+    }
+}
+
+/// A range decoder with its own copy of the model's probabilities.
+pub struct ModelDecoder<'a> {
+    dec: Decoder<'a>,
+    probs: Vec<Prob>,
+    len: usize,
+}
+
+impl<'a> ModelDecoder<'a> {
+    /// Starts decoding a payload.
+    pub fn new(model: &CodecModel, data: &'a [u8]) -> Self {
+        ModelDecoder {
+            dec: Decoder::new(data),
+            probs: model.probs.clone(),
+            len: data.len(),
+        }
+    }
+
+    #[inline(always)]
+    fn bit(&mut self, ctx: usize) -> bool {
+        self.dec.bit(&mut self.probs[ctx])
+    }
+
+    /// Bytes consumed so far (including zeros read past the end).
+    pub fn consumed(&self) -> usize {
+        self.dec.consumed()
+    }
+
+    /// Checks that decoding did not run far past the payload (a truncated blob).
+    pub fn finish(&self) -> Result<(), EntropyError> {
+        if self.dec.consumed() > self.len + 64 {
+            Err(EntropyError::Truncated)
+        } else {
+            Ok(())
+        }
+    }
+}
+
+/// Level group of a diamond `distance` levels above the finest detail level.
+pub fn group(distance: usize) -> usize {
+    distance.min(GROUPS - 1)
+}
+
+fn ctx(g: usize, offset: usize) -> usize {
+    g * PER_GROUP + offset
+}
+
+/// Side information class of a bound `gamma` (value quanta): 0 for 0, else the smallest
+/// `k` with `gamma <= class_bound(k)`.
+pub fn gamma_class(gamma: u64) -> u8 {
+    (0..=63u8).find(|&k| class_bound(k) >= gamma).unwrap_or(63)
+}
+
+/// Upper bound represented by a side information class: 0, then `ceil(sqrt(2)^(k-1))`.
+pub fn class_bound(k: u8) -> u64 {
+    if k == 0 {
+        0
+    } else {
+        (2f64).powf((k as f64 - 1.0) / 2.0).ceil() as u64
+    }
+}
+
+/// Writes side information classes (one per owned child).
+pub fn write_gammas<S: BitSink>(s: &mut S, g: usize, classes: &[u8]) {
+    for &c in classes {
+        let c = c.min(63) as u32;
+        s.bit(ctx(g, GAMMA_ZERO), c > 0);
+        if c > 0 {
+            let hi = (c - 1) >> 2;
+            for k in 0..hi.min(15) {
+                s.bit(ctx(g, GAMMA_UNARY + k as usize), true);
+            }
+            if hi < 15 {
+                s.bit(ctx(g, GAMMA_UNARY + hi as usize), false);
+            }
+            s.bypass((c - 1) & 3, 2);
+        }
+    }
+}
+
+/// Reads side information classes.
+pub fn read_gammas(d: &mut ModelDecoder<'_>, g: usize, count: usize) -> Vec<u8> {
+    (0..count)
+        .map(|_| {
+            if !d.bit(ctx(g, GAMMA_ZERO)) {
+                return 0;
+            }
+            let mut hi = 0u32;
+            while hi < 15 && d.bit(ctx(g, GAMMA_UNARY + hi as usize)) {
+                hi += 1;
+            }
+            let lo = d.dec.bypass(2);
+            (1 + (hi << 2) + lo).min(63) as u8
+        })
+        .collect()
+}
+
+fn activity_class(a: u32) -> usize {
+    match a {
+        0 => 0,
+        1..=2 => 1,
+        3..=4 => 2,
+        5..=6 => 3,
+        7..=9 => 4,
+        10..=13 => 5,
+        14..=19 => 6,
+        20..=29 => 7,
+        30..=49 => 8,
+        _ => 9,
+    }
+}
+
+fn sgn3(v: i32) -> usize {
+    match v.signum() {
+        -1 => 0,
+        0 => 1,
+        _ => 2,
+    }
+}
+
+/// Block geometry of an `n x n` matrix: 4x4 blocks (or `n x n` when `n < 4`).
+struct Blocks {
+    b: usize,
+    nb: usize,
+}
+
+impl Blocks {
+    fn new(n: usize) -> Self {
+        let b = n.min(4);
+        Blocks { b, nb: n / b }
+    }
+}
+
+/// Context of coefficient `(i, j)` from already coded neighbours in `rec`.
+#[inline(always)]
+fn neighbourhood(rec: &[i32], n: usize, i: usize, j: usize) -> (usize, usize) {
+    let at = |ii: usize, jj: usize| rec[ii * n + jj];
+    let w = if j > 0 { at(i, j - 1) } else { 0 };
+    let nn = if i > 0 { at(i - 1, j) } else { 0 };
+    let nw = if i > 0 && j > 0 { at(i - 1, j - 1) } else { 0 };
+    let ne = if i > 0 && j + 1 < n {
+        at(i - 1, j + 1)
+    } else {
+        0
+    };
+    let a = 2u32
+        .saturating_mul(w.unsigned_abs())
+        .saturating_add(2u32.saturating_mul(nn.unsigned_abs()))
+        .saturating_add(nw.unsigned_abs())
+        .saturating_add(ne.unsigned_abs());
+    (activity_class(a), 3 * sgn3(w) + sgn3(nn))
+}
+
+fn size_class(size_in_blocks: usize) -> usize {
+    (size_in_blocks.trailing_zeros() as usize).min(3)
+}
+
+/// Writes one quantised detail matrix (`valid` marks coded cells; others must be 0).
+pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid: Option<&[bool]>) {
+    let is_valid = |k: usize| valid.is_none_or(|v| v[k]);
+    let nonzero = q.iter().any(|&x| x != 0);
+    s.bit(ctx(g, NONZERO), nonzero);
+    if !nonzero {
+        return;
+    }
+    let bl = Blocks::new(n);
+    let block_any = |by: usize, bx: usize, size: usize, pred: &dyn Fn(usize) -> bool| {
+        (by * bl.b..(by + size) * bl.b)
+            .any(|i| (bx * bl.b..(bx + size) * bl.b).any(|j| pred(i * n + j)))
+    };
+    let mut sig = vec![vec![false; bl.nb * bl.nb]; bl.nb.trailing_zeros() as usize + 1];
+    // Quadtree, depth first in Z-order.
+    let mut stack = vec![(0usize, 0usize, bl.nb)];
+    let top = bl.nb.trailing_zeros() as usize;
+    sig[top][0] = true;
+    let mut blocks = Vec::new();
+    while let Some((by, bx, size)) = stack.pop() {
+        if size == 1 {
+            blocks.push((by, bx));
+            continue;
+        }
+        let half = size / 2;
+        let lvl = half.trailing_zeros() as usize;
+        let kids = [
+            (by, bx),
+            (by, bx + half),
+            (by + half, bx),
+            (by + half, bx + half),
+        ];
+        let candidates: Vec<(usize, usize)> = kids
+            .into_iter()
+            .filter(|&(y, x)| block_any(y, x, half, &is_valid))
+            .collect();
+        let mut any = false;
+        let mut sig_kids = Vec::new();
+        for (k, &(y, x)) in candidates.iter().enumerate() {
+            let is_sig = block_any(y, x, half, &|idx| q[idx] != 0);
+            if !(k + 1 == candidates.len() && !any) {
+                let cy = y / half;
+                let cx = x / half;
+                let side = bl.nb / half;
+                let left = cx > 0 && sig[lvl][cy * side + cx - 1];
+                let up = cy > 0 && sig[lvl][(cy - 1) * side + cx];
+                s.bit(
+                    ctx(g, QUAD + 3 * size_class(half) + left as usize + up as usize),
+                    is_sig,
+                );
+            }
+            if is_sig {
+                any = true;
+                sig[lvl][(y / half) * (bl.nb / half) + x / half] = true;
+                sig_kids.push((y, x));
+            }
+        }
+        for &(y, x) in sig_kids.iter().rev() {
+            stack.push((y, x, half));
+        }
+    }
+    let mut rec = vec![0i32; n * n];
+    blocks.sort_unstable();
+    for (by, bx) in blocks {
+        let cells: Vec<usize> = (by * bl.b..(by + 1) * bl.b)
+            .flat_map(|i| (bx * bl.b..(bx + 1) * bl.b).map(move |j| i * n + j))
+            .filter(|&k| is_valid(k))
+            .collect();
+        let mut seen = false;
+        for (idx, &k) in cells.iter().enumerate() {
+            let (i, j) = (k / n, k % n);
+            let (class, sctx) = neighbourhood(&rec, n, i, j);
+            let v = q[k];
+            if !(idx + 1 == cells.len() && !seen) {
+                s.bit(ctx(g, SIG + class), v != 0);
+            }
+            if v == 0 {
+                continue;
+            }
+            seen = true;
+            s.bit(ctx(g, SIGN + sctx), v < 0);
+            let mag = v.unsigned_abs() - 1;
+            let bucket = if class < 3 {
+                0
+            } else if class < 6 {
+                1
+            } else {
+                2
+            };
+            let mut b = 0;
+            while b < MAG_BINS {
+                let more = mag > b as u32;
+                s.bit(ctx(g, MAG + bucket * MAG_BINS + b), more);
+                if !more {
+                    break;
+                }
+                b += 1;
+            }
+            if b == MAG_BINS {
+                let e = mag - MAG_BINS as u32 + 1;
+                let bits = 32 - e.leading_zeros();
+                s.bypass(0, bits - 1);
+                s.bypass(1, 1);
+                s.bypass(e, bits - 1);
+            }
+            rec[k] = v;
+        }
+    }
+}
+
+/// Reads one quantised detail matrix written by [`write_matrix`] into `q` (`n x n`).
+pub fn read_matrix(
+    d: &mut ModelDecoder<'_>,
+    g: usize,
+    n: usize,
+    q: &mut [i32],
+    valid: Option<&[bool]>,
+) -> Result<(), EntropyError> {
+    q.iter_mut().for_each(|x| *x = 0);
+    if !d.bit(ctx(g, NONZERO)) {
+        return Ok(());
+    }
+    let is_valid = |k: usize| valid.is_none_or(|v| v[k]);
+    let bl = Blocks::new(n);
+    let block_valid = |by: usize, bx: usize, size: usize| {
+        valid.is_none()
+            || (by * bl.b..(by + size) * bl.b)
+                .any(|i| (bx * bl.b..(bx + size) * bl.b).any(|j| is_valid(i * n + j)))
+    };
+    let top = bl.nb.trailing_zeros() as usize;
+    let mut sig = vec![vec![false; bl.nb * bl.nb]; top + 1];
+    sig[top][0] = true;
+    let mut stack = vec![(0usize, 0usize, bl.nb)];
+    let mut blocks = Vec::new();
+    while let Some((by, bx, size)) = stack.pop() {
+        if size == 1 {
+            blocks.push((by, bx));
+            continue;
+        }
+        let half = size / 2;
+        let lvl = half.trailing_zeros() as usize;
+        let side = bl.nb / half;
+        let kids = [
+            (by, bx),
+            (by, bx + half),
+            (by + half, bx),
+            (by + half, bx + half),
+        ];
+        let mut candidates = [(0usize, 0usize); 4];
+        let mut nc = 0;
+        for (y, x) in kids {
+            if block_valid(y, x, half) {
+                candidates[nc] = (y, x);
+                nc += 1;
+            }
+        }
+        let mut any = false;
+        let mut sig_kids = [(0usize, 0usize); 4];
+        let mut ns = 0;
+        for (k, &(y, x)) in candidates[..nc].iter().enumerate() {
+            let (cy, cx) = (y / half, x / half);
+            let is_sig = if k + 1 == nc && !any {
+                true
+            } else {
+                let left = cx > 0 && sig[lvl][cy * side + cx - 1];
+                let up = cy > 0 && sig[lvl][(cy - 1) * side + cx];
+                d.bit(ctx(
+                    g,
+                    QUAD + 3 * size_class(half) + left as usize + up as usize,
+                ))
+            };
+            if is_sig {
+                any = true;
+                sig[lvl][cy * side + cx] = true;
+                sig_kids[ns] = (y, x);
+                ns += 1;
+            }
+        }
+        for &(y, x) in sig_kids[..ns].iter().rev() {
+            stack.push((y, x, half));
+        }
+    }
+    blocks.sort_unstable();
+    let mut cells = [0usize; 16];
+    for (by, bx) in blocks {
+        let mut nc = 0;
+        for i in by * bl.b..(by + 1) * bl.b {
+            for j in bx * bl.b..(bx + 1) * bl.b {
+                if is_valid(i * n + j) {
+                    cells[nc] = i * n + j;
+                    nc += 1;
+                }
+            }
+        }
+        let mut seen = false;
+        for (idx, &k) in cells[..nc].iter().enumerate() {
+            let (i, j) = (k / n, k % n);
+            let (class, sctx) = neighbourhood(q, n, i, j);
+            let nonzero = if idx + 1 == nc && !seen {
+                true
+            } else {
+                d.bit(ctx(g, SIG + class))
+            };
+            if !nonzero {
+                continue;
+            }
+            seen = true;
+            let negative = d.bit(ctx(g, SIGN + sctx));
+            let bucket = if class < 3 {
+                0
+            } else if class < 6 {
+                1
+            } else {
+                2
+            };
+            let mut mag = 0u32;
+            while (mag as usize) < MAG_BINS && d.bit(ctx(g, MAG + bucket * MAG_BINS + mag as usize))
+            {
+                mag += 1;
+            }
+            if mag as usize == MAG_BINS {
+                let mut zeros = 0;
+                while d.dec.bypass(1) == 0 {
+                    zeros += 1;
+                    if zeros > 31 {
+                        return Err(EntropyError::EscapeTooLong);
+                    }
+                }
+                let e = (1u64 << zeros) | d.dec.bypass(zeros) as u64;
+                let total = e - 1 + MAG_BINS as u64 + 1;
+                if total > 1 << 31 {
+                    return Err(EntropyError::EscapeTooLong);
+                }
+                mag = (total - 1) as u32;
+            }
+            let m = (mag as i64) + 1;
+            q[k] = if negative {
+                (-m) as i32
+            } else {
+                m.min(i32::MAX as i64) as i32
+            };
+        }
+        if d.dec.consumed() > d.len + 64 {
+            return Err(EntropyError::Truncated);
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn round_trip(n: usize, q: &[i32], valid: Option<&[bool]>, model: &CodecModel) -> usize {
+        let mut e = ModelEncoder::new(model);
+        write_gammas(&mut e, 2, &[0, 5, 63]);
+        write_matrix(&mut e, 2, n, q, valid);
+        let bytes = e.finish();
+        let mut d = ModelDecoder::new(model, &bytes);
+        assert_eq!(read_gammas(&mut d, 2, 3), vec![0, 5, 63]);
+        let mut out = vec![7; n * n];
+        read_matrix(&mut d, 2, n, &mut out, valid).unwrap();
+        assert_eq!(out, q);
+        bytes.len()
+    }
+
+    #[test]
+    fn matrices_round_trip_including_extreme_values() {
+        let model = CodecModel::default();
+        let mut seed = 3u64;
+        for n in [2usize, 4, 8, 32, 64] {
+            for density in [0u64, 1, 10, 50, 100] {
+                let q: Vec<i32> = (0..n * n)
+                    .map(|_| {
+                        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1);
+                        if (seed >> 33) % 100 < density {
+                            match (seed >> 20) % 5 {
+                                0 => i32::MIN,
+                                1 => i32::MAX,
+                                _ => ((seed >> 40) % 41) as i32 - 20,
+                            }
+                        } else {
+                            0
+                        }
+                    })
+                    .collect();
+                round_trip(n, &q, None, &model);
+                let valid: Vec<bool> = (0..n * n).map(|k| k % 3 != 0).collect();
+                let qm: Vec<i32> = q
+                    .iter()
+                    .enumerate()
+                    .map(|(k, &x)| if valid[k] { x } else { 0 })
+                    .collect();
+                round_trip(n, &qm, Some(&valid), &model);
+            }
+        }
+    }
+
+    #[test]
+    fn an_all_zero_matrix_costs_at_most_a_byte() {
+        let mut e = ModelEncoder::new(&CodecModel::default());
+        write_matrix(&mut e, 0, 32, &[0; 1024], None);
+        assert!(e.finish().len() <= 1);
+    }
+
+    #[test]
+    fn gamma_classes_bound_their_values() {
+        for g in [0u64, 1, 2, 3, 5, 100, 12345, 1 << 30] {
+            let c = gamma_class(g);
+            assert!(class_bound(c) >= g);
+            if c > 0 {
+                assert!(class_bound(c - 1) < g);
+            }
+        }
+    }
+}

@@ -1,0 +1,16 @@
+//! The quincunx codec: the shared vocabulary of the system.
+//!
+//! - [`diamond`]: diamond ids (planar and cube-mapped sphere), hierarchy laws, frames,
+//!   sample positions and storage keys.
+//! - [`lifting`]: integer-to-integer wavelet lifting of one diamond (analysis/synthesis).
+//!
+//! The crate is pure: no I/O, no async. Untrusted bytes are decoded into `Result`s, never
+//! panics.
+
+pub mod blob;
+pub mod diamond;
+pub mod encode;
+pub mod entropy;
+pub mod fill;
+pub mod lifting;
+pub mod raster;

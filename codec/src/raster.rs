@@ -1,0 +1,446 @@
+//! The whole-raster transform: a planar raster of any size placed in a diamond hierarchy.
+//!
+//! The raster (`width x height`, sample `(row, col)` at id point `(x, y) = (col, row)`)
+//! sits in the planar domain `[0, S]^2` with `S = N 2^k` the smallest such square that
+//! holds it; id units are raster samples, so the finest data lattice is the integer grid
+//! and levels `0 ..= 2k - 1` carry details. Points outside the raster are *invalid*: they
+//! are never read, never coded, and cost nothing (no padding is coded). Lifting runs in
+//! place on the raster, one level at a time, one diamond at a time.
+
+use rayon::prelude::*;
+
+use crate::diamond::{PlanarDomain, PlanarId, check_size};
+use crate::lifting::{self, DiamondMask};
+
+/// Why a raster cannot be placed in a hierarchy.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RasterError {
+    /// Zero width or height, or more samples than supported.
+    #[error("raster of {0} x {1} samples is empty or too large")]
+    BadDimensions(usize, usize),
+    /// The diamond size is not supported.
+    #[error(transparent)]
+    Id(#[from] crate::diamond::IdError),
+    /// The number of values does not match the dimensions.
+    #[error("expected {expected} values, got {got}")]
+    WrongLength {
+        /// width x height
+        expected: usize,
+        /// values given
+        got: usize,
+    },
+}
+
+/// Where one diamond's samples live in the raster.
+#[derive(Clone, Debug)]
+pub struct DiamondSlot {
+    /// The diamond.
+    pub id: PlanarId,
+    x0: i64,
+    y0: i64,
+    a: [i64; 2],
+    b: [i64; 2],
+    /// Valid points; `None` when every vertex and cell is valid.
+    pub mask: Option<DiamondMask>,
+    /// Storage key of the diamond.
+    pub key: Vec<u8>,
+    /// Indices (in the next detail level) of its children that carry details.
+    pub children: Vec<usize>,
+    /// The subset of `children` whose side information this diamond's blob carries
+    /// (children whose first parent is this diamond), in side order.
+    pub owned: Vec<usize>,
+}
+
+impl DiamondSlot {
+    fn vertex_xy(&self, i: usize, j: usize) -> (i64, i64) {
+        let (i, j) = (i as i64, j as i64);
+        (
+            self.x0 + i * self.a[0] + j * self.b[0],
+            self.y0 + i * self.a[1] + j * self.b[1],
+        )
+    }
+
+    fn cell_xy(&self, i: usize, j: usize) -> (i64, i64) {
+        let (x, y) = self.vertex_xy(i, j);
+        (
+            x + (self.a[0] + self.b[0]) / 2,
+            y + (self.a[1] + self.b[1]) / 2,
+        )
+    }
+
+    /// Number of valid cells (the number of coded details).
+    pub fn valid_cells(&self, n: usize) -> usize {
+        self.mask.as_ref().map_or(n * n, DiamondMask::valid_cells)
+    }
+}
+
+/// The hierarchy a raster is placed in: domain, diamond size and, per detail level, the
+/// diamonds that meet the raster.
+#[derive(Clone, Debug)]
+pub struct RasterGeometry {
+    width: usize,
+    height: usize,
+    n: usize,
+    domain: PlanarDomain,
+    levels: Vec<Vec<DiamondSlot>>,
+}
+
+impl RasterGeometry {
+    /// Places a `width x height` raster in the smallest hierarchy of `N x N` diamonds.
+    pub fn new(width: usize, height: usize, n: usize) -> Result<Self, RasterError> {
+        check_size(n)?;
+        if width == 0 || height == 0 || width > 1 << 24 || height > 1 << 24 {
+            return Err(RasterError::BadDimensions(width, height));
+        }
+        let extent = (width.max(height) - 1).max(1) as u64;
+        let mut k = 0u32;
+        while ((n as u64) << k) < extent {
+            k += 1;
+        }
+        let m = n.trailing_zeros() + k;
+        let domain = PlanarDomain::new(m.max(1))?;
+        let rect = [0, width as i64 - 1, 0, height as i64 - 1];
+        let detail_levels = 2 * k;
+        let mut levels: Vec<Vec<DiamondSlot>> = (0..detail_levels)
+            .map(|level| {
+                domain
+                    .diamonds_meeting(level, rect)
+                    .into_par_iter()
+                    .filter_map(|id| slot(&domain, id, n, width, height))
+                    .collect()
+            })
+            .collect();
+        for level in 0..levels.len().saturating_sub(1) {
+            let index: std::collections::HashMap<PlanarId, usize> = levels[level + 1]
+                .iter()
+                .enumerate()
+                .map(|(k, s)| (s.id, k))
+                .collect();
+            levels[level].par_iter_mut().for_each(|s| {
+                for child in domain.children(s.id).unwrap_or_default() {
+                    if let Some(&k) = index.get(&child) {
+                        s.children.push(k);
+                        if domain.parents(child).ok().and_then(|p| p.first().copied()) == Some(s.id)
+                        {
+                            s.owned.push(k);
+                        }
+                    }
+                }
+            });
+        }
+        Ok(RasterGeometry {
+            width,
+            height,
+            n,
+            domain,
+            levels,
+        })
+    }
+
+    /// Raster width.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Raster height.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Diamond size `N`.
+    pub fn n(&self) -> usize {
+        self.n
+    }
+
+    /// The planar domain (id units = raster samples).
+    pub fn domain(&self) -> PlanarDomain {
+        self.domain
+    }
+
+    /// Number of levels that carry details.
+    pub fn detail_levels(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// The diamonds of a detail level that meet the raster.
+    pub fn level(&self, level: usize) -> &[DiamondSlot] {
+        &self.levels[level]
+    }
+
+    /// The root diamond's slot (level 0), used for the root grid.
+    pub fn root_slot(&self) -> DiamondSlot {
+        // The root always meets the raster.
+        slot(
+            &self.domain,
+            self.domain.root(),
+            self.n,
+            self.width,
+            self.height,
+        )
+        .unwrap_or_else(|| unreachable!())
+    }
+
+    /// Reads the root vertex grid (invalid vertices read as 0).
+    pub fn gather_root(&self, raster: &[i32]) -> Vec<i32> {
+        let root = self.root_slot();
+        let mut v = vec![0; (self.n + 1) * (self.n + 1)];
+        self.gather_vertices(&root, raster, &mut v);
+        v
+    }
+
+    /// Writes the root vertex grid into the raster.
+    pub fn scatter_root(&self, root_grid: &[i32], raster: &mut [i32]) {
+        let root = self.root_slot();
+        self.scatter_vertices(&root, root_grid, raster);
+    }
+
+    fn index(&self, (x, y): (i64, i64)) -> Option<usize> {
+        if x >= 0 && y >= 0 && (x as usize) < self.width && (y as usize) < self.height {
+            Some(y as usize * self.width + x as usize)
+        } else {
+            None
+        }
+    }
+
+    fn gather_vertices(&self, s: &DiamondSlot, raster: &[i32], v: &mut [i32]) {
+        let n = self.n;
+        for i in 0..=n {
+            for j in 0..=n {
+                v[i * (n + 1) + j] = self.index(s.vertex_xy(i, j)).map_or(0, |k| raster[k]);
+            }
+        }
+    }
+
+    fn gather_cells(&self, s: &DiamondSlot, raster: &[i32], c: &mut [i32]) {
+        let n = self.n;
+        for i in 0..n {
+            for j in 0..n {
+                c[i * n + j] = self.index(s.cell_xy(i, j)).map_or(0, |k| raster[k]);
+            }
+        }
+    }
+
+    fn scatter_vertices(&self, s: &DiamondSlot, v: &[i32], raster: &mut [i32]) {
+        let n = self.n;
+        for i in 0..=n {
+            for j in 0..=n {
+                if let Some(k) = self.index(s.vertex_xy(i, j)) {
+                    raster[k] = v[i * (n + 1) + j];
+                }
+            }
+        }
+    }
+
+    fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], raster: &mut [i32]) {
+        let n = self.n;
+        for i in 0..n {
+            for j in 0..n {
+                if let Some(k) = self.index(s.cell_xy(i, j)) {
+                    raster[k] = c[i * n + j];
+                }
+            }
+        }
+    }
+
+    /// Forward transform in place: on return the raster holds the root-level values and
+    /// the result holds one `N x N` detail matrix per diamond per level (zeros at
+    /// invalid cells). Diamonds of a level are processed in parallel.
+    pub fn analyze(&self, raster: &mut [i32]) -> Result<Vec<Vec<Vec<i32>>>, RasterError> {
+        self.check_len(raster)?;
+        let n = self.n;
+        let mut details = vec![Vec::new(); self.levels.len()];
+        for level in (0..self.levels.len()).rev() {
+            let slots = &self.levels[level];
+            let shared: &[i32] = raster;
+            let results: Vec<(Vec<i32>, Vec<i32>)> = slots
+                .par_iter()
+                .map(|s| {
+                    let mut v = vec![0; (n + 1) * (n + 1)];
+                    let mut c = vec![0; n * n];
+                    let mut h = vec![0; n * n];
+                    self.gather_vertices(s, shared, &mut v);
+                    self.gather_cells(s, shared, &mut c);
+                    lifting::analyze(n, &mut v, &c, &mut h, s.mask.as_ref());
+                    (v, h)
+                })
+                .collect();
+            let mut hs = Vec::with_capacity(results.len());
+            for (s, (v, h)) in slots.iter().zip(results) {
+                self.scatter_vertices(s, &v, raster);
+                hs.push(h);
+            }
+            details[level] = hs;
+        }
+        Ok(details)
+    }
+
+    /// Inverse transform in place: the raster holds the root-level values on entry (see
+    /// [`RasterGeometry::scatter_root`]) and the full-resolution values on exit.
+    /// `details(level, index, h)` fills the detail matrix `h` of a diamond and returns
+    /// `Ok(false)` when the diamond has none (zeros). Runs on the calling thread.
+    pub fn synthesize<E>(
+        &self,
+        raster: &mut [i32],
+        mut details: impl FnMut(usize, usize, &mut [i32]) -> Result<bool, E>,
+    ) -> Result<(), E>
+    where
+        E: From<RasterError>,
+    {
+        self.check_len(raster)?;
+        let n = self.n;
+        let zeros = vec![0; n * n];
+        let mut h = vec![0; n * n];
+        let mut v = vec![0; (n + 1) * (n + 1)];
+        let mut c = vec![0; n * n];
+        for (level, slots) in self.levels.iter().enumerate() {
+            for (index, s) in slots.iter().enumerate() {
+                let has = details(level, index, &mut h)?;
+                self.gather_vertices(s, raster, &mut v);
+                lifting::synthesize(
+                    n,
+                    &mut v,
+                    if has { &h } else { &zeros },
+                    &mut c,
+                    s.mask.as_ref(),
+                );
+                self.scatter_vertices(s, &v, raster);
+                self.scatter_cells(s, &c, raster);
+            }
+        }
+        Ok(())
+    }
+
+    /// Like [`RasterGeometry::synthesize`] with the diamonds of a level in parallel, calling
+    /// `visit(level, index, coarse_vertices, fine_vertices, cells)` for each diamond
+    /// (used by the encoder to measure side information).
+    pub fn synthesize_par<F, R>(
+        &self,
+        raster: &mut [i32],
+        details: &[Vec<Vec<i32>>],
+        visit: F,
+    ) -> Result<Vec<Vec<R>>, RasterError>
+    where
+        F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
+        R: Send,
+    {
+        self.check_len(raster)?;
+        let n = self.n;
+        let mut out = Vec::with_capacity(self.levels.len());
+        for (level, slots) in self.levels.iter().enumerate() {
+            let shared: &[i32] = raster;
+            let results: Vec<(Vec<i32>, Vec<i32>, R)> = slots
+                .par_iter()
+                .enumerate()
+                .map(|(index, s)| {
+                    let mut v = vec![0; (n + 1) * (n + 1)];
+                    let mut c = vec![0; n * n];
+                    self.gather_vertices(s, shared, &mut v);
+                    let coarse = v.clone();
+                    lifting::synthesize(n, &mut v, &details[level][index], &mut c, s.mask.as_ref());
+                    let r = visit(level, index, &coarse, &v, &c);
+                    (v, c, r)
+                })
+                .collect();
+            let mut rs = Vec::with_capacity(results.len());
+            for (s, (v, c, r)) in slots.iter().zip(results) {
+                self.scatter_vertices(s, &v, raster);
+                self.scatter_cells(s, &c, raster);
+                rs.push(r);
+            }
+            out.push(rs);
+        }
+        Ok(out)
+    }
+
+    fn check_len(&self, raster: &[i32]) -> Result<(), RasterError> {
+        let expected = self.width * self.height;
+        if raster.len() == expected {
+            Ok(())
+        } else {
+            Err(RasterError::WrongLength {
+                expected,
+                got: raster.len(),
+            })
+        }
+    }
+}
+
+/// The raster placement of a diamond, `None` if none of its points is in the raster.
+fn slot(
+    domain: &PlanarDomain,
+    id: PlanarId,
+    n: usize,
+    width: usize,
+    height: usize,
+) -> Option<DiamondSlot> {
+    let c = domain.corners(id).ok()?;
+    let ni = n as i64;
+    let a = [(c[1][0] - c[0][0]) / ni, (c[1][1] - c[0][1]) / ni];
+    let b = [(c[3][0] - c[0][0]) / ni, (c[3][1] - c[0][1]) / ni];
+    let key = domain.key(id).ok()?;
+    let mut s = DiamondSlot {
+        id,
+        x0: c[0][0],
+        y0: c[0][1],
+        a,
+        b,
+        mask: None,
+        key,
+        children: Vec::new(),
+        owned: Vec::new(),
+    };
+    let inside =
+        |(x, y): (i64, i64)| x >= 0 && y >= 0 && (x as usize) < width && (y as usize) < height;
+    let all_corners = [(0, 0), (n, 0), (n, n), (0, n)]
+        .iter()
+        .all(|&(i, j)| inside(s.vertex_xy(i, j)));
+    if !all_corners {
+        let mask = DiamondMask::from_fn(
+            n,
+            |i, j| inside(s.vertex_xy(i, j)),
+            |i, j| inside(s.cell_xy(i, j)),
+        );
+        if mask.valid_cells() == 0 && (0..=n).all(|i| (0..=n).all(|j| !mask.vertex(i, j))) {
+            return None;
+        }
+        s.mask = Some(mask);
+    }
+    Some(s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ramp(w: usize, h: usize) -> Vec<i32> {
+        (0..w * h)
+            .map(|k| (k % w) as i32 * 7 - (k / w) as i32 * 3 + ((k * 2654435761) % 97) as i32)
+            .collect()
+    }
+
+    #[test]
+    fn lossless_round_trip_for_odd_sizes() {
+        for (w, h, n) in [
+            (1, 1, 4),
+            (5, 3, 4),
+            (33, 33, 32),
+            (100, 37, 8),
+            (65, 129, 32),
+            (300, 200, 32),
+        ] {
+            let g = RasterGeometry::new(w, h, n).unwrap();
+            let orig = ramp(w, h);
+            let mut r = orig.clone();
+            let details = g.analyze(&mut r).unwrap();
+            let root = g.gather_root(&r);
+            let mut out = vec![0; w * h];
+            g.scatter_root(&root, &mut out);
+            g.synthesize::<RasterError>(&mut out, |l, i, h| {
+                h.copy_from_slice(&details[l][i]);
+                Ok(true)
+            })
+            .unwrap();
+            assert_eq!(out, orig, "{w}x{h} N={n}");
+        }
+    }
+}
