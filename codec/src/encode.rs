@@ -136,14 +136,36 @@ pub struct Encoded {
     pub report: EncodeReport,
 }
 
-/// Quantises a detail with step `s` (1/256 units): round to nearest, no dead zone.
+/// Rounding offset of the quantiser's decisions, in 1/256 of a step: 128 is round to
+/// nearest. Smaller values move values near a decision threshold to the smaller index
+/// (cheaper to code); reconstruction points stay uniform (no dead zone in the decoder).
+/// Measured on korea_srtm3_4097 (docs/codec.md): 96 pays at low rates (tolerance of many
+/// quanta), round to nearest at high rates. `QUINCUNX_ROUNDING` overrides (experiments).
+pub fn rounding_offset(tolerance_quanta: f64) -> u64 {
+    std::env::var("QUINCUNX_ROUNDING")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(if tolerance_quanta >= 4.0 { 96 } else { 128 })
+}
+
+/// Exponent of the synthesis gain in the per-level step `q / G^e` (0.5 is the high-rate
+/// MSE optimum for orthogonal transforms).
+/// Measured like [`rounding_offset`]; `QUINCUNX_GAIN_EXPONENT` overrides.
+pub fn gain_exponent(tolerance_quanta: f64) -> f64 {
+    std::env::var("QUINCUNX_GAIN_EXPONENT")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(if tolerance_quanta >= 4.0 { 0.65 } else { 0.5 })
+}
+
+/// Quantises a detail with step `s` (1/256 units) and decision offset [`rounding_offset`].
 #[inline]
-pub fn quantize(h: i32, s: u32) -> i32 {
+pub fn quantize(h: i32, s: u32, offset: u64) -> i32 {
     if s == 256 {
         return h;
     }
     let a = h.unsigned_abs() as u64;
-    let q = ((a * 256 + s as u64 / 2) / s as u64) as i64;
+    let q = ((a * 256 + s as u64 * offset / 256) / s as u64) as i64;
     (if h < 0 { -q } else { q }) as i32
 }
 
@@ -286,6 +308,15 @@ fn integerise(grid: &Grid, mode: RateMode) -> Result<Integerised, EncodeError> {
     })
 }
 
+/// One rate-control attempt: scale, steps, quantised details, decoded raster, measures.
+type Attempt = (
+    f64,
+    Vec<u32>,
+    Vec<Vec<Vec<i32>>>,
+    Vec<i32>,
+    Vec<Vec<Measure>>,
+);
+
 /// Per-diamond measurements made during the verification decode.
 #[derive(Clone, Copy, Debug)]
 struct Measure {
@@ -363,10 +394,20 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         }
         _ => {}
     }
+    let timing = std::env::var_os("QUINCUNX_TIMING").is_some();
+    let t0 = std::time::Instant::now();
+    let lap = |what: &str| {
+        if timing {
+            eprintln!("{what:>12}: {:.3} s", t0.elapsed().as_secs_f64());
+        }
+    };
     let geom = RasterGeometry::new(grid.width, grid.height, opts.n)?;
+    lap("geometry");
     let ints = integerise(grid, opts.mode)?;
+    lap("integerise");
     let mut raster = ints.values.clone();
     let details = geom.analyze(&mut raster)?;
+    lap("analysis");
     let root = geom.gather_root(&raster);
     let levels = geom.detail_levels();
     let n = opts.n;
@@ -389,13 +430,20 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
     let mut quantized: Vec<Vec<Vec<i32>>> = details.clone();
     let mut decoded;
     let measures;
+    let (offset, exponent) = match opts.mode {
+        RateMode::RmsM(t) => {
+            let quanta = t / grid.quantum_m.unwrap_or(ints.scale);
+            (rounding_offset(quanta), gain_exponent(quanta))
+        }
+        _ => (128, 0.5),
+    };
     let quantize_all = |steps: &[u32]| -> Vec<Vec<Vec<i32>>> {
         details
             .par_iter()
             .enumerate()
             .map(|(l, ds)| {
                 ds.iter()
-                    .map(|h| h.iter().map(|&x| quantize(x, steps[l])).collect())
+                    .map(|h| h.iter().map(|&x| quantize(x, steps[l], offset)).collect())
                     .collect()
             })
             .collect()
@@ -424,7 +472,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         let gains = synthesis_gains(n, levels);
         let step_of = |q: f64, l: usize| -> u32 {
             let g = gains[levels - 1 - l].max(1e-6);
-            ((q / g.sqrt()) * 256.0).round().clamp(256.0, 1e9) as u32
+            ((q / g.powf(exponent)) * 256.0).round().clamp(256.0, 1e9) as u32
         };
         // Histogram of |detail| per level for fast error estimates.
         let hist: Vec<Vec<(u32, u64)>> = details
@@ -448,7 +496,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
                 let e: f64 = hl
                     .iter()
                     .map(|&(a, c)| {
-                        let r = dequantize(quantize(a as i32, s), s) as f64;
+                        let r = dequantize(quantize(a as i32, s, offset), s) as f64;
                         let d = a as f64 - r;
                         d * d * c as f64
                     })
@@ -467,14 +515,11 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
             }
         }
         let mut q = lo;
-        let mut best: Option<(
-            f64,
-            Vec<u32>,
-            Vec<Vec<Vec<i32>>>,
-            Vec<i32>,
-            Vec<Vec<Measure>>,
-        )> = None;
-        for _ in 0..8 {
+        let mut best: Option<Attempt> = None;
+        for _attempt in 0..8 {
+            if timing {
+                eprintln!("  rms attempt {_attempt}: q = {q:.4}");
+            }
             let st: Vec<u32> = (0..levels).map(|l| step_of(q, l)).collect();
             let qd = quantize_all(&st);
             let (dec, ms) = decode_measure(&qd, &st)?;
@@ -511,6 +556,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         decoded = dec;
         measures = ms;
     }
+    lap("quantise");
     let (rms_m, max_abs_m) = error_of(&decoded);
     drop(std::mem::take(&mut decoded));
 
@@ -572,7 +618,9 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
                 .into_par_iter()
                 .map(move |i| (l, i))
         })
-        .filter(|&(l, i)| has_data[l][i])
+        // Priors need approximate statistics only: train on every 4th diamond of the
+        // large levels (all of the small ones).
+        .filter(|&(l, i)| has_data[l][i] && (geom.level(l).len() < 4096 || i % 4 == 0))
         .fold(ContextCounts::default, |mut acc, (l, i)| {
             let ctx = context_of(l, i);
             entropy::write_gammas(&mut acc, ctx.group, &classes_of(l, i));
@@ -589,6 +637,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
             a.merge(&b);
             a
         });
+    lap("side+train");
     let model = CodecModel::from_counts(&counts);
     let blobs: Vec<Vec<Option<Vec<u8>>>> = (0..levels)
         .map(|l| {
@@ -608,6 +657,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         })
         .collect();
 
+    lap("blobs");
     let blob_bytes: usize = blobs.iter().flatten().flatten().map(Vec::len).sum();
     let blob_count = blobs.iter().flatten().flatten().count();
     let root_bytes = root_grid_bytes(&root).len();

@@ -12,31 +12,40 @@ pub fn push_pull(width: usize, height: usize, values: &mut [f64], valid: &[bool]
     if valid.iter().all(|&v| v) {
         return true;
     }
-    // Pyramid of (weighted sum, weight).
+    // Pyramid of (weighted sum, weight), starting at half resolution.
     let mut levels: Vec<(usize, usize, Vec<f64>, Vec<f64>)> = Vec::new();
-    let sums: Vec<f64> = values
-        .iter()
-        .zip(valid)
-        .map(|(&v, &ok)| if ok { v } else { 0.0 })
-        .collect();
-    let weights: Vec<f64> = valid.iter().map(|&ok| if ok { 1.0 } else { 0.0 }).collect();
-    levels.push((width, height, sums, weights));
-    while {
-        let (w, h, _, _) = levels[levels.len() - 1];
-        w > 1 || h > 1
-    } {
-        let (w, h, s, wt) = &levels[levels.len() - 1];
+    let (mut w, mut h) = (width, height);
+    {
         let (w2, h2) = (w.div_ceil(2), h.div_ceil(2));
         let mut s2 = vec![0.0; w2 * h2];
         let mut wt2 = vec![0.0; w2 * h2];
-        for y in 0..*h {
-            for x in 0..*w {
+        for y in 0..h {
+            for x in 0..w {
+                let k = y * w + x;
+                if valid[k] {
+                    let k2 = (y / 2) * w2 + x / 2;
+                    s2[k2] += values[k];
+                    wt2[k2] += 1.0;
+                }
+            }
+        }
+        levels.push((w2, h2, s2, wt2));
+        (w, h) = (w2, h2);
+    }
+    while w > 1 || h > 1 {
+        let (_, _, s, wt) = &levels[levels.len() - 1];
+        let (w2, h2) = (w.div_ceil(2), h.div_ceil(2));
+        let mut s2 = vec![0.0; w2 * h2];
+        let mut wt2 = vec![0.0; w2 * h2];
+        for y in 0..h {
+            for x in 0..w {
                 let k2 = (y / 2) * w2 + x / 2;
                 s2[k2] += s[y * w + x];
                 wt2[k2] += wt[y * w + x];
             }
         }
         levels.push((w2, h2, s2, wt2));
+        (w, h) = (w2, h2);
     }
     // Coarse to fine: a level's value is its mean where it has weight, else the
     // bilinear interpolation of the (already filled) coarser level.
@@ -62,9 +71,17 @@ pub fn push_pull(width: usize, height: usize, values: &mut [f64], valid: &[bool]
         coarse = out;
         coarse_dims = (*w, *h);
     }
-    for (k, v) in values.iter_mut().enumerate() {
-        if !valid[k] {
-            *v = coarse[k];
+    for y in 0..height {
+        for x in 0..width {
+            let k = y * width + x;
+            if !valid[k] {
+                values[k] = sample_bilinear(
+                    &coarse,
+                    coarse_dims,
+                    (x as f64 + 0.5) / 2.0 - 0.5,
+                    (y as f64 + 0.5) / 2.0 - 0.5,
+                );
+            }
         }
     }
     true

@@ -49,6 +49,9 @@ pub struct DiamondSlot {
     /// The subset of `children` whose side information this diamond's blob carries
     /// (children whose first parent is this diamond), in side order.
     pub owned: Vec<usize>,
+    /// For diamonds entirely inside the raster: raster index of vertex (0,0) and of cell
+    /// (0,0), and the index steps along i and j.
+    lin: Option<[isize; 4]>,
 }
 
 impl DiamondSlot {
@@ -190,7 +193,11 @@ impl RasterGeometry {
 
     /// Writes the root vertex grid into the raster.
     pub fn scatter_root(&self, root_grid: &[i32], raster: &mut [i32]) {
-        let root = self.root_slot();
+        // The generic path writes boundary vertices too.
+        let root = DiamondSlot {
+            lin: None,
+            ..self.root_slot()
+        };
         self.scatter_vertices(&root, root_grid, raster);
     }
 
@@ -204,6 +211,15 @@ impl RasterGeometry {
 
     fn gather_vertices(&self, s: &DiamondSlot, raster: &[i32], v: &mut [i32]) {
         let n = self.n;
+        if let Some([v0, _, si, sj]) = s.lin {
+            for (i, row) in v.chunks_exact_mut(n + 1).enumerate() {
+                let base = v0 + i as isize * si;
+                for (j, x) in row.iter_mut().enumerate() {
+                    *x = raster[(base + j as isize * sj) as usize];
+                }
+            }
+            return;
+        }
         for i in 0..=n {
             for j in 0..=n {
                 v[i * (n + 1) + j] = self.index(s.vertex_xy(i, j)).map_or(0, |k| raster[k]);
@@ -213,6 +229,15 @@ impl RasterGeometry {
 
     fn gather_cells(&self, s: &DiamondSlot, raster: &[i32], c: &mut [i32]) {
         let n = self.n;
+        if let Some([_, c0, si, sj]) = s.lin {
+            for (i, row) in c.chunks_exact_mut(n).enumerate() {
+                let base = c0 + i as isize * si;
+                for (j, x) in row.iter_mut().enumerate() {
+                    *x = raster[(base + j as isize * sj) as usize];
+                }
+            }
+            return;
+        }
         for i in 0..n {
             for j in 0..n {
                 c[i * n + j] = self.index(s.cell_xy(i, j)).map_or(0, |k| raster[k]);
@@ -222,6 +247,16 @@ impl RasterGeometry {
 
     fn scatter_vertices(&self, s: &DiamondSlot, v: &[i32], raster: &mut [i32]) {
         let n = self.n;
+        if let Some([v0, _, si, sj]) = s.lin {
+            // Boundary vertices never change: write the interior only.
+            for i in 1..n {
+                let base = v0 + i as isize * si;
+                for j in 1..n {
+                    raster[(base + j as isize * sj) as usize] = v[i * (n + 1) + j];
+                }
+            }
+            return;
+        }
         for i in 0..=n {
             for j in 0..=n {
                 if let Some(k) = self.index(s.vertex_xy(i, j)) {
@@ -233,6 +268,15 @@ impl RasterGeometry {
 
     fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], raster: &mut [i32]) {
         let n = self.n;
+        if let Some([_, c0, si, sj]) = s.lin {
+            for (i, row) in c.chunks_exact(n).enumerate() {
+                let base = c0 + i as isize * si;
+                for (j, &x) in row.iter().enumerate() {
+                    raster[(base + j as isize * sj) as usize] = x;
+                }
+            }
+            return;
+        }
         for i in 0..n {
             for j in 0..n {
                 if let Some(k) = self.index(s.cell_xy(i, j)) {
@@ -388,6 +432,7 @@ fn slot(
         key,
         children: Vec::new(),
         owned: Vec::new(),
+        lin: None,
     };
     let inside =
         |(x, y): (i64, i64)| x >= 0 && y >= 0 && (x as usize) < width && (y as usize) < height;
@@ -404,6 +449,14 @@ fn slot(
             return None;
         }
         s.mask = Some(mask);
+    } else {
+        let w = width as isize;
+        let at = |(x, y): (i64, i64)| y as isize * w + x as isize;
+        let v0 = at(s.vertex_xy(0, 0));
+        let c0 = at(s.cell_xy(0, 0));
+        let si = at(s.vertex_xy(1, 0)) - v0;
+        let sj = at(s.vertex_xy(0, 1)) - v0;
+        s.lin = Some([v0, c0, si, sj]);
     }
     Some(s)
 }

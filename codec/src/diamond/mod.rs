@@ -43,7 +43,7 @@ pub enum Orientation {
 impl Orientation {
     /// Orientation of a given level.
     pub fn of_level(level: u32) -> Self {
-        if level % 2 == 0 {
+        if level.is_multiple_of(2) {
             Orientation::Axis
         } else {
             Orientation::Rotated

@@ -280,7 +280,7 @@ impl PlanarDomain {
 
     /// The half-size exponent `t` shared by all diamonds of a level.
     pub fn level_exponent(&self, level: u32) -> u32 {
-        if level % 2 == 0 {
+        if level.is_multiple_of(2) {
             self.m - 1 - level / 2
         } else {
             self.m - level.div_ceil(2)
@@ -304,10 +304,11 @@ impl PlanarDomain {
             let mut x = xlo - xlo.rem_euclid(h);
             while x <= xhi {
                 let id = PlanarId::new(x, y);
-                if let Ok(info) = self.info(id) {
-                    if info.level == level && self.square_meets(id, h, level, rect) {
-                        out.push(id);
-                    }
+                if let Ok(info) = self.info(id)
+                    && info.level == level
+                    && self.square_meets(id, h, level, rect)
+                {
+                    out.push(id);
                 }
                 x += h;
             }
@@ -318,7 +319,7 @@ impl PlanarDomain {
 
     fn square_meets(&self, id: PlanarId, h: i64, level: u32, [x0, x1, y0, y1]: [i64; 4]) -> bool {
         let (cx, cy) = (id.x, id.y);
-        if level % 2 == 0 {
+        if level.is_multiple_of(2) {
             cx + h >= x0 && cx - h <= x1 && cy + h >= y0 && cy - h <= y1
         } else {
             // |x - cx| + |y - cy| <= h meets the box: distance from centre to box in L1.

@@ -10,12 +10,13 @@
 //! coefficient costs one decision when zero, about three when small.
 //!
 //! Binarisation of a matrix (level group `g` = distance from the finest level, capped):
-//! 1. `nonzero` flag; 2. quadtree significance of 4x4 blocks (the last candidate child of
-//! a significant node is inferred), context = node size and significant left/upper
-//! neighbours; 3. per valid cell of a significant block, in raster order: significance
-//! (context: activity `2|W| + 2|N| + |NW| + |NE|` of already coded neighbours), sign
-//! (context: signs of W and N), magnitude - 1 in unary over 14 context-coded bins, then
-//! Exp-Golomb in bypass bits.
+//! - a `nonzero` flag;
+//! - quadtree significance of 4x4 blocks (the last candidate child of a significant node
+//!   is inferred), context = node size and significant left/upper neighbours;
+//! - per valid cell of a significant block, in raster order: significance (context:
+//!   activity `2|W| + 2|N| + |NW| + |NE|` of already coded neighbours), sign (context:
+//!   signs of W and N), magnitude - 1 in unary over 14 context-coded bins, then
+//!   Exp-Golomb in bypass bits.
 
 pub mod range;
 
@@ -367,7 +368,7 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
         let mut sig_kids = Vec::new();
         for (k, &(y, x)) in candidates.iter().enumerate() {
             let is_sig = block_any(y, x, half, &|idx| q[idx] != 0);
-            if !(k + 1 == candidates.len() && !any) {
+            if k + 1 != candidates.len() || any {
                 let cy = y / half;
                 let cx = x / half;
                 let side = bl.nb / half;
@@ -400,7 +401,7 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
             let (i, j) = (k / n, k % n);
             let (class, sctx) = neighbourhood(&rec, n, i, j);
             let v = q[k];
-            if !(idx + 1 == cells.len() && !seen) {
+            if idx + 1 != cells.len() || seen {
                 s.bit(ctx(g, SIG + class), v != 0);
             }
             if v == 0 {
