@@ -474,6 +474,27 @@ def run_maxerr(ctx, bound):
         ("sperr_pwe", f"pwe={bound:g} m", "m",
          lambda: ic.sperr_encode(f, bound, "pwe", numthreads=1), lambda e: ic.sperr_decode(e, numthreads=1)),
     ]
+    if ctx.is_int:
+        # Integer-aware variant: the source heights are integers (raw units), so a float
+        # codec bound just under (k + 0.5) raw steps followed by rounding the output to the
+        # nearest integer still guarantees max error <= k steps. Rounding is part of the
+        # timed decode.
+        k = int(math.floor(bound / ctx.scale + 1e-9))
+        be = (k + 0.49) * ctx.scale
+        sc, off, dt = ctx.scale, ctx.offset, ctx.filled.dtype
+        info = np.iinfo(dt)
+
+        def to_raw(d):
+            return np.clip(np.rint((d - off) / sc), info.min, info.max).astype(dt)
+        cases += [
+            ("sz3_abs+round", f"abs={be:g} m, output rounded to integer raw", "raw",
+             lambda: ic.sz3_encode(f, "abs", abs=be), lambda e: to_raw(ic.sz3_decode(e, f.shape, f.dtype))),
+            ("lerc_f32+round", f"maxZerror={be:g} m, output rounded to integer raw", "raw",
+             lambda: ic.lerc_encode(f, be), lambda e: to_raw(ic.lerc_decode(e))),
+            ("sperr_pwe+round", f"pwe={be:g} m, output rounded to integer raw", "raw",
+             lambda: ic.sperr_encode(f, be, "pwe", numthreads=1),
+             lambda e: to_raw(ic.sperr_decode(e, numthreads=1))),
+        ]
     res = []
     for name, setting, kind, enc_fn, dec_fn in cases:
         try:
