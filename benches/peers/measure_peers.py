@@ -15,7 +15,8 @@ What it measures (see benches/peers/README.md for the method):
     setting whose measured RMS <= target, and by interpolation in log(RMS)
     between the two measured points nearest the target on either side,
   * bits/sample with a guaranteed max error <= 1 m (JPEG-LS near, SZ3 abs,
-    LERC maxZerror, SPERR PWE), verified on the valid samples,
+    LERC maxZerror, SPERR PWE; for int grids also "+round": bound k+0.49
+    raw steps and output rounded to integers), verified on the valid samples,
   * single-thread decode speed (median of >= 5 timed decode calls).
 
 bits/sample are over ALL samples (width*height); errors are over VALID
