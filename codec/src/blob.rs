@@ -171,6 +171,7 @@ pub fn decode(
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
 
@@ -185,7 +186,7 @@ mod tests {
             owned_children: 2,
         };
         let q: Vec<i32> = (0..1024)
-            .map(|k| if k % 37 == 0 { (k % 11) as i32 - 5 } else { 0 })
+            .map(|k: i32| if k % 37 == 0 { (k % 11) - 5 } else { 0 })
             .collect();
         let bytes = encode(&ctx, &model, &[3, 0], &q);
         let got = decode(&bytes, &ctx, &model).unwrap();

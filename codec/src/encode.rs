@@ -765,6 +765,7 @@ pub fn decode(enc: &Encoded) -> Result<Vec<f64>, DecodeError> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
 

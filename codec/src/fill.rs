@@ -99,6 +99,7 @@ fn sample_bilinear(img: &[f64], (w, h): (usize, usize), x: f64, y: f64) -> f64 {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
 

@@ -379,6 +379,7 @@ pub(crate) fn frame_point(c: &[[i64; 2]; 4], n: usize, p: i64, q: i64) -> [i64; 
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
 

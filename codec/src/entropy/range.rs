@@ -205,6 +205,7 @@ impl<'a> Decoder<'a> {
 }
 
 #[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
 
@@ -216,7 +217,7 @@ mod tests {
                 .map(|_| {
                     seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1);
                     (
-                        (seed >> 40) % 10 == 0,
+                        (seed >> 40).is_multiple_of(10),
                         (seed >> 20) & 1 == 1,
                         (seed >> 33) as u32 & 0x3FF,
                     )

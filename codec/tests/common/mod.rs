@@ -1,0 +1,145 @@
+//! Shared helpers of the integration tests: where the data lives, how to read it, how to
+//! measure errors.
+//!
+//! Bundled data (`data/` at the repository root) is always present. Shared data lives in
+//! `$QUINCUNX_SHARED_DATA` or `../shared/data` beside the repository; tests that need it
+//! print `SKIP <test>: <reason>` and return when it is absent.
+
+// Each test crate uses a different subset of these helpers.
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+
+use quincunx_codec::encode::Grid;
+
+/// The bundled data directory (`<repo>/data`).
+pub fn bundled_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../data")
+}
+
+/// The bundled Korea crop's sidecar.
+pub fn bundled_korea() -> PathBuf {
+    bundled_dir().join("korea_srtm3_1025.json")
+}
+
+/// The shared data directory: `$QUINCUNX_SHARED_DATA`, else `<repo>/../shared/data`.
+pub fn shared_dir() -> PathBuf {
+    match std::env::var_os("QUINCUNX_SHARED_DATA") {
+        Some(dir) if !dir.is_empty() => PathBuf::from(dir),
+        _ => Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"),
+    }
+}
+
+/// A file of the shared data directory, or `None` after printing why the test is skipped.
+pub fn shared_file(test: &str, name: &str) -> Option<PathBuf> {
+    let path = shared_dir().join(name);
+    if path.is_file() {
+        Some(path)
+    } else {
+        println!(
+            "SKIP {test}: {} not found (set QUINCUNX_SHARED_DATA to the shared data directory)",
+            path.display()
+        );
+        None
+    }
+}
+
+/// Reads a grid in the shared data format (raw little-endian int16/float32 + JSON sidecar);
+/// the same logic as `examples/rd.rs`.
+pub fn load_grid(sidecar: &Path) -> Result<Grid, String> {
+    let text =
+        std::fs::read_to_string(sidecar).map_err(|e| format!("{}: {e}", sidecar.display()))?;
+    let meta: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", sidecar.display()))?;
+    let width = meta["width"].as_u64().ok_or("sidecar: missing width")? as usize;
+    let height = meta["height"].as_u64().ok_or("sidecar: missing height")? as usize;
+    let dtype = meta["dtype"].as_str().ok_or("sidecar: missing dtype")?;
+    let file = meta["file"].as_str().ok_or("sidecar: missing file")?;
+    let scale = meta["vertical_scale"].as_f64().unwrap_or(1.0);
+    let offset = meta["vertical_offset"].as_f64().unwrap_or(0.0);
+    let nodata = meta["nodata"].as_f64();
+    let path = sidecar.with_file_name(file);
+    let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let (size, quantum) = match dtype {
+        "int16" => (2, Some(scale)),
+        "float32" => (4, None),
+        other => return Err(format!("unsupported dtype {other}")),
+    };
+    if bytes.len() != width * height * size {
+        return Err(format!(
+            "{}: {} bytes, expected {} for {width}x{height} {dtype}",
+            path.display(),
+            bytes.len(),
+            width * height * size
+        ));
+    }
+    let values_m = bytes
+        .chunks_exact(size)
+        .map(|c| {
+            let raw = if size == 2 {
+                i16::from_le_bytes([c[0], c[1]]) as f64
+            } else {
+                f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64
+            };
+            if nodata == Some(raw) || !raw.is_finite() {
+                f64::NAN
+            } else {
+                raw * scale + offset
+            }
+        })
+        .collect();
+    Ok(Grid {
+        width,
+        height,
+        values_m,
+        quantum_m: quantum,
+    })
+}
+
+/// Loads a grid, panicking with the reason (tests only).
+pub fn grid(sidecar: &Path) -> Grid {
+    load_grid(sidecar).unwrap_or_else(|e| panic!("cannot load {}: {e}", sidecar.display()))
+}
+
+/// Measured errors of a decode over the valid (non-NaN) samples of the original.
+#[derive(Clone, Copy, Debug)]
+pub struct Errors {
+    /// Root-mean-square error, metres.
+    pub rms_m: f64,
+    /// Largest absolute error, metres.
+    pub max_abs_m: f64,
+    /// Valid samples whose decoded value is not bit-identical to the original.
+    pub inexact: usize,
+    /// Valid samples compared.
+    pub valid: usize,
+}
+
+/// Compares decoded metres with the original grid on its valid samples.
+pub fn errors(original: &Grid, decoded_m: &[f64]) -> Errors {
+    assert_eq!(
+        decoded_m.len(),
+        original.values_m.len(),
+        "decoded sample count"
+    );
+    let (mut sum, mut max, mut inexact, mut valid) = (0.0f64, 0.0f64, 0usize, 0usize);
+    for (&d, &v) in decoded_m.iter().zip(&original.values_m) {
+        if v.is_nan() {
+            continue;
+        }
+        valid += 1;
+        if d.to_bits() != v.to_bits() {
+            inexact += 1;
+        }
+        let e = (d - v).abs();
+        // A NaN decode must count as an error, not vanish in `max`.
+        let e = if e.is_nan() { f64::INFINITY } else { e };
+        sum += e * e;
+        max = max.max(e);
+    }
+    Errors {
+        rms_m: (sum / valid.max(1) as f64).sqrt(),
+        max_abs_m: max,
+        inexact,
+        valid,
+    }
+}

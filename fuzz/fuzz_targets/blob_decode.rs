@@ -1,0 +1,69 @@
+//! Blob decoding of arbitrary bytes never panics.
+//!
+//! Input layout: byte 0 selects `N` (2^(1 + b % 9)) and the level group, byte 1 the
+//! number of owned children (0..=4) and whether the checksum is patched to match, byte 2
+//! the key length (0..=15), then the key, then the blob. With the checksum patched the
+//! garbage reaches the entropy decoder instead of stopping at the CRC. A prefix of the
+//! input is also parsed as a `CodecModel`, and when that succeeds the blob is decoded with
+//! it too, as is a valid model built from the blob bytes with its probabilities clamped.
+
+#![no_main]
+
+use libfuzzer_sys::fuzz_target;
+use quincunx_codec::blob::{self, BlobContext};
+use quincunx_codec::entropy::{self, CodecModel};
+
+fuzz_target!(|data: &[u8]| {
+    let Some((&[sel, flags, key_len], rest)) = data.split_first_chunk::<3>() else {
+        return;
+    };
+    let n = 1usize << (1 + sel % 9);
+    let group = (sel as usize / 9) % entropy::GROUPS;
+    let owned_children = (flags % 5) as usize;
+    let patch_crc = flags & 0x80 != 0;
+    let key_len = (key_len % 16) as usize;
+    if rest.len() < key_len {
+        return;
+    }
+    let (key, bytes) = rest.split_at(key_len);
+    let ctx = BlobContext {
+        key,
+        n,
+        group,
+        mask: None,
+        owned_children,
+    };
+
+    let mut blob_bytes = bytes.to_vec();
+    if patch_crc && blob_bytes.len() >= blob::HEADER_BYTES {
+        blob_bytes[0] = (blob::VERSION << 4) | n.trailing_zeros() as u8;
+        let crc = blob::crc16(&[key, &blob_bytes[..1], &blob_bytes[blob::HEADER_BYTES..]]);
+        blob_bytes[1..3].copy_from_slice(&crc.to_le_bytes());
+    }
+    if let Ok(content) = blob::decode(&blob_bytes, &ctx, &CodecModel::default()) {
+        assert_eq!(content.q.len(), n * n);
+        assert_eq!(content.child_classes.len(), owned_children);
+    }
+
+    // A model from a prefix: rejected unless exactly the right length and in range.
+    let prefix = &data[..data.len().min(2 * entropy::CONTEXTS)];
+    if let Ok(model) = CodecModel::from_bytes(prefix) {
+        assert_eq!(model.to_bytes(), prefix);
+        let _ = blob::decode(&blob_bytes, &ctx, &model);
+    }
+    // And a valid but skewed model (probabilities clamped into range, bytes repeated),
+    // so that extreme trained priors meet garbage payloads.
+    if !bytes.is_empty() {
+        let skewed: Vec<u8> = (0..entropy::CONTEXTS)
+            .flat_map(|k| {
+                let raw = u16::from_le_bytes([
+                    bytes[(2 * k) % bytes.len()],
+                    bytes[(2 * k + 1) % bytes.len()],
+                ]);
+                raw.clamp(32, 65504).to_le_bytes()
+            })
+            .collect();
+        let model = CodecModel::from_bytes(&skewed).expect("clamped probabilities are valid");
+        let _ = blob::decode(&blob_bytes, &ctx, &model);
+    }
+});
