@@ -291,11 +291,7 @@ mod tests {
     fn masked_synthesis_inverts_analysis_on_valid_points() {
         let mut seed = 11;
         let n = 32;
-        let mask = DiamondMask::from_fn(
-            n,
-            |i, j| i + 3 >= j,
-            |i, j| i + 3 > j && (i + j) % 7 != 3,
-        );
+        let mask = DiamondMask::from_fn(n, |i, j| i + 3 >= j, |i, j| i + 3 > j && (i + j) % 7 != 3);
         let v0: Vec<i32> = (0..(n + 1) * (n + 1))
             .map(|_| (lcg(&mut seed) % 5000) as i32)
             .collect();
