@@ -10,7 +10,10 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
+use criterion::measurement::WallTime;
+use criterion::{
+    BenchmarkGroup, BenchmarkId, Criterion, Throughput, criterion_group, criterion_main,
+};
 use quincunx_codec::encode::{self, EncodeOptions, Grid, RateMode};
 
 #[path = "../tests/common/mod.rs"]
@@ -44,16 +47,21 @@ fn modes() -> [(&'static str, RateMode); 2] {
     ]
 }
 
-fn codec(c: &mut Criterion) {
-    let (name, grid) = bench_grid();
-    let samples = (grid.width * grid.height) as u64;
-
-    let mut group = c.benchmark_group(format!("encode/{name}"));
+/// Few, long samples: one iteration codes the whole grid.
+fn configure(group: &mut BenchmarkGroup<'_, WallTime>, samples: u64) {
     group
         .sample_size(10)
         .warm_up_time(Duration::from_secs(1))
         .measurement_time(Duration::from_secs(5))
         .throughput(Throughput::Elements(samples));
+}
+
+fn codec(c: &mut Criterion) {
+    let (name, grid) = bench_grid();
+    let samples = (grid.width * grid.height) as u64;
+
+    let mut group = c.benchmark_group(format!("encode/{name}"));
+    configure(&mut group, samples);
     for (mode_name, mode) in modes() {
         group.bench_with_input(BenchmarkId::from_parameter(mode_name), &mode, |b, &mode| {
             b.iter(|| encode::encode(&grid, EncodeOptions { n: N, mode }).unwrap())
@@ -62,11 +70,7 @@ fn codec(c: &mut Criterion) {
     group.finish();
 
     let mut group = c.benchmark_group(format!("decode/{name}"));
-    group
-        .sample_size(10)
-        .warm_up_time(Duration::from_secs(1))
-        .measurement_time(Duration::from_secs(5))
-        .throughput(Throughput::Elements(samples));
+    configure(&mut group, samples);
     for (mode_name, mode) in modes() {
         let enc = encode::encode(&grid, EncodeOptions { n: N, mode }).unwrap();
         group.bench_with_input(BenchmarkId::from_parameter(mode_name), &enc, |b, enc| {

@@ -7,62 +7,15 @@
 //! `max_abs_m`, `encode_msamples_per_s`, `decode_msamples_per_s`. Decode is entropy
 //! decoding plus synthesis of the whole grid to full resolution on one thread.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
-use quincunx_codec::encode::{self, EncodeOptions, Grid, RateMode};
+use quincunx_codec::encode::{self, EncodeOptions, RateMode};
 use quincunx_codec::raster::RasterGeometry;
 
-/// Reads a grid in the shared data format (raw little-endian int16/float32 + sidecar).
-fn load_grid(sidecar: &Path) -> Result<Grid, String> {
-    let text =
-        std::fs::read_to_string(sidecar).map_err(|e| format!("{}: {e}", sidecar.display()))?;
-    let meta: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| format!("{}: {e}", sidecar.display()))?;
-    let width = meta["width"].as_u64().ok_or("sidecar: missing width")? as usize;
-    let height = meta["height"].as_u64().ok_or("sidecar: missing height")? as usize;
-    let dtype = meta["dtype"].as_str().ok_or("sidecar: missing dtype")?;
-    let file = meta["file"].as_str().ok_or("sidecar: missing file")?;
-    let scale = meta["vertical_scale"].as_f64().unwrap_or(1.0);
-    let offset = meta["vertical_offset"].as_f64().unwrap_or(0.0);
-    let nodata = meta["nodata"].as_f64();
-    let path: PathBuf = sidecar.with_file_name(file);
-    let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let (size, quantum) = match dtype {
-        "int16" => (2, Some(scale)),
-        "float32" => (4, None),
-        other => return Err(format!("unsupported dtype {other}")),
-    };
-    if bytes.len() != width * height * size {
-        return Err(format!(
-            "{}: {} bytes, expected {} for {width}x{height} {dtype}",
-            path.display(),
-            bytes.len(),
-            width * height * size
-        ));
-    }
-    let values_m = bytes
-        .chunks_exact(size)
-        .map(|c| {
-            let raw = if size == 2 {
-                i16::from_le_bytes([c[0], c[1]]) as f64
-            } else {
-                f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64
-            };
-            if nodata == Some(raw) || !raw.is_finite() {
-                f64::NAN
-            } else {
-                raw * scale + offset
-            }
-        })
-        .collect();
-    Ok(Grid {
-        width,
-        height,
-        values_m,
-        quantum_m: quantum,
-    })
-}
+// The sidecar reader shared with the tests and benches (the codec itself does no I/O).
+#[path = "../tests/common/mod.rs"]
+mod common;
 
 fn main() {
     if let Err(e) = run() {
@@ -104,7 +57,7 @@ fn run() -> Result<(), String> {
     let path = path.ok_or(
         "usage: rd <grid.json> [--lossless | --rms-m X | --max-error-m X] [--n 32] [--json]",
     )?;
-    let grid = load_grid(&path)?;
+    let grid = common::load_grid(&path)?;
     let t0 = Instant::now();
     let enc = encode::encode(&grid, EncodeOptions { n, mode }).map_err(|e| e.to_string())?;
     let encode_s = t0.elapsed().as_secs_f64();

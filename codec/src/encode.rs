@@ -20,7 +20,7 @@ use std::sync::{Mutex, OnceLock};
 
 use rayon::prelude::*;
 
-use crate::blob::{self, BlobContext, DecodeError};
+use crate::blob::{self, DecodeError};
 use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::raster::{RasterError, RasterGeometry};
 
@@ -47,6 +47,76 @@ pub struct Grid {
     /// The quantum the data is known to be a multiple of (1 m for integer SRTM); `None`
     /// for float data of unknown precision.
     pub quantum_m: Option<f64>,
+}
+
+/// Sample type of a raw grid (little-endian, row-major, no header).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RawType {
+    /// `int16`: integer data, so its quantum is the vertical scale.
+    I16,
+    /// `float32`: no known quantum.
+    F32,
+}
+
+impl RawType {
+    /// Parses a sidecar `dtype` (`"int16"` or `"float32"`).
+    pub fn from_dtype(dtype: &str) -> Option<Self> {
+        match dtype {
+            "int16" => Some(RawType::I16),
+            "float32" => Some(RawType::F32),
+            _ => None,
+        }
+    }
+
+    fn size(self) -> usize {
+        match self {
+            RawType::I16 => 2,
+            RawType::F32 => 4,
+        }
+    }
+}
+
+impl Grid {
+    /// A grid from raw samples (the shared data format): metres = `raw * scale + offset`;
+    /// the `nodata` raw value and non-finite floats become `NaN`.
+    pub fn from_raw_le(
+        width: usize,
+        height: usize,
+        ty: RawType,
+        bytes: &[u8],
+        scale: f64,
+        offset: f64,
+        nodata: Option<f64>,
+    ) -> Result<Grid, EncodeError> {
+        let expected = width * height * ty.size();
+        if bytes.len() != expected {
+            return Err(EncodeError::RawLength {
+                expected,
+                got: bytes.len(),
+            });
+        }
+        let values_m = bytes
+            .chunks_exact(ty.size())
+            .map(|c| {
+                let raw = match ty {
+                    RawType::I16 => i16::from_le_bytes([c[0], c[1]]) as f64,
+                    RawType::F32 => f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64,
+                };
+                if nodata == Some(raw) || !raw.is_finite() {
+                    f64::NAN
+                } else {
+                    raw * scale + offset
+                }
+            })
+            .collect();
+        let quantum_m = (ty == RawType::I16).then_some(scale);
+        Ok(Grid {
+            width,
+            height,
+            values_m,
+            quantum_m,
+        })
+    }
 }
 
 /// Encoder settings.
@@ -78,6 +148,14 @@ pub enum EncodeError {
     /// A tolerance is not a positive finite number.
     #[error("tolerance {0} is not a positive finite number of metres")]
     BadTolerance(f64),
+    /// A raw grid's byte count does not match its dimensions and sample type.
+    #[error("expected {expected} bytes of raw samples, got {got}")]
+    RawLength {
+        /// width x height x sample size
+        expected: usize,
+        /// bytes given
+        got: usize,
+    },
     /// The value count does not match the dimensions.
     #[error("expected {expected} values, got {got}")]
     WrongLength {
@@ -140,22 +218,16 @@ pub struct Encoded {
 /// nearest. Smaller values move values near a decision threshold to the smaller index
 /// (cheaper to code); reconstruction points stay uniform (no dead zone in the decoder).
 /// Measured on korea_srtm3_4097 (docs/codec.md): 96 pays at low rates (tolerance of many
-/// quanta), round to nearest at high rates. `QUINCUNX_ROUNDING` overrides (experiments).
+/// quanta), round to nearest at high rates.
 pub fn rounding_offset(tolerance_quanta: f64) -> u64 {
-    std::env::var("QUINCUNX_ROUNDING")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(if tolerance_quanta >= 4.0 { 96 } else { 128 })
+    if tolerance_quanta >= 4.0 { 96 } else { 128 }
 }
 
 /// Exponent of the synthesis gain in the per-level step `q / G^e` (0.5 is the high-rate
 /// MSE optimum for orthogonal transforms).
-/// Measured like [`rounding_offset`]; `QUINCUNX_GAIN_EXPONENT` overrides.
+/// Measured like [`rounding_offset`].
 pub fn gain_exponent(tolerance_quanta: f64) -> f64 {
-    std::env::var("QUINCUNX_GAIN_EXPONENT")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(if tolerance_quanta >= 4.0 { 0.65 } else { 0.5 })
+    if tolerance_quanta >= 4.0 { 0.65 } else { 0.5 }
 }
 
 /// Quantises a detail with step `s` (1/256 units) and decision offset [`rounding_offset`].
@@ -394,20 +466,10 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         }
         _ => {}
     }
-    let timing = std::env::var_os("QUINCUNX_TIMING").is_some();
-    let t0 = std::time::Instant::now();
-    let lap = |what: &str| {
-        if timing {
-            eprintln!("{what:>12}: {:.3} s", t0.elapsed().as_secs_f64());
-        }
-    };
     let geom = RasterGeometry::new(grid.width, grid.height, opts.n)?;
-    lap("geometry");
     let ints = integerise(grid, opts.mode)?;
-    lap("integerise");
     let mut raster = ints.values.clone();
     let details = geom.analyze(&mut raster)?;
-    lap("analysis");
     let root = geom.gather_root(&raster);
     let levels = geom.detail_levels();
     let n = opts.n;
@@ -516,10 +578,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         }
         let mut q = lo;
         let mut best: Option<Attempt> = None;
-        for _attempt in 0..8 {
-            if timing {
-                eprintln!("  rms attempt {_attempt}: q = {q:.4}");
-            }
+        for _ in 0..8 {
             let st: Vec<u32> = (0..levels).map(|l| step_of(q, l)).collect();
             let qd = quantize_all(&st);
             let (dec, ms) = decode_measure(&qd, &st)?;
@@ -556,7 +615,6 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         decoded = dec;
         measures = ms;
     }
-    lap("quantise");
     let (rms_m, max_abs_m) = error_of(&decoded);
     drop(std::mem::take(&mut decoded));
 
@@ -593,16 +651,6 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
     }
     drop(measures);
 
-    let context_of = |l: usize, i: usize| -> BlobContext<'_> {
-        let s = &geom.level(l)[i];
-        BlobContext {
-            key: &s.key,
-            n,
-            group: entropy::group(levels - 1 - l),
-            mask: s.mask.as_ref(),
-            owned_children: s.owned.len(),
-        }
-    };
     let classes_of = |l: usize, i: usize| -> Vec<u8> {
         geom.level(l)[i]
             .owned
@@ -622,7 +670,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         // large levels (all of the small ones).
         .filter(|&(l, i)| has_data[l][i] && (geom.level(l).len() < 4096 || i % 4 == 0))
         .fold(ContextCounts::default, |mut acc, (l, i)| {
-            let ctx = context_of(l, i);
+            let ctx = geom.blob_context(l, i);
             entropy::write_gammas(&mut acc, ctx.group, &classes_of(l, i));
             entropy::write_matrix(
                 &mut acc,
@@ -637,7 +685,6 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
             a.merge(&b);
             a
         });
-    lap("side+train");
     let model = CodecModel::from_counts(&counts);
     let blobs: Vec<Vec<Option<Vec<u8>>>> = (0..levels)
         .map(|l| {
@@ -646,7 +693,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
                 .map(|i| {
                     has_data[l][i].then(|| {
                         blob::encode(
-                            &context_of(l, i),
+                            &geom.blob_context(l, i),
                             &model,
                             &classes_of(l, i),
                             &quantized[l][i],
@@ -657,7 +704,6 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         })
         .collect();
 
-    lap("blobs");
     let blob_bytes: usize = blobs.iter().flatten().flatten().map(Vec::len).sum();
     let blob_count = blobs.iter().flatten().flatten().count();
     let root_bytes = root_grid_bytes(&root).len();
@@ -725,7 +771,6 @@ pub fn decode_integers(enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
 
 /// Decodes with a prepared geometry.
 pub fn decode_integers_with(geom: &RasterGeometry, enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
-    let levels = geom.detail_levels();
     let mut raster = vec![0; enc.width * enc.height];
     geom.scatter_root(&enc.root, &mut raster);
     let mut q = Vec::with_capacity(enc.n * enc.n);
@@ -738,15 +783,7 @@ pub fn decode_integers_with(geom: &RasterGeometry, enc: &Encoded) -> Result<Vec<
         else {
             return Ok(false);
         };
-        let s = &geom.level(l)[i];
-        let ctx = BlobContext {
-            key: &s.key,
-            n: enc.n,
-            group: entropy::group(levels - 1 - l),
-            mask: s.mask.as_ref(),
-            owned_children: s.owned.len(),
-        };
-        blob::decode_into(bytes, &ctx, &enc.model, &mut q)?;
+        blob::decode_into(bytes, &geom.blob_context(l, i), &enc.model, &mut q)?;
         let step = enc.steps.get(l).copied().unwrap_or(256);
         for (dst, &x) in h.iter_mut().zip(q.iter()) {
             *dst = dequantize(x, step);

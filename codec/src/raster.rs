@@ -9,7 +9,9 @@
 
 use rayon::prelude::*;
 
+use crate::blob::BlobContext;
 use crate::diamond::{PlanarDomain, PlanarId, check_size};
+use crate::entropy;
 use crate::lifting::{self, DiamondMask};
 
 /// Why a raster cannot be placed in a hierarchy.
@@ -170,6 +172,18 @@ impl RasterGeometry {
         &self.levels[level]
     }
 
+    /// What the blob decoder must know about diamond `index` of detail level `level`.
+    pub fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
+        let s = &self.levels[level][index];
+        BlobContext {
+            key: &s.key,
+            n: self.n,
+            group: entropy::group(self.levels.len() - 1 - level),
+            mask: s.mask.as_ref(),
+            owned_children: s.owned.len(),
+        }
+    }
+
     /// The root diamond's slot (level 0), used for the root grid.
     pub fn root_slot(&self) -> DiamondSlot {
         // The root always meets the raster.
@@ -193,12 +207,8 @@ impl RasterGeometry {
 
     /// Writes the root vertex grid into the raster.
     pub fn scatter_root(&self, root_grid: &[i32], raster: &mut [i32]) {
-        // The generic path writes boundary vertices too.
-        let root = DiamondSlot {
-            lin: None,
-            ..self.root_slot()
-        };
-        self.scatter_vertices(&root, root_grid, raster);
+        let root = self.root_slot();
+        self.scatter_vertices(&root, root_grid, raster, 0);
     }
 
     fn index(&self, (x, y): (i64, i64)) -> Option<usize> {
@@ -245,20 +255,22 @@ impl RasterGeometry {
         }
     }
 
-    fn scatter_vertices(&self, s: &DiamondSlot, v: &[i32], raster: &mut [i32]) {
+    /// Writes vertices `margin..=n - margin` of each row and column: margin 0 writes the
+    /// whole grid, margin 1 only the interior, which is all lifting ever changes
+    /// (boundary vertices are never updated).
+    fn scatter_vertices(&self, s: &DiamondSlot, v: &[i32], raster: &mut [i32], margin: usize) {
         let n = self.n;
         if let Some([v0, _, si, sj]) = s.lin {
-            // Boundary vertices never change: write the interior only.
-            for i in 1..n {
+            for i in margin..=n - margin {
                 let base = v0 + i as isize * si;
-                for j in 1..n {
+                for j in margin..=n - margin {
                     raster[(base + j as isize * sj) as usize] = v[i * (n + 1) + j];
                 }
             }
             return;
         }
-        for i in 0..=n {
-            for j in 0..=n {
+        for i in margin..=n - margin {
+            for j in margin..=n - margin {
                 if let Some(k) = self.index(s.vertex_xy(i, j)) {
                     raster[k] = v[i * (n + 1) + j];
                 }
@@ -310,7 +322,7 @@ impl RasterGeometry {
                 .collect();
             let mut hs = Vec::with_capacity(results.len());
             for (s, (v, h)) in slots.iter().zip(results) {
-                self.scatter_vertices(s, &v, raster);
+                self.scatter_vertices(s, &v, raster, 1);
                 hs.push(h);
             }
             details[level] = hs;
@@ -347,7 +359,7 @@ impl RasterGeometry {
                     &mut c,
                     s.mask.as_ref(),
                 );
-                self.scatter_vertices(s, &v, raster);
+                self.scatter_vertices(s, &v, raster, 1);
                 self.scatter_cells(s, &c, raster);
             }
         }
@@ -387,7 +399,7 @@ impl RasterGeometry {
                 .collect();
             let mut rs = Vec::with_capacity(results.len());
             for (s, (v, c, r)) in slots.iter().zip(results) {
-                self.scatter_vertices(s, &v, raster);
+                self.scatter_vertices(s, &v, raster, 1);
                 self.scatter_cells(s, &c, raster);
                 rs.push(r);
             }

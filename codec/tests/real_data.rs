@@ -235,22 +235,14 @@ fn bit_flips_of_real_blobs_are_detected_or_decoded_without_panic() {
     let g = grid(&bundled_korea());
     let enc = encode_grid(&g, RateMode::RmsM(2.0));
     let geom = RasterGeometry::new(enc.width, enc.height, enc.n).unwrap();
-    let levels = geom.detail_levels();
     let all = blobs_with_contexts(&enc);
     assert!(!all.is_empty());
     // A spread of blobs: every 40th, which covers all levels and some border diamonds.
     let picked: Vec<_> = all.iter().step_by(40).collect();
     let (mut flips, mut patched_ok, mut masked) = (0usize, 0usize, 0usize);
     for (l, i, bytes) in picked {
-        let s = &geom.level(*l)[*i];
-        masked += usize::from(s.mask.is_some());
-        let ctx = BlobContext {
-            key: &s.key,
-            n: enc.n,
-            group: entropy::group(levels - 1 - l),
-            mask: s.mask.as_ref(),
-            owned_children: s.owned.len(),
-        };
+        masked += usize::from(geom.level(*l)[*i].mask.is_some());
+        let ctx = geom.blob_context(*l, *i);
         assert!(
             blob::decode(bytes, &ctx, &enc.model).is_ok(),
             "unmodified blob {l}_{i} must decode"

@@ -374,13 +374,14 @@ fn any_mixed_level_cut_is_seamless_on_a_real_dem() {
 
     println!("diamonds with a grid: {}", nodes.len());
     println!("cut (unrefined) diamonds per level: {cut_levels:?}");
-    for (name, t) in [
+    let tallies = [
         ("two parents of one child", &parents_agree),
         ("same-level neighbours", &same_level),
         ("child vs refined parent", &parent_child),
         ("child vs parent border", &parent_border),
         ("cut diamonds", &cut),
-    ] {
+    ];
+    for (name, t) in tallies {
         println!(
             "{name:>26}: {} pairs/diamonds, {} shared vertices compared, {} mismatches",
             t.pairs, t.compared, t.mismatches
@@ -395,13 +396,7 @@ fn any_mixed_level_cut_is_seamless_on_a_real_dem() {
         cut_levels.len() >= 3,
         "the cut is not mixed-level enough: {cut_levels:?}"
     );
-    for (name, t) in [
-        ("two parents of one child", &parents_agree),
-        ("same-level neighbours", &same_level),
-        ("child vs refined parent", &parent_child),
-        ("child vs parent border", &parent_border),
-        ("cut diamonds", &cut),
-    ] {
+    for (name, t) in tallies {
         assert!(t.compared > 0, "{name}: no shared vertices were compared");
         assert_eq!(
             t.mismatches,

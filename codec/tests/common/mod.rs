@@ -10,7 +10,7 @@
 
 use std::path::{Path, PathBuf};
 
-use quincunx_codec::encode::Grid;
+use quincunx_codec::encode::{Grid, RawType};
 
 /// The bundled data directory (`<repo>/data`).
 pub fn bundled_dir() -> PathBuf {
@@ -44,8 +44,8 @@ pub fn shared_file(test: &str, name: &str) -> Option<PathBuf> {
     }
 }
 
-/// Reads a grid in the shared data format (raw little-endian int16/float32 + JSON sidecar);
-/// the same logic as `examples/rd.rs`.
+/// Reads a grid in the shared data format (raw little-endian int16/float32 + JSON sidecar).
+/// Also used by `examples/rd.rs` and the benches.
 pub fn load_grid(sidecar: &Path) -> Result<Grid, String> {
     let text =
         std::fs::read_to_string(sidecar).map_err(|e| format!("{}: {e}", sidecar.display()))?;
@@ -58,42 +58,11 @@ pub fn load_grid(sidecar: &Path) -> Result<Grid, String> {
     let scale = meta["vertical_scale"].as_f64().unwrap_or(1.0);
     let offset = meta["vertical_offset"].as_f64().unwrap_or(0.0);
     let nodata = meta["nodata"].as_f64();
+    let ty = RawType::from_dtype(dtype).ok_or(format!("unsupported dtype {dtype}"))?;
     let path = sidecar.with_file_name(file);
     let bytes = std::fs::read(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let (size, quantum) = match dtype {
-        "int16" => (2, Some(scale)),
-        "float32" => (4, None),
-        other => return Err(format!("unsupported dtype {other}")),
-    };
-    if bytes.len() != width * height * size {
-        return Err(format!(
-            "{}: {} bytes, expected {} for {width}x{height} {dtype}",
-            path.display(),
-            bytes.len(),
-            width * height * size
-        ));
-    }
-    let values_m = bytes
-        .chunks_exact(size)
-        .map(|c| {
-            let raw = if size == 2 {
-                i16::from_le_bytes([c[0], c[1]]) as f64
-            } else {
-                f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64
-            };
-            if nodata == Some(raw) || !raw.is_finite() {
-                f64::NAN
-            } else {
-                raw * scale + offset
-            }
-        })
-        .collect();
-    Ok(Grid {
-        width,
-        height,
-        values_m,
-        quantum_m: quantum,
-    })
+    Grid::from_raw_le(width, height, ty, &bytes, scale, offset, nodata)
+        .map_err(|e| format!("{}: {e}", path.display()))
 }
 
 /// Loads a grid, panicking with the reason (tests only).
