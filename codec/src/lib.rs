@@ -3,11 +3,14 @@
 //! - [`diamond`]: diamond ids (planar and cube-mapped sphere), hierarchy laws, frames,
 //!   sample positions and storage keys.
 //! - [`lifting`]: integer-to-integer wavelet lifting of one diamond (analysis/synthesis).
+//! - [`raster`] / [`encode`]: the whole-raster transform, rate control and blobs.
+//! - [`colour`]: the reversible YCoCg-R colour transform.
 //!
 //! The crate is pure: no I/O, no async. Untrusted bytes are decoded into `Result`s, never
 //! panics.
 
 pub mod blob;
+pub mod colour;
 pub mod diamond;
 pub mod encode;
 pub mod entropy;

@@ -1,0 +1,3 @@
+//! The `quincunx` command line.
+mod input;
+fn main() {}
