@@ -1,3 +1,79 @@
-//! The `quincunx` command line.
+//! `quincunx`: build, inspect, verify and export quincunx repositories.
+//!
+//! Exit codes: 0 success, 1 a failure (message on stderr), 2 bad command line (clap).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+mod build;
+mod export;
+mod info;
 mod input;
-fn main() {}
+mod layout;
+mod progress;
+mod verify;
+
+/// Streams compressed multiresolution terrain: repository tools.
+#[derive(Parser, Debug)]
+#[command(name = "quincunx", version, about)]
+struct Cli {
+    /// Log filter (tracing `EnvFilter` syntax), e.g. `info`, `quincunx=debug`.
+    #[arg(long, global = true, default_value = "warn")]
+    log: String,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Build a repository from a DEM (raw + JSON sidecar, GeoTIFF, 16-bit PNG, SRTM .hgt)
+    /// or from RGB imagery (JPEG/PNG, `--colour`).
+    Build(build::BuildArgs),
+    /// Print a repository's metadata, levels, blob counts and sizes.
+    Info {
+        /// Repository directory.
+        repo: PathBuf,
+        /// One JSON object instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Check and decode every blob; with `--source`, reconstruct at full resolution and
+    /// measure the error against the source.
+    Verify(verify::VerifyArgs),
+    /// Write one static file per blob (paths mirror the server's blob URLs) plus the
+    /// metadata, for any static web server or object store.
+    Export {
+        /// Repository directory.
+        repo: PathBuf,
+        /// Output directory.
+        dir: PathBuf,
+        /// Repository name used in the paths (default: the repository directory's name).
+        #[arg(long)]
+        name: Option<String>,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let filter = tracing_subscriber::EnvFilter::try_new(&cli.log)
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .init();
+    let result = match cli.command {
+        Command::Build(args) => build::run(&args),
+        Command::Info { repo, json } => info::run(&repo, json),
+        Command::Verify(args) => verify::run(&args),
+        Command::Export { repo, dir, name } => export::run(&repo, &dir, name.as_deref()),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

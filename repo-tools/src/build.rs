@@ -1,0 +1,438 @@
+//! `quincunx build`: source raster -> codec -> sled repository, published atomically.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use quincunx_codec::colour::rgb_to_ycocg_r;
+use quincunx_codec::encode::{self, EncodeOptions, Encoded, Grid, RateMode};
+use quincunx_codec::raster::RasterGeometry;
+use quincunx_store::{Attribute, Metadata, NodataPolicy, RepositoryBuilder};
+use serde::Serialize;
+
+use crate::input::{self, Georef};
+use crate::layout::{self, COLOUR_CHANNELS};
+use crate::progress;
+
+/// Options of `quincunx build`.
+#[derive(Args, Debug, Clone)]
+pub struct BuildArgs {
+    /// Source: raw grid (`.i16`/`.f32` or its `.json` sidecar), GeoTIFF, 16-bit PNG, SRTM
+    /// `.hgt`; with `--colour`, JPEG or PNG imagery.
+    pub input: PathBuf,
+    /// Repository directory to publish.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// The input is RGB imagery: build a colour repository (YCoCg-R, 3 channels).
+    #[arg(long)]
+    pub colour: bool,
+    /// Vertices per diamond side, `2^k + 1` (default 33 for elevation, 65 for colour).
+    #[arg(long)]
+    pub diamond_size: Option<usize>,
+    /// Bit-exact (the default).
+    #[arg(long, conflicts_with_all = ["rms_m", "max_error_m"])]
+    pub lossless: bool,
+    /// RMS error target in metres (colour: in 8-bit levels, per channel).
+    #[arg(long, conflicts_with = "max_error_m")]
+    pub rms_m: Option<f64>,
+    /// Guaranteed absolute error bound in metres (colour: in 8-bit RGB levels).
+    #[arg(long)]
+    pub max_error_m: Option<f64>,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Memory budget in MB: the build refuses to start if its estimate exceeds it.
+    #[arg(long)]
+    pub memory_budget_mb: Option<u64>,
+    /// Replace an existing repository at the output path (atomically).
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Print one JSON summary on stdout.
+    #[arg(long)]
+    pub json: bool,
+    /// Test hook: stop making progress after storing this many blobs (to be killed).
+    #[arg(long, hide = true)]
+    pub stall_after_blobs: Option<u64>,
+}
+
+/// The `--json` summary.
+#[derive(Serialize, Debug)]
+pub struct BuildSummary {
+    /// Output repository.
+    pub output: String,
+    /// `"elevation"` or `"colour"`.
+    pub kind: String,
+    /// Input samples (pixels for colour), no padding.
+    pub samples: usize,
+    /// Wall-clock seconds of the whole build (read, encode, write, publish).
+    pub seconds: f64,
+    /// `samples / seconds / 1e6`.
+    pub msamples_per_s: f64,
+    /// Seconds spent encoding (transform, rate control, entropy coding).
+    pub encode_seconds: f64,
+    /// Peak resident memory of the process, MB.
+    pub peak_rss_mb: f64,
+    /// Blobs stored.
+    pub blob_count: usize,
+    /// Bytes of all blobs.
+    pub blob_bytes: u64,
+    /// Bytes of root grids, models and steps (in the metadata).
+    pub side_bytes: usize,
+    /// `8 (blob_bytes + side_bytes) / samples`.
+    pub bits_per_sample: f64,
+    /// Bytes of the repository directory on disk.
+    pub repository_bytes: u64,
+    /// `repository_bytes / (blob_bytes + side_bytes)`: what sled adds.
+    pub storage_overhead: f64,
+    /// Achieved RMS error over valid samples (elevation: metres; colour: 8-bit levels, RGB).
+    pub rms: f64,
+    /// Achieved largest absolute error (same units).
+    pub max_abs: f64,
+    /// Content hash of the published repository.
+    pub content_hash: String,
+}
+
+fn rate_mode(args: &BuildArgs) -> Result<RateMode> {
+    let mode = match (args.rms_m, args.max_error_m) {
+        (Some(t), _) => RateMode::RmsM(t),
+        (_, Some(e)) => RateMode::MaxErrorM(e),
+        _ => RateMode::Lossless,
+    };
+    match mode {
+        RateMode::RmsM(t) | RateMode::MaxErrorM(t) if !(t.is_finite() && t > 0.0) => {
+            bail!("tolerance {t} is not a positive number")
+        }
+        _ => Ok(mode),
+    }
+}
+
+fn diamond_n(args: &BuildArgs) -> Result<usize> {
+    let size = args
+        .diamond_size
+        .unwrap_or(if args.colour { 65 } else { 33 });
+    let n = size.saturating_sub(1);
+    if n < 2 || !n.is_power_of_two() || n > 512 {
+        bail!("--diamond-size {size} must be 2^k + 1 between 3 and 513");
+    }
+    Ok(n)
+}
+
+/// Bytes per sample the in-memory build needs at its peak (source values, integers,
+/// transform workspace, detail matrices, blobs): measured on korea_srtm3_4097.
+const BUILD_BYTES_PER_SAMPLE: u64 = 48;
+
+fn check_budget(args: &BuildArgs, samples: usize, channels: usize) -> Result<()> {
+    let Some(budget) = args.memory_budget_mb else {
+        return Ok(());
+    };
+    let need_mb = (samples as u64 * BUILD_BYTES_PER_SAMPLE * channels as u64).div_ceil(1 << 20);
+    if need_mb > budget {
+        bail!(
+            "this build needs about {need_mb} MB in memory but --memory-budget-mb is {budget}: \
+             out-of-core building (by subtree) is not implemented yet; raise the budget or \
+             split the input"
+        );
+    }
+    Ok(())
+}
+
+/// Runs `quincunx build`.
+pub fn run(args: &BuildArgs) -> Result<()> {
+    let mut builder = rayon::ThreadPoolBuilder::new();
+    if let Some(t) = args.threads {
+        builder = builder.num_threads(t.max(1));
+    }
+    let pool = builder.build().context("starting worker threads")?;
+    let summary = pool.install(|| build(args))?;
+    if args.json {
+        println!("{}", serde_json::to_string(&summary)?);
+    } else {
+        println!(
+            "built {} ({}): {} samples in {:.2} s ({:.2} M samples/s), {:.4} bits/sample, \
+             rms {:.4}, max {:.4}, {} blobs, {:.2}x on disk, peak {:.0} MB",
+            summary.output,
+            summary.kind,
+            summary.samples,
+            summary.seconds,
+            summary.msamples_per_s,
+            summary.bits_per_sample,
+            summary.rms,
+            summary.max_abs,
+            summary.blob_count,
+            summary.storage_overhead,
+            summary.peak_rss_mb
+        );
+    }
+    Ok(())
+}
+
+/// What was encoded, ready to store.
+struct Coded {
+    kind: &'static str,
+    units: String,
+    samples: usize,
+    nodata_count: usize,
+    georef: Option<Georef>,
+    channels: Vec<(String, Encoded)>,
+    rms: f64,
+    max_abs: f64,
+}
+
+fn build(args: &BuildArgs) -> Result<BuildSummary> {
+    let started = Instant::now();
+    let mode = rate_mode(args)?;
+    let n = diamond_n(args)?;
+    let spin = progress::spinner("reading");
+    spin.set_message(args.input.display().to_string());
+    let encode_started;
+    let coded = if args.colour {
+        let image = input::read_rgb(&args.input)
+            .with_context(|| format!("reading {}", args.input.display()))?;
+        spin.finish_and_clear();
+        check_budget(args, image.width * image.height, 3)?;
+        encode_started = Instant::now();
+        encode_colour(&image, n, mode)?
+    } else {
+        let raster = input::read_heights(&args.input)
+            .with_context(|| format!("reading {}", args.input.display()))?;
+        spin.finish_and_clear();
+        tracing::info!(
+            format = ?raster.format,
+            width = raster.grid.width,
+            height = raster.grid.height,
+            nodata = raster.nodata_count,
+            "read input"
+        );
+        check_budget(args, raster.grid.width * raster.grid.height, 1)?;
+        encode_started = Instant::now();
+        encode_heights(raster, n, mode)?
+    };
+    let encode_seconds = encode_started.elapsed().as_secs_f64();
+    let (summary_output, meta) = store(args, &coded, n, mode)?;
+    let seconds = started.elapsed().as_secs_f64();
+    let blob_bytes: u64 = meta.level_stats.iter().map(|s| s.bytes).sum();
+    let blob_count = meta.level_stats.iter().map(|s| s.blobs).sum::<u64>() as usize;
+    let side_bytes: usize = meta
+        .channels
+        .iter()
+        .map(|c| {
+            c.model.len()
+                + 4 * c.steps.len()
+                + c.roots
+                    .iter()
+                    .map(|r| encode::root_grid_bytes(r).len())
+                    .sum::<usize>()
+        })
+        .sum();
+    let repository_bytes = quincunx_store::dir_size(&args.output)?;
+    let coded_bytes = blob_bytes + side_bytes as u64;
+    Ok(BuildSummary {
+        output: summary_output,
+        kind: coded.kind.into(),
+        samples: coded.samples,
+        seconds,
+        msamples_per_s: coded.samples as f64 / seconds / 1e6,
+        encode_seconds,
+        peak_rss_mb: layout::peak_rss_mb(),
+        blob_count,
+        blob_bytes,
+        side_bytes,
+        bits_per_sample: 8.0 * coded_bytes as f64 / coded.samples as f64,
+        repository_bytes,
+        storage_overhead: repository_bytes as f64 / coded_bytes.max(1) as f64,
+        rms: coded.rms,
+        max_abs: coded.max_abs,
+        content_hash: meta.content_hash,
+    })
+}
+
+fn encode_heights(raster: input::HeightRaster, n: usize, mode: RateMode) -> Result<Coded> {
+    let spin = progress::spinner("encoding");
+    spin.set_message(format!("{} x {}", raster.grid.width, raster.grid.height));
+    let enc = encode::encode(&raster.grid, EncodeOptions { n, mode })
+        .context("encoding the height grid")?;
+    spin.finish_and_clear();
+    Ok(Coded {
+        kind: "elevation",
+        units: raster.units,
+        samples: enc.report.samples,
+        nodata_count: raster.nodata_count,
+        georef: raster.georef,
+        rms: enc.report.rms_m,
+        max_abs: enc.report.max_abs_m,
+        channels: vec![("height".into(), enc)],
+    })
+}
+
+/// Per-channel error bound that keeps every RGB component within `e` levels after the
+/// inverse YCoCg-R (worst case `|dR| <= 2d + 2` for channel errors `<= d`).
+pub fn colour_channel_bound(e: f64) -> Option<f64> {
+    let d = ((e - 2.0) / 2.0).floor();
+    (d >= 1.0).then_some(d)
+}
+
+fn encode_colour(image: &input::RgbImage, n: usize, mode: RateMode) -> Result<Coded> {
+    let samples = image.width * image.height;
+    if samples == 0 {
+        bail!("the image is empty");
+    }
+    let mut planes = [
+        Vec::with_capacity(samples),
+        Vec::with_capacity(samples),
+        Vec::with_capacity(samples),
+    ];
+    for &[r, g, b] in &image.pixels {
+        let (y, co, cg) = rgb_to_ycocg_r(r as i32, g as i32, b as i32);
+        planes[0].push(y as f64);
+        planes[1].push(co as f64);
+        planes[2].push(cg as f64);
+    }
+    let channel_mode = match mode {
+        RateMode::Lossless => RateMode::Lossless,
+        RateMode::RmsM(t) => RateMode::RmsM(t),
+        RateMode::MaxErrorM(e) => {
+            colour_channel_bound(e).map_or(RateMode::Lossless, RateMode::MaxErrorM)
+        }
+    };
+    let pb = progress::bar(3, "encoding", "channels");
+    let mut channels = Vec::new();
+    for (name, values) in COLOUR_CHANNELS.iter().zip(planes) {
+        let grid = Grid {
+            width: image.width,
+            height: image.height,
+            values_m: values,
+            quantum_m: Some(1.0),
+        };
+        let enc = encode::encode(
+            &grid,
+            EncodeOptions {
+                n,
+                mode: channel_mode,
+            },
+        )
+        .with_context(|| format!("encoding colour channel {name}"))?;
+        channels.push((name.to_string(), enc));
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let decoded: Vec<Vec<i32>> = channels
+        .iter()
+        .map(|(_, e)| encode::decode(e).map(|v| v.into_iter().map(|x| x.round() as i32).collect()))
+        .collect::<Result<_, _>>()
+        .context("decoding colour for measurement")?;
+    let (rms, max_abs) = rgb_error(image, &decoded[0], &decoded[1], &decoded[2]);
+    Ok(Coded {
+        kind: "colour",
+        units: "srgb8".into(),
+        samples,
+        nodata_count: 0,
+        georef: image.georef.clone(),
+        channels,
+        rms,
+        max_abs,
+    })
+}
+
+/// RMS and largest absolute error over all RGB components of decoded YCoCg-R planes
+/// (clamped to 0..=255) against the source image.
+pub fn rgb_error(image: &input::RgbImage, y: &[i32], co: &[i32], cg: &[i32]) -> (f64, f64) {
+    let mut sum = 0.0;
+    let mut max = 0i32;
+    for (k, src) in image.pixels.iter().enumerate() {
+        let (r, g, b) = quincunx_codec::colour::ycocg_r_to_rgb(y[k], co[k], cg[k]);
+        for (got, want) in [r, g, b].into_iter().zip(src) {
+            let d = (got.clamp(0, 255) - *want as i32).abs();
+            max = max.max(d);
+            sum += (d * d) as f64;
+        }
+    }
+    (
+        (sum / (3 * image.pixels.len().max(1)) as f64).sqrt(),
+        max as f64,
+    )
+}
+
+fn store(args: &BuildArgs, coded: &Coded, n: usize, mode: RateMode) -> Result<(String, Metadata)> {
+    let first = &coded.channels[0].1;
+    let geom = RasterGeometry::new(first.width, first.height, n).context("raster geometry")?;
+    let mut builder = RepositoryBuilder::create(&args.output)
+        .with_context(|| format!("creating {}", args.output.display()))?;
+    let total: usize = (0..geom.detail_levels()).map(|l| geom.level(l).len()).sum();
+    let pb = progress::bar(total as u64, "writing", "diamonds");
+    let mut stored = 0u64;
+    for level in 0..geom.detail_levels() {
+        for (index, slot) in geom.level(level).iter().enumerate() {
+            let parts: Vec<Option<&[u8]>> = coded
+                .channels
+                .iter()
+                .map(|(_, e)| e.blobs[level][index].as_deref())
+                .collect();
+            if let Some(blob) = layout::frame_channels(&parts) {
+                builder.put(level as u32, &slot.key, &blob)?;
+                stored += 1;
+                if args.stall_after_blobs == Some(stored) {
+                    tracing::warn!("stalling after {stored} blobs (test hook)");
+                    loop {
+                        std::thread::sleep(std::time::Duration::from_secs(3600));
+                    }
+                }
+            }
+            pb.inc(1);
+        }
+    }
+    pb.finish_and_clear();
+    let meta = Metadata {
+        format_version: quincunx_store::FORMAT_VERSION,
+        complete: false,
+        content_hash: String::new(),
+        domain: "planar".into(),
+        m: geom.domain().m(),
+        n: n as u32,
+        levels: geom.detail_levels() as u32,
+        attribute: Attribute {
+            kind: coded.kind.into(),
+            units: coded.units.clone(),
+        },
+        extent: [first.width as u64, first.height as u64],
+        nodata: NodataPolicy {
+            source_count: coded.nodata_count as u64,
+            handling: if coded.nodata_count > 0 {
+                "filled"
+            } else {
+                "none"
+            }
+            .into(),
+        },
+        georef: coded
+            .georef
+            .as_ref()
+            .map(serde_json::to_value)
+            .transpose()?,
+        radius_m: None,
+        channels: coded
+            .channels
+            .iter()
+            .map(|(name, e)| layout::channel_coding(name, e, mode))
+            .collect(),
+        build: serde_json::json!({
+            "tool": concat!("quincunx ", env!("CARGO_PKG_VERSION")),
+            "input": file_name(&args.input),
+            "rate": layout::rate_label(mode),
+            "diamond_size": n + 1,
+            "achieved_rms": coded.rms,
+            "achieved_max_abs": coded.max_abs,
+        }),
+        level_stats: Vec::new(),
+    };
+    let meta = builder
+        .publish(meta, args.overwrite)
+        .with_context(|| format!("publishing {}", args.output.display()))?;
+    Ok((args.output.display().to_string(), meta))
+}
+
+fn file_name(p: &Path) -> String {
+    p.file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default()
+}

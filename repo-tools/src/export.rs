@@ -1,0 +1,81 @@
+//! `quincunx export`: one static file per blob, at the path the server serves it under.
+//!
+//! Layout (mirrors `docs/http-api.md`):
+//! ```text
+//! <dir>/repos/<name>/metadata.json
+//! <dir>/repos/<name>/v/<hash16>/d/<x>/<y>        planar blob of the diamond centred at (x, y)
+//! <dir>/repos/<name>/v/<hash16>/d/<x>/<y>/<z>    sphere blob
+//! ```
+//! `hash16` is the first 16 hex digits of the content hash, so a rebuilt repository gets
+//! new URLs and caches never serve stale blobs. Leaves (no blob) have no file.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use quincunx_codec::diamond::{PlanarDomain, SphereDomain};
+use quincunx_store::{Metadata, Repository};
+
+use crate::progress;
+
+/// The URL path (no leading slash) of a blob, from its storage key.
+pub fn blob_path(meta: &Metadata, name: &str, key: &[u8]) -> Result<String> {
+    let version = &meta.content_hash[..meta.content_hash.len().min(16)];
+    let centre = match meta.domain.as_str() {
+        "planar" => {
+            let id = PlanarDomain::new(meta.m)?.id_from_key(key)?;
+            format!("{}/{}", id.x, id.y)
+        }
+        "sphere" => {
+            let id = SphereDomain::new(meta.m)?.id_from_key(key)?;
+            let [x, y, z] = id.c;
+            format!("{x}/{y}/{z}")
+        }
+        other => bail!("unknown domain {other:?}"),
+    };
+    Ok(format!("repos/{name}/v/{version}/d/{centre}"))
+}
+
+/// Runs `quincunx export`.
+pub fn run(path: &Path, dir: &Path, name: Option<&str>) -> Result<()> {
+    let repo = Repository::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let name = match name {
+        Some(n) => n.to_string(),
+        None => path
+            .file_name()
+            .map(|s| s.to_string_lossy().into_owned())
+            .context("repository path has no name; pass --name")?,
+    };
+    if name.is_empty()
+        || !name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+        || name.starts_with('.')
+    {
+        bail!("repository name {name:?} must be ASCII letters, digits, '-', '_' or '.'");
+    }
+    let meta = repo.metadata();
+    let root: PathBuf = dir.join("repos").join(&name);
+    std::fs::create_dir_all(&root).with_context(|| format!("creating {}", root.display()))?;
+    let pb = progress::bar(repo.blob_count() as u64, "exporting", "blobs");
+    let mut files = 0u64;
+    for kv in repo.blobs() {
+        let (key, blob) = kv?;
+        let file = dir.join(blob_path(meta, &name, &key)?);
+        if let Some(parent) = file.parent() {
+            std::fs::create_dir_all(parent)
+                .with_context(|| format!("creating {}", parent.display()))?;
+        }
+        std::fs::write(&file, &blob).with_context(|| format!("writing {}", file.display()))?;
+        files += 1;
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let meta_file = root.join("metadata.json");
+    std::fs::write(&meta_file, serde_json::to_vec(meta)?)
+        .with_context(|| format!("writing {}", meta_file.display()))?;
+    println!(
+        "exported {files} blobs and metadata.json to {}",
+        root.display()
+    );
+    Ok(())
+}

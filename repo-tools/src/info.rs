@@ -1,0 +1,118 @@
+//! `quincunx info`: what a repository holds.
+
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use quincunx_codec::encode::root_grid_bytes;
+use quincunx_store::Repository;
+use serde::Serialize;
+
+/// The `--json` output of `quincunx info`.
+#[derive(Serialize)]
+struct Info<'a> {
+    path: String,
+    metadata: &'a quincunx_store::Metadata,
+    samples: u64,
+    blob_count: u64,
+    blob_bytes: u64,
+    side_bytes: u64,
+    bits_per_sample: f64,
+    repository_bytes: u64,
+    storage_overhead: f64,
+}
+
+/// Input samples a repository covers (planar: width x height; sphere: distinct cube points).
+pub fn samples(meta: &quincunx_store::Metadata) -> u64 {
+    let [a, b] = meta.extent;
+    if meta.domain == "sphere" {
+        6 * a * b + 2
+    } else {
+        a * b
+    }
+}
+
+/// Bytes of root grids, models and steps.
+pub fn side_bytes(meta: &quincunx_store::Metadata) -> u64 {
+    meta.channels
+        .iter()
+        .map(|c| {
+            (c.model.len()
+                + 4 * c.steps.len()
+                + c.roots
+                    .iter()
+                    .map(|r| root_grid_bytes(r).len())
+                    .sum::<usize>()) as u64
+        })
+        .sum()
+}
+
+/// Runs `quincunx info`.
+pub fn run(path: &Path, json: bool) -> Result<()> {
+    let repo = Repository::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let meta = repo.metadata();
+    let blob_bytes: u64 = meta.level_stats.iter().map(|s| s.bytes).sum();
+    let blob_count: u64 = meta.level_stats.iter().map(|s| s.blobs).sum();
+    let side = side_bytes(meta);
+    let samples = samples(meta);
+    let repository_bytes = repo.size_on_disk()?;
+    let info = Info {
+        path: path.display().to_string(),
+        metadata: meta,
+        samples,
+        blob_count,
+        blob_bytes,
+        side_bytes: side,
+        bits_per_sample: 8.0 * (blob_bytes + side) as f64 / samples.max(1) as f64,
+        repository_bytes,
+        storage_overhead: repository_bytes as f64 / (blob_bytes + side).max(1) as f64,
+    };
+    if json {
+        println!("{}", serde_json::to_string(&info)?);
+        return Ok(());
+    }
+    println!("repository     {}", info.path);
+    println!("content hash   {}", meta.content_hash);
+    println!(
+        "domain         {} (m = {}), N = {}, {} detail levels, extent {} x {}",
+        meta.domain, meta.m, meta.n, meta.levels, meta.extent[0], meta.extent[1]
+    );
+    println!(
+        "attribute      {} [{}], channels {}",
+        meta.attribute.kind,
+        meta.attribute.units,
+        meta.channels
+            .iter()
+            .map(|c| format!("{} ({})", c.name, c.rate))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    println!(
+        "nodata         {} source samples, {}",
+        meta.nodata.source_count, meta.nodata.handling
+    );
+    if let Some(g) = &meta.georef {
+        println!("georef         {g}");
+    }
+    if let Some(r) = meta.radius_m {
+        println!("radius         {r} m");
+    }
+    println!("level      blobs        bytes  bytes/blob");
+    for s in &meta.level_stats {
+        println!(
+            "{:>5} {:>10} {:>12} {:>11.1}",
+            s.level,
+            s.blobs,
+            s.bytes,
+            s.bytes as f64 / s.blobs.max(1) as f64
+        );
+    }
+    println!(
+        "total {:>10} {:>12}   + {} bytes roots/models/steps",
+        blob_count, blob_bytes, side
+    );
+    println!(
+        "bits/sample    {:.4} over {} samples; {} bytes on disk ({:.2}x the coded bytes)",
+        info.bits_per_sample, samples, repository_bytes, info.storage_overhead
+    );
+    Ok(())
+}

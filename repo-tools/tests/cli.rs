@@ -1,0 +1,361 @@
+//! End-to-end tests of the `quincunx` binary: build -> verify for every input format and
+//! rate mode, colour, export, interrupted builds and bad input.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_quincunx"))
+}
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(name)
+}
+
+fn shared_data(test: &str, name: &str) -> Option<PathBuf> {
+    let dir = std::env::var_os("QUINCUNX_SHARED_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data"));
+    let p = dir.join(name);
+    if p.exists() {
+        Some(p)
+    } else {
+        println!("SKIP {test}: {} not found", p.display());
+        None
+    }
+}
+
+fn run(cmd: &mut Command) -> Output {
+    let out = cmd.output().expect("run quincunx");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "panic: {stderr}");
+    out
+}
+
+fn ok_json(cmd: &mut Command) -> serde_json::Value {
+    let out = run(cmd);
+    assert!(
+        out.status.success(),
+        "failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("bad JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
+}
+
+fn build_and_verify(
+    input: &Path,
+    rate: &[&str],
+    extra: &[&str],
+) -> (serde_json::Value, serde_json::Value) {
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("repo");
+    let built = ok_json(
+        bin()
+            .arg("build")
+            .arg(input)
+            .arg("-o")
+            .arg(&repo)
+            .args(rate)
+            .args(extra)
+            .arg("--json"),
+    );
+    let verified = ok_json(
+        bin()
+            .arg("verify")
+            .arg(&repo)
+            .arg("--source")
+            .arg(input)
+            .arg("--json"),
+    );
+    assert_eq!(verified["blob_errors"], 0);
+    assert_eq!(verified["content_hash_ok"], true);
+    assert!(verified["blobs_checked"].as_u64().unwrap() > 0);
+    assert_eq!(built["samples"], verified["samples"]);
+    let (b, v) = (
+        built["bits_per_sample"].as_f64().unwrap(),
+        verified["bits_per_sample"].as_f64().unwrap(),
+    );
+    assert!(
+        (b - v).abs() < 1e-9,
+        "build says {b} bits/sample, verify {v}"
+    );
+    (built, verified)
+}
+
+fn check_bound(verified: &serde_json::Value, rate: &[&str]) {
+    let rms = verified["rms_m"].as_f64().unwrap();
+    let max = verified["max_abs_m"].as_f64().unwrap();
+    match rate {
+        ["--lossless"] => assert_eq!(max, 0.0),
+        ["--rms-m", t] => assert!(rms <= t.parse::<f64>().unwrap() + 1e-9, "rms {rms} > {t}"),
+        ["--max-error-m", e] => {
+            assert!(max <= e.parse::<f64>().unwrap() + 1e-9, "max {max} > {e}")
+        }
+        _ => unreachable!(),
+    }
+}
+
+const RATES: [&[&str]; 3] = [
+    &["--lossless"],
+    &["--rms-m", "2"],
+    &["--max-error-m", "1.5"],
+];
+
+#[test]
+fn every_input_format_builds_and_verifies_within_every_rate_mode() {
+    for input in [
+        "jacksboro.json",
+        "jacksboro_stripped_i16.tif",
+        "jacksboro_tiled_f32.tif",
+        "jacksboro_u16.png",
+    ] {
+        for rate in RATES {
+            let (built, verified) = build_and_verify(&fixture(input), rate, &[]);
+            check_bound(&verified, rate);
+            assert!(built["seconds"].as_f64().unwrap() > 0.0);
+            assert!(built["peak_rss_mb"].as_f64().unwrap() > 0.0);
+            assert_eq!(built["kind"], "elevation", "{input}");
+        }
+    }
+}
+
+#[test]
+fn srtm_hgt_tiles_build_and_verify() {
+    // A real-sized SRTM3 tile (1201 x 1201, big-endian) made from the bundled SRTM crop.
+    let dir = tempfile::tempdir().unwrap();
+    let src =
+        std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.i16"))
+            .unwrap();
+    let mut hgt = Vec::with_capacity(1201 * 1201 * 2);
+    for row in 0..1201 {
+        for col in 0..1201 {
+            let (r, c) = (row % 1025, col % 1025);
+            let v = i16::from_le_bytes([src[(r * 1025 + c) * 2], src[(r * 1025 + c) * 2 + 1]]);
+            hgt.extend_from_slice(&v.to_be_bytes());
+        }
+    }
+    let path = dir.path().join("N37E127.hgt");
+    std::fs::write(&path, hgt).unwrap();
+    for rate in [&["--lossless"][..], &["--max-error-m", "4"]] {
+        let (built, verified) = build_and_verify(&path, rate, &[]);
+        check_bound(&verified, rate);
+        assert_eq!(built["samples"], 1201 * 1201);
+    }
+}
+
+#[test]
+fn colour_imagery_builds_within_the_requested_rgb_error() {
+    let (_, lossless) = build_and_verify(
+        &fixture("gsi_color_256.jpg"),
+        &["--lossless"],
+        &["--colour"],
+    );
+    assert_eq!(lossless["max_abs_m"], 0.0);
+    let (lossy, bounded) = build_and_verify(
+        &fixture("gsi_color_256.jpg"),
+        &["--max-error-m", "8"],
+        &["--colour"],
+    );
+    assert!(bounded["max_abs_m"].as_f64().unwrap() <= 8.0);
+    assert!(lossy["bits_per_sample"].as_f64().unwrap() < 24.0);
+    assert_eq!(lossy["kind"], "colour");
+}
+
+#[test]
+fn info_and_export_describe_every_blob() {
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("jb");
+    ok_json(
+        bin()
+            .args(["build", "--max-error-m", "1", "--json", "-o"])
+            .arg(&repo)
+            .arg(fixture("jacksboro.json")),
+    );
+    let info = ok_json(bin().arg("info").arg(&repo).arg("--json"));
+    let blobs = info["blob_count"].as_u64().unwrap();
+    assert!(blobs > 0);
+    let hash = info["metadata"]["content_hash"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let out = dir.path().join("www");
+    let status = run(bin().arg("export").arg(&repo).arg(&out));
+    assert!(status.status.success());
+    let base = out.join("repos/jb");
+    let meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(base.join("metadata.json")).unwrap()).unwrap();
+    assert_eq!(meta["content_hash"], hash.as_str());
+    let mut files = 0;
+    let mut stack = vec![base.join("v").join(&hash[..16]).join("d")];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(d).unwrap() {
+            let e = e.unwrap();
+            if e.file_type().unwrap().is_dir() {
+                stack.push(e.path());
+            } else {
+                files += 1;
+            }
+        }
+    }
+    assert_eq!(files, blobs);
+}
+
+#[test]
+fn a_killed_build_leaves_nothing_that_opens_and_a_rerun_succeeds() {
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("repo");
+    let input = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.json");
+    let mut child = bin()
+        .args([
+            "build",
+            "--max-error-m",
+            "2",
+            "--stall-after-blobs",
+            "100",
+            "-o",
+        ])
+        .arg(&repo)
+        .arg(&input)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let partial = dir.path().join("repo.partial");
+    let marker = dir.path().join("repo.partial").join("conf");
+    for _ in 0..600 {
+        if marker.exists() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    assert!(
+        child.try_wait().unwrap().is_none(),
+        "build ended before it was killed"
+    );
+    child.kill().unwrap(); // SIGKILL: no cleanup runs
+    child.wait().unwrap();
+    assert!(partial.exists());
+    assert!(!repo.exists());
+    for path in [&repo, &partial] {
+        let out = run(bin().arg("info").arg(path));
+        assert!(!out.status.success(), "{} opened", path.display());
+        assert_eq!(out.status.code(), Some(1));
+    }
+    let out = run(bin().arg("verify").arg(&partial));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("not a complete repository"));
+    let built = ok_json(
+        bin()
+            .args(["build", "--max-error-m", "2", "--json", "-o"])
+            .arg(&repo)
+            .arg(&input),
+    );
+    assert!(built["blob_count"].as_u64().unwrap() > 100);
+    assert!(!partial.exists());
+    let verified = ok_json(bin().arg("verify").arg(&repo).arg("--json"));
+    assert_eq!(verified["blob_errors"], 0);
+}
+
+fn expect_failure(args: &[&str], inputs: &[&Path], needle: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let out = run(bin()
+        .args(args)
+        .args(inputs)
+        .arg("-o")
+        .arg(dir.path().join("repo")));
+    let stderr = String::from_utf8_lossy(&out.stderr).to_lowercase();
+    assert_eq!(out.status.code(), Some(1), "{args:?} {inputs:?}: {stderr}");
+    assert!(
+        stderr.contains(&needle.to_lowercase()),
+        "{args:?} {inputs:?}: expected {needle:?} in {stderr}"
+    );
+    assert!(!dir.path().join("repo").exists());
+}
+
+#[test]
+fn bad_input_is_a_clear_error_never_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // Each raw case lives in its own folder: the sidecar names its data file.
+    let case = |name: &str, data: &[u8], sidecar: &str| {
+        let dir = d.join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("jacksboro.i16"), data).unwrap();
+        std::fs::write(dir.join("jacksboro.f32"), data).unwrap();
+        std::fs::write(dir.join("jacksboro.json"), sidecar).unwrap();
+        dir.join("jacksboro.json")
+    };
+    let raw = std::fs::read(fixture("jacksboro.i16")).unwrap();
+    let sidecar = std::fs::read_to_string(fixture("jacksboro.json")).unwrap();
+    // Truncated raw grid.
+    let short = case("short", &raw[..raw.len() / 2], &sidecar);
+    expect_failure(&["build"], &[&short], "bytes");
+    // Sidecar whose dimensions do not match.
+    let mut wrong: serde_json::Value = serde_json::from_str(&sidecar).unwrap();
+    wrong["width"] = serde_json::json!(wrong["width"].as_u64().unwrap() + 1);
+    let wrong = case("wrong", &raw, &wrong.to_string());
+    expect_failure(&["build"], &[&wrong], "bytes");
+    // NaN everywhere.
+    let mut nan: serde_json::Value = serde_json::from_str(&sidecar).unwrap();
+    nan["dtype"] = serde_json::json!("float32");
+    nan["nodata"] = serde_json::json!("NaN");
+    let nan_bytes: Vec<u8> = (0..raw.len() / 2)
+        .flat_map(|_| f32::NAN.to_le_bytes())
+        .collect();
+    let nan = case("nan", &nan_bytes, &nan.to_string());
+    expect_failure(&["build"], &[&nan], "no valid samples");
+    // Truncated TIFF and a TIFF layout we do not read.
+    let tif = std::fs::read(fixture("jacksboro_stripped_i16.tif")).unwrap();
+    std::fs::write(d.join("cut.tif"), &tif[..tif.len() / 3]).unwrap();
+    expect_failure(&["build"], &[&d.join("cut.tif")], "tif");
+    let mut rgb_tif = std::io::Cursor::new(Vec::new());
+    tiff::encoder::TiffEncoder::new(&mut rgb_tif)
+        .unwrap()
+        .write_image::<tiff::encoder::colortype::RGB8>(4, 4, &[9u8; 48])
+        .unwrap();
+    std::fs::write(d.join("rgb.tif"), rgb_tif.into_inner()).unwrap();
+    expect_failure(&["build"], &[&d.join("rgb.tif")], "bands");
+    // Empty and truncated images.
+    std::fs::write(d.join("empty.png"), b"").unwrap();
+    expect_failure(&["build"], &[&d.join("empty.png")], "png");
+    let jpg = std::fs::read(fixture("gsi_color_256.jpg")).unwrap();
+    std::fs::write(d.join("cut.jpg"), &jpg[..jpg.len() / 4]).unwrap();
+    expect_failure(&["build", "--colour"], &[&d.join("cut.jpg")], "jp");
+    // Unknown format, missing file, bad options.
+    std::fs::write(d.join("x.bmp"), b"BM").unwrap();
+    expect_failure(&["build"], &[&d.join("x.bmp")], "bmp");
+    expect_failure(&["build"], &[&d.join("missing.tif")], "missing.tif");
+    expect_failure(
+        &["build", "--diamond-size", "32"],
+        &[&fixture("jacksboro.json")],
+        "2^k + 1",
+    );
+    expect_failure(
+        &["build", "--rms-m=-1"],
+        &[&fixture("jacksboro.json")],
+        "positive",
+    );
+    expect_failure(
+        &["build", "--memory-budget-mb", "1"],
+        &[&Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.json")],
+        "out-of-core",
+    );
+}
+
+#[test]
+fn korea_at_rms_9m_meets_its_error_target() {
+    let Some(input) = shared_data(
+        "korea_at_rms_9m_meets_its_error_target",
+        "korea_srtm3_4097.json",
+    ) else {
+        return;
+    };
+    let (built, verified) = build_and_verify(&input, &["--rms-m", "9"], &[]);
+    check_bound(&verified, &["--rms-m", "9"]);
+    println!("korea rms 9: build {built}\nverify {verified}");
+}
