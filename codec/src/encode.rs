@@ -1,6 +1,7 @@
-//! Whole-raster encoder and decoder in memory: a grid of heights in metres becomes a root
-//! grid, per-level quantiser steps, a trained [`CodecModel`] and one blob per diamond
-//! with data, and back.
+//! Whole-raster encoder and decoder in memory: a grid of heights in metres (a planar
+//! [`Grid`], or a planet's cube raster, [`CubeGrid`]) becomes root grids, per-level
+//! quantiser steps, a trained [`CodecModel`] and one blob per diamond with data, and back.
+//! One code path serves both geometries (the crate-private `Layout` trait).
 //!
 //! Rate modes:
 //! - **Lossless**: bit-exact (integer data, or float data on a decimal grid).
@@ -527,7 +528,7 @@ pub fn encode_sphere(grid: &CubeGrid, opts: EncodeOptions) -> Result<Encoded, En
     }
     check_tolerance(opts.mode)?;
     let mut values_m = grid.values_m.clone();
-    geom.make_consistent(&mut values_m);
+    geom.make_consistent(&mut values_m)?;
     let domain = EncodedDomain::Sphere {
         face_side: grid.face_side,
     };

@@ -364,8 +364,15 @@ impl SphereGeometry {
             == Some(index)
     }
 
-    /// Copies the canonical copy of every cube edge and corner point to its other copies.
-    pub fn make_consistent<T: Copy>(&self, values: &mut [T]) {
+    /// Copies the canonical copy of every cube edge and corner point to its other copies;
+    /// `values` must be a whole cube raster.
+    pub fn make_consistent<T: Copy>(&self, values: &mut [T]) -> Result<(), RasterError> {
+        if values.len() != self.cube_len() {
+            return Err(RasterError::WrongLength {
+                expected: self.cube_len(),
+                got: values.len(),
+            });
+        }
         let w = self.width();
         for face in 0..6u8 {
             for v in 0..w {
@@ -375,13 +382,13 @@ impl SphereGeometry {
                     let pos = self.sample_position(face, u, v);
                     if let Some(first) = self.point_indices(pos).next()
                         && first != here
-                        && let (Some(&x), true) = (values.get(first), here < values.len())
                     {
-                        values[here] = x;
+                        values[here] = values[first];
                     }
                 }
             }
         }
+        Ok(())
     }
 
     fn check_len(&self, raster: &[i32]) -> Result<(), RasterError> {
@@ -516,8 +523,7 @@ impl SphereGeometry {
     /// result one `N x N` detail matrix per diamond per level. Diamonds of a level run in
     /// parallel.
     pub fn analyze(&self, raster: &mut [i32]) -> Result<Vec<Vec<Vec<i32>>>, RasterError> {
-        self.check_len(raster)?;
-        self.make_consistent(raster);
+        self.make_consistent(raster)?;
         Ok(analyze_levels(self, raster))
     }
 
@@ -636,8 +642,7 @@ impl Layout for SphereGeometry {
                     face.iter_mut().for_each(|x| *x = mean);
                 }
             });
-        self.make_consistent(values);
-        true
+        self.make_consistent(values).is_ok()
     }
 }
 
@@ -727,7 +732,7 @@ mod tests {
             let mut orig: Vec<i32> = (0..g.cube_len())
                 .map(|k| ((k * 2654435761) % 1013) as i32 - 300)
                 .collect();
-            g.make_consistent(&mut orig);
+            g.make_consistent(&mut orig).unwrap();
             let mut r = orig.clone();
             let details = g.analyze(&mut r).unwrap();
             let roots = g.gather_roots(&r);

@@ -115,7 +115,7 @@ fn nodata_is_filled_and_excluded_and_the_canonical_copy_wins() {
     let enc = encode_planet(&g, n, RateMode::Lossless);
     let dec = encode::decode(&enc).unwrap();
     let mut expected = g.values_m.clone();
-    geom.make_consistent(&mut expected);
+    geom.make_consistent(&mut expected).unwrap();
     let (rms, max, count) = errors(&geom, &expected, &dec);
     assert_eq!((rms, max), (0.0, 0.0));
     assert_eq!(count, enc.report.valid_samples);
