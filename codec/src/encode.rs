@@ -1,6 +1,7 @@
-//! Whole-raster encoder and decoder in memory: a grid of heights in metres becomes a root
-//! grid, per-level quantiser steps, a trained [`CodecModel`] and one blob per diamond
-//! with data, and back.
+//! Whole-raster encoder and decoder in memory: a grid of heights in metres (a planar
+//! [`Grid`], or a planet's cube raster, [`CubeGrid`]) becomes root grids, per-level
+//! quantiser steps, a trained [`CodecModel`] and one blob per diamond with data, and back.
+//! One code path serves both geometries (the crate-private `Layout` trait).
 //!
 //! Rate modes:
 //! - **Lossless**: bit-exact (integer data, or float data on a decimal grid).
@@ -22,7 +23,10 @@ use rayon::prelude::*;
 
 use crate::blob::{self, DecodeError};
 use crate::entropy::{self, CodecModel, ContextCounts};
-use crate::raster::{RasterError, RasterGeometry};
+use crate::raster::{
+    Layout, RasterError, RasterGeometry, analyze_levels, synthesize_levels, synthesize_levels_par,
+};
+use crate::sphere_raster::SphereGeometry;
 
 /// How the encoder trades rate for accuracy.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -189,12 +193,47 @@ pub struct EncodeReport {
     pub max_abs_m: f64,
 }
 
+/// A planet to encode: a cube raster of heights (see [`crate::sphere_raster`]).
+#[derive(Clone, Debug)]
+pub struct CubeGrid {
+    /// Samples per face side `2S` (`N 2^k`).
+    pub face_side: usize,
+    /// `6 (2S+1)^2` heights in metres in cube-raster order: face `f`'s sample `(u, v)` at
+    /// `(f (2S+1) + v) (2S+1) + u`; `NaN` marks nodata. Copies of a cube edge or corner
+    /// point should agree; where they do not, the lowest face's copy is used.
+    pub values_m: Vec<f64>,
+    /// The quantum the data is known to be a multiple of; `None` for float data of
+    /// unknown precision.
+    pub quantum_m: Option<f64>,
+}
+
+/// The domain an [`Encoded`] describes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EncodedDomain {
+    /// A planar `width x height` raster ([`RasterGeometry`]).
+    Planar {
+        /// Samples per row.
+        width: usize,
+        /// Rows.
+        height: usize,
+    },
+    /// A cube-mapped planet ([`SphereGeometry`]).
+    Sphere {
+        /// Samples per face side.
+        face_side: usize,
+    },
+}
+
 /// A grid encoded in memory: everything a decoder needs.
 #[derive(Clone, Debug)]
 pub struct Encoded {
-    /// Grid width.
+    /// What was encoded, and the geometry to decode it with.
+    pub domain: EncodedDomain,
+    /// Width of the decoded sample array: the raster width, or `face_side + 1` for a
+    /// planet (the cube raster is six `(2S+1) x (2S+1)` face arrays stacked vertically).
     pub width: usize,
-    /// Grid height.
+    /// Height of the decoded sample array: the raster height, or `6 (face_side + 1)` for
+    /// a planet.
     pub height: usize,
     /// Diamond size.
     pub n: usize,
@@ -204,8 +243,11 @@ pub struct Encoded {
     pub value_offset_m: f64,
     /// Quantiser step per detail level, in 1/256 integer units.
     pub steps: Vec<u32>,
-    /// Root vertex grid, `(N+1)^2` (zeros at invalid vertices).
+    /// Planar root vertex grid, `(N+1)^2` (zeros at invalid vertices); empty for a planet.
     pub root: Vec<i32>,
+    /// Every root vertex grid in root order: the planar root alone (equal to `root`), or
+    /// the six face roots of a planet in face order.
+    pub roots: Vec<Vec<i32>>,
     /// Trained starting probabilities.
     pub model: CodecModel,
     /// Blob of each diamond of each detail level (`None` = no data below it).
@@ -319,21 +361,26 @@ struct Integerised {
     offset: f64,
 }
 
-fn integerise(grid: &Grid, mode: RateMode) -> Result<Integerised, EncodeError> {
-    let valid: Vec<bool> = grid.values_m.iter().map(|v| v.is_finite()).collect();
-    let mut vals = grid.values_m.clone();
-    if !crate::fill::push_pull(grid.width, grid.height, &mut vals, &valid) {
+fn integerise<G: Layout>(
+    geom: &G,
+    values_m: &[f64],
+    quantum_m: Option<f64>,
+    mode: RateMode,
+) -> Result<Integerised, EncodeError> {
+    let valid: Vec<bool> = values_m.iter().map(|v| v.is_finite()).collect();
+    let mut vals = values_m.to_vec();
+    if !geom.fill_nodata(&mut vals, &valid) {
         return Err(EncodeError::AllNodata);
     }
     let lo = vals.iter().copied().fold(f64::INFINITY, f64::min);
     let hi = vals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     let integral = |q: f64| {
-        grid.values_m
+        values_m
             .iter()
             .filter(|v| v.is_finite())
             .all(|&v| ((v / q).round() * q - v).abs() <= q * 1e-6)
     };
-    let native = match grid.quantum_m {
+    let native = match quantum_m {
         Some(q) if q > 0.0 && integral(q) => Some(q),
         _ => [1.0, 0.1, 0.01, 0.001].into_iter().find(|&q| integral(q)),
     };
@@ -460,32 +507,79 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
             got: grid.values_m.len(),
         });
     }
-    match opts.mode {
-        RateMode::RmsM(t) | RateMode::MaxErrorM(t) if !(t.is_finite() && t > 0.0) => {
-            return Err(EncodeError::BadTolerance(t));
-        }
-        _ => {}
-    }
+    check_tolerance(opts.mode)?;
     let geom = RasterGeometry::new(grid.width, grid.height, opts.n)?;
-    let ints = integerise(grid, opts.mode)?;
+    let domain = EncodedDomain::Planar {
+        width: grid.width,
+        height: grid.height,
+    };
+    encode_layout(&geom, domain, &grid.values_m, grid.quantum_m, opts)
+}
+
+/// Encodes a planet ([`CubeGrid`]). Where the copies of a cube edge or corner point
+/// differ, the canonical (lowest face) copy is the point's value (nodata included).
+pub fn encode_sphere(grid: &CubeGrid, opts: EncodeOptions) -> Result<Encoded, EncodeError> {
+    let geom = SphereGeometry::new(grid.face_side, opts.n)?;
+    if grid.values_m.len() != geom.cube_len() {
+        return Err(EncodeError::WrongLength {
+            expected: geom.cube_len(),
+            got: grid.values_m.len(),
+        });
+    }
+    check_tolerance(opts.mode)?;
+    let mut values_m = grid.values_m.clone();
+    geom.make_consistent(&mut values_m)?;
+    let domain = EncodedDomain::Sphere {
+        face_side: grid.face_side,
+    };
+    encode_layout(&geom, domain, &values_m, grid.quantum_m, opts)
+}
+
+fn check_tolerance(mode: RateMode) -> Result<(), EncodeError> {
+    match mode {
+        RateMode::RmsM(t) | RateMode::MaxErrorM(t) if !(t.is_finite() && t > 0.0) => {
+            Err(EncodeError::BadTolerance(t))
+        }
+        _ => Ok(()),
+    }
+}
+
+/// The encoder over either geometry: `values_m` in the geometry's sample order, with
+/// consistent copies of shared points.
+fn encode_layout<G: Layout>(
+    geom: &G,
+    domain: EncodedDomain,
+    values_m: &[f64],
+    quantum_m: Option<f64>,
+    opts: EncodeOptions,
+) -> Result<Encoded, EncodeError> {
+    let n = geom.n();
+    let ints = integerise(geom, values_m, quantum_m, opts.mode)?;
+    // The samples errors are measured over: valid, one copy of each point.
+    let counted: Vec<bool> = (0..values_m.len())
+        .into_par_iter()
+        .map(|k| ints.valid[k] && geom.is_distinct(k))
+        .collect();
+    let valid_count = counted.iter().filter(|&&b| b).count();
     let mut raster = ints.values.clone();
-    let details = geom.analyze(&mut raster)?;
-    let root = geom.gather_root(&raster);
-    let levels = geom.detail_levels();
-    let n = opts.n;
+    let details = analyze_levels(geom, &mut raster);
+    let roots = geom.gather_roots(&raster);
+    let levels = geom.slot_levels().len();
+    let level_len = |l: usize| geom.slot_levels()[l].len();
+    let slot = |l: usize, i: usize| &geom.slot_levels()[l][i];
 
     let error_of = |decoded: &[i32]| -> (f64, f64) {
         let (sum, max) = decoded
             .par_iter()
-            .zip(&grid.values_m)
-            .filter(|(_, v)| v.is_finite())
-            .map(|(&d, &v)| {
+            .zip(values_m)
+            .zip(&counted)
+            .filter(|(_, c)| **c)
+            .map(|((&d, &v), _)| {
                 let e = (ints.offset + d as f64 * ints.scale - v).abs();
                 (e * e, e)
             })
             .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1.max(b.1)));
-        let count = ints.valid.iter().filter(|&&b| b).count().max(1);
-        ((sum / count as f64).sqrt(), max)
+        ((sum / valid_count.max(1) as f64).sqrt(), max)
     };
 
     let mut steps = vec![256u32; levels];
@@ -494,7 +588,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
     let measures;
     let (offset, exponent) = match opts.mode {
         RateMode::RmsM(t) => {
-            let quanta = t / grid.quantum_m.unwrap_or(ints.scale);
+            let quanta = t / quantum_m.unwrap_or(ints.scale);
             (rounding_offset(quanta), gain_exponent(quanta))
         }
         _ => (128, 0.5),
@@ -522,10 +616,10 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
                     .collect()
             })
             .collect();
-        let mut out = vec![0; expected];
-        geom.scatter_root(&root, &mut out);
-        let ms = geom.synthesize_par(&mut out, &deq, |l, i, coarse, fine, cells| {
-            measure(n, geom.level(l)[i].mask.as_ref(), coarse, fine, cells)
+        let mut out = vec![0; geom.raster_len()];
+        geom.scatter_roots(&roots, &mut out)?;
+        let ms = synthesize_levels_par(geom, &mut out, &deq, |l, i, coarse, fine, cells| {
+            measure(n, geom.mask(slot(l, i)), coarse, fine, cells)
         })?;
         Ok((out, ms))
     };
@@ -549,7 +643,6 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
                 m.into_iter().collect()
             })
             .collect();
-        let valid_count = ints.valid.iter().filter(|&&b| b).count().max(1) as f64;
         let estimate = |q: f64| -> f64 {
             let mut mse = 0.0;
             for (l, hl) in hist.iter().enumerate() {
@@ -565,7 +658,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
                     .sum();
                 mse += g * e;
             }
-            (mse / valid_count).sqrt() * ints.scale
+            (mse / valid_count.max(1) as f64).sqrt() * ints.scale
         };
         let (mut lo, mut hi) = (1e-3f64, 1e7f64);
         for _ in 0..50 {
@@ -623,7 +716,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
     let mut has_data: Vec<Vec<bool>> = vec![Vec::new(); levels];
     let mut bounds: Vec<Vec<(i64, i64)>> = vec![Vec::new(); levels];
     for l in (0..levels).rev() {
-        let slots = geom.level(l);
+        let slots = &geom.slot_levels()[l];
         let mut g = Vec::with_capacity(slots.len());
         let mut hd = Vec::with_capacity(slots.len());
         let mut bd = Vec::with_capacity(slots.len());
@@ -633,7 +726,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
             let mut gam = (m.delta2 + 1) / 2;
             let mut data = quantized[l][i].iter().any(|&x| x != 0);
             if l + 1 < levels {
-                for &k in &s.children {
+                for &k in geom.children(s) {
                     lo = lo.min(bounds[l + 1][k].0);
                     hi = hi.max(bounds[l + 1][k].1);
                     gam = gam.max(gamma[l + 1][k] as i64);
@@ -652,8 +745,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
     drop(measures);
 
     let classes_of = |l: usize, i: usize| -> Vec<u8> {
-        geom.level(l)[i]
-            .owned
+        geom.owned(slot(l, i))
             .iter()
             .map(|&k| entropy::gamma_class(gamma[l + 1][k]))
             .collect()
@@ -661,14 +753,10 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
     // Train the model on every blob, then code.
     let counts = (0..levels)
         .into_par_iter()
-        .flat_map(|l| {
-            (0..geom.level(l).len())
-                .into_par_iter()
-                .map(move |i| (l, i))
-        })
+        .flat_map(|l| (0..level_len(l)).into_par_iter().map(move |i| (l, i)))
         // Priors need approximate statistics only: train on every 4th diamond of the
         // large levels (all of the small ones).
-        .filter(|&(l, i)| has_data[l][i] && (geom.level(l).len() < 4096 || i % 4 == 0))
+        .filter(|&(l, i)| has_data[l][i] && (level_len(l) < 4096 || i % 4 == 0))
         .fold(ContextCounts::default, |mut acc, (l, i)| {
             let ctx = geom.blob_context(l, i);
             entropy::write_gammas(&mut acc, ctx.group, &classes_of(l, i));
@@ -688,7 +776,7 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
     let model = CodecModel::from_counts(&counts);
     let blobs: Vec<Vec<Option<Vec<u8>>>> = (0..levels)
         .map(|l| {
-            (0..geom.level(l).len())
+            (0..level_len(l))
                 .into_par_iter()
                 .map(|i| {
                     has_data[l][i].then(|| {
@@ -706,27 +794,36 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
 
     let blob_bytes: usize = blobs.iter().flatten().flatten().map(Vec::len).sum();
     let blob_count = blobs.iter().flatten().flatten().count();
-    let root_bytes = root_grid_bytes(&root).len();
+    let root_bytes: usize = roots.iter().map(|r| root_grid_bytes(r).len()).sum();
     let model_bytes = model.to_bytes().len() + 4 * steps.len() + 16;
+    let samples = geom.distinct_len();
     let report = EncodeReport {
-        samples: expected,
-        valid_samples: ints.valid.iter().filter(|&&b| b).count(),
+        samples,
+        valid_samples: valid_count,
         blob_count,
         blob_bytes,
         root_bytes,
         model_bytes,
-        bits_per_sample: 8.0 * (blob_bytes + root_bytes + model_bytes) as f64 / expected as f64,
+        bits_per_sample: 8.0 * (blob_bytes + root_bytes + model_bytes) as f64 / samples as f64,
         rms_m,
         max_abs_m,
     };
+    let (width, height, root) = match domain {
+        EncodedDomain::Planar { width, height } => {
+            (width, height, roots.first().cloned().unwrap_or_default())
+        }
+        EncodedDomain::Sphere { face_side } => (face_side + 1, 6 * (face_side + 1), Vec::new()),
+    };
     Ok(Encoded {
-        width: grid.width,
-        height: grid.height,
+        domain,
+        width,
+        height,
         n,
         value_scale_m: ints.scale,
         value_offset_m: ints.offset,
         steps,
         root,
+        roots,
         model,
         blobs,
         report,
@@ -763,18 +860,47 @@ impl From<RasterError> for DecodeError {
     }
 }
 
-/// Decodes to integer values (full resolution, one thread).
+/// Decodes to integer values (full resolution, one thread), in the domain's sample order
+/// (for a planet: the cube raster, every copy of an edge point written).
 pub fn decode_integers(enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
-    let geom = RasterGeometry::new(enc.width, enc.height, enc.n)?;
-    decode_integers_with(&geom, enc)
+    match enc.domain {
+        EncodedDomain::Planar { width, height } => {
+            decode_integers_with(&RasterGeometry::new(width, height, enc.n)?, enc)
+        }
+        EncodedDomain::Sphere { .. } => decode_sphere_integers(enc),
+    }
 }
 
 /// Decodes with a prepared geometry.
 pub fn decode_integers_with(geom: &RasterGeometry, enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
-    let mut raster = vec![0; enc.width * enc.height];
-    geom.scatter_root(&enc.root, &mut raster);
+    decode_layout(geom, std::slice::from_ref(&enc.root), enc)
+}
+
+/// Decodes a planet to integer values: the cube raster at full resolution (one thread).
+pub fn decode_sphere_integers(enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
+    let EncodedDomain::Sphere { face_side } = enc.domain else {
+        return Err(RasterError::BadDimensions(enc.width, enc.height).into());
+    };
+    decode_sphere_integers_with(&SphereGeometry::new(face_side, enc.n)?, enc)
+}
+
+/// Decodes a planet with a prepared geometry.
+pub fn decode_sphere_integers_with(
+    geom: &SphereGeometry,
+    enc: &Encoded,
+) -> Result<Vec<i32>, DecodeError> {
+    decode_layout(geom, &enc.roots, enc)
+}
+
+fn decode_layout<G: Layout>(
+    geom: &G,
+    roots: &[Vec<i32>],
+    enc: &Encoded,
+) -> Result<Vec<i32>, DecodeError> {
+    let mut raster = vec![0; geom.raster_len()];
+    geom.scatter_roots(roots, &mut raster)?;
     let mut q = Vec::with_capacity(enc.n * enc.n);
-    geom.synthesize::<DecodeError>(&mut raster, |l, i, h| {
+    synthesize_levels::<G, DecodeError>(geom, &mut raster, |l, i, h| {
         let Some(bytes) = enc
             .blobs
             .get(l)

@@ -3,7 +3,8 @@
 //! - [`diamond`]: diamond ids (planar and cube-mapped sphere), hierarchy laws, frames,
 //!   sample positions and storage keys.
 //! - [`lifting`]: integer-to-integer wavelet lifting of one diamond (analysis/synthesis).
-//! - [`raster`] / [`encode`]: the whole-raster transform, rate control and blobs.
+//! - [`raster`] / [`sphere_raster`] / [`encode`]: the whole-raster transform (planar
+//!   rasters and cube-mapped planets), rate control and blobs.
 //! - [`colour`]: the reversible YCoCg-R colour transform.
 //!
 //! The crate is pure: no I/O, no async. Untrusted bytes are decoded into `Result`s, never
@@ -17,3 +18,4 @@ pub mod entropy;
 pub mod fill;
 pub mod lifting;
 pub mod raster;
+pub mod sphere_raster;

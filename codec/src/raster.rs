@@ -23,6 +23,14 @@ pub enum RasterError {
     /// The diamond size is not supported.
     #[error(transparent)]
     Id(#[from] crate::diamond::IdError),
+    /// A planet's face side is not `N` times a power of two (or is too small: `2 S >= 4`).
+    #[error("face side {face_side} is not N = {n} times a power of two (and at least 4)")]
+    FaceSide {
+        /// samples per face side
+        face_side: usize,
+        /// diamond size
+        n: usize,
+    },
     /// The number of values does not match the dimensions.
     #[error("expected {expected} values, got {got}")]
     WrongLength {
@@ -303,31 +311,7 @@ impl RasterGeometry {
     /// invalid cells). Diamonds of a level are processed in parallel.
     pub fn analyze(&self, raster: &mut [i32]) -> Result<Vec<Vec<Vec<i32>>>, RasterError> {
         self.check_len(raster)?;
-        let n = self.n;
-        let mut details = vec![Vec::new(); self.levels.len()];
-        for level in (0..self.levels.len()).rev() {
-            let slots = &self.levels[level];
-            let shared: &[i32] = raster;
-            let results: Vec<(Vec<i32>, Vec<i32>)> = slots
-                .par_iter()
-                .map(|s| {
-                    let mut v = vec![0; (n + 1) * (n + 1)];
-                    let mut c = vec![0; n * n];
-                    let mut h = vec![0; n * n];
-                    self.gather_vertices(s, shared, &mut v);
-                    self.gather_cells(s, shared, &mut c);
-                    lifting::analyze(n, &mut v, &c, &mut h, s.mask.as_ref());
-                    (v, h)
-                })
-                .collect();
-            let mut hs = Vec::with_capacity(results.len());
-            for (s, (v, h)) in slots.iter().zip(results) {
-                self.scatter_vertices(s, &v, raster, 1);
-                hs.push(h);
-            }
-            details[level] = hs;
-        }
-        Ok(details)
+        Ok(analyze_levels(self, raster))
     }
 
     /// Inverse transform in place: the raster holds the root-level values on entry (see
@@ -337,33 +321,13 @@ impl RasterGeometry {
     pub fn synthesize<E>(
         &self,
         raster: &mut [i32],
-        mut details: impl FnMut(usize, usize, &mut [i32]) -> Result<bool, E>,
+        details: impl FnMut(usize, usize, &mut [i32]) -> Result<bool, E>,
     ) -> Result<(), E>
     where
         E: From<RasterError>,
     {
         self.check_len(raster)?;
-        let n = self.n;
-        let zeros = vec![0; n * n];
-        let mut h = vec![0; n * n];
-        let mut v = vec![0; (n + 1) * (n + 1)];
-        let mut c = vec![0; n * n];
-        for (level, slots) in self.levels.iter().enumerate() {
-            for (index, s) in slots.iter().enumerate() {
-                let has = details(level, index, &mut h)?;
-                self.gather_vertices(s, raster, &mut v);
-                lifting::synthesize(
-                    n,
-                    &mut v,
-                    if has { &h } else { &zeros },
-                    &mut c,
-                    s.mask.as_ref(),
-                );
-                self.scatter_vertices(s, &v, raster, 1);
-                self.scatter_cells(s, &c, raster);
-            }
-        }
-        Ok(())
+        synthesize_levels(self, raster, details)
     }
 
     /// Like [`RasterGeometry::synthesize`] with the diamonds of a level in parallel, calling
@@ -380,32 +344,7 @@ impl RasterGeometry {
         R: Send,
     {
         self.check_len(raster)?;
-        let n = self.n;
-        let mut out = Vec::with_capacity(self.levels.len());
-        for (level, slots) in self.levels.iter().enumerate() {
-            let shared: &[i32] = raster;
-            let results: Vec<(Vec<i32>, Vec<i32>, R)> = slots
-                .par_iter()
-                .enumerate()
-                .map(|(index, s)| {
-                    let mut v = vec![0; (n + 1) * (n + 1)];
-                    let mut c = vec![0; n * n];
-                    self.gather_vertices(s, shared, &mut v);
-                    let coarse = v.clone();
-                    lifting::synthesize(n, &mut v, &details[level][index], &mut c, s.mask.as_ref());
-                    let r = visit(level, index, &coarse, &v, &c);
-                    (v, c, r)
-                })
-                .collect();
-            let mut rs = Vec::with_capacity(results.len());
-            for (s, (v, c, r)) in slots.iter().zip(results) {
-                self.scatter_vertices(s, &v, raster, 1);
-                self.scatter_cells(s, &c, raster);
-                rs.push(r);
-            }
-            out.push(rs);
-        }
-        Ok(out)
+        synthesize_levels_par(self, raster, details, visit)
     }
 
     fn check_len(&self, raster: &[i32]) -> Result<(), RasterError> {
@@ -418,6 +357,226 @@ impl RasterGeometry {
                 got: raster.len(),
             })
         }
+    }
+}
+
+/// A placement of diamonds in a flat sample array (a planar raster, or the six face arrays
+/// of a cube raster): everything the level-by-level transform and the encoder need to
+/// know about a geometry. Implemented by [`RasterGeometry`] and
+/// [`crate::sphere_raster::SphereGeometry`].
+pub(crate) trait Layout: Sync {
+    /// Where one diamond's samples live.
+    type Slot: Sync;
+    /// Diamond size `N`.
+    fn n(&self) -> usize;
+    /// The diamonds of each detail level, coarsest first.
+    fn slot_levels(&self) -> &[Vec<Self::Slot>];
+    /// Length of the sample array.
+    fn raster_len(&self) -> usize;
+    /// Valid points of a diamond (`None` = all).
+    fn mask<'s>(&self, s: &'s Self::Slot) -> Option<&'s DiamondMask>;
+    /// Indices (next level) of a diamond's children.
+    fn children<'s>(&self, s: &'s Self::Slot) -> &'s [usize];
+    /// Indices (next level) of the children whose side information its blob carries.
+    fn owned<'s>(&self, s: &'s Self::Slot) -> &'s [usize];
+    /// Reads the `(N+1)^2` vertex grid.
+    fn gather_vertices(&self, s: &Self::Slot, raster: &[i32], v: &mut [i32]);
+    /// Reads the `N^2` cell centres.
+    fn gather_cells(&self, s: &Self::Slot, raster: &[i32], c: &mut [i32]);
+    /// Writes the interior vertices (all lifting ever changes) to every copy of each point.
+    fn scatter_interior(&self, s: &Self::Slot, v: &[i32], raster: &mut [i32]);
+    /// Writes the cell centres to every copy of each point.
+    fn scatter_cells(&self, s: &Self::Slot, c: &[i32], raster: &mut [i32]);
+    /// What the blob decoder must know about a diamond.
+    fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_>;
+    /// Reads the root vertex grids, in root order.
+    fn gather_roots(&self, raster: &[i32]) -> Vec<Vec<i32>>;
+    /// Writes the root vertex grids; errors if their number or sizes are wrong.
+    fn scatter_roots(&self, roots: &[Vec<i32>], raster: &mut [i32]) -> Result<(), RasterError>;
+    /// Whether array entry `k` is the one copy of its point that error measurements count.
+    fn is_distinct(&self, k: usize) -> bool;
+    /// Number of distinct points.
+    fn distinct_len(&self) -> usize;
+    /// Fills `values` where `valid` is false, smoothly; `false` if nothing is valid.
+    fn fill_nodata(&self, values: &mut [f64], valid: &[bool]) -> bool;
+}
+
+/// Forward transform of every level, fine to coarse, diamonds of a level in parallel.
+pub(crate) fn analyze_levels<G: Layout>(g: &G, raster: &mut [i32]) -> Vec<Vec<Vec<i32>>> {
+    let n = g.n();
+    let levels = g.slot_levels();
+    let mut details = vec![Vec::new(); levels.len()];
+    for level in (0..levels.len()).rev() {
+        let slots = &levels[level];
+        let shared: &[i32] = raster;
+        let results: Vec<(Vec<i32>, Vec<i32>)> = slots
+            .par_iter()
+            .map(|s| {
+                let mut v = vec![0; (n + 1) * (n + 1)];
+                let mut c = vec![0; n * n];
+                let mut h = vec![0; n * n];
+                g.gather_vertices(s, shared, &mut v);
+                g.gather_cells(s, shared, &mut c);
+                lifting::analyze(n, &mut v, &c, &mut h, g.mask(s));
+                (v, h)
+            })
+            .collect();
+        let mut hs = Vec::with_capacity(results.len());
+        for (s, (v, h)) in slots.iter().zip(results) {
+            g.scatter_interior(s, &v, raster);
+            hs.push(h);
+        }
+        details[level] = hs;
+    }
+    details
+}
+
+/// Inverse transform of every level, coarse to fine, on the calling thread.
+pub(crate) fn synthesize_levels<G: Layout, E>(
+    g: &G,
+    raster: &mut [i32],
+    mut details: impl FnMut(usize, usize, &mut [i32]) -> Result<bool, E>,
+) -> Result<(), E> {
+    let n = g.n();
+    let zeros = vec![0; n * n];
+    let mut h = vec![0; n * n];
+    let mut v = vec![0; (n + 1) * (n + 1)];
+    let mut c = vec![0; n * n];
+    for (level, slots) in g.slot_levels().iter().enumerate() {
+        for (index, s) in slots.iter().enumerate() {
+            let has = details(level, index, &mut h)?;
+            g.gather_vertices(s, raster, &mut v);
+            lifting::synthesize(n, &mut v, if has { &h } else { &zeros }, &mut c, g.mask(s));
+            g.scatter_interior(s, &v, raster);
+            g.scatter_cells(s, &c, raster);
+        }
+    }
+    Ok(())
+}
+
+/// Inverse transform with the diamonds of a level in parallel and a per-diamond visitor.
+pub(crate) fn synthesize_levels_par<G, F, R>(
+    g: &G,
+    raster: &mut [i32],
+    details: &[Vec<Vec<i32>>],
+    visit: F,
+) -> Result<Vec<Vec<R>>, RasterError>
+where
+    G: Layout,
+    F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
+    R: Send,
+{
+    let n = g.n();
+    let levels = g.slot_levels();
+    if details.len() != levels.len() || details.iter().zip(levels).any(|(d, s)| d.len() != s.len())
+    {
+        return Err(RasterError::WrongLength {
+            expected: levels.iter().map(Vec::len).sum(),
+            got: details.iter().map(Vec::len).sum(),
+        });
+    }
+    let mut out = Vec::with_capacity(levels.len());
+    for (level, slots) in levels.iter().enumerate() {
+        let shared: &[i32] = raster;
+        let results: Vec<(Vec<i32>, Vec<i32>, R)> = slots
+            .par_iter()
+            .enumerate()
+            .map(|(index, s)| {
+                let mut v = vec![0; (n + 1) * (n + 1)];
+                let mut c = vec![0; n * n];
+                g.gather_vertices(s, shared, &mut v);
+                let coarse = v.clone();
+                lifting::synthesize(n, &mut v, &details[level][index], &mut c, g.mask(s));
+                let r = visit(level, index, &coarse, &v, &c);
+                (v, c, r)
+            })
+            .collect();
+        let mut rs = Vec::with_capacity(results.len());
+        for (s, (v, c, r)) in slots.iter().zip(results) {
+            g.scatter_interior(s, &v, raster);
+            g.scatter_cells(s, &c, raster);
+            rs.push(r);
+        }
+        out.push(rs);
+    }
+    Ok(out)
+}
+
+impl Layout for RasterGeometry {
+    type Slot = DiamondSlot;
+
+    fn n(&self) -> usize {
+        self.n
+    }
+
+    fn slot_levels(&self) -> &[Vec<DiamondSlot>] {
+        &self.levels
+    }
+
+    fn raster_len(&self) -> usize {
+        self.width * self.height
+    }
+
+    fn mask<'s>(&self, s: &'s DiamondSlot) -> Option<&'s DiamondMask> {
+        s.mask.as_ref()
+    }
+
+    fn children<'s>(&self, s: &'s DiamondSlot) -> &'s [usize] {
+        &s.children
+    }
+
+    fn owned<'s>(&self, s: &'s DiamondSlot) -> &'s [usize] {
+        &s.owned
+    }
+
+    fn gather_vertices(&self, s: &DiamondSlot, raster: &[i32], v: &mut [i32]) {
+        RasterGeometry::gather_vertices(self, s, raster, v);
+    }
+
+    fn gather_cells(&self, s: &DiamondSlot, raster: &[i32], c: &mut [i32]) {
+        RasterGeometry::gather_cells(self, s, raster, c);
+    }
+
+    fn scatter_interior(&self, s: &DiamondSlot, v: &[i32], raster: &mut [i32]) {
+        self.scatter_vertices(s, v, raster, 1);
+    }
+
+    fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], raster: &mut [i32]) {
+        RasterGeometry::scatter_cells(self, s, c, raster);
+    }
+
+    fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
+        RasterGeometry::blob_context(self, level, index)
+    }
+
+    fn gather_roots(&self, raster: &[i32]) -> Vec<Vec<i32>> {
+        vec![self.gather_root(raster)]
+    }
+
+    fn scatter_roots(&self, roots: &[Vec<i32>], raster: &mut [i32]) -> Result<(), RasterError> {
+        let side = (self.n + 1) * (self.n + 1);
+        match roots {
+            [root] if root.len() == side => {
+                self.scatter_root(root, raster);
+                Ok(())
+            }
+            _ => Err(RasterError::WrongLength {
+                expected: side,
+                got: roots.iter().map(Vec::len).sum(),
+            }),
+        }
+    }
+
+    fn is_distinct(&self, _k: usize) -> bool {
+        true
+    }
+
+    fn distinct_len(&self) -> usize {
+        self.width * self.height
+    }
+
+    fn fill_nodata(&self, values: &mut [f64], valid: &[bool]) -> bool {
+        crate::fill::push_pull(self.width, self.height, values, valid)
     }
 }
 

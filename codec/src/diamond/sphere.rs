@@ -98,15 +98,15 @@ pub struct SphereDomain {
 
 /// Axes of a face: normal axis `a` with sign `s`, chart axes `b` (u) and `c` (v).
 #[derive(Clone, Copy, Debug)]
-struct Axes {
-    a: usize,
-    s: i64,
-    b: usize,
-    c: usize,
+pub(crate) struct Axes {
+    pub(crate) a: usize,
+    pub(crate) s: i64,
+    pub(crate) b: usize,
+    pub(crate) c: usize,
 }
 
 /// Axes of face `face` (< 6).
-fn axes(face: u8) -> Axes {
+pub(crate) fn axes(face: u8) -> Axes {
     let a = (face / 2) as usize % 3;
     if face.is_multiple_of(2) {
         Axes {
@@ -126,7 +126,7 @@ fn axes(face: u8) -> Axes {
 }
 
 /// Chart coordinates on `face` of a point lying on that face (half side `s`).
-fn chart_of(face: u8, p: [i64; 3], s: i64) -> [i64; 2] {
+pub(crate) fn chart_of(face: u8, p: [i64; 3], s: i64) -> [i64; 2] {
     let ax = axes(face);
     [p[ax.b] + s, p[ax.c] + s]
 }

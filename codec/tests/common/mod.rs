@@ -10,7 +10,9 @@
 
 use std::path::{Path, PathBuf};
 
-use quincunx_codec::encode::{Grid, RawType};
+use quincunx_codec::diamond::sphere::cube_to_unit_sphere;
+use quincunx_codec::encode::{CubeGrid, Grid, RawType};
+use quincunx_codec::sphere_raster::SphereGeometry;
 
 /// The bundled data directory (`<repo>/data`).
 pub fn bundled_dir() -> PathBuf {
@@ -111,4 +113,34 @@ pub fn errors(original: &Grid, decoded_m: &[f64]) -> Errors {
         inexact,
         valid,
     }
+}
+
+/// A synthetic planet in integer metres: smooth continents and ridges on the sphere plus
+/// up to 16 m of hashed noise. Values are a function of the cube point, so the copies of
+/// edge and corner points agree.
+pub fn synthetic_planet(face_side: usize, n: usize) -> Result<CubeGrid, String> {
+    let geom = SphereGeometry::new(face_side, n).map_err(|e| e.to_string())?;
+    let w = face_side + 1;
+    let mut values_m = vec![0.0; geom.cube_len()];
+    for face in 0..6u8 {
+        for v in 0..w {
+            for u in 0..w {
+                let p = geom.sample_position(face, u, v);
+                let [x, y, z] = cube_to_unit_sphere(p.map(|c| c as f64));
+                let smooth = 2500.0 * (3.0 * x + 1.0).sin() * (2.0 * y).cos()
+                    + 900.0 * (5.0 * z + 0.5).sin()
+                    + 350.0 * (13.0 * x * y + 7.0 * z).sin();
+                let hash = (p[0].wrapping_mul(73_856_093)
+                    ^ p[1].wrapping_mul(19_349_663)
+                    ^ p[2].wrapping_mul(83_492_791))
+                .rem_euclid(17);
+                values_m[geom.cube_index(face, u, v)] = (smooth + hash as f64).round();
+            }
+        }
+    }
+    Ok(CubeGrid {
+        face_side,
+        values_m,
+        quantum_m: Some(1.0),
+    })
 }

@@ -1,0 +1,759 @@
+//! The planet transform: a *cube raster* (six square face arrays) placed in the sphere
+//! hierarchy ([`crate::diamond::sphere`]).
+//!
+//! # Storage
+//! A planet of `face_side = 2S` samples per face side is a `Vec<i32>` of
+//! `6 (2S+1)^2` values: face `f`'s sample `(u, v)` (that face's chart coordinates, see the
+//! table in [`crate::diamond::sphere`]) at index `(f (2S+1) + v) (2S+1) + u`. Points on cube
+//! edges (corners) exist in 2 (3) face arrays. The *canonical* copy is the one on the lowest
+//! face index; every read of the transform takes the canonical copy and every write goes
+//! to all copies, so each face array stays complete and consistent on its own.
+//!
+//! # Units and levels
+//! Id units are samples: the domain is the cube `[-S, S]^3` (`m = log2 S`), and the sample
+//! `(f, u, v)` is the cube point [`SphereGeometry::sample_position`]. Positions returned by
+//! [`SphereDomain::vertex_position`] are in id units x `2N`. `face_side = N 2^k`, so the
+//! face roots (level 0) have a vertex spacing of `2^k` samples and the `2k` detail levels
+//! `0 ..= 2k - 1` end with rotated diamonds of half-diagonal `N` whose cells land exactly
+//! on the samples (the same choice as the planar [`crate::raster`]). With `k = 0` the six
+//! root grids hold every sample and there are no details. Every diamond of every level is
+//! present: the sphere has no invalid points, so no masks.
+//!
+//! # Roots
+//! Six root grids, one per face root, in face order: [`SphereGeometry::gather_roots`] /
+//! [`SphereGeometry::scatter_roots`].
+
+use rayon::prelude::*;
+
+use crate::blob::BlobContext;
+use crate::diamond::sphere::{axes, chart_of};
+use crate::diamond::{SphereDomain, SphereId, check_size};
+use crate::entropy;
+use crate::lifting::DiamondMask;
+use crate::raster::{
+    Layout, RasterError, analyze_levels, synthesize_levels, synthesize_levels_par,
+};
+
+/// An affine index map: vertex `(i, j)` at `v0 + i si + j sj`, cell `(i, j)` at
+/// `c0 + i si + j sj` (indices into the cube raster).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Placement {
+    v0: isize,
+    c0: isize,
+    si: isize,
+    sj: isize,
+}
+
+impl Placement {
+    #[inline]
+    fn at(&self, base: isize, i: usize, j: usize) -> usize {
+        (base + i as isize * self.si + j as isize * self.sj) as usize
+    }
+
+    #[inline]
+    fn base(&self, cell: bool) -> isize {
+        if cell { self.c0 } else { self.v0 }
+    }
+}
+
+/// Where one diamond's samples live in the cube raster.
+#[derive(Clone, Debug)]
+pub struct SphereSlot {
+    /// The diamond.
+    pub id: SphereId,
+    /// Storage key of the diamond ([`SphereDomain::key`]).
+    pub key: Vec<u8>,
+    /// Indices (in the next detail level) of its children.
+    pub children: Vec<usize>,
+    /// The subset of `children` whose side information this diamond's blob carries
+    /// (children whose first parent is this diamond), in side order.
+    pub owned: Vec<usize>,
+    /// Points with `i >= j` (all points of a diamond inside one face): `P1`'s face.
+    lower: Placement,
+    /// Edge diamonds: points with `i <= j`, on `P2`'s face.
+    upper: Option<Placement>,
+    /// Whether the canonical copy of a diagonal point is the `upper` one.
+    diag_upper: bool,
+}
+
+impl SphereSlot {
+    fn pick(&self, i: usize, j: usize) -> &Placement {
+        match &self.upper {
+            Some(up) if j > i || (j == i && self.diag_upper) => up,
+            _ => &self.lower,
+        }
+    }
+
+    /// Cube-raster index of the canonical copy of vertex `(i, j)`, `0 <= i, j <= N`.
+    pub fn vertex_index(&self, i: usize, j: usize) -> usize {
+        let p = self.pick(i, j);
+        p.at(p.v0, i, j)
+    }
+
+    /// Cube-raster index of the canonical copy of cell `(i, j)`, `0 <= i, j < N`.
+    pub fn cell_index(&self, i: usize, j: usize) -> usize {
+        let p = self.pick(i, j);
+        p.at(p.c0, i, j)
+    }
+
+    /// Whether the diamond straddles a cube edge (one triangle on each of two faces).
+    pub fn is_edge(&self) -> bool {
+        self.upper.is_some()
+    }
+
+    /// Reads a `side x side` grid (vertices: `N + 1`, cells: `N`), canonical copies.
+    fn gather(&self, side: usize, cell: bool, raster: &[i32], out: &mut [i32]) {
+        let lo = &self.lower;
+        let Some(up) = &self.upper else {
+            let base = lo.base(cell);
+            for (i, row) in out.chunks_exact_mut(side).enumerate() {
+                for (j, x) in row.iter_mut().enumerate() {
+                    *x = raster[lo.at(base, i, j)];
+                }
+            }
+            return;
+        };
+        let diag = if self.diag_upper { up } else { lo };
+        let (bl, bu, bd) = (lo.base(cell), up.base(cell), diag.base(cell));
+        for (i, row) in out.chunks_exact_mut(side).enumerate() {
+            let (left, rest) = row.split_at_mut(i);
+            for (j, x) in left.iter_mut().enumerate() {
+                *x = raster[lo.at(bl, i, j)];
+            }
+            if let Some((d, right)) = rest.split_first_mut() {
+                *d = raster[diag.at(bd, i, i)];
+                for (j, x) in right.iter_mut().enumerate() {
+                    *x = raster[up.at(bu, i, i + 1 + j)];
+                }
+            }
+        }
+    }
+
+    /// Writes points `margin..side - margin` of a `side x side` grid to every copy. Only
+    /// diagonal points of edge diamonds have two copies among those ever written (interior
+    /// vertices and cells); other edge points are boundary vertices, never written here.
+    fn scatter(&self, side: usize, margin: usize, cell: bool, values: &[i32], raster: &mut [i32]) {
+        let lo = &self.lower;
+        let bl = lo.base(cell);
+        let Some(up) = &self.upper else {
+            for i in margin..side - margin {
+                for j in margin..side - margin {
+                    raster[lo.at(bl, i, j)] = values[i * side + j];
+                }
+            }
+            return;
+        };
+        let bu = up.base(cell);
+        for i in margin..side - margin {
+            for j in margin..side - margin {
+                let x = values[i * side + j];
+                if j <= i {
+                    raster[lo.at(bl, i, j)] = x;
+                }
+                if j >= i {
+                    raster[up.at(bu, i, j)] = x;
+                }
+            }
+        }
+    }
+}
+
+/// The sphere hierarchy a cube raster is placed in: domain, diamond size, the six face
+/// roots and, per detail level, every diamond.
+#[derive(Clone, Debug)]
+pub struct SphereGeometry {
+    face_side: usize,
+    n: usize,
+    domain: SphereDomain,
+    roots: Vec<SphereSlot>,
+    levels: Vec<Vec<SphereSlot>>,
+}
+
+impl SphereGeometry {
+    /// Places a planet of `face_side` samples per face side (`N 2^k`, `k >= 0`) in the
+    /// sphere hierarchy of `N x N` diamonds.
+    pub fn new(face_side: usize, n: usize) -> Result<Self, RasterError> {
+        check_size(n)?;
+        if face_side == 0 || face_side > 1 << 24 {
+            return Err(RasterError::BadDimensions(face_side, face_side));
+        }
+        if !face_side.is_multiple_of(n) || !(face_side / n).is_power_of_two() {
+            return Err(RasterError::FaceSide { face_side, n });
+        }
+        let k = (face_side / n).trailing_zeros();
+        // S = face_side / 2 = 2^m.
+        let m = face_side.trailing_zeros() - 1;
+        if m == 0 {
+            return Err(RasterError::FaceSide { face_side, n });
+        }
+        let domain = SphereDomain::new(m)?;
+        let mut geom = SphereGeometry {
+            face_side,
+            n,
+            domain,
+            roots: Vec::new(),
+            levels: Vec::new(),
+        };
+        geom.roots = domain
+            .roots()
+            .into_iter()
+            .map(|id| geom.slot(id))
+            .collect::<Result<_, _>>()?;
+        let s2 = face_side as i64;
+        for level in 0..2 * k {
+            let step = 1usize << domain.level_exponent(level);
+            let ids: Vec<SphereId> = (0..6u8)
+                .flat_map(|f| {
+                    (0..=s2).step_by(step).flat_map(move |v| {
+                        (0..=s2)
+                            .step_by(step)
+                            .filter_map(move |u| domain.from_face_chart(f, [u, v]).ok())
+                            .filter(move |&id| {
+                                domain.level(id).ok() == Some(level)
+                                    && domain.faces(id).ok().map(|x| x.0) == Some(f)
+                            })
+                    })
+                })
+                .collect();
+            let mut slots: Vec<SphereSlot> = ids
+                .into_par_iter()
+                .map(|id| geom.slot(id))
+                .collect::<Result<_, _>>()?;
+            slots.sort_by(|a, b| a.key.cmp(&b.key));
+            geom.levels.push(slots);
+        }
+        for level in 0..geom.levels.len().saturating_sub(1) {
+            let (coarse, fine) = geom.levels.split_at_mut(level + 1);
+            let fine = &fine[0];
+            let find = |id: SphereId| {
+                let key = domain.key(id).ok()?;
+                fine.binary_search_by(|s| s.key.as_slice().cmp(&key)).ok()
+            };
+            coarse[level].par_iter_mut().for_each(|s| {
+                for child in domain.children(s.id).unwrap_or_default() {
+                    if let Some(k) = find(child) {
+                        s.children.push(k);
+                        if domain.parents(child).ok().and_then(|p| p.first().copied()) == Some(s.id)
+                        {
+                            s.owned.push(k);
+                        }
+                    }
+                }
+            });
+        }
+        Ok(geom)
+    }
+
+    /// Samples per face side (`2S`).
+    pub fn face_side(&self) -> usize {
+        self.face_side
+    }
+
+    /// Diamond size `N`.
+    pub fn n(&self) -> usize {
+        self.n
+    }
+
+    /// The sphere domain (id units = samples, `S = face_side / 2`).
+    pub fn domain(&self) -> SphereDomain {
+        self.domain
+    }
+
+    /// Length of the cube raster: `6 (2S+1)^2`.
+    pub fn cube_len(&self) -> usize {
+        6 * self.width() * self.width()
+    }
+
+    /// Number of distinct points of the cube surface: `6 (2S)^2 + 2`.
+    pub fn distinct_points(&self) -> usize {
+        6 * self.face_side * self.face_side + 2
+    }
+
+    /// Number of levels that carry details.
+    pub fn detail_levels(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// The diamonds of a detail level, sorted by key.
+    pub fn level(&self, level: usize) -> &[SphereSlot] {
+        &self.levels[level]
+    }
+
+    /// The six face roots' slots, in face order.
+    pub fn root_slots(&self) -> &[SphereSlot] {
+        &self.roots
+    }
+
+    /// `(level, index)` of a diamond with details, `None` for ids outside the detail
+    /// levels (or not of this domain).
+    pub fn locate(&self, id: SphereId) -> Option<(usize, usize)> {
+        self.locate_key(&self.domain.key(id).ok()?)
+    }
+
+    /// `(level, index)` of the diamond with storage key `key`, `None` if no diamond with
+    /// details has that key.
+    pub fn locate_key(&self, key: &[u8]) -> Option<(usize, usize)> {
+        let level = *key.first()? as usize;
+        let slots = self.levels.get(level)?;
+        let index = slots.binary_search_by(|s| s.key.as_slice().cmp(key)).ok()?;
+        Some((level, index))
+    }
+
+    /// What the blob decoder must know about diamond `index` of detail level `level`.
+    pub fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
+        let s = &self.levels[level][index];
+        BlobContext {
+            key: &s.key,
+            n: self.n,
+            group: entropy::group(self.levels.len() - 1 - level),
+            mask: None,
+            owned_children: s.owned.len(),
+        }
+    }
+
+    fn width(&self) -> usize {
+        self.face_side + 1
+    }
+
+    fn half(&self) -> i64 {
+        (self.face_side / 2) as i64
+    }
+
+    /// Index of face `face`'s sample `(u, v)`, `u, v <= face_side`.
+    pub fn cube_index(&self, face: u8, u: usize, v: usize) -> usize {
+        let w = self.width();
+        (face as usize * w + v) * w + u
+    }
+
+    /// The cube point (id units, coordinates in `[-S, S]`) of face `face`'s sample `(u, v)`.
+    pub fn sample_position(&self, face: u8, u: usize, v: usize) -> [i64; 3] {
+        let ax = axes(face);
+        let s = self.half();
+        let mut p = [0; 3];
+        p[ax.a] = ax.s * s;
+        p[ax.b] = u as i64 - s;
+        p[ax.c] = v as i64 - s;
+        p
+    }
+
+    /// Cube-raster indices of every copy of the surface point `p` (id units), canonical
+    /// (lowest face) first: one inside a face, two on an edge, three at a corner, none off
+    /// the surface.
+    pub fn point_indices(&self, p: [i64; 3]) -> impl Iterator<Item = usize> + '_ {
+        let s = self.half();
+        let inside = p.iter().all(|x| (-s..=s).contains(x));
+        (0..6u8).filter_map(move |f| {
+            let ax = axes(f);
+            (inside && p[ax.a] == ax.s * s).then(|| {
+                let [u, v] = chart_of(f, p, s);
+                self.cube_index(f, u as usize, v as usize)
+            })
+        })
+    }
+
+    /// Whether cube-raster entry `index` is the canonical copy of its point.
+    pub fn is_canonical(&self, index: usize) -> bool {
+        let w = self.width();
+        let (face, rest) = (index / (w * w), index % (w * w));
+        let (u, v) = (rest % w, rest / w);
+        if (1..w - 1).contains(&u) && (1..w - 1).contains(&v) {
+            return true;
+        }
+        self.point_indices(self.sample_position(face as u8, u, v))
+            .next()
+            == Some(index)
+    }
+
+    /// Copies the canonical copy of every cube edge and corner point to its other copies;
+    /// `values` must be a whole cube raster.
+    pub fn make_consistent<T: Copy>(&self, values: &mut [T]) -> Result<(), RasterError> {
+        if values.len() != self.cube_len() {
+            return Err(RasterError::WrongLength {
+                expected: self.cube_len(),
+                got: values.len(),
+            });
+        }
+        let w = self.width();
+        for face in 0..6u8 {
+            for v in 0..w {
+                let step = if v == 0 || v == w - 1 { 1 } else { w - 1 };
+                for u in (0..w).step_by(step) {
+                    let here = self.cube_index(face, u, v);
+                    let pos = self.sample_position(face, u, v);
+                    if let Some(first) = self.point_indices(pos).next()
+                        && first != here
+                    {
+                        values[here] = values[first];
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn check_len(&self, raster: &[i32]) -> Result<(), RasterError> {
+        if raster.len() == self.cube_len() {
+            Ok(())
+        } else {
+            Err(RasterError::WrongLength {
+                expected: self.cube_len(),
+                got: raster.len(),
+            })
+        }
+    }
+
+    /// The cube-raster placement of a diamond.
+    fn slot(&self, id: SphereId) -> Result<SphereSlot, RasterError> {
+        let d = &self.domain;
+        let n = self.n;
+        let two_n = 2 * n as i64;
+        // Every vertex and cell of a diamond down to the finest detail level is a sample.
+        let at = |i: usize, j: usize| -> Result<[i64; 3], RasterError> {
+            Ok(d.vertex_position(id, n, i, j)?.map(|x| x / two_n))
+        };
+        let cell = d.cell_position(id, n, 0, 0)?.map(|x| x / two_n);
+        let (v00, v10, v01) = (at(0, 0)?, at(1, 0)?, at(0, 1)?);
+        let s = self.half();
+        let w = self.width() as isize;
+        let lin = |f: u8, p: [i64; 3]| -> isize {
+            let [u, v] = chart_of(f, p, s);
+            (f as isize * w + v as isize) * w + u as isize
+        };
+        // On face f: `i` steps from a to b, `j` from c to e. Folding across a cube edge is
+        // an isometry of each half, so each half is affine in its own face's chart.
+        let place = |f: u8, a: [i64; 3], b: [i64; 3], c: [i64; 3], e: [i64; 3]| Placement {
+            v0: lin(f, v00),
+            c0: lin(f, cell),
+            si: lin(f, b) - lin(f, a),
+            sj: lin(f, e) - lin(f, c),
+        };
+        let (face, other) = d.faces(id)?;
+        let (lower, upper, diag_upper) = match other {
+            None => (place(face, v00, v10, v00, v01), None, false),
+            Some(g) => {
+                let v11 = at(1, 1)?;
+                let p1 = at(n, 0)?;
+                let ax = axes(face);
+                let lower_face = if p1[ax.a] == ax.s * s { face } else { g };
+                let upper_face = if lower_face == face { g } else { face };
+                (
+                    place(lower_face, v00, v10, v10, v11),
+                    Some(place(upper_face, v01, v11, v00, v01)),
+                    upper_face == face,
+                )
+            }
+        };
+        Ok(SphereSlot {
+            id,
+            key: d.key(id)?,
+            children: Vec::new(),
+            owned: Vec::new(),
+            lower,
+            upper,
+            diag_upper,
+        })
+    }
+
+    /// Reads the six root vertex grids (`(N+1)^2` each, canonical copies), in face order.
+    pub fn gather_roots(&self, raster: &[i32]) -> Vec<Vec<i32>> {
+        self.roots
+            .iter()
+            .map(|s| {
+                let mut v = vec![0; (self.n + 1) * (self.n + 1)];
+                s.gather(self.n + 1, false, raster, &mut v);
+                // Border vertices lie on cube edges: read their canonical copies.
+                for (k, x) in v.iter_mut().enumerate() {
+                    let (i, j) = (k / (self.n + 1), k % (self.n + 1));
+                    if i == 0 || j == 0 || i == self.n || j == self.n {
+                        let here = s.vertex_index(i, j);
+                        if let Some(first) = self.canonical_of(here) {
+                            *x = raster[first];
+                        }
+                    }
+                }
+                v
+            })
+            .collect()
+    }
+
+    fn canonical_of(&self, index: usize) -> Option<usize> {
+        let w = self.width();
+        let (face, rest) = (index / (w * w), index % (w * w));
+        self.point_indices(self.sample_position(face as u8, rest % w, rest / w))
+            .next()
+    }
+
+    /// Writes the six root vertex grids into the cube raster, every copy of each point (a
+    /// point on a cube edge takes the value of its canonical face's root).
+    pub fn scatter_roots(&self, roots: &[Vec<i32>], raster: &mut [i32]) -> Result<(), RasterError> {
+        let side = self.n + 1;
+        if roots.len() != 6 || roots.iter().any(|r| r.len() != side * side) {
+            return Err(RasterError::WrongLength {
+                expected: 6 * side * side,
+                got: roots.iter().map(Vec::len).sum(),
+            });
+        }
+        self.check_len(raster)?;
+        for (s, grid) in self.roots.iter().zip(roots) {
+            s.scatter(side, 1, false, grid, raster);
+            for i in 0..side {
+                for j in 0..side {
+                    if i != 0 && j != 0 && i != self.n && j != self.n {
+                        continue;
+                    }
+                    let here = s.vertex_index(i, j);
+                    let w = self.width();
+                    let (face, rest) = (here / (w * w), here % (w * w));
+                    let pos = self.sample_position(face as u8, rest % w, rest / w);
+                    let mut copies = self.point_indices(pos);
+                    if copies.next() == Some(here) {
+                        raster[here] = grid[i * side + j];
+                        for k in copies {
+                            raster[k] = grid[i * side + j];
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Forward transform in place: first makes the edge copies consistent (the canonical
+    /// copy wins), then on return the cube raster holds the root-level values and the
+    /// result one `N x N` detail matrix per diamond per level. Diamonds of a level run in
+    /// parallel.
+    pub fn analyze(&self, raster: &mut [i32]) -> Result<Vec<Vec<Vec<i32>>>, RasterError> {
+        self.make_consistent(raster)?;
+        Ok(analyze_levels(self, raster))
+    }
+
+    /// Inverse transform in place: the cube raster holds the root-level values on entry
+    /// (see [`SphereGeometry::scatter_roots`]) and the full-resolution values on exit.
+    /// `details(level, index, h)` fills the detail matrix `h` of a diamond and returns
+    /// `Ok(false)` when the diamond has none (zeros). Runs on the calling thread.
+    pub fn synthesize<E>(
+        &self,
+        raster: &mut [i32],
+        details: impl FnMut(usize, usize, &mut [i32]) -> Result<bool, E>,
+    ) -> Result<(), E>
+    where
+        E: From<RasterError>,
+    {
+        self.check_len(raster)?;
+        synthesize_levels(self, raster, details)
+    }
+
+    /// Like [`SphereGeometry::synthesize`] with the diamonds of a level in parallel,
+    /// calling `visit(level, index, coarse_vertices, fine_vertices, cells)` for each.
+    pub fn synthesize_par<F, R>(
+        &self,
+        raster: &mut [i32],
+        details: &[Vec<Vec<i32>>],
+        visit: F,
+    ) -> Result<Vec<Vec<R>>, RasterError>
+    where
+        F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
+        R: Send,
+    {
+        self.check_len(raster)?;
+        synthesize_levels_par(self, raster, details, visit)
+    }
+}
+
+impl Layout for SphereGeometry {
+    type Slot = SphereSlot;
+
+    fn n(&self) -> usize {
+        self.n
+    }
+
+    fn slot_levels(&self) -> &[Vec<SphereSlot>] {
+        &self.levels
+    }
+
+    fn raster_len(&self) -> usize {
+        self.cube_len()
+    }
+
+    fn mask<'s>(&self, _s: &'s SphereSlot) -> Option<&'s DiamondMask> {
+        None
+    }
+
+    fn children<'s>(&self, s: &'s SphereSlot) -> &'s [usize] {
+        &s.children
+    }
+
+    fn owned<'s>(&self, s: &'s SphereSlot) -> &'s [usize] {
+        &s.owned
+    }
+
+    fn gather_vertices(&self, s: &SphereSlot, raster: &[i32], v: &mut [i32]) {
+        s.gather(self.n + 1, false, raster, v);
+    }
+
+    fn gather_cells(&self, s: &SphereSlot, raster: &[i32], c: &mut [i32]) {
+        s.gather(self.n, true, raster, c);
+    }
+
+    fn scatter_interior(&self, s: &SphereSlot, v: &[i32], raster: &mut [i32]) {
+        s.scatter(self.n + 1, 1, false, v, raster);
+    }
+
+    fn scatter_cells(&self, s: &SphereSlot, c: &[i32], raster: &mut [i32]) {
+        s.scatter(self.n, 0, true, c, raster);
+    }
+
+    fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
+        SphereGeometry::blob_context(self, level, index)
+    }
+
+    fn gather_roots(&self, raster: &[i32]) -> Vec<Vec<i32>> {
+        SphereGeometry::gather_roots(self, raster)
+    }
+
+    fn scatter_roots(&self, roots: &[Vec<i32>], raster: &mut [i32]) -> Result<(), RasterError> {
+        SphereGeometry::scatter_roots(self, roots, raster)
+    }
+
+    fn is_distinct(&self, k: usize) -> bool {
+        self.is_canonical(k)
+    }
+
+    fn distinct_len(&self) -> usize {
+        self.distinct_points()
+    }
+
+    fn fill_nodata(&self, values: &mut [f64], valid: &[bool]) -> bool {
+        if !valid.iter().any(|&b| b) {
+            return false;
+        }
+        let w = self.width();
+        let (sum, count) = values
+            .iter()
+            .zip(valid)
+            .filter(|(_, b)| **b)
+            .fold((0.0, 0usize), |(s, c), (&x, _)| (s + x, c + 1));
+        let mean = sum / count as f64;
+        values
+            .par_chunks_exact_mut(w * w)
+            .zip(valid.par_chunks_exact(w * w))
+            .for_each(|(face, ok)| {
+                if !crate::fill::push_pull(w, w, face, ok) {
+                    face.iter_mut().for_each(|x| *x = mean);
+                }
+            });
+        self.make_consistent(values).is_ok()
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_slot_index_is_a_copy_of_its_sample_position() {
+        for (face_side, n) in [(8, 8), (16, 4), (32, 8), (64, 8)] {
+            let g = SphereGeometry::new(face_side, n).unwrap();
+            let d = g.domain();
+            let two_n = 2 * n as i64;
+            let all = g.root_slots().iter().chain(g.levels.iter().flatten());
+            let mut checked = 0;
+            for s in all {
+                for i in 0..=n {
+                    for j in 0..=n {
+                        let p = d.vertex_position(s.id, n, i, j).unwrap().map(|x| x / two_n);
+                        let copies: Vec<usize> = g.point_indices(p).collect();
+                        assert!(
+                            copies.contains(&s.vertex_index(i, j)),
+                            "{face_side}/{n} {:?} vertex ({i},{j})",
+                            s.id
+                        );
+                        if s.is_edge() && i == j && 0 < i && i < n {
+                            assert_eq!(s.vertex_index(i, j), copies[0], "diagonal");
+                        }
+                        // Cells are samples only in diamonds that carry details.
+                        if i < n && j < n && g.detail_levels() > 0 {
+                            let p = d.cell_position(s.id, n, i, j).unwrap();
+                            assert!(p.iter().all(|x| x % two_n == 0), "cell off the samples");
+                            let copies: Vec<usize> =
+                                g.point_indices(p.map(|x| x / two_n)).collect();
+                            assert_eq!(s.cell_index(i, j), copies[0]);
+                        }
+                        checked += 1;
+                    }
+                }
+            }
+            assert!(checked > 0);
+        }
+    }
+
+    #[test]
+    fn finest_cells_and_roots_cover_every_point_once_per_level() {
+        let (face_side, n) = (32, 4);
+        let g = SphereGeometry::new(face_side, n).unwrap();
+        assert_eq!(g.detail_levels(), 6);
+        let mut hit = vec![0u32; g.cube_len()];
+        for l in 0..g.detail_levels() {
+            for s in g.level(l) {
+                for i in 0..n {
+                    for j in 0..n {
+                        hit[s.cell_index(i, j)] += 1;
+                    }
+                }
+            }
+        }
+        for s in g.root_slots() {
+            for i in 0..=n {
+                for j in 0..=n {
+                    let k = s.vertex_index(i, j);
+                    hit[k] += u32::from(g.is_canonical(k));
+                }
+            }
+        }
+        // Every distinct point is a root vertex or a cell of exactly one diamond (cells of
+        // consecutive levels are the new lattice points).
+        let mut distinct = 0;
+        for (k, &h) in hit.iter().enumerate() {
+            if g.is_canonical(k) {
+                distinct += 1;
+                assert_eq!(h, 1, "point {k}");
+            } else {
+                assert_eq!(h, 0);
+            }
+        }
+        assert_eq!(distinct, g.distinct_points());
+    }
+
+    #[test]
+    fn analysis_and_synthesis_round_trip_with_consistent_copies() {
+        for (face_side, n) in [(8, 8), (32, 4), (64, 16)] {
+            let g = SphereGeometry::new(face_side, n).unwrap();
+            let mut orig: Vec<i32> = (0..g.cube_len())
+                .map(|k| ((k * 2654435761) % 1013) as i32 - 300)
+                .collect();
+            g.make_consistent(&mut orig).unwrap();
+            let mut r = orig.clone();
+            let details = g.analyze(&mut r).unwrap();
+            let roots = g.gather_roots(&r);
+            let mut out = vec![0; g.cube_len()];
+            g.scatter_roots(&roots, &mut out).unwrap();
+            g.synthesize::<RasterError>(&mut out, |l, i, h| {
+                h.copy_from_slice(&details[l][i]);
+                Ok(true)
+            })
+            .unwrap();
+            assert_eq!(out, orig, "{face_side} N={n}");
+        }
+    }
+
+    #[test]
+    fn bad_face_sides_are_rejected() {
+        assert!(SphereGeometry::new(48, 16).is_err());
+        assert!(SphereGeometry::new(8, 16).is_err());
+        assert!(SphereGeometry::new(2, 2).is_err());
+        assert!(SphereGeometry::new(0, 4).is_err());
+        assert!(SphereGeometry::new(64, 3).is_err());
+        assert!(SphereGeometry::new(4, 2).is_ok());
+    }
+}
