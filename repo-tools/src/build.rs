@@ -6,14 +6,14 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use quincunx_codec::colour::rgb_to_ycocg_r;
-use quincunx_codec::encode::{self, EncodeOptions, Encoded, Grid, RateMode};
-use quincunx_codec::raster::RasterGeometry;
+use quincunx_codec::encode::{self, CubeGrid, EncodeOptions, Encoded, Grid, RateMode};
+use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_store::{Attribute, Metadata, NodataPolicy, RepositoryBuilder};
 use serde::Serialize;
 
 use crate::input::{self, Georef};
-use crate::layout::{self, COLOUR_CHANNELS};
-use crate::progress;
+use crate::layout::{self, COLOUR_CHANNELS, Geometry};
+use crate::{planet, progress};
 
 /// Options of `quincunx build`.
 #[derive(Args, Debug, Clone)]
@@ -27,6 +27,20 @@ pub struct BuildArgs {
     /// The input is RGB imagery: build a colour repository (YCoCg-R, 3 channels).
     #[arg(long)]
     pub colour: bool,
+    /// Build a planet: the input is a global latitude/longitude grid (node- or
+    /// cell-registered, as its georeference says), resampled onto the cube-mapped sphere.
+    #[arg(long)]
+    pub planet: bool,
+    /// Planet radius in metres (default: `--body`).
+    #[arg(long, requires = "planet")]
+    pub radius_m: Option<f64>,
+    /// Named body for the radius: earth, mars (3396 km), moon, venus, mercury.
+    #[arg(long, default_value = "earth", requires = "planet")]
+    pub body: String,
+    /// Samples per cube face side (a power-of-two multiple of N; default: closest to the
+    /// source resolution).
+    #[arg(long, requires = "planet")]
+    pub face_side: Option<usize>,
     /// Vertices per diamond side, `2^k + 1` (default 33 for elevation, 65 for colour).
     #[arg(long)]
     pub diamond_size: Option<usize>,
@@ -169,6 +183,8 @@ pub fn run(args: &BuildArgs) -> Result<()> {
 
 /// What was encoded, ready to store.
 struct Coded {
+    geometry: Geometry,
+    radius_m: Option<f64>,
     kind: &'static str,
     units: String,
     samples: usize,
@@ -190,9 +206,23 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         let image = input::read_rgb(&args.input)
             .with_context(|| format!("reading {}", args.input.display()))?;
         spin.finish_and_clear();
-        check_budget(args, image.width * image.height, 3)?;
+        if image.width * image.height == 0 {
+            bail!("the image is empty");
+        }
+        let (pixels, domain) = if args.planet {
+            let geom = planet_geometry(args, image.georef.as_ref(), image.width, image.height, n)?;
+            check_budget(args, geom.distinct_points(), 3)?;
+            (planet::resample_rgb(&image, &geom)?, ColourDomain::Sphere(geom))
+        } else {
+            check_budget(args, image.width * image.height, 3)?;
+            (image.pixels, ColourDomain::Planar(image.width, image.height))
+        };
         encode_started = Instant::now();
-        encode_colour(&image, n, mode)?
+        let mut coded = encode_colour(&pixels, &domain, n, mode, image.georef)?;
+        if args.planet {
+            coded.radius_m = Some(radius_m(args)?);
+        }
+        coded
     } else {
         let raster = input::read_heights(&args.input)
             .with_context(|| format!("reading {}", args.input.display()))?;
@@ -204,9 +234,20 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
             nodata = raster.nodata_count,
             "read input"
         );
-        check_budget(args, raster.grid.width * raster.grid.height, 1)?;
-        encode_started = Instant::now();
-        encode_heights(raster, n, mode)?
+        if args.planet {
+            let g = &raster.grid;
+            let geom = planet_geometry(args, raster.georef.as_ref(), g.width, g.height, n)?;
+            check_budget(args, geom.distinct_points() + g.width * g.height / 2, 1)?;
+            let spin = progress::spinner("resampling");
+            let cube = planet::resample_heights(&raster, &geom)?;
+            spin.finish_and_clear();
+            encode_started = Instant::now();
+            encode_planet(raster, cube, n, mode, radius_m(args)?)?
+        } else {
+            check_budget(args, raster.grid.width * raster.grid.height, 1)?;
+            encode_started = Instant::now();
+            encode_heights(raster, n, mode)?
+        }
     };
     let encode_seconds = encode_started.elapsed().as_secs_f64();
     let (summary_output, meta) = store(args, &coded, n, mode)?;
@@ -254,6 +295,8 @@ fn encode_heights(raster: input::HeightRaster, n: usize, mode: RateMode) -> Resu
         .context("encoding the height grid")?;
     spin.finish_and_clear();
     Ok(Coded {
+        geometry: Geometry::of(&enc)?,
+        radius_m: None,
         kind: "elevation",
         units: raster.units,
         samples: enc.report.samples,
@@ -265,6 +308,70 @@ fn encode_heights(raster: input::HeightRaster, n: usize, mode: RateMode) -> Resu
     })
 }
 
+fn radius_m(args: &BuildArgs) -> Result<f64> {
+    let r = match args.radius_m {
+        Some(r) => r,
+        None => planet::body_radius_m(&args.body)
+            .with_context(|| format!("unknown body {:?}; pass --radius-m", args.body))?,
+    };
+    if !(r.is_finite() && r > 0.0) {
+        bail!("radius {r} m is not a positive number");
+    }
+    Ok(r)
+}
+
+fn planet_geometry(
+    args: &BuildArgs,
+    georef: Option<&Georef>,
+    width: usize,
+    height: usize,
+    n: usize,
+) -> Result<SphereGeometry> {
+    let georef = georef.context(
+        "planet builds need a georeferenced latitude/longitude grid (sidecar `georef`, GeoTIFF tags)",
+    )?;
+    let spacing = planet::Equirect::new(width, height, &[], georef)?.spacing_deg();
+    let face_side = args
+        .face_side
+        .unwrap_or_else(|| planet::default_face_side(spacing, n));
+    SphereGeometry::new(face_side, n)
+        .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))
+}
+
+fn encode_planet(
+    raster: input::HeightRaster,
+    cube: CubeGrid,
+    n: usize,
+    mode: RateMode,
+    radius_m: f64,
+) -> Result<Coded> {
+    let spin = progress::spinner("encoding");
+    spin.set_message(format!("6 faces of {0} x {0}", cube.face_side));
+    let enc = encode::encode_sphere(&cube, EncodeOptions { n, mode })
+        .context("encoding the planet")?;
+    spin.finish_and_clear();
+    Ok(Coded {
+        geometry: Geometry::of(&enc)?,
+        radius_m: Some(radius_m),
+        kind: "elevation",
+        units: raster.units,
+        samples: enc.report.samples,
+        nodata_count: raster.nodata_count,
+        georef: raster.georef,
+        rms: enc.report.rms_m,
+        max_abs: enc.report.max_abs_m,
+        channels: vec![("height".into(), enc)],
+    })
+}
+
+/// Where colour pixels live.
+pub enum ColourDomain {
+    /// A `width x height` image.
+    Planar(usize, usize),
+    /// A cube raster.
+    Sphere(SphereGeometry),
+}
+
 /// Per-channel error bound that keeps every RGB component within `e` levels after the
 /// inverse YCoCg-R (worst case `|dR| <= 2d + 2` for channel errors `<= d`).
 pub fn colour_channel_bound(e: f64) -> Option<f64> {
@@ -272,17 +379,19 @@ pub fn colour_channel_bound(e: f64) -> Option<f64> {
     (d >= 1.0).then_some(d)
 }
 
-fn encode_colour(image: &input::RgbImage, n: usize, mode: RateMode) -> Result<Coded> {
-    let samples = image.width * image.height;
-    if samples == 0 {
-        bail!("the image is empty");
-    }
+fn encode_colour(
+    pixels: &[[u8; 3]],
+    domain: &ColourDomain,
+    n: usize,
+    mode: RateMode,
+    georef: Option<Georef>,
+) -> Result<Coded> {
     let mut planes = [
-        Vec::with_capacity(samples),
-        Vec::with_capacity(samples),
-        Vec::with_capacity(samples),
+        Vec::with_capacity(pixels.len()),
+        Vec::with_capacity(pixels.len()),
+        Vec::with_capacity(pixels.len()),
     ];
-    for &[r, g, b] in &image.pixels {
+    for &[r, g, b] in pixels {
         let (y, co, cg) = rgb_to_ycocg_r(r as i32, g as i32, b as i32);
         planes[0].push(y as f64);
         planes[1].push(co as f64);
@@ -298,36 +407,48 @@ fn encode_colour(image: &input::RgbImage, n: usize, mode: RateMode) -> Result<Co
     let pb = progress::bar(3, "encoding", "channels");
     let mut channels = Vec::new();
     for (name, values) in COLOUR_CHANNELS.iter().zip(planes) {
-        let grid = Grid {
-            width: image.width,
-            height: image.height,
-            values_m: values,
-            quantum_m: Some(1.0),
+        let opts = EncodeOptions {
+            n,
+            mode: channel_mode,
         };
-        let enc = encode::encode(
-            &grid,
-            EncodeOptions {
-                n,
-                mode: channel_mode,
-            },
-        )
+        let enc = match domain {
+            ColourDomain::Planar(width, height) => encode::encode(
+                &Grid {
+                    width: *width,
+                    height: *height,
+                    values_m: values,
+                    quantum_m: Some(1.0),
+                },
+                opts,
+            ),
+            ColourDomain::Sphere(geom) => encode::encode_sphere(
+                &CubeGrid {
+                    face_side: geom.face_side(),
+                    values_m: values,
+                    quantum_m: Some(1.0),
+                },
+                opts,
+            ),
+        }
         .with_context(|| format!("encoding colour channel {name}"))?;
         channels.push((name.to_string(), enc));
         pb.inc(1);
     }
     pb.finish_and_clear();
-    let decoded: Vec<Vec<i32>> = channels
+    let decoded = channels
         .iter()
         .map(|(_, e)| encode::decode(e).map(|v| v.into_iter().map(|x| x.round() as i32).collect()))
-        .collect::<Result<_, _>>()
+        .collect::<Result<Vec<Vec<i32>>, _>>()
         .context("decoding colour for measurement")?;
-    let (rms, max_abs) = rgb_error(image, &decoded[0], &decoded[1], &decoded[2]);
+    let (rms, max_abs) = rgb_error(pixels, &decoded[0], &decoded[1], &decoded[2]);
     Ok(Coded {
+        geometry: Geometry::of(&channels[0].1)?,
+        radius_m: None,
         kind: "colour",
         units: "srgb8".into(),
-        samples,
+        samples: channels[0].1.report.samples,
         nodata_count: 0,
-        georef: image.georef.clone(),
+        georef,
         channels,
         rms,
         max_abs,
@@ -336,10 +457,10 @@ fn encode_colour(image: &input::RgbImage, n: usize, mode: RateMode) -> Result<Co
 
 /// RMS and largest absolute error over all RGB components of decoded YCoCg-R planes
 /// (clamped to 0..=255) against the source image.
-pub fn rgb_error(image: &input::RgbImage, y: &[i32], co: &[i32], cg: &[i32]) -> (f64, f64) {
+pub fn rgb_error(pixels: &[[u8; 3]], y: &[i32], co: &[i32], cg: &[i32]) -> (f64, f64) {
     let mut sum = 0.0;
     let mut max = 0i32;
-    for (k, src) in image.pixels.iter().enumerate() {
+    for (k, src) in pixels.iter().enumerate() {
         let (r, g, b) = quincunx_codec::colour::ycocg_r_to_rgb(y[k], co[k], cg[k]);
         for (got, want) in [r, g, b].into_iter().zip(src) {
             let d = (got.clamp(0, 255) - *want as i32).abs();
@@ -348,28 +469,27 @@ pub fn rgb_error(image: &input::RgbImage, y: &[i32], co: &[i32], cg: &[i32]) -> 
         }
     }
     (
-        (sum / (3 * image.pixels.len().max(1)) as f64).sqrt(),
+        (sum / (3 * pixels.len().max(1)) as f64).sqrt(),
         max as f64,
     )
 }
 
 fn store(args: &BuildArgs, coded: &Coded, n: usize, mode: RateMode) -> Result<(String, Metadata)> {
-    let first = &coded.channels[0].1;
-    let geom = RasterGeometry::new(first.width, first.height, n).context("raster geometry")?;
+    let geom = &coded.geometry;
     let mut builder = RepositoryBuilder::create(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
-    let total: usize = (0..geom.detail_levels()).map(|l| geom.level(l).len()).sum();
+    let total: usize = (0..geom.detail_levels()).map(|l| geom.level_len(l)).sum();
     let pb = progress::bar(total as u64, "writing", "diamonds");
     let mut stored = 0u64;
     for level in 0..geom.detail_levels() {
-        for (index, slot) in geom.level(level).iter().enumerate() {
+        for index in 0..geom.level_len(level) {
             let parts: Vec<Option<&[u8]>> = coded
                 .channels
                 .iter()
                 .map(|(_, e)| e.blobs[level][index].as_deref())
                 .collect();
             if let Some(blob) = layout::frame_channels(&parts) {
-                builder.put(level as u32, &slot.key, &blob)?;
+                builder.put(level as u32, geom.key(level, index), &blob)?;
                 stored += 1;
                 if args.stall_after_blobs == Some(stored) {
                     tracing::warn!("stalling after {stored} blobs (test hook)");
@@ -386,15 +506,15 @@ fn store(args: &BuildArgs, coded: &Coded, n: usize, mode: RateMode) -> Result<(S
         format_version: quincunx_store::FORMAT_VERSION,
         complete: false,
         content_hash: String::new(),
-        domain: "planar".into(),
-        m: geom.domain().m(),
+        domain: geom.domain_name().into(),
+        m: geom.m(),
         n: n as u32,
         levels: geom.detail_levels() as u32,
         attribute: Attribute {
             kind: coded.kind.into(),
             units: coded.units.clone(),
         },
-        extent: [first.width as u64, first.height as u64],
+        extent: geom.extent(),
         nodata: NodataPolicy {
             source_count: coded.nodata_count as u64,
             handling: if coded.nodata_count > 0 {
@@ -409,7 +529,7 @@ fn store(args: &BuildArgs, coded: &Coded, n: usize, mode: RateMode) -> Result<(S
             .as_ref()
             .map(serde_json::to_value)
             .transpose()?,
-        radius_m: None,
+        radius_m: coded.radius_m,
         channels: coded
             .channels
             .iter()

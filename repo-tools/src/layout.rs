@@ -9,9 +9,11 @@
 //!   trained model and root grid: with the id alone a client can decode any blob.
 
 use anyhow::{Context, Result, bail};
-use quincunx_codec::encode::{EncodeReport, Encoded, RateMode};
+use quincunx_codec::blob::BlobContext;
+use quincunx_codec::encode::{self, EncodeReport, Encoded, EncodedDomain, RateMode};
 use quincunx_codec::entropy::CodecModel;
 use quincunx_codec::raster::RasterGeometry;
+use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_store::{ChannelCoding, Metadata, Repository};
 
 /// Names of the colour channels, in blob order.
@@ -34,7 +36,7 @@ pub fn channel_coding(name: &str, enc: &Encoded, mode: RateMode) -> ChannelCodin
         value_offset: enc.value_offset_m,
         steps: enc.steps.clone(),
         model: enc.model.to_bytes(),
-        roots: vec![enc.root.clone()],
+        roots: enc.roots.clone(),
         rate: rate_label(mode),
     }
 }
@@ -108,72 +110,183 @@ pub fn split_channels(bytes: &[u8], count: usize) -> Result<Vec<Option<&[u8]>>> 
     Ok(out)
 }
 
-/// The raster geometry a planar repository was built on.
-pub fn planar_geometry(meta: &Metadata) -> Result<RasterGeometry> {
-    if meta.domain != "planar" {
-        bail!("domain {:?} is not planar", meta.domain);
-    }
-    let [w, h] = meta.extent;
-    let geom = RasterGeometry::new(w as usize, h as usize, meta.n as usize)
-        .context("repository extent or diamond size is invalid")?;
-    if geom.detail_levels() != meta.levels as usize || geom.domain().m() != meta.m {
-        bail!(
-            "metadata says m = {}, {} levels; extent {w} x {h} with N = {} gives m = {}, {} levels",
-            meta.m,
-            meta.levels,
-            meta.n,
-            geom.domain().m(),
-            geom.detail_levels()
-        );
-    }
-    Ok(geom)
+/// The hierarchy a repository was built on: a planar raster or a cube-mapped planet.
+pub enum Geometry {
+    /// Planar raster.
+    Planar(RasterGeometry),
+    /// Planet (cube raster).
+    Sphere(SphereGeometry),
 }
 
-/// Reassembles channel `channel` of a planar repository as the codec's in-memory form
-/// (blobs read from the store), ready to decode.
-pub fn load_channel(repo: &Repository, geom: &RasterGeometry, channel: usize) -> Result<Encoded> {
+impl Geometry {
+    /// The geometry of a codec result.
+    pub fn of(enc: &Encoded) -> Result<Geometry> {
+        Ok(match enc.domain {
+            EncodedDomain::Planar { width, height } => {
+                Geometry::Planar(RasterGeometry::new(width, height, enc.n)?)
+            }
+            EncodedDomain::Sphere { face_side } => {
+                Geometry::Sphere(SphereGeometry::new(face_side, enc.n)?)
+            }
+        })
+    }
+
+    /// The geometry a repository's metadata describes (checked against `m` and `levels`).
+    pub fn from_metadata(meta: &Metadata) -> Result<Geometry> {
+        let [a, b] = meta.extent;
+        let n = meta.n as usize;
+        let geom = match meta.domain.as_str() {
+            "planar" => Geometry::Planar(
+                RasterGeometry::new(a as usize, b as usize, n)
+                    .context("repository extent or diamond size is invalid")?,
+            ),
+            "sphere" if a == b => Geometry::Sphere(
+                SphereGeometry::new(a as usize, n)
+                    .context("repository face side or diamond size is invalid")?,
+            ),
+            other => bail!("unknown domain {other:?} with extent {a} x {b}"),
+        };
+        if geom.detail_levels() != meta.levels as usize || geom.m() != meta.m {
+            bail!(
+                "metadata says m = {}, {} levels; its extent and N give m = {}, {} levels",
+                meta.m,
+                meta.levels,
+                geom.m(),
+                geom.detail_levels()
+            );
+        }
+        Ok(geom)
+    }
+
+    /// `"planar"` or `"sphere"`.
+    pub fn domain_name(&self) -> &'static str {
+        match self {
+            Geometry::Planar(_) => "planar",
+            Geometry::Sphere(_) => "sphere",
+        }
+    }
+
+    /// Domain size exponent.
+    pub fn m(&self) -> u32 {
+        match self {
+            Geometry::Planar(g) => g.domain().m(),
+            Geometry::Sphere(g) => g.domain().m(),
+        }
+    }
+
+    /// Metadata `extent`.
+    pub fn extent(&self) -> [u64; 2] {
+        match self {
+            Geometry::Planar(g) => [g.width() as u64, g.height() as u64],
+            Geometry::Sphere(g) => [g.face_side() as u64; 2],
+        }
+    }
+
+    /// Levels carrying details.
+    pub fn detail_levels(&self) -> usize {
+        match self {
+            Geometry::Planar(g) => g.detail_levels(),
+            Geometry::Sphere(g) => g.detail_levels(),
+        }
+    }
+
+    /// Diamonds of a level.
+    pub fn level_len(&self, level: usize) -> usize {
+        match self {
+            Geometry::Planar(g) => g.level(level).len(),
+            Geometry::Sphere(g) => g.level(level).len(),
+        }
+    }
+
+    /// Storage key of diamond `index` of `level`.
+    pub fn key(&self, level: usize, index: usize) -> &[u8] {
+        match self {
+            Geometry::Planar(g) => &g.level(level)[index].key,
+            Geometry::Sphere(g) => &g.level(level)[index].key,
+        }
+    }
+
+    /// Decoder context of diamond `index` of `level`.
+    pub fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
+        match self {
+            Geometry::Planar(g) => g.blob_context(level, index),
+            Geometry::Sphere(g) => g.blob_context(level, index),
+        }
+    }
+
+    /// Decodes a channel at full resolution (one thread) to integers.
+    pub fn decode(&self, enc: &Encoded) -> Result<Vec<i32>> {
+        Ok(match self {
+            Geometry::Planar(g) => encode::decode_integers_with(g, enc),
+            Geometry::Sphere(g) => encode::decode_sphere_integers_with(g, enc),
+        }
+        .context("decoding the repository")?)
+    }
+}
+
+/// Reassembles channel `channel` of a repository as the codec's in-memory form (blobs
+/// read from the store), ready to decode.
+pub fn load_channel(repo: &Repository, geom: &Geometry, channel: usize) -> Result<Encoded> {
     let meta = repo.metadata();
     let coding = meta
         .channels
         .get(channel)
         .with_context(|| format!("repository has no channel {channel}"))?;
     let model = CodecModel::from_bytes(&coding.model).context("stored entropy model")?;
-    let root = coding
-        .roots
-        .first()
-        .cloned()
-        .context("channel has no root grid")?;
     let n = meta.n as usize;
-    if root.len() != (n + 1) * (n + 1) {
-        bail!(
-            "root grid has {} values, expected {}",
-            root.len(),
-            (n + 1) * (n + 1)
-        );
+    let want_roots = match geom {
+        Geometry::Planar(_) => 1,
+        Geometry::Sphere(_) => 6,
+    };
+    if coding.roots.len() != want_roots
+        || coding.roots.iter().any(|r| r.len() != (n + 1) * (n + 1))
+    {
+        bail!("channel {channel} needs {want_roots} root grids of {} values", (n + 1) * (n + 1));
     }
     let count = meta.channels.len();
     let mut blobs = Vec::with_capacity(geom.detail_levels());
     for level in 0..geom.detail_levels() {
-        let mut row = Vec::with_capacity(geom.level(level).len());
-        for slot in geom.level(level) {
-            let blob = match repo.get(&slot.key)? {
+        let mut row = Vec::with_capacity(geom.level_len(level));
+        for index in 0..geom.level_len(level) {
+            let blob = match repo.get(geom.key(level, index))? {
                 None => None,
                 Some(bytes) => split_channels(&bytes, count)
-                    .with_context(|| format!("blob of {:?}", slot.id))?[channel]
+                    .with_context(|| format!("blob {index} of level {level}"))?[channel]
                     .map(<[u8]>::to_vec),
             };
             row.push(blob);
         }
         blobs.push(row);
     }
+    let (domain, width, height, root) = match geom {
+        Geometry::Planar(g) => (
+            EncodedDomain::Planar {
+                width: g.width(),
+                height: g.height(),
+            },
+            g.width(),
+            g.height(),
+            coding.roots[0].clone(),
+        ),
+        Geometry::Sphere(g) => (
+            EncodedDomain::Sphere {
+                face_side: g.face_side(),
+            },
+            g.face_side() + 1,
+            6 * (g.face_side() + 1),
+            Vec::new(),
+        ),
+    };
     Ok(Encoded {
-        width: geom.width(),
-        height: geom.height(),
+        domain,
+        width,
+        height,
         n,
         value_scale_m: coding.value_scale,
         value_offset_m: coding.value_offset,
         steps: coding.steps.clone(),
         root,
+        roots: coding.roots.clone(),
         model,
         blobs,
         report: EncodeReport::default(),

@@ -12,7 +12,9 @@ mod export;
 mod info;
 mod input;
 mod layout;
+mod planet;
 mod progress;
+mod query;
 mod verify;
 
 /// Streams compressed multiresolution terrain: repository tools.
@@ -42,6 +44,18 @@ enum Command {
     /// Check and decode every blob; with `--source`, reconstruct at full resolution and
     /// measure the error against the source.
     Verify(verify::VerifyArgs),
+    /// Values of a planet repository at latitude/longitude points (bilinear on the
+    /// decoded cube).
+    Query {
+        /// Repository directory.
+        repo: PathBuf,
+        /// `LAT,LON` in degrees (repeatable), e.g. `27.988,86.925`.
+        #[arg(long = "at", required = true, value_parser = parse_lat_lon, allow_hyphen_values = true)]
+        at: Vec<(f64, f64)>,
+        /// One JSON array instead of text.
+        #[arg(long)]
+        json: bool,
+    },
     /// Write one static file per blob (paths mirror the server's blob URLs) plus the
     /// metadata, for any static web server or object store.
     Export {
@@ -53,6 +67,18 @@ enum Command {
         #[arg(long)]
         name: Option<String>,
     },
+}
+
+fn parse_lat_lon(s: &str) -> Result<(f64, f64), String> {
+    let (lat, lon) = s
+        .split_once(',')
+        .ok_or_else(|| format!("{s:?} is not LAT,LON"))?;
+    let parse = |t: &str| {
+        t.trim()
+            .parse::<f64>()
+            .map_err(|e| format!("{t:?}: {e}"))
+    };
+    Ok((parse(lat)?, parse(lon)?))
 }
 
 fn main() -> ExitCode {
@@ -68,6 +94,7 @@ fn main() -> ExitCode {
         Command::Info { repo, json } => info::run(&repo, json),
         Command::Verify(args) => verify::run(&args),
         Command::Export { repo, dir, name } => export::run(&repo, &dir, name.as_deref()),
+        Command::Query { repo, at, json } => query::run(&repo, &at, json),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

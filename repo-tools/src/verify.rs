@@ -8,13 +8,12 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use quincunx_codec::blob;
-use quincunx_codec::encode::{self, Encoded};
 use quincunx_codec::entropy::CodecModel;
-use quincunx_codec::raster::RasterGeometry;
 use quincunx_store::Repository;
 use serde::Serialize;
 
-use crate::{build, info, input, layout, progress};
+use crate::layout::Geometry;
+use crate::{build, info, input, layout, planet, progress};
 
 /// Options of `quincunx verify`.
 #[derive(Args, Debug, Clone)]
@@ -45,6 +44,7 @@ pub struct VerifyReport {
     /// Full-resolution decode (entropy decoding + synthesis, one thread), M samples/s.
     pub decode_msamples_per_s: f64,
     /// With `--source`: RMS error over valid samples (metres; colour: 8-bit RGB levels).
+    /// For a planet, against the source resampled onto the cube (the codec's error).
     pub rms_m: Option<f64>,
     /// With `--source`: largest absolute error (same units).
     pub max_abs_m: Option<f64>,
@@ -83,7 +83,7 @@ pub fn run(args: &VerifyArgs) -> Result<()> {
     Ok(())
 }
 
-fn check_blobs(repo: &Repository, geom: &RasterGeometry) -> Result<(u64, u64)> {
+fn check_blobs(repo: &Repository, geom: &Geometry) -> Result<(u64, u64)> {
     let meta = repo.metadata();
     let models = meta
         .channels
@@ -93,8 +93,8 @@ fn check_blobs(repo: &Repository, geom: &RasterGeometry) -> Result<(u64, u64)> {
         .context("stored entropy model")?;
     let mut index = HashMap::new();
     for level in 0..geom.detail_levels() {
-        for (i, slot) in geom.level(level).iter().enumerate() {
-            index.insert(slot.key.clone(), (level, i));
+        for i in 0..geom.level_len(level) {
+            index.insert(geom.key(level, i).to_vec(), (level, i));
         }
     }
     let pb = progress::bar(repo.blob_count() as u64, "checking", "blobs");
@@ -131,15 +131,59 @@ fn check_blobs(repo: &Repository, geom: &RasterGeometry) -> Result<(u64, u64)> {
     Ok((checked, errors))
 }
 
-fn decode_channel(enc: &Encoded, geom: &RasterGeometry) -> Result<Vec<i32>> {
-    encode::decode_integers_with(geom, enc).context("decoding the repository")
+/// A repository decoded at full resolution: per channel, integers and their scale/offset.
+pub struct Decoded {
+    /// The geometry.
+    pub geom: Geometry,
+    /// Per channel: decoded integers in the domain's sample order.
+    pub values: Vec<Vec<i32>>,
+    /// Per channel: `(scale, offset)`.
+    pub scales: Vec<(f64, f64)>,
+    /// Seconds spent decoding (one thread).
+    pub seconds: f64,
+}
+
+impl Decoded {
+    /// Channel `c` in its units (metres; colour channels rounded to integers).
+    pub fn channel(&self, c: usize) -> Vec<f64> {
+        let (scale, offset) = self.scales[c];
+        self.values[c]
+            .iter()
+            .map(|&v| offset + v as f64 * scale)
+            .collect()
+    }
+}
+
+/// Decodes every channel of a repository at full resolution.
+pub fn decode_repository(repo: &Repository) -> Result<Decoded> {
+    let meta = repo.metadata();
+    let geom = Geometry::from_metadata(meta)?;
+    let channels = (0..meta.channels.len())
+        .map(|c| layout::load_channel(repo, &geom, c))
+        .collect::<Result<Vec<_>>>()?;
+    let spin = progress::spinner("decoding");
+    let started = Instant::now();
+    let values = channels
+        .iter()
+        .map(|e| geom.decode(e))
+        .collect::<Result<Vec<_>>>()?;
+    let seconds = started.elapsed().as_secs_f64();
+    spin.finish_and_clear();
+    Ok(Decoded {
+        geom,
+        values,
+        scales: channels
+            .iter()
+            .map(|e| (e.value_scale_m, e.value_offset_m))
+            .collect(),
+        seconds,
+    })
 }
 
 fn verify(args: &VerifyArgs) -> Result<VerifyReport> {
-    let repo =
-        Repository::open(&args.repo).with_context(|| format!("opening {}", args.repo.display()))?;
+    let repo = Repository::open(&args.repo)
+        .with_context(|| format!("opening {}", args.repo.display()))?;
     let meta = repo.metadata().clone();
-    let geom = layout::planar_geometry(&meta)?;
     let samples = info::samples(&meta);
     let blob_bytes: u64 = meta.level_stats.iter().map(|s| s.bytes).sum();
     let mut report = VerifyReport {
@@ -147,63 +191,61 @@ fn verify(args: &VerifyArgs) -> Result<VerifyReport> {
         bits_per_sample: 8.0 * (blob_bytes + info::side_bytes(&meta)) as f64 / samples as f64,
         ..VerifyReport::default()
     };
+    let geom = Geometry::from_metadata(&meta)?;
     (report.blobs_checked, report.blob_errors) = check_blobs(&repo, &geom)?;
     report.content_hash_ok = repo.compute_content_hash()? == meta.content_hash;
-
-    let channels = (0..meta.channels.len())
-        .map(|c| layout::load_channel(&repo, &geom, c))
-        .collect::<Result<Vec<_>>>()?;
-    let spin = progress::spinner("decoding");
-    let started = Instant::now();
-    let decoded = channels
-        .iter()
-        .map(|e| decode_channel(e, &geom))
-        .collect::<Result<Vec<_>>>()?;
-    let seconds = started.elapsed().as_secs_f64();
-    spin.finish_and_clear();
-    report.decode_msamples_per_s = (samples * channels.len() as u64) as f64 / seconds / 1e6;
+    let decoded = decode_repository(&repo)?;
+    report.decode_msamples_per_s =
+        (samples * decoded.values.len() as u64) as f64 / decoded.seconds / 1e6;
+    if let Geometry::Sphere(g) = &decoded.geom {
+        report.seam_mismatches = Some(
+            decoded
+                .values
+                .iter()
+                .map(|v| planet::seam_mismatches(g, v))
+                .sum(),
+        );
+    }
 
     let Some(source) = &args.source else {
         return Ok(report);
     };
     let (rms, max) = if meta.attribute.kind == "colour" {
-        let image =
-            input::read_rgb(source).with_context(|| format!("reading {}", source.display()))?;
-        if [image.width as u64, image.height as u64] != meta.extent || decoded.len() != 3 {
-            bail!(
-                "source is {} x {}, repository {:?}",
-                image.width,
-                image.height,
-                meta.extent
-            );
-        }
-        let planes: Vec<Vec<i32>> = decoded
-            .iter()
-            .zip(&channels)
-            .map(|(d, e)| {
-                d.iter()
-                    .map(|&v| (e.value_offset_m + v as f64 * e.value_scale_m).round() as i32)
-                    .collect()
-            })
+        let image = input::read_rgb(source)
+            .with_context(|| format!("reading {}", source.display()))?;
+        let pixels = match &decoded.geom {
+            Geometry::Sphere(g) => planet::resample_rgb(&image, g)?,
+            Geometry::Planar(_) => {
+                if [image.width as u64, image.height as u64] != meta.extent {
+                    bail!("source is {} x {}, repository {:?}", image.width, image.height, meta.extent);
+                }
+                image.pixels
+            }
+        };
+        let planes: Vec<Vec<i32>> = (0..3)
+            .map(|c| decoded.channel(c).iter().map(|v| v.round() as i32).collect())
             .collect();
-        build::rgb_error(&image, &planes[0], &planes[1], &planes[2])
-    } else {
-        let raster =
-            input::read_heights(source).with_context(|| format!("reading {}", source.display()))?;
-        let g = &raster.grid;
-        if [g.width as u64, g.height as u64] != meta.extent {
-            bail!(
-                "source is {} x {}, repository {:?}",
-                g.width,
-                g.height,
-                meta.extent
-            );
+        if planes.len() != 3 {
+            bail!("a colour repository needs 3 channels");
         }
-        let enc = &channels[0];
+        build::rgb_error(&pixels, &planes[0], &planes[1], &planes[2])
+    } else {
+        let raster = input::read_heights(source)
+            .with_context(|| format!("reading {}", source.display()))?;
+        let reference = match &decoded.geom {
+            Geometry::Sphere(g) => planet::resample_heights(&raster, g)?.values_m,
+            Geometry::Planar(_) => {
+                let g = &raster.grid;
+                if [g.width as u64, g.height as u64] != meta.extent {
+                    bail!("source is {} x {}, repository {:?}", g.width, g.height, meta.extent);
+                }
+                raster.grid.values_m
+            }
+        };
         let (mut sum, mut max, mut count) = (0.0, 0.0f64, 0usize);
-        for (&d, &v) in decoded[0].iter().zip(&g.values_m) {
+        for (d, v) in decoded.channel(0).into_iter().zip(reference) {
             if v.is_finite() {
-                let e = (enc.value_offset_m + d as f64 * enc.value_scale_m - v).abs();
+                let e = (d - v).abs();
                 sum += e * e;
                 max = max.max(e);
                 count += 1;

@@ -1,0 +1,323 @@
+//! Planets: global latitude/longitude grids resampled onto the cube-mapped sphere, and
+//! point queries back.
+//!
+//! Axes: `+Z` is the north pole, `+X` is (0°N, 0°E), `+Y` is (0°N, 90°E). A cube-raster
+//! sample is the exact integer cube point of the codec's sphere domain, mapped to the
+//! sphere with the codec's equal-angle map (`cube_to_unit_sphere`, area ratio 1.414 over
+//! a face). Every copy of a cube edge or corner point is the same integer point, so it
+//! gets the same latitude/longitude and the same resampled value: the resampled grid has
+//! no seams to begin with. The poles are the centres of the `+Z`/`-Z` faces (no
+//! singularity), and the antimeridian is an ordinary line: longitudes wrap when the
+//! source spans 360°.
+
+use anyhow::{Context, Result, bail};
+use quincunx_codec::encode::CubeGrid;
+use quincunx_codec::diamond::sphere::{cube_to_unit_sphere, unit_sphere_to_cube};
+use quincunx_codec::sphere_raster::SphereGeometry;
+use rayon::prelude::*;
+
+use crate::input::{Georef, HeightRaster, Registration, RgbImage};
+
+/// Radius of a named body, metres.
+pub fn body_radius_m(body: &str) -> Option<f64> {
+    match body.to_ascii_lowercase().as_str() {
+        "earth" => Some(6_371_000.0),
+        "mars" => Some(3_396_000.0),
+        "moon" => Some(1_737_400.0),
+        "venus" => Some(6_051_800.0),
+        "mercury" => Some(2_439_700.0),
+        _ => None,
+    }
+}
+
+/// Latitude and longitude (degrees) of a point on (or off) the cube.
+pub fn lat_lon(p: [i64; 3]) -> (f64, f64) {
+    let q = cube_to_unit_sphere([p[0] as f64, p[1] as f64, p[2] as f64]);
+    (
+        q[2].clamp(-1.0, 1.0).asin().to_degrees(),
+        q[1].atan2(q[0]).to_degrees(),
+    )
+}
+
+/// The face and fractional chart coordinates `(u, v)` in `[0, face_side]` of a
+/// latitude/longitude (degrees).
+pub fn face_chart(lat: f64, lon: f64, face_side: usize) -> (u8, f64, f64) {
+    let (lat, lon) = (lat.to_radians(), lon.to_radians());
+    let q = [lat.cos() * lon.cos(), lat.cos() * lon.sin(), lat.sin()];
+    let c = unit_sphere_to_cube(q);
+    let axis = (0..3)
+        .max_by(|&a, &b| c[a].abs().total_cmp(&c[b].abs()))
+        .unwrap_or(2);
+    let face = (2 * axis + usize::from(c[axis] < 0.0)) as u8;
+    let (x, y, z) = (c[0], c[1], c[2]);
+    let (u, v) = match face {
+        0 => (y, z),
+        1 => (z, y),
+        2 => (z, x),
+        3 => (x, z),
+        4 => (x, y),
+        _ => (y, x),
+    };
+    let half = face_side as f64 / 2.0;
+    (face, (u + 1.0) * half, (v + 1.0) * half)
+}
+
+/// A global latitude/longitude grid ready to be sampled anywhere.
+pub struct Equirect<'a> {
+    width: usize,
+    height: usize,
+    lon0: f64,
+    dlon: f64,
+    lat0: f64,
+    dlat: f64,
+    wraps: bool,
+    values: &'a [f64],
+}
+
+impl<'a> Equirect<'a> {
+    /// Describes `values` (`width x height`, row 0 north) placed by `georef` (degrees).
+    pub fn new(width: usize, height: usize, values: &'a [f64], georef: &Georef) -> Result<Self> {
+        if let Some(crs) = &georef.crs
+            && !crs.contains("4326")
+            && !crs.to_ascii_lowercase().contains("lat")
+        {
+            bail!("planet builds need a latitude/longitude grid; the source CRS is {crs}");
+        }
+        if georef.west < -180.5 || georef.east > 360.5 || georef.north > 90.0 || georef.south < -90.0 {
+            bail!(
+                "the georeference ({}..{} E, {}..{} N) is not in degrees of latitude/longitude",
+                georef.west,
+                georef.east,
+                georef.south,
+                georef.north
+            );
+        }
+        if width < 2 || height < 2 {
+            bail!("a planet source needs at least 2 x 2 samples");
+        }
+        let (lon0, dlon, lat0, dlat) = match georef.registration {
+            Registration::Node => (
+                georef.west,
+                (georef.east - georef.west) / (width - 1) as f64,
+                georef.north,
+                (georef.north - georef.south) / (height - 1) as f64,
+            ),
+            Registration::Cell => {
+                let dlon = (georef.east - georef.west) / width as f64;
+                let dlat = (georef.north - georef.south) / height as f64;
+                (georef.west + dlon / 2.0, dlon, georef.north - dlat / 2.0, dlat)
+            }
+        };
+        let wraps = (width as f64 * dlon - 360.0).abs() < dlon * 0.01;
+        Ok(Equirect {
+            width,
+            height,
+            lon0,
+            dlon,
+            lat0,
+            dlat,
+            wraps,
+            values,
+        })
+    }
+
+    /// Source spacing in degrees (east-west).
+    pub fn spacing_deg(&self) -> f64 {
+        self.dlon
+    }
+
+    /// Bilinear sample at a latitude/longitude; nodata (`NaN`) neighbours are left out,
+    /// `NaN` outside the grid or when all four are nodata.
+    pub fn sample(&self, lat: f64, lon: f64) -> f64 {
+        let row = ((self.lat0 - lat) / self.dlat).clamp(0.0, (self.height - 1) as f64);
+        let mut col = (lon - self.lon0).rem_euclid(360.0) / self.dlon;
+        if !self.wraps {
+            let raw = (lon - self.lon0) / self.dlon;
+            let alt = (lon + 360.0 - self.lon0) / self.dlon;
+            col = if (0.0..=(self.width - 1) as f64).contains(&raw) {
+                raw
+            } else if (0.0..=(self.width - 1) as f64).contains(&alt) {
+                alt
+            } else {
+                return f64::NAN;
+            };
+        }
+        let (r0, c0) = (row.floor() as usize, col.floor() as usize);
+        let (fr, fc) = (row - r0 as f64, col - c0 as f64);
+        let r1 = (r0 + 1).min(self.height - 1);
+        let c0 = c0 % self.width;
+        let c1 = if self.wraps {
+            (c0 + 1) % self.width
+        } else {
+            (c0 + 1).min(self.width - 1)
+        };
+        let mut sum = 0.0;
+        let mut weight = 0.0;
+        for (r, c, w) in [
+            (r0, c0, (1.0 - fr) * (1.0 - fc)),
+            (r0, c1, (1.0 - fr) * fc),
+            (r1, c0, fr * (1.0 - fc)),
+            (r1, c1, fr * fc),
+        ] {
+            let v = self.values[r * self.width + c];
+            if v.is_finite() && w > 0.0 {
+                sum += v * w;
+                weight += w;
+            }
+        }
+        if weight > 0.0 {
+            sum / weight
+        } else {
+            // Exactly on a nodata sample with zero-weight neighbours: nearest.
+            let v = self.values[row.round() as usize * self.width + (col.round() as usize % self.width)];
+            if v.is_finite() { v } else { f64::NAN }
+        }
+    }
+
+    /// Resamples onto the cube raster of `geom` (values rounded to `quantum` when given).
+    pub fn to_cube(&self, geom: &SphereGeometry, quantum: Option<f64>) -> Vec<f64> {
+        let side = geom.face_side() + 1;
+        let mut out = vec![f64::NAN; geom.cube_len()];
+        out.par_chunks_mut(side).enumerate().for_each(|(row, dst)| {
+            let face = (row / side) as u8;
+            let v = row % side;
+            for (u, x) in dst.iter_mut().enumerate() {
+                let (lat, lon) = lat_lon(geom.sample_position(face, u, v));
+                let s = self.sample(lat, lon);
+                *x = match quantum {
+                    Some(q) if s.is_finite() => (s / q).round() * q,
+                    _ => s,
+                };
+            }
+        });
+        out
+    }
+}
+
+/// Resamples a global height grid onto the cube raster of `geom` (values rounded to the
+/// source quantum, so integer sources stay integer and lossless coding stays meaningful).
+pub fn resample_heights(raster: &HeightRaster, geom: &SphereGeometry) -> Result<CubeGrid> {
+    let g = &raster.grid;
+    let georef = raster
+        .georef
+        .as_ref()
+        .context("planet builds need a georeferenced latitude/longitude grid")?;
+    let e = Equirect::new(g.width, g.height, &g.values_m, georef)?;
+    Ok(CubeGrid {
+        face_side: geom.face_side(),
+        values_m: e.to_cube(geom, g.quantum_m),
+        quantum_m: g.quantum_m,
+    })
+}
+
+/// Resamples global RGB imagery onto the cube raster of `geom` (bilinear per channel,
+/// rounded to 8 bits).
+pub fn resample_rgb(image: &RgbImage, geom: &SphereGeometry) -> Result<Vec<[u8; 3]>> {
+    let georef = image
+        .georef
+        .as_ref()
+        .context("planet builds need georeferenced imagery (a sidecar with `georef`)")?;
+    let mut cube = vec![[0u8; 3]; geom.cube_len()];
+    for c in 0..3 {
+        let plane: Vec<f64> = image.pixels.iter().map(|p| p[c] as f64).collect();
+        let e = Equirect::new(image.width, image.height, &plane, georef)?;
+        for (dst, v) in cube.iter_mut().zip(e.to_cube(geom, Some(1.0))) {
+            dst[c] = if v.is_finite() { v.clamp(0.0, 255.0) as u8 } else { 0 };
+        }
+    }
+    Ok(cube)
+}
+
+/// The default face side for a source of `spacing_deg`: the power-of-two multiple of `n`
+/// closest (in ratio) to the source's samples per 90°.
+pub fn default_face_side(spacing_deg: f64, n: usize) -> usize {
+    let want = (90.0 / spacing_deg).max(n as f64);
+    let mut side = n;
+    while (side * 2) as f64 / want < want / side as f64 {
+        side *= 2;
+    }
+    side
+}
+
+/// Bilinear sample of a decoded cube raster at a latitude/longitude.
+pub fn query(geom: &SphereGeometry, values: &[f64], lat: f64, lon: f64) -> f64 {
+    let side = geom.face_side();
+    let (face, u, v) = face_chart(lat, lon, side);
+    let u = u.clamp(0.0, side as f64);
+    let v = v.clamp(0.0, side as f64);
+    let (u0, v0) = ((u.floor() as usize).min(side - 1), (v.floor() as usize).min(side - 1));
+    let (fu, fv) = (u - u0 as f64, v - v0 as f64);
+    let at = |uu: usize, vv: usize| values[geom.cube_index(face, uu, vv)];
+    at(u0, v0) * (1.0 - fu) * (1.0 - fv)
+        + at(u0 + 1, v0) * fu * (1.0 - fv)
+        + at(u0, v0 + 1) * (1.0 - fu) * fv
+        + at(u0 + 1, v0 + 1) * fu * fv
+}
+
+/// Cube edge and corner samples whose copies on different faces disagree.
+pub fn seam_mismatches<T: PartialEq + Copy>(geom: &SphereGeometry, values: &[T]) -> u64 {
+    let side = geom.face_side();
+    let mut mismatches = 0;
+    for face in 0..6u8 {
+        for v in 0..=side {
+            for u in 0..=side {
+                if u != 0 && u != side && v != 0 && v != side {
+                    continue;
+                }
+                let own = values[geom.cube_index(face, u, v)];
+                let p = geom.sample_position(face, u, v);
+                if geom.point_indices(p).any(|k| values[k] != own) {
+                    mismatches += 1;
+                }
+            }
+        }
+    }
+    mismatches
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn face_chart_inverts_sample_positions() {
+        let geom = SphereGeometry::new(64, 8).unwrap();
+        for face in 0..6u8 {
+            for (u, v) in [(1, 1), (10, 50), (32, 32), (63, 2)] {
+                let (lat, lon) = lat_lon(geom.sample_position(face, u, v));
+                let (f, uu, vv) = face_chart(lat, lon, 64);
+                assert_eq!(f, face);
+                assert!((uu - u as f64).abs() < 1e-6 && (vv - v as f64).abs() < 1e-6);
+            }
+        }
+        let (lat, _) = lat_lon(geom.sample_position(4, 32, 32));
+        assert!((lat - 90.0).abs() < 1e-9, "+Z face centre is the north pole");
+    }
+
+    #[test]
+    fn equirect_sampling_wraps_the_antimeridian_and_reproduces_nodes() {
+        // 8 x 5 node grid with value = column (wraps), 45° spacing.
+        let values: Vec<f64> = (0..40).map(|k| (k % 8) as f64).collect();
+        let g = Georef {
+            crs: None,
+            west: -180.0,
+            east: 135.0,
+            north: 90.0,
+            south: -90.0,
+            registration: Registration::Node,
+        };
+        let e = Equirect::new(8, 5, &values, &g).unwrap();
+        assert_eq!(e.sample(0.0, -180.0), 0.0);
+        assert_eq!(e.sample(45.0, -90.0), 2.0);
+        assert!((e.sample(0.0, 157.5) - 3.5).abs() < 1e-9, "between col 7 and col 0");
+        assert!((e.sample(0.0, 180.0) - 0.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn default_face_side_tracks_the_source_resolution() {
+        assert_eq!(default_face_side(5.0 / 60.0, 32), 1024); // ETOPO5: 1080 per 90°
+        assert_eq!(default_face_side(20.0 / 60.0, 32), 256); // ETOPO20: 270
+        assert_eq!(default_face_side(4.0 / 60.0, 64), 1024); // Blue Marble: 1350
+    }
+}

@@ -1,0 +1,41 @@
+//! `quincunx query`: heights (or colours) at latitude/longitude points of a planet.
+
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use quincunx_store::Repository;
+
+use crate::layout::Geometry;
+use crate::{planet, verify};
+
+/// Runs `quincunx query`: one line (or JSON object) per point.
+pub fn run(repo: &Path, points: &[(f64, f64)], json: bool) -> Result<()> {
+    let repo = Repository::open(repo).with_context(|| format!("opening {}", repo.display()))?;
+    let decoded = verify::decode_repository(&repo)?;
+    let Geometry::Sphere(geom) = &decoded.geom else {
+        bail!("latitude/longitude queries need a planet repository");
+    };
+    let channels: Vec<Vec<f64>> = (0..decoded.values.len())
+        .map(|c| decoded.channel(c))
+        .collect();
+    let units = &repo.metadata().attribute.units;
+    let mut out = Vec::new();
+    for &(lat, lon) in points {
+        if !(-90.0..=90.0).contains(&lat) || !lon.is_finite() {
+            bail!("latitude {lat} is outside -90..90 or longitude {lon} is not a number");
+        }
+        let values: Vec<f64> = channels
+            .iter()
+            .map(|c| planet::query(geom, c, lat, lon))
+            .collect();
+        if json {
+            out.push(serde_json::json!({"lat": lat, "lon": lon, "values": values, "units": units}));
+        } else {
+            println!("{lat:.5} {lon:.5} {values:?} {units}");
+        }
+    }
+    if json {
+        println!("{}", serde_json::Value::Array(out));
+    }
+    Ok(())
+}
