@@ -359,3 +359,141 @@ fn korea_at_rms_9m_meets_its_error_target() {
     check_bound(&verified, &["--rms-m", "9"]);
     println!("korea rms 9: build {built}\nverify {verified}");
 }
+
+fn query(repo: &Path, points: &[(f64, f64)]) -> Vec<f64> {
+    let mut cmd = bin();
+    cmd.arg("query").arg(repo).arg("--json");
+    for (lat, lon) in points {
+        cmd.arg("--at").arg(format!("{lat},{lon}"));
+    }
+    let v = ok_json(&mut cmd);
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["values"][0].as_f64().unwrap())
+        .collect()
+}
+
+fn check_planet(repo: &Path, everest_min: f64, trench_max: f64) {
+    let everest = (27.988, 86.925);
+    let mariana = (11.35, 142.2);
+    let h = query(
+        repo,
+        &[
+            everest,
+            mariana,
+            (90.0, 0.0),
+            (90.0, 123.0),
+            (-90.0, 0.0),
+            (-90.0, -77.0),
+            (0.0, 180.0),
+            (0.0, -180.0),
+            (45.0, 45.0),
+        ],
+    );
+    assert!(h[0] > everest_min && h[0] < 8849.0, "Everest area: {}", h[0]);
+    assert!(h[1] < trench_max && h[1] > -11035.0, "Mariana trench: {}", h[1]);
+    assert_eq!(h[2], h[3], "north pole depends on longitude");
+    assert_eq!(h[4], h[5], "south pole depends on longitude");
+    assert!((-4500.0..-3500.0).contains(&h[2]), "north pole is Arctic ocean floor: {}", h[2]);
+    assert!((2000.0..3500.0).contains(&h[4]), "south pole is the ice sheet: {}", h[4]);
+    assert!((h[6] - h[7]).abs() < 1e-6, "antimeridian seam: {} vs {}", h[6], h[7]);
+}
+
+#[test]
+fn bundled_planet_builds_without_seams_and_answers_point_queries() {
+    let input = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/etopo20_global.json");
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("earth");
+    let built = ok_json(
+        bin()
+            .args(["build", "--planet", "--max-error-m", "2", "--json", "-o"])
+            .arg(&repo)
+            .arg(&input),
+    );
+    assert_eq!(built["samples"], 6 * 256 * 256 + 2, "face side follows the 20' source");
+    let verified = ok_json(
+        bin()
+            .arg("verify")
+            .arg(&repo)
+            .arg("--source")
+            .arg(&input)
+            .arg("--json"),
+    );
+    assert_eq!(verified["seam_mismatches"], 0);
+    assert_eq!(verified["blob_errors"], 0);
+    assert!(verified["max_abs_m"].as_f64().unwrap() <= 2.0);
+    let info = ok_json(bin().arg("info").arg(&repo).arg("--json"));
+    assert_eq!(info["metadata"]["domain"], "sphere");
+    assert_eq!(info["metadata"]["radius_m"], 6_371_000.0);
+    check_planet(&repo, 4000.0, -6000.0);
+    // Mars radius from the body name.
+    let mars = dir.path().join("mars");
+    ok_json(
+        bin()
+            .args(["build", "--planet", "--body", "mars", "--face-side", "64", "--json", "-o"])
+            .arg(&mars)
+            .arg(&input),
+    );
+    let info = ok_json(bin().arg("info").arg(&mars).arg("--json"));
+    assert_eq!(info["metadata"]["radius_m"], 3_396_000.0);
+}
+
+#[test]
+fn etopo5_planet_is_lossless_and_seamless() {
+    let Some(input) = shared_data("etopo5_planet_is_lossless_and_seamless", "etopo5_global.json")
+    else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("earth");
+    let built = ok_json(
+        bin()
+            .args(["build", "--planet", "--lossless", "--json", "-o"])
+            .arg(&repo)
+            .arg(&input),
+    );
+    let verified = ok_json(
+        bin()
+            .arg("verify")
+            .arg(&repo)
+            .arg("--source")
+            .arg(&input)
+            .arg("--json"),
+    );
+    println!("etopo5 planet: build {built}\nverify {verified}");
+    assert_eq!(verified["seam_mismatches"], 0);
+    assert_eq!(verified["max_abs_m"], 0.0);
+    check_planet(&repo, 5000.0, -8000.0);
+}
+
+#[test]
+fn blue_marble_colour_planet_is_within_the_requested_error() {
+    let Some(input) = shared_data(
+        "blue_marble_colour_planet_is_within_the_requested_error",
+        "bmng_global_5400x2700.jpg",
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("bmng");
+    ok_json(
+        bin()
+            .args(["build", "--planet", "--colour", "--max-error-m", "8", "--json", "-o"])
+            .arg(&repo)
+            .arg(&input),
+    );
+    let verified = ok_json(
+        bin()
+            .arg("verify")
+            .arg(&repo)
+            .arg("--source")
+            .arg(&input)
+            .arg("--json"),
+    );
+    assert_eq!(verified["seam_mismatches"], 0);
+    assert!(verified["max_abs_m"].as_f64().unwrap() <= 8.0);
+    let info = ok_json(bin().arg("info").arg(&repo).arg("--json"));
+    assert_eq!(info["metadata"]["attribute"]["kind"], "colour");
+    assert_eq!(info["metadata"]["channels"].as_array().unwrap().len(), 3);
+}

@@ -118,9 +118,13 @@ fn main() {
                 }
                 db.insert("metadata", vec![7u8; 3000]).unwrap();
                 let fill: usize = std::env::var("FILL").ok().map(|s| s.parse().unwrap()).unwrap_or(0);
-                for i in 0..fill {
-                    db.insert("~fill", &(i as u64).to_le_bytes()).unwrap();
-                    db.remove("~fill").unwrap();
+                if fill > 0 {
+                    let scratch = db.open_tree("~roll").unwrap();
+                    for i in 0..fill {
+                        scratch.insert("k", &(i as u64).to_le_bytes()).unwrap();
+                    }
+                    drop(scratch);
+                    db.drop_tree("~roll").unwrap();
                 }
                 db.flush().unwrap();
             }
@@ -128,7 +132,7 @@ fn main() {
             if std::env::var("LIST").is_ok() { eprintln!("after write"); list(&p); }
             let mut reopen = vec![];
             for _ in 0..3 {
-                let db = sled::Config::new().path(&p).mode(sled::Mode::LowSpace).segment_size(seg).open().unwrap();
+                let db = sled::Config::new().path(&p).mode(sled::Mode::LowSpace).segment_size(seg).flush_every_ms(None).open().unwrap();
                 let t = db.open_tree("blobs").unwrap();
                 let n = t.iter().count();
                 assert_eq!(n, items.len());
