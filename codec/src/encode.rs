@@ -660,33 +660,59 @@ fn encode_layout<G: Layout>(
             }
             (mse / valid_count.max(1) as f64).sqrt() * ints.scale
         };
-        let (mut lo, mut hi) = (1e-3f64, 1e7f64);
-        for _ in 0..50 {
-            let mid = (lo * hi).sqrt();
-            if estimate(mid) <= target {
-                lo = mid
-            } else {
-                hi = mid
+        // The largest scale whose estimated RMS, times the measured/estimated ratio of
+        // the last real decode, stays under `goal`.
+        let solve = |goal: f64, ratio: f64| -> f64 {
+            let (mut lo, mut hi) = (1e-3f64, 1e7f64);
+            for _ in 0..50 {
+                let mid = (lo * hi).sqrt();
+                if estimate(mid) * ratio <= goal {
+                    lo = mid
+                } else {
+                    hi = mid
+                }
             }
-        }
-        let mut q = lo;
+            lo
+        };
+        let mut ratio = 1.0;
+        let mut q = solve(target, ratio);
         let mut best: Option<Attempt> = None;
+        // Bracket of scales: the largest that met the target, the smallest that did not.
+        let (mut met_q, mut missed_q) = (0.0f64, f64::INFINITY);
         for _ in 0..8 {
             let st: Vec<u32> = (0..levels).map(|l| step_of(q, l)).collect();
             let qd = quantize_all(&st);
             let (dec, ms) = decode_measure(&qd, &st)?;
             let (rms, _) = error_of(&dec);
             if rms <= target {
-                best = Some((q, st, qd, dec, ms));
-                if rms >= target * 0.985 {
+                if q > met_q {
+                    met_q = q;
+                    best = Some((q, st, qd, dec, ms));
+                }
+                if rms >= target * 0.99 {
                     break;
                 }
-                q *= (target / rms.max(1e-12)).min(1.5) * 0.997;
             } else {
-                if best.is_some() {
-                    break;
-                }
-                q *= (target / rms) * 0.99;
+                missed_q = missed_q.min(q);
+            }
+            // Real decodes differ from the estimate by a slowly varying factor: correct
+            // the estimate with it and aim just under the target, inside the bracket.
+            let est = estimate(q);
+            if est > 0.0 && rms > 0.0 {
+                ratio = rms / est;
+            }
+            let next = solve(target * 0.997, ratio);
+            q = if next > met_q && next < missed_q {
+                next
+            } else if missed_q.is_finite() && met_q > 0.0 {
+                (met_q * missed_q).sqrt()
+            } else if missed_q.is_finite() {
+                missed_q * 0.97
+            } else {
+                met_q * 1.03
+            };
+            if missed_q.is_finite() && missed_q / met_q.max(1e-12) < 1.002 {
+                break;
             }
         }
         let (_, st, qd, dec, ms) = match best {
