@@ -216,11 +216,11 @@ impl Geometry {
 
     /// Decodes a channel at full resolution (one thread) to integers.
     pub fn decode(&self, enc: &Encoded) -> Result<Vec<i32>> {
-        Ok(match self {
+        match self {
             Geometry::Planar(g) => encode::decode_integers_with(g, enc),
             Geometry::Sphere(g) => encode::decode_sphere_integers_with(g, enc),
         }
-        .context("decoding the repository")?)
+        .context("decoding the repository")
     }
 }
 
@@ -313,7 +313,7 @@ mod tests {
 
     #[test]
     fn channel_framing_round_trips_and_rejects_truncation() {
-        let a = vec![7u8; 200];
+        let a = [7u8; 200];
         let parts = [Some(&a[..]), None, Some(&b"xyz"[..])];
         let framed = frame_channels(&parts).unwrap();
         assert_eq!(split_channels(&framed, 3).unwrap(), parts.to_vec());

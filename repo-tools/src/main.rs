@@ -7,15 +7,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-mod build;
-mod export;
-mod info;
-mod input;
-mod layout;
-mod planet;
-mod progress;
-mod query;
-mod verify;
+use quincunx_repo_tools::{build, export, info, query, verify};
 
 /// Streams compressed multiresolution terrain: repository tools.
 #[derive(Parser, Debug)]

@@ -2,6 +2,15 @@
 //! one opaque blob per non-empty diamond, keyed by the codec's locality key (spec:
 //! `docs/repository-format.md`).
 //!
+//! Layout (format 2): blobs are packed in key order into pages of a few KiB (see
+//! [`page`]), stored under their first key; runs of at most [`PAGES_PER_TREE`] consecutive
+//! pages form one sled tree named `p` ‖ first key. The default tree holds the metadata. Why:
+//! sled 0.34.7 writes a value once as a log fragment and again whenever it consolidates or
+//! splits the node holding it, and does not reclaim the stale copies of a database that is
+//! written once and then only read; a tree that receives fewer inserts than sled's
+//! consolidation threshold is written exactly once. Measured in `examples/sled_space.rs`
+//! and `docs/repository-format.md` ("Space overhead").
+//!
 //! Invariants:
 //! - Keys and blobs are bytes here: this crate never decodes a blob (the server depends on
 //!   it and must not depend on the codec).
@@ -13,16 +22,52 @@
 //! - sled holds an exclusive lock on an open database, so one process at a time opens a
 //!   repository; serve copies (or `quincunx export`) to scale out.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-/// Version of the repository layout (metadata record + blob tree).
-pub const FORMAT_VERSION: u32 = 1;
+pub mod page;
+
+/// Version of the repository layout (metadata record + page trees).
+pub const FORMAT_VERSION: u32 = 2;
 
 const METADATA_KEY: &[u8] = b"metadata";
-const BLOB_TREE: &[u8] = b"blobs";
+
+/// Name prefix of the trees holding pages (the rest of the name is the tree's first key).
+const PAGE_TREE_PREFIX: u8 = b'p';
+
+/// Pages per sled tree. sled 0.34.7 consolidates a node (rewriting every value in it) when
+/// it links its tenth update (`PAGE_CONSOLIDATION_THRESHOLD`), and splits leaves beyond 16
+/// items: a fresh tree that receives nine inserts keeps each of them as the one copy
+/// written.
+pub const PAGES_PER_TREE: usize = 9;
+
+/// sled segment size of new repositories: small enough that a small repository does not
+/// round up to large segments (sled's log grows in whole segments), large enough that
+/// default-sized pages stay inline in the log (sled moves a value larger than a quarter
+/// segment to a file of its own).
+const SEGMENT_BYTES: usize = 64 << 10;
+
+/// Smallest target page size.
+const MIN_PAGE_BYTES: usize = 4 << 10;
+
+/// Largest target page size chosen automatically.
+const MAX_PAGE_BYTES: usize = 1 << 20;
+
+/// Page trees aimed for: sled rewrites its whole tree directory (names and roots) each time a
+/// tree is created, so its write cost grows with the square of the tree count.
+const TARGET_TREES: usize = 256;
+
+/// Target page size for `total_bytes` of blobs: at least [`MIN_PAGE_BYTES`], larger when
+/// that keeps the tree count near [`TARGET_TREES`].
+fn default_page_bytes(total_bytes: u64) -> usize {
+    let per_page = total_bytes / (PAGES_PER_TREE * TARGET_TREES) as u64;
+    usize::try_from(per_page)
+        .unwrap_or(MAX_PAGE_BYTES)
+        .clamp(MIN_PAGE_BYTES, MAX_PAGE_BYTES)
+}
 
 /// Why a repository could not be opened, read or written.
 #[derive(Debug, thiserror::Error)]
@@ -57,6 +102,16 @@ pub enum StoreError {
         path: PathBuf,
         /// Version found.
         found: u32,
+    },
+    /// A stored page does not parse.
+    #[error("{path}: page at key {key:02x?}: {source}")]
+    Page {
+        /// Database directory.
+        path: PathBuf,
+        /// The page's sled key.
+        key: Vec<u8>,
+        /// What is wrong.
+        source: page::PageError,
     },
     /// Publishing would replace an existing repository and that was not asked for.
     #[error("{0} already exists (pass overwrite to replace it)")]
@@ -179,20 +234,58 @@ fn io_err<'a>(
     }
 }
 
-fn open_db(path: &Path) -> Result<sled::Db> {
+fn open_db(path: &Path, segment_bytes: usize) -> Result<sled::Db> {
     sled::Config::new()
         .path(path)
         .mode(sled::Mode::LowSpace)
+        .segment_size(segment_bytes)
+        // No background flusher: it would also garbage-collect, rewriting pages of a
+        // repository that is written once (publish flushes explicitly) and then only read.
+        .flush_every_ms(None)
         .open()
         .map_err(sled_err(path))
+}
+
+/// The segment size an existing database was created with (sled refuses to open it with
+/// another), read from its `conf`; the current default when that is unreadable (sled then
+/// reports what is wrong).
+fn stored_segment_bytes(path: &Path) -> usize {
+    std::fs::read(path.join("conf"))
+        .ok()
+        .and_then(|conf| {
+            String::from_utf8_lossy(&conf)
+                .lines()
+                .find_map(|line| line.strip_prefix("segment_size: ")?.trim().parse().ok())
+        })
+        .unwrap_or(SEGMENT_BYTES)
 }
 
 /// An open, complete repository. Read-only: there is no way to write through it.
 pub struct Repository {
     path: PathBuf,
     db: sled::Db,
-    blobs: sled::Tree,
+    /// Page trees by first key, in key order.
+    trees: Vec<PageTree>,
     metadata: Metadata,
+}
+
+/// One tree of at most [`PAGES_PER_TREE`] pages.
+struct PageTree {
+    first_key: Vec<u8>,
+    tree: sled::Tree,
+    /// The tree's page keys, loaded on first use: a point `get` of a known key is cheaper
+    /// in sled than a reverse range scan.
+    page_keys: std::sync::OnceLock<Vec<sled::IVec>>,
+}
+
+impl PageTree {
+    fn page_keys(&self) -> sled::Result<&[sled::IVec]> {
+        if let Some(keys) = self.page_keys.get() {
+            return Ok(keys);
+        }
+        let keys = self.tree.iter().keys().collect::<sled::Result<Vec<_>>>()?;
+        Ok(self.page_keys.get_or_init(|| keys))
+    }
 }
 
 impl Repository {
@@ -203,7 +296,7 @@ impl Repository {
         if !path.join("db").exists() && !path.join("conf").exists() {
             return Err(StoreError::Missing(path.to_path_buf()));
         }
-        let db = open_db(path)?;
+        let db = open_db(path, stored_segment_bytes(path))?;
         let raw = db
             .get(METADATA_KEY)
             .map_err(sled_err(path))?
@@ -222,11 +315,21 @@ impl Repository {
         if !metadata.complete {
             return Err(StoreError::Incomplete(path.to_path_buf()));
         }
-        let blobs = db.open_tree(BLOB_TREE).map_err(sled_err(path))?;
+        let mut trees = Vec::new();
+        for name in db.tree_names() {
+            if let Some((&PAGE_TREE_PREFIX, first_key)) = name.split_first() {
+                trees.push(PageTree {
+                    first_key: first_key.to_vec(),
+                    tree: db.open_tree(&name).map_err(sled_err(path))?,
+                    page_keys: std::sync::OnceLock::new(),
+                });
+            }
+        }
+        trees.sort_by(|a, b| a.first_key.cmp(&b.first_key));
         Ok(Repository {
             path: path.to_path_buf(),
             db,
-            blobs,
+            trees,
             metadata,
         })
     }
@@ -241,19 +344,85 @@ impl Repository {
         &self.path
     }
 
-    /// The blob stored under `key`, `None` when the diamond has no blob (a leaf).
+    fn page_err(&self, key: &[u8]) -> impl FnOnce(page::PageError) -> StoreError + '_ {
+        let key = key.to_vec();
+        move |source| StoreError::Page {
+            path: self.path.clone(),
+            key,
+            source,
+        }
+    }
+
+    /// The blob stored under `key`, `None` when the diamond has no blob (a leaf). The bytes
+    /// are a view into the cached page (no copy).
     pub fn get(&self, key: &[u8]) -> Result<Option<sled::IVec>> {
-        self.blobs.get(key).map_err(sled_err(&self.path))
+        // The tree whose first key is the greatest one <= key, then the page likewise.
+        let floor = |after: usize| after.checked_sub(1);
+        let after = self
+            .trees
+            .partition_point(|t| t.first_key.as_slice() <= key);
+        let Some(tree) = floor(after).and_then(|i| self.trees.get(i)) else {
+            return Ok(None);
+        };
+        let page_keys = tree.page_keys().map_err(sled_err(&self.path))?;
+        let after = page_keys.partition_point(|k| k.as_ref() <= key);
+        let Some(page_key) = floor(after).and_then(|i| page_keys.get(i)) else {
+            return Ok(None);
+        };
+        let Some(page) = tree.tree.get(page_key).map_err(sled_err(&self.path))? else {
+            return Ok(None);
+        };
+        let found = page::find(page_key, &page, key).map_err(self.page_err(page_key))?;
+        Ok(found.map(|range| page.subslice(range.start, range.len())))
     }
 
     /// Every `(key, blob)` in key order (level-major, then space-filling curve).
     pub fn blobs(&self) -> impl Iterator<Item = Result<(sled::IVec, sled::IVec)>> + '_ {
-        self.blobs.iter().map(|r| r.map_err(sled_err(&self.path)))
+        self.trees
+            .iter()
+            .flat_map(|t| t.tree.iter())
+            .flat_map(move |entry| match entry {
+                Ok((page_key, page)) => self.page_entries(&page_key, &page),
+                Err(e) => vec![Err(sled_err(&self.path)(e))],
+            })
+    }
+
+    /// The pairs of one page (a malformed page ends in one error).
+    fn page_entries(
+        &self,
+        page_key: &[u8],
+        page: &sled::IVec,
+    ) -> Vec<Result<(sled::IVec, sled::IVec)>> {
+        let mut out = Vec::new();
+        let reader = page::PageReader::new(page_key, page);
+        let result = reader.and_then(|mut reader| {
+            out.reserve(reader.remaining());
+            while let Some((key, value)) = reader.next_entry()? {
+                out.push(Ok((
+                    sled::IVec::from(key),
+                    page.subslice(value.start, value.len()),
+                )));
+            }
+            Ok(())
+        });
+        if let Err(e) = result {
+            out.push(Err(self.page_err(page_key)(e)));
+        }
+        out
     }
 
     /// Number of blobs.
     pub fn blob_count(&self) -> usize {
-        self.blobs.len()
+        // Counted from the page headers (no blob is touched); an unreadable page counts 0
+        // here and surfaces as an error from `get` or `blobs`.
+        self.trees
+            .iter()
+            .flat_map(|t| t.tree.iter())
+            .filter_map(|entry| {
+                let (page_key, page) = entry.ok()?;
+                Some(page::PageReader::new(&page_key, &page).ok()?.remaining())
+            })
+            .sum()
     }
 
     /// Bytes the database occupies on disk (all files in its directory).
@@ -263,7 +432,12 @@ impl Repository {
 
     /// Recomputes the content hash from the stored blobs and metadata.
     pub fn compute_content_hash(&self) -> Result<String> {
-        content_hash(&self.blobs, &self.metadata, &self.path)
+        let mut h = Sha256::new();
+        for kv in self.blobs() {
+            let (k, v) = kv?;
+            hash_pair(&mut h, &k, &v);
+        }
+        finish_hash(h, &self.metadata, &self.path)
     }
 
     /// sled's own opinion of its size (for the overhead report).
@@ -272,15 +446,14 @@ impl Repository {
     }
 }
 
-fn content_hash(blobs: &sled::Tree, metadata: &Metadata, path: &Path) -> Result<String> {
-    let mut h = Sha256::new();
-    for kv in blobs.iter() {
-        let (k, v) = kv.map_err(sled_err(path))?;
-        h.update((k.len() as u64).to_le_bytes());
-        h.update(&k);
-        h.update((v.len() as u64).to_le_bytes());
-        h.update(&v);
-    }
+fn hash_pair(h: &mut Sha256, key: &[u8], blob: &[u8]) {
+    h.update((key.len() as u64).to_le_bytes());
+    h.update(key);
+    h.update((blob.len() as u64).to_le_bytes());
+    h.update(blob);
+}
+
+fn finish_hash(mut h: Sha256, metadata: &Metadata, path: &Path) -> Result<String> {
     let mut m = metadata.clone();
     m.content_hash.clear();
     m.complete = true;
@@ -289,8 +462,7 @@ fn content_hash(blobs: &sled::Tree, metadata: &Metadata, path: &Path) -> Result<
         reason: e.to_string(),
     })?;
     h.update(&json);
-    Ok(h
-        .finalize()
+    Ok(h.finalize()
         .iter()
         .map(|b| format!("{b:02x}"))
         .collect::<String>())
@@ -313,12 +485,18 @@ pub fn dir_size(path: &Path) -> Result<u64> {
 }
 
 /// Writes a new repository into `<path>.partial` and publishes it atomically.
+///
+/// Blobs are held in memory until [`RepositoryBuilder::publish`] (they are the compressed
+/// output, a fraction of the input) and written there in one pass, in key order, packed into
+/// pages; the partial database is created (and locked) at once so that a concurrent build
+/// into the same path fails early.
 pub struct RepositoryBuilder {
     final_path: PathBuf,
     partial: PathBuf,
     db: sled::Db,
-    blobs: sled::Tree,
+    blobs: BTreeMap<Vec<u8>, Vec<u8>>,
     stats: Vec<LevelStats>,
+    page_bytes: Option<usize>,
 }
 
 /// Where a partial build of `path` is written.
@@ -336,31 +514,38 @@ impl RepositoryBuilder {
         let partial = partial_path(&final_path);
         if partial.exists() {
             // Fails while another process holds the database lock.
-            drop(open_db(&partial)?);
+            drop(open_db(&partial, stored_segment_bytes(&partial))?);
             std::fs::remove_dir_all(&partial).map_err(io_err("removing", &partial))?;
         }
         if let Some(parent) = final_path.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent).map_err(io_err("creating", parent))?;
         }
-        let db = open_db(&partial)?;
-        let blobs = db.open_tree(BLOB_TREE).map_err(sled_err(&partial))?;
+        let db = open_db(&partial, SEGMENT_BYTES)?;
         Ok(RepositoryBuilder {
             final_path,
             partial,
             db,
-            blobs,
+            blobs: BTreeMap::new(),
             stats: Vec::new(),
+            page_bytes: None,
         })
+    }
+
+    /// Sets the target page size in bytes (a page closes once it reaches it; a larger blob
+    /// gets a page of its own). The default grows with the repository from 4 KiB so that
+    /// the number of page trees stays near 256. For measurements; any value reads back the
+    /// same.
+    pub fn with_page_bytes(mut self, page_bytes: usize) -> RepositoryBuilder {
+        self.page_bytes = Some(page_bytes.max(1));
+        self
     }
 
     /// Stores the blob of a diamond of `level`. Keys are the codec's storage keys.
     pub fn put(&mut self, level: u32, key: &[u8], blob: &[u8]) -> Result<()> {
-        let previous = self
-            .blobs
-            .insert(key, blob)
-            .map_err(sled_err(&self.partial))?;
+        let previous = self.blobs.insert(key.to_vec(), blob.to_vec());
         if self.stats.len() <= level as usize {
-            self.stats.resize_with(level as usize + 1, LevelStats::default);
+            self.stats
+                .resize_with(level as usize + 1, LevelStats::default);
             for (l, s) in self.stats.iter_mut().enumerate() {
                 s.level = l as u32;
             }
@@ -380,34 +565,44 @@ impl RepositoryBuilder {
         &self.stats
     }
 
-    /// Writes the metadata record last, flushes, and renames the directory into place.
-    /// With `overwrite`, an existing repository at the path is replaced (it stays intact
-    /// until the new one is complete). Returns the published metadata.
+    /// Writes the pages, then the metadata record last, flushes, and renames the directory
+    /// into place. With `overwrite`, an existing repository at the path is replaced (it
+    /// stays intact until the new one is complete). Returns the published metadata.
     pub fn publish(self, mut metadata: Metadata, overwrite: bool) -> Result<Metadata> {
         if self.final_path.exists() && !overwrite {
             return Err(StoreError::Exists(self.final_path.clone()));
         }
         metadata.format_version = FORMAT_VERSION;
         metadata.level_stats = self.stats.clone();
-        metadata.content_hash = content_hash(&self.blobs, &metadata, &self.partial)?;
+        let mut h = Sha256::new();
+        for (k, v) in &self.blobs {
+            hash_pair(&mut h, k, v);
+        }
+        metadata.content_hash = finish_hash(h, &metadata, &self.partial)?;
         metadata.complete = true;
         let json = serde_json::to_vec(&metadata).map_err(|e| StoreError::BadMetadata {
             path: self.partial.clone(),
             reason: e.to_string(),
         })?;
-        self.db
-            .insert(METADATA_KEY, json)
-            .map_err(sled_err(&self.partial))?;
-        self.db.flush().map_err(sled_err(&self.partial))?;
         let RepositoryBuilder {
             final_path,
             partial,
             db,
             blobs,
+            page_bytes,
             ..
         } = self;
+        let total: u64 = blobs.values().map(|v| v.len() as u64).sum();
+        let page_bytes = page_bytes.unwrap_or_else(|| default_page_bytes(total));
+        write_pages(&db, &blobs, page_bytes).map_err(sled_err(&partial))?;
         drop(blobs);
+        db.insert(METADATA_KEY, json).map_err(sled_err(&partial))?;
+        db.flush().map_err(sled_err(&partial))?;
         drop(db);
+        // Open and close it once the way readers do: recovery writes sled's snapshot and
+        // settles the log, so the published directory is the size it will stay (and a
+        // database that does not open is never published).
+        drop(Repository::open(&partial)?);
         let old = if final_path.exists() {
             let mut name = final_path.file_name().unwrap_or_default().to_os_string();
             name.push(".old");
@@ -432,6 +627,45 @@ impl RepositoryBuilder {
         }
         Ok(metadata)
     }
+}
+
+/// Packs `blobs` (in key order) into pages of about `page_bytes` and writes them,
+/// [`PAGES_PER_TREE`] to a fresh tree, each with a single insert.
+fn write_pages(
+    db: &sled::Db,
+    blobs: &BTreeMap<Vec<u8>, Vec<u8>>,
+    page_bytes: usize,
+) -> sled::Result<()> {
+    let mut writer = page::PageWriter::default();
+    let mut pending: Vec<(Vec<u8>, Vec<u8>)> = Vec::with_capacity(PAGES_PER_TREE);
+    let write_tree = |pages: &mut Vec<(Vec<u8>, Vec<u8>)>| -> sled::Result<()> {
+        let Some((first, _)) = pages.first() else {
+            return Ok(());
+        };
+        let mut name = Vec::with_capacity(first.len() + 1);
+        name.push(PAGE_TREE_PREFIX);
+        name.extend_from_slice(first);
+        let tree = db.open_tree(name)?;
+        for (key, page) in pages.drain(..) {
+            tree.insert(key, page)?;
+        }
+        Ok(())
+    };
+    for (key, blob) in blobs {
+        writer.push(key, blob);
+        if writer.len() >= page_bytes
+            && let Some(page) = writer.finish()
+        {
+            pending.push(page);
+            if pending.len() == PAGES_PER_TREE {
+                write_tree(&mut pending)?;
+            }
+        }
+    }
+    if let Some(page) = writer.finish() {
+        pending.push(page);
+    }
+    write_tree(&mut pending)
 }
 
 #[cfg(test)]
@@ -504,7 +738,11 @@ mod tests {
         let b = RepositoryBuilder::create(&path).unwrap();
         b.publish(metadata(), false).unwrap();
         let repo = Repository::open(&path).unwrap();
-        assert_eq!(repo.blob_count(), 0, "the stale partial build was discarded");
+        assert_eq!(
+            repo.blob_count(),
+            0,
+            "the stale partial build was discarded"
+        );
     }
 
     #[test]
@@ -537,5 +775,170 @@ mod tests {
         std::fs::write(path.join("conf"), b"garbage").unwrap();
         std::fs::write(path.join("db"), b"garbage").unwrap();
         assert!(Repository::open(&path).is_err());
+    }
+
+    fn build(
+        path: &Path,
+        pairs: &BTreeMap<Vec<u8>, Vec<u8>>,
+        page_bytes: Option<usize>,
+    ) -> (Metadata, Repository) {
+        let mut b = RepositoryBuilder::create(path).unwrap();
+        if let Some(n) = page_bytes {
+            b = b.with_page_bytes(n);
+        }
+        for (k, v) in pairs {
+            b.put(u32::from(k.first().copied().unwrap_or(0) % 4), k, v)
+                .unwrap();
+        }
+        let meta = b.publish(metadata(), true).unwrap();
+        (meta, Repository::open(path).unwrap())
+    }
+
+    fn check_against_model(repo: &Repository, meta: &Metadata, model: &BTreeMap<Vec<u8>, Vec<u8>>) {
+        for (k, v) in model {
+            assert_eq!(repo.get(k).unwrap().as_deref(), Some(v.as_slice()), "{k:?}");
+        }
+        let all: Vec<(Vec<u8>, Vec<u8>)> = repo
+            .blobs()
+            .map(|kv| {
+                let (k, v) = kv.unwrap();
+                (k.to_vec(), v.to_vec())
+            })
+            .collect();
+        let want: Vec<(Vec<u8>, Vec<u8>)> =
+            model.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        assert_eq!(all, want);
+        assert_eq!(repo.blob_count(), model.len());
+        assert_eq!(repo.compute_content_hash().unwrap(), meta.content_hash);
+    }
+
+    #[test]
+    fn every_key_is_found_across_pages_and_trees_and_gaps_are_none() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("repo");
+        // Even keys only, so every odd key is a gap: before, between and after pages.
+        let model: BTreeMap<Vec<u8>, Vec<u8>> = (0u32..400)
+            .map(|i| {
+                let key = [&[1u8][..], &(2 * i + 2).to_be_bytes()].concat();
+                (key, vec![i as u8; (i % 50) as usize + 1])
+            })
+            .collect();
+        let (meta, repo) = build(&path, &model, Some(100));
+        assert!(repo.trees.len() > 3, "spans several page trees");
+        check_against_model(&repo, &meta, &model);
+        for i in 0u32..402 {
+            let key = [&[1u8][..], &(2 * i + 1).to_be_bytes()].concat();
+            assert!(repo.get(&key).unwrap().is_none(), "{key:?}");
+        }
+        for missing in [
+            &b""[..],
+            b"\x00",
+            b"\x01",
+            b"\x01\x00",
+            b"\x02",
+            b"\xff\xff\xff",
+        ] {
+            assert!(repo.get(missing).unwrap().is_none(), "{missing:?}");
+        }
+    }
+
+    #[test]
+    fn an_empty_repository_has_no_blobs() {
+        let dir = tempfile::tempdir().unwrap();
+        let (meta, repo) = build(&dir.path().join("repo"), &BTreeMap::new(), None);
+        check_against_model(&repo, &meta, &BTreeMap::new());
+        assert!(repo.get(b"\x00a").unwrap().is_none());
+        assert!(repo.get(b"").unwrap().is_none());
+    }
+
+    #[test]
+    fn blobs_bigger_than_a_page_and_keys_of_different_lengths_read_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let model: BTreeMap<Vec<u8>, Vec<u8>> = [
+            (&b""[..], 3usize),
+            (b"\x00", 0),
+            (b"\x00\x01", 5),
+            (b"\x00\x01\x02\x03\x04\x05\x06\x07\x08", 200_000),
+            (b"\x01", 9000),
+            (b"\x01\x00", 1),
+            (b"\x02\xff\xff", 70_000),
+        ]
+        .into_iter()
+        .map(|(k, n)| {
+            (
+                k.to_vec(),
+                (0..n).map(|i| (i * 7 + k.len()) as u8).collect(),
+            )
+        })
+        .collect();
+        let (meta, repo) = build(&dir.path().join("repo"), &model, Some(4096));
+        check_against_model(&repo, &meta, &model);
+        assert!(repo.get(b"\x00\x01\x02").unwrap().is_none());
+    }
+
+    #[test]
+    fn reopening_and_reading_everything_does_not_grow_the_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("repo");
+        let model: BTreeMap<Vec<u8>, Vec<u8>> = (0u32..3000)
+            .map(|i| (i.to_be_bytes().to_vec(), vec![(i % 251) as u8; 100]))
+            .collect();
+        let (_, repo) = build(&path, &model, None);
+        drop(repo);
+        let published = dir_size(&path).unwrap();
+        let payload: usize = model.values().map(Vec::len).sum();
+        assert!(
+            published < payload as u64 * 13 / 10,
+            "{published} for {payload}"
+        );
+        for _ in 0..2 {
+            let repo = Repository::open(&path).unwrap();
+            assert_eq!(repo.blobs().count(), model.len());
+            drop(repo);
+            assert_eq!(dir_size(&path).unwrap(), published);
+        }
+    }
+
+    #[test]
+    fn a_repository_of_another_format_version_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("v1");
+        {
+            // Format 1: sled's default segment size, blobs in one tree.
+            let db = sled::Config::new().path(&path).open().unwrap();
+            db.open_tree("blobs").unwrap().insert("k", "v").unwrap();
+            let mut m = metadata();
+            m.format_version = 1;
+            m.complete = true;
+            db.insert(METADATA_KEY, serde_json::to_vec(&m).unwrap())
+                .unwrap();
+            db.flush().unwrap();
+        }
+        assert!(matches!(
+            Repository::open(&path),
+            Err(StoreError::Version { found: 1, .. })
+        ));
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(24))]
+        #[test]
+        fn random_repositories_read_back_like_a_map(
+            model in proptest::collection::btree_map(
+                proptest::collection::vec(0u8..4, 0..5),
+                proptest::collection::vec(proptest::prelude::any::<u8>(), 0..300),
+                0..120,
+            ),
+            probes in proptest::collection::vec(proptest::collection::vec(0u8..4, 0..6), 0..40),
+            page_bytes in 1usize..2000,
+        ) {
+            let dir = tempfile::tempdir().unwrap();
+            let (meta, repo) = build(&dir.path().join("repo"), &model, Some(page_bytes));
+            check_against_model(&repo, &meta, &model);
+            for p in &probes {
+                let got = repo.get(p).unwrap();
+                proptest::prop_assert_eq!(got.as_deref(), model.get(p).map(Vec::as_slice));
+            }
+        }
     }
 }
