@@ -743,6 +743,22 @@ impl Octave {
             }
             b_groups[j].push(i);
         }
+        // Every point of these levels must lie on the 2^o lattice, i.e. in `R_o`.
+        let on_lattice = |s: &DiamondSlot| {
+            let (v0, a, b) = s.frame();
+            v0.iter()
+                .chain(&a)
+                .chain(&b)
+                .chain(&[(a[0] + b[0]) / 2, (a[1] + b[1]) / 2])
+                .all(|c| c % f == 0)
+        };
+        if !geom.level(level_a).iter().all(on_lattice)
+            || !geom.level(level_b).iter().all(on_lattice)
+        {
+            return Err(EncodeError::Internal(
+                "octave points off the decimated lattice",
+            ));
+        }
         let (width, height) = plan.dims[o];
         Ok(Octave {
             shift: o as u32,
