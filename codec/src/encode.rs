@@ -168,6 +168,30 @@ pub enum EncodeError {
         /// values given
         got: usize,
     },
+    /// The streaming encoder's row source failed.
+    #[error("reading rows: {0}")]
+    Source(String),
+    /// The streaming encoder's blob sink failed.
+    #[error("writing blobs: {0}")]
+    Sink(String),
+    /// A rate mode the streaming (out-of-core) encoder does not support.
+    #[error(
+        "out-of-core encoding needs a lossless or max-error rate mode (RMS rate control needs the whole raster in memory)"
+    )]
+    StreamingMode,
+    /// The memory budget is smaller than the streaming encoder's smallest working set.
+    #[error(
+        "memory budget of {budget} bytes is below the {needed} bytes out-of-core encoding needs"
+    )]
+    Budget {
+        /// smallest working set, bytes
+        needed: usize,
+        /// the budget given
+        budget: usize,
+    },
+    /// The streaming encoder broke one of its own invariants (a bug).
+    #[error("internal error of the streaming encoder: {0}")]
+    Internal(&'static str),
 }
 
 /// What the encoder achieved, measured on a real decode.
@@ -375,56 +399,19 @@ fn integerise<G: Layout>(
     }
     let lo = vals.iter().copied().fold(f64::INFINITY, f64::min);
     let hi = vals.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let integral = |q: f64| {
+    let native = native_quantum(quantum_m, |q| {
         values_m
             .iter()
             .filter(|v| v.is_finite())
-            .all(|&v| ((v / q).round() * q - v).abs() <= q * 1e-6)
-    };
-    let native = match quantum_m {
-        Some(q) if q > 0.0 && integral(q) => Some(q),
-        _ => [1.0, 0.1, 0.01, 0.001].into_iter().find(|&q| integral(q)),
-    };
-    let (scale, offset) = match mode {
-        RateMode::Lossless => (native.ok_or(EncodeError::NotOnGrid)?, 0.0),
-        RateMode::RmsM(t) => match native {
-            Some(q) if q <= t / 4.0 => (q, 0.0),
-            _ => (t / 16.0, 0.0),
-        },
-        RateMode::MaxErrorM(e) => match native {
-            Some(q) => {
-                let bins = (2.0 * e / q + 1e-9).floor() + 1.0;
-                (bins * q, (lo / q).round() * q + (bins - 1.0) / 2.0 * q)
-            }
-            None => (2.0 * e * (1.0 - 1e-9), 0.0),
-        },
-    };
-    if (hi - lo) / scale > (1u64 << 24) as f64 {
-        return Err(EncodeError::Range((hi - lo) / scale));
-    }
-    let values = match (mode, native) {
-        // Integer data in max-error mode: bins of whole quanta, floor so every bin holds
-        // exactly `bins` values.
-        (RateMode::MaxErrorM(_), Some(q)) => {
-            let base = (lo / q).round() * q;
-            vals.iter()
-                .map(|&v| (((v - base) / q).round() / (scale / q)).floor() as i32)
-                .collect()
-        }
-        _ => vals
-            .iter()
-            .map(|&v| ((v - offset) / scale).round() as i32)
-            .collect(),
-    };
-    let offset = match (mode, native) {
-        (RateMode::MaxErrorM(_), Some(q)) => (lo / q).round() * q + (scale / q - 1.0) / 2.0 * q,
-        _ => offset,
-    };
+            .all(|&v| on_quantum(v, q))
+    });
+    let map = ValueMap::new(lo, hi, native, mode)?;
+    let values = vals.iter().map(|&v| map.int_of(v)).collect();
     Ok(Integerised {
         values,
         valid,
-        scale,
-        offset,
+        scale: map.scale,
+        offset: map.offset,
     })
 }
 
@@ -453,6 +440,95 @@ fn drop_isolated_ones(n: usize, q: &mut [i32]) {
     }
 }
 
+/// Whether `v` is a multiple of the quantum `q` (to a relative `1e-6` of `q`).
+pub(crate) fn on_quantum(v: f64, q: f64) -> bool {
+    ((v / q).round() * q - v).abs() <= q * 1e-6
+}
+
+/// Decimal quanta tried, coarsest first, when the data's own quantum does not fit.
+pub(crate) const DECIMAL_QUANTA: [f64; 4] = [1.0, 0.1, 0.01, 0.001];
+
+/// The quantum the valid data sits on: the known one if `integral` holds for it, else the
+/// coarsest of [`DECIMAL_QUANTA`] that `integral` accepts.
+pub(crate) fn native_quantum(
+    quantum_m: Option<f64>,
+    integral: impl Fn(f64) -> bool,
+) -> Option<f64> {
+    match quantum_m {
+        Some(q) if q > 0.0 && integral(q) => Some(q),
+        _ => DECIMAL_QUANTA.into_iter().find(|&q| integral(q)),
+    }
+}
+
+/// How metres map to codec integers (`metres = offset + value * scale`), given the range
+/// `lo ..= hi` of the (filled) values, their native quantum and the rate mode.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct ValueMap {
+    /// Metres per integer unit.
+    pub(crate) scale: f64,
+    /// Metres at integer 0.
+    pub(crate) offset: f64,
+    /// Rounding offset used while integerising (differs from `offset` for binned data).
+    round_offset: f64,
+    /// Integer data in max-error mode: `(quantum, base)`, values are binned in whole quanta.
+    binned: Option<(f64, f64)>,
+}
+
+impl ValueMap {
+    pub(crate) fn new(
+        lo: f64,
+        hi: f64,
+        native: Option<f64>,
+        mode: RateMode,
+    ) -> Result<Self, EncodeError> {
+        let (scale, offset) = match mode {
+            RateMode::Lossless => (native.ok_or(EncodeError::NotOnGrid)?, 0.0),
+            RateMode::RmsM(t) => match native {
+                Some(q) if q <= t / 4.0 => (q, 0.0),
+                _ => (t / 16.0, 0.0),
+            },
+            RateMode::MaxErrorM(e) => match native {
+                Some(q) => {
+                    let bins = (2.0 * e / q + 1e-9).floor() + 1.0;
+                    (bins * q, (lo / q).round() * q + (bins - 1.0) / 2.0 * q)
+                }
+                None => (2.0 * e * (1.0 - 1e-9), 0.0),
+            },
+        };
+        if (hi - lo) / scale > (1u64 << 24) as f64 {
+            return Err(EncodeError::Range((hi - lo) / scale));
+        }
+        Ok(match (mode, native) {
+            // Integer data in max-error mode: bins of whole quanta, floor so every bin holds
+            // exactly `bins` values.
+            (RateMode::MaxErrorM(_), Some(q)) => {
+                let base = (lo / q).round() * q;
+                ValueMap {
+                    scale,
+                    offset: base + (scale / q - 1.0) / 2.0 * q,
+                    round_offset: offset,
+                    binned: Some((q, base)),
+                }
+            }
+            _ => ValueMap {
+                scale,
+                offset,
+                round_offset: offset,
+                binned: None,
+            },
+        })
+    }
+
+    /// The integer of a value in metres.
+    #[inline]
+    pub(crate) fn int_of(self, v: f64) -> i32 {
+        match self.binned {
+            Some((q, base)) => (((v - base) / q).round() / (self.scale / q)).floor() as i32,
+            None => ((v - self.round_offset) / self.scale).round() as i32,
+        }
+    }
+}
+
 /// One rate-control attempt: scale, steps, quantised details, decoded raster, measures.
 type Attempt = (
     f64,
@@ -464,7 +540,7 @@ type Attempt = (
 
 /// Per-diamond measurements made during the verification decode.
 #[derive(Clone, Copy, Debug)]
-struct Measure {
+pub(crate) struct Measure {
     grid_min: i64,
     grid_max: i64,
     fine_min: i64,
@@ -474,7 +550,7 @@ struct Measure {
     delta2: i64,
 }
 
-fn measure(
+pub(crate) fn measure(
     n: usize,
     mask: Option<&crate::lifting::DiamondMask>,
     coarse: &[i32],
@@ -524,6 +600,28 @@ fn measure(
     m
 }
 
+/// A diamond's side information from its own measure and its children's results:
+/// `(gamma, has_data, (min, max))` where gamma bounds how far the finer surfaces below it
+/// depart from its own grid, `has_data` says whether it or any descendant has a nonzero
+/// detail (`own_data`: its own matrix has one) and `(min, max)` bounds the subtree's values.
+pub(crate) fn side_info(
+    m: &Measure,
+    own_data: bool,
+    children: impl Iterator<Item = (u64, bool, (i64, i64))>,
+) -> (u64, bool, (i64, i64)) {
+    let (mut lo, mut hi) = (m.grid_min.min(m.fine_min), m.grid_max.max(m.fine_max));
+    let mut gam = (m.delta2 + 1) / 2;
+    let mut data = own_data;
+    for (g, d, (clo, chi)) in children {
+        lo = lo.min(clo);
+        hi = hi.max(chi);
+        gam = gam.max(g as i64);
+        data |= d;
+    }
+    gam = gam.max(m.grid_min - lo).max(hi - m.grid_max);
+    (gam as u64, data, (lo, hi))
+}
+
 /// Encodes a grid.
 pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> {
     let expected = grid.width * grid.height;
@@ -561,7 +659,7 @@ pub fn encode_sphere(grid: &CubeGrid, opts: EncodeOptions) -> Result<Encoded, En
     encode_layout(&geom, domain, &values_m, grid.quantum_m, opts)
 }
 
-fn check_tolerance(mode: RateMode) -> Result<(), EncodeError> {
+pub(crate) fn check_tolerance(mode: RateMode) -> Result<(), EncodeError> {
     match mode {
         RateMode::RmsM(t) | RateMode::MaxErrorM(t) if !(t.is_finite() && t > 0.0) => {
             Err(EncodeError::BadTolerance(t))
@@ -782,22 +880,22 @@ fn encode_layout<G: Layout>(
         let mut hd = Vec::with_capacity(slots.len());
         let mut bd = Vec::with_capacity(slots.len());
         for (i, s) in slots.iter().enumerate() {
-            let m = &measures[l][i];
-            let (mut lo, mut hi) = (m.grid_min.min(m.fine_min), m.grid_max.max(m.fine_max));
-            let mut gam = (m.delta2 + 1) / 2;
-            let mut data = quantized[l][i].iter().any(|&x| x != 0);
-            if l + 1 < levels {
-                for &k in geom.children(s) {
-                    lo = lo.min(bounds[l + 1][k].0);
-                    hi = hi.max(bounds[l + 1][k].1);
-                    gam = gam.max(gamma[l + 1][k] as i64);
-                    data |= has_data[l + 1][k];
-                }
-            }
-            gam = gam.max(m.grid_min - lo).max(hi - m.grid_max);
-            g.push(gam as u64);
+            let own = quantized[l][i].iter().any(|&x| x != 0);
+            let children: &[usize] = if l + 1 < levels {
+                geom.children(s)
+            } else {
+                &[]
+            };
+            let (gam, data, bound) = side_info(
+                &measures[l][i],
+                own,
+                children
+                    .iter()
+                    .map(|&k| (gamma[l + 1][k], has_data[l + 1][k], bounds[l + 1][k])),
+            );
+            g.push(gam);
             hd.push(data);
-            bd.push((lo, hi));
+            bd.push(bound);
         }
         gamma[l] = g;
         has_data[l] = hd;

@@ -5,6 +5,8 @@
 //! - [`lifting`]: integer-to-integer wavelet lifting of one diamond (analysis/synthesis).
 //! - [`raster`] / [`sphere_raster`] / [`encode`]: the whole-raster transform (planar
 //!   rasters and cube-mapped planets), rate control and blobs.
+//! - [`stream`]: the out-of-core encoder of planar rasters (bounded memory, rows read on
+//!   demand, blobs handed out as they are coded).
 //! - [`colour`]: the reversible YCoCg-R colour transform.
 //!
 //! The crate is pure: no I/O, no async. Untrusted bytes are decoded into `Result`s, never
@@ -19,3 +21,4 @@ pub mod fill;
 pub mod lifting;
 pub mod raster;
 pub mod sphere_raster;
+pub mod stream;

@@ -81,6 +81,11 @@ impl DiamondSlot {
         )
     }
 
+    /// Raster position of vertex `(0, 0)` and the steps along `i` and `j`.
+    pub(crate) fn frame(&self) -> ([i64; 2], [i64; 2], [i64; 2]) {
+        ([self.x0, self.y0], self.a, self.b)
+    }
+
     /// Number of valid cells (the number of coded details).
     pub fn valid_cells(&self, n: usize) -> usize {
         self.mask.as_ref().map_or(n * n, DiamondMask::valid_cells)

@@ -1,0 +1,1013 @@
+//! Out-of-core encoder of planar rasters: bounded memory, rows read on demand, blobs handed
+//! out as they are coded. The output decodes with the ordinary decoder
+//! ([`StreamEncoded::into_encoded`] + [`crate::encode::decode`]): same [`RasterGeometry`],
+//! blob format, model and root grid as [`crate::encode::encode`] would use.
+//!
+//! Why it works: the finest detail level `2k - 1` refines the quincunx lattice
+//! `{x + y even}` into every integer point and level `2k - 2` refines `2Z^2` into the
+//! quincunx, so once that *octave* is analysed only the even rows and columns matter to the
+//! coarser levels, and they form a raster half the size whose levels are the same problem
+//! one octave smaller. Rows flow through a chain of octave processors, each holding a
+//! rolling window of about three diamond heights; a diamond is analysed as soon as the rows
+//! it spans are final (diamonds of one level never touch each other's points, so any order
+//! works within a level), and no detail matrix outlives its diamond.
+//!
+//! Rate modes: lossless and max-error only. In both the steps are all 1 (256/256) and the
+//! decoder reproduces the integerised values exactly, so the errors and the side
+//! information can be computed during analysis, without a verification decode. RMS rate
+//! control needs the whole raster and is refused ([`EncodeError::StreamingMode`]).
+//!
+//! Passes over the source: (0) range, quantum and valid count; (1) analysis, measuring
+//! errors, side information (bottom-up, children always come first) and training counts;
+//! (2) the identical analysis again, coding each diamond's blob into the sink as soon as
+//! its details exist.
+//!
+//! Nodata is filled chunk by chunk with push-pull ([`crate::fill`]) over the new rows plus
+//! the last [`CONTEXT_ROWS`] filled rows as fixed context, so holes that span chunks have
+//! no cliffs at the seams; the chunking depends only on the dimensions and the budget, so
+//! passes 1 and 2 see identical values.
+
+use rayon::prelude::*;
+
+use crate::blob;
+use crate::encode::{
+    EncodeError, EncodeReport, Encoded, EncodedDomain, Measure, RateMode, ValueMap,
+    check_tolerance, measure, native_quantum, on_quantum, root_grid_bytes, side_info,
+};
+use crate::entropy::{self, CodecModel, ContextCounts};
+use crate::lifting::{self, DiamondMask};
+use crate::raster::{DiamondSlot, RasterGeometry};
+
+/// Rows of a planar raster, read on demand (row 0 = north). May be called several times
+/// over the same rows (the encoder makes more than one pass).
+pub trait RowSource {
+    /// Samples per row.
+    fn width(&self) -> usize;
+    /// Rows.
+    fn height(&self) -> usize;
+    /// Fills `out` (len = width * count) with rows `first .. first + count` in metres,
+    /// NaN = nodata.
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String>;
+    /// Known quantum (1 m for int16), like [`crate::encode::Grid::quantum_m`].
+    fn quantum_m(&self) -> Option<f64>;
+}
+
+/// Receives blobs as they are coded (any order).
+pub trait BlobSink {
+    /// Stores the blob of diamond `index` of detail level `level` (storage key `key`).
+    fn put(&mut self, level: usize, index: usize, key: &[u8], blob: &[u8]) -> Result<(), String>;
+}
+
+/// Settings of the streaming encoder.
+#[derive(Clone, Copy, Debug)]
+pub struct StreamOptions {
+    /// Diamond size `N` (cells per side; a power of two).
+    pub n: usize,
+    /// Rate mode: [`RateMode::Lossless`] or [`RateMode::MaxErrorM`].
+    pub mode: RateMode,
+    /// Bound on the sample buffers the encoder holds at once (rows read, rolling octave
+    /// windows, in-flight diamonds). Per-diamond bookkeeping (the geometry and a few bytes
+    /// of side information per diamond, `O(width x height / N^2)`) comes on top.
+    pub memory_budget_bytes: usize,
+}
+
+/// Everything a decoder needs besides the blobs (which went to the [`BlobSink`]).
+#[derive(Clone, Debug)]
+pub struct StreamEncoded {
+    /// Samples per row.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// Diamond size.
+    pub n: usize,
+    /// Metres per integer unit.
+    pub value_scale_m: f64,
+    /// Metres at integer 0.
+    pub value_offset_m: f64,
+    /// Quantiser step per detail level, in 1/256 integer units (all 256).
+    pub steps: Vec<u32>,
+    /// Root vertex grid, `(N+1)^2` (zeros at invalid vertices).
+    pub root: Vec<i32>,
+    /// Trained starting probabilities.
+    pub model: CodecModel,
+    /// Measured results (errors over valid samples, exact in these rate modes).
+    pub report: EncodeReport,
+    /// Largest number of bytes of sample buffers held at once (at most the budget).
+    pub peak_buffer_bytes: usize,
+}
+
+impl StreamEncoded {
+    /// The in-memory form, with the blobs the sink received (`blobs[level][index]`), for
+    /// [`crate::encode::decode`].
+    pub fn into_encoded(self, blobs: Vec<Vec<Option<Vec<u8>>>>) -> Encoded {
+        Encoded {
+            domain: EncodedDomain::Planar {
+                width: self.width,
+                height: self.height,
+            },
+            width: self.width,
+            height: self.height,
+            n: self.n,
+            value_scale_m: self.value_scale_m,
+            value_offset_m: self.value_offset_m,
+            steps: self.steps,
+            root: self.root.clone(),
+            roots: vec![self.root],
+            model: self.model,
+            blobs,
+            report: self.report,
+        }
+    }
+}
+
+/// Filled rows kept as context for the next chunk's nodata fill.
+pub const CONTEXT_ROWS: usize = 16;
+/// Diamonds analysed at once (in parallel); bounds the in-flight matrices.
+const BATCH: usize = 16;
+/// Bytes of push-pull's own work arrays per sample filled over (pyramid and passes).
+const FILL_BYTES_PER_SAMPLE: usize = 10;
+
+/// Encodes a planar raster out of core. See the module docs.
+pub fn encode_streaming(
+    source: &mut dyn RowSource,
+    opts: StreamOptions,
+    sink: &mut dyn BlobSink,
+) -> Result<StreamEncoded, EncodeError> {
+    if let RateMode::RmsM(_) = opts.mode {
+        return Err(EncodeError::StreamingMode);
+    }
+    check_tolerance(opts.mode)?;
+    let (width, height, n) = (source.width(), source.height(), opts.n);
+    let geom = RasterGeometry::new(width, height, n)?;
+    let plan = Plan::new(&geom, opts.memory_budget_bytes)?;
+    let mut meter = Meter::default();
+
+    let scan = scan(source, &plan, &mut meter)?;
+    if scan.valid == 0 {
+        return Err(EncodeError::AllNodata);
+    }
+    let native = native_quantum(source.quantum_m(), |q| scan.integral(q));
+    let map = ValueMap::new(scan.lo, scan.hi, native, opts.mode)?;
+    let fill = Fill {
+        lo: scan.lo,
+        hi: scan.hi,
+        mean: scan.sum / scan.valid as f64,
+    };
+
+    // Pass 1: errors, side information, training counts.
+    let mut side = Side::new(&geom);
+    let mut errors = Errors::default();
+    let root = run_pass(
+        source,
+        &plan,
+        &geom,
+        &map,
+        &fill,
+        &mut Work::Analyse {
+            side: &mut side,
+            errors: &mut errors,
+        },
+        &mut meter,
+    )?;
+    let levels = geom.detail_levels();
+    let mut counts = side.counts.clone();
+    for l in 0..levels {
+        for i in 0..geom.level(l).len() {
+            if side.trains(&geom, l, i) {
+                let group = entropy::group(levels - 1 - l);
+                entropy::write_gammas(&mut counts, group, &side.classes(&geom, l, i));
+            }
+        }
+    }
+    let model = CodecModel::from_counts(&counts);
+
+    // Pass 2: code every blob.
+    let mut coded = Coded::default();
+    let root2 = run_pass(
+        source,
+        &plan,
+        &geom,
+        &map,
+        &fill,
+        &mut Work::Code {
+            side: &side,
+            model: &model,
+            sink,
+            coded: &mut coded,
+        },
+        &mut meter,
+    )?;
+    if root2 != root {
+        return Err(EncodeError::Internal(
+            "passes disagree (non-deterministic source?)",
+        ));
+    }
+
+    let steps = vec![256u32; levels];
+    let samples = width * height;
+    let root_bytes = root_grid_bytes(&root).len();
+    let model_bytes = model.to_bytes().len() + 4 * steps.len() + 16;
+    let report = EncodeReport {
+        samples,
+        valid_samples: scan.valid,
+        blob_count: coded.count,
+        blob_bytes: coded.bytes,
+        root_bytes,
+        model_bytes,
+        bits_per_sample: 8.0 * (coded.bytes + root_bytes + model_bytes) as f64 / samples as f64,
+        rms_m: (errors.sum2 / scan.valid as f64).sqrt(),
+        max_abs_m: errors.max,
+    };
+    Ok(StreamEncoded {
+        width,
+        height,
+        n,
+        value_scale_m: map.scale,
+        value_offset_m: map.offset,
+        steps,
+        root,
+        model,
+        report,
+        peak_buffer_bytes: meter.peak,
+    })
+}
+
+/// Buffer sizes, fixed from the dimensions and the budget.
+struct Plan {
+    width: usize,
+    height: usize,
+    n: usize,
+    /// Rows read (and filled) at once.
+    chunk_rows: usize,
+    /// `(width, height)` of the octave rasters `R_0 ..= R_k` (`R_o`: every `2^o`-th row
+    /// and column).
+    dims: Vec<(usize, usize)>,
+    /// Row capacity of each octave's window.
+    caps: Vec<usize>,
+}
+
+impl Plan {
+    fn new(geom: &RasterGeometry, budget: usize) -> Result<Self, EncodeError> {
+        let (width, height, n) = (geom.width(), geom.height(), geom.n());
+        let octaves = geom.detail_levels() / 2;
+        let mut dims = vec![(width, height)];
+        for o in 0..octaves {
+            let (w, h) = dims[o];
+            dims.push((w.div_ceil(2), h.div_ceil(2)));
+        }
+        let mut plan = Plan {
+            width,
+            height,
+            n,
+            chunk_rows: 1,
+            dims,
+            caps: Vec::new(),
+        };
+        let needed = plan.bytes(1);
+        if needed > budget {
+            return Err(EncodeError::Budget { needed, budget });
+        }
+        let (mut lo, mut hi) = (1, height);
+        while lo < hi {
+            let mid = (lo + hi).div_ceil(2);
+            if plan.bytes(mid) <= budget {
+                lo = mid;
+            } else {
+                hi = mid - 1;
+            }
+        }
+        plan.chunk_rows = lo;
+        plan.caps = plan.windows(lo);
+        Ok(plan)
+    }
+
+    /// Row capacity of each octave window when `chunk` rows are read at once: a window
+    /// keeps at most `3N` rows between pushes (a band of level-`2k-2` diamonds spans `2N`
+    /// rows and waits for the level-`2k-1` diamonds `N` rows below it) plus one push.
+    fn windows(&self, chunk: usize) -> Vec<usize> {
+        let n3 = 3 * self.n;
+        let mut push = chunk;
+        (0..self.dims.len() - 1)
+            .map(|o| {
+                let cap = (n3 + push + 2).min(self.dims[o].1);
+                push = (n3 + push) / 2 + 2;
+                cap
+            })
+            .collect()
+    }
+
+    /// Upper bound of the sample buffers held with `chunk` rows read at once.
+    fn bytes(&self, chunk: usize) -> usize {
+        let fill_rows = CONTEXT_ROWS + chunk;
+        let reader = fill_rows * self.width * (8 + 1 + FILL_BYTES_PER_SAMPLE);
+        let windows: usize = self
+            .windows(chunk)
+            .iter()
+            .zip(&self.dims)
+            .map(|(rows, (w, _))| rows * w * 4)
+            .sum();
+        let (wk, hk) = self.dims[self.dims.len() - 1];
+        let n = self.n;
+        // Per diamond in flight: fine and coarse vertices, cells, details, a blob.
+        let batch = BATCH * 4 * (2 * (n + 1) * (n + 1) + 3 * n * n);
+        reader + windows + wk * hk * 4 + batch
+    }
+}
+
+/// Peak of the sample buffers held.
+#[derive(Default)]
+struct Meter {
+    peak: usize,
+}
+
+impl Meter {
+    fn note(&mut self, bytes: usize) {
+        self.peak = self.peak.max(bytes);
+    }
+}
+
+/// What pass 0 learns about the valid samples.
+struct Scan {
+    valid: usize,
+    lo: f64,
+    hi: f64,
+    sum: f64,
+    /// Whether every valid value is on each candidate quantum.
+    quanta: Vec<(f64, bool)>,
+}
+
+impl Scan {
+    fn integral(&self, q: f64) -> bool {
+        self.quanta.iter().any(|&(c, ok)| c == q && ok)
+    }
+}
+
+fn scan(source: &mut dyn RowSource, plan: &Plan, meter: &mut Meter) -> Result<Scan, EncodeError> {
+    let w = plan.width;
+    let mut candidates: Vec<f64> = crate::encode::DECIMAL_QUANTA.to_vec();
+    if let Some(q) = source.quantum_m().filter(|&q| q > 0.0) {
+        candidates.insert(0, q);
+    }
+    let mut s = Scan {
+        valid: 0,
+        lo: f64::INFINITY,
+        hi: f64::NEG_INFINITY,
+        sum: 0.0,
+        quanta: candidates.into_iter().map(|q| (q, true)).collect(),
+    };
+    let mut buf = vec![0.0; plan.chunk_rows * w];
+    meter.note(buf.capacity() * 8);
+    let mut first = 0;
+    while first < plan.height {
+        let count = plan.chunk_rows.min(plan.height - first);
+        let out = &mut buf[..count * w];
+        source
+            .read_rows(first, count, out)
+            .map_err(EncodeError::Source)?;
+        for &v in out.iter().filter(|v| v.is_finite()) {
+            s.valid += 1;
+            s.lo = s.lo.min(v);
+            s.hi = s.hi.max(v);
+            s.sum += v;
+            for (q, ok) in &mut s.quanta {
+                *ok = *ok && on_quantum(v, *q);
+            }
+        }
+        first += count;
+    }
+    Ok(s)
+}
+
+/// How nodata is filled: push-pull, clamped to the valid range, the valid mean where a
+/// chunk and its context hold nothing valid.
+struct Fill {
+    lo: f64,
+    hi: f64,
+    mean: f64,
+}
+
+/// Errors of the integerised values against the source, over valid samples.
+#[derive(Default)]
+struct Errors {
+    sum2: f64,
+    max: f64,
+}
+
+/// Side information of every diamond, from pass 1.
+struct Side {
+    gamma: Vec<Vec<u64>>,
+    has_data: Vec<Vec<bool>>,
+    bounds: Vec<Vec<(i64, i64)>>,
+    /// Training counts of the detail matrices (the side information is counted after
+    /// pass 1, when every class is known).
+    counts: ContextCounts,
+}
+
+impl Side {
+    fn new(geom: &RasterGeometry) -> Self {
+        let lens: Vec<usize> = (0..geom.detail_levels())
+            .map(|l| geom.level(l).len())
+            .collect();
+        Side {
+            gamma: lens.iter().map(|&k| vec![0; k]).collect(),
+            has_data: lens.iter().map(|&k| vec![false; k]).collect(),
+            bounds: lens.iter().map(|&k| vec![(0, 0); k]).collect(),
+            counts: ContextCounts::default(),
+        }
+    }
+
+    /// Whether a diamond's blob is part of the training sample (as the in-memory encoder
+    /// chooses it: every blob of the small levels, every 4th diamond of the large ones).
+    fn trains(&self, geom: &RasterGeometry, l: usize, i: usize) -> bool {
+        let len = geom.level(l).len();
+        self.has_data[l][i] && (len < 4096 || i.is_multiple_of(4))
+    }
+
+    fn classes(&self, geom: &RasterGeometry, l: usize, i: usize) -> Vec<u8> {
+        geom.level(l)[i]
+            .owned
+            .iter()
+            .map(|&k| entropy::gamma_class(self.gamma[l + 1][k]))
+            .collect()
+    }
+}
+
+/// Blobs coded so far.
+#[derive(Default)]
+struct Coded {
+    count: usize,
+    bytes: usize,
+}
+
+/// What a pass does with each analysed diamond.
+enum Work<'a> {
+    /// Pass 1: measure errors and side information, count for training.
+    Analyse {
+        side: &'a mut Side,
+        errors: &'a mut Errors,
+    },
+    /// Pass 2: code blobs into the sink.
+    Code {
+        side: &'a Side,
+        model: &'a CodecModel,
+        sink: &'a mut dyn BlobSink,
+        coded: &'a mut Coded,
+    },
+}
+
+/// One streaming analysis of the whole raster; returns the root grid.
+fn run_pass(
+    source: &mut dyn RowSource,
+    plan: &Plan,
+    geom: &RasterGeometry,
+    map: &ValueMap,
+    fill: &Fill,
+    work: &mut Work<'_>,
+    meter: &mut Meter,
+) -> Result<Vec<i32>, EncodeError> {
+    let octaves = plan.dims.len() - 1;
+    let mut octs: Vec<Octave> = (0..octaves)
+        .map(|o| Octave::new(geom, plan, o))
+        .collect::<Result<_, _>>()?;
+    let (wk, hk) = plan.dims[octaves];
+    let mut last: Vec<i32> = Vec::with_capacity(wk * hk);
+    let mut reader = Reader::new(plan);
+    let held = |octs: &[Octave], last: &Vec<i32>, reader: &Reader| {
+        reader.bytes() + last.capacity() * 4 + octs.iter().map(Octave::bytes).sum::<usize>()
+    };
+    let mut first = 0;
+    while first < plan.height {
+        let count = plan.chunk_rows.min(plan.height - first);
+        let base = held(&octs, &last, &reader);
+        let errors = match work {
+            Work::Analyse { errors, .. } => Some(&mut **errors),
+            Work::Code { .. } => None,
+        };
+        let target = match octs.first_mut() {
+            Some(o) => &mut o.rows,
+            None => &mut last,
+        };
+        let fill_bytes = reader.load(source, first, count, map, fill, errors, target)?;
+        meter.note(base + fill_bytes);
+        first += count;
+        for o in 0..octaves {
+            let base = held(&octs, &last, &reader);
+            let (head, tail) = octs.split_at_mut(o + 1);
+            let out = match tail.first_mut() {
+                Some(next) => &mut next.rows,
+                None => &mut last,
+            };
+            head[o].advance(geom, out, work, meter, base)?;
+        }
+        meter.note(held(&octs, &last, &reader));
+    }
+    if octs.iter().any(|o| !o.done()) || last.len() != wk * hk {
+        return Err(EncodeError::Internal("rows left unprocessed"));
+    }
+    // The root grid, from the last octave raster `R_k`.
+    let root = geom.root_slot();
+    let f = Frame::of(&root, octaves as u32);
+    let mut v = vec![0; (plan.n + 1) * (plan.n + 1)];
+    f.gather_vertices(plan.n, root.mask.as_ref(), &last, 0, wk, &mut v);
+    Ok(v)
+}
+
+/// Reads chunks of rows, fills their nodata and integerises them.
+struct Reader {
+    width: usize,
+    /// Context rows (already filled) followed by the chunk being read.
+    vals: Vec<f64>,
+    valid: Vec<bool>,
+    context: usize,
+}
+
+impl Reader {
+    fn new(plan: &Plan) -> Self {
+        let len = (CONTEXT_ROWS + plan.chunk_rows) * plan.width;
+        Reader {
+            width: plan.width,
+            vals: vec![0.0; len],
+            valid: vec![false; len],
+            context: 0,
+        }
+    }
+
+    fn bytes(&self) -> usize {
+        self.vals.capacity() * 8 + self.valid.capacity()
+    }
+
+    /// Reads rows `first .. first + count`, appends their integers to `out`; returns the
+    /// bytes of the fill's work arrays (0 when nothing needed filling).
+    #[allow(clippy::too_many_arguments)]
+    fn load(
+        &mut self,
+        source: &mut dyn RowSource,
+        first: usize,
+        count: usize,
+        map: &ValueMap,
+        fill: &Fill,
+        errors: Option<&mut Errors>,
+        out: &mut Vec<i32>,
+    ) -> Result<usize, EncodeError> {
+        let w = self.width;
+        let (ctx, total) = (self.context * w, (self.context + count) * w);
+        source
+            .read_rows(first, count, &mut self.vals[ctx..total])
+            .map_err(EncodeError::Source)?;
+        let (vals, valid) = (&mut self.vals[..total], &mut self.valid[..total]);
+        valid[..ctx].iter_mut().for_each(|b| *b = true);
+        for (b, v) in valid[ctx..].iter_mut().zip(&vals[ctx..]) {
+            *b = v.is_finite();
+        }
+        if let Some(e) = errors {
+            for (&v, _) in vals[ctx..].iter().zip(&valid[ctx..]).filter(|(_, b)| **b) {
+                let d = (map.offset + map.int_of(v) as f64 * map.scale - v).abs();
+                e.sum2 += d * d;
+                e.max = e.max.max(d);
+            }
+        }
+        let mut fill_bytes = 0;
+        if valid[ctx..].iter().any(|b| !b) {
+            fill_bytes = total * FILL_BYTES_PER_SAMPLE;
+            if crate::fill::push_pull(w, self.context + count, vals, valid) {
+                for (v, _) in vals.iter_mut().zip(valid.iter()).filter(|(_, b)| !**b) {
+                    *v = v.clamp(fill.lo, fill.hi);
+                }
+            } else {
+                for (v, _) in vals.iter_mut().zip(valid.iter()).filter(|(_, b)| !**b) {
+                    *v = fill.mean;
+                }
+            }
+        }
+        out.extend(vals[ctx..].iter().map(|&v| map.int_of(v)));
+        let keep = CONTEXT_ROWS.min(self.context + count);
+        let from = total - keep * w;
+        self.vals.copy_within(from..total, 0);
+        self.context = keep;
+        Ok(fill_bytes)
+    }
+}
+
+/// Where a diamond's points are in an octave raster `R_o` (point `(x, y)` of `R_o` is
+/// raster point `(x 2^o, y 2^o)`): vertex `(i, j)` at `v0 + i a + j b`, cell `(i, j)` at
+/// vertex `(i, j)` + `(a + b) / 2`.
+struct Frame {
+    v0: [i64; 2],
+    a: [i64; 2],
+    b: [i64; 2],
+}
+
+impl Frame {
+    fn of(s: &DiamondSlot, shift: u32) -> Self {
+        let f = 1i64 << shift;
+        let (v0, a, b) = s.frame();
+        Frame {
+            v0: [v0[0] / f, v0[1] / f],
+            a: [a[0] / f, a[1] / f],
+            b: [b[0] / f, b[1] / f],
+        }
+    }
+
+    /// Buffer index of vertex (0,0), of cell (0,0), and the steps along `i` and `j`, in a
+    /// buffer of rows `base..` of width `w`.
+    fn lin(&self, base: usize, w: usize) -> [isize; 4] {
+        let w = w as i64;
+        let v0 = (self.v0[1] - base as i64) * w + self.v0[0];
+        let c0 = v0 + ((self.a[1] + self.b[1]) / 2) * w + (self.a[0] + self.b[0]) / 2;
+        let si = self.a[1] * w + self.a[0];
+        let sj = self.b[1] * w + self.b[0];
+        [v0 as isize, c0 as isize, si as isize, sj as isize]
+    }
+
+    fn gather_vertices(
+        &self,
+        n: usize,
+        mask: Option<&DiamondMask>,
+        buf: &[i32],
+        base: usize,
+        w: usize,
+        v: &mut [i32],
+    ) {
+        let [v0, _, si, sj] = self.lin(base, w);
+        for (i, row) in v.chunks_exact_mut(n + 1).enumerate() {
+            let start = v0 + i as isize * si;
+            for (j, x) in row.iter_mut().enumerate() {
+                *x = if mask.is_none_or(|m| m.vertex(i, j)) {
+                    buf[(start + j as isize * sj) as usize]
+                } else {
+                    0
+                };
+            }
+        }
+    }
+
+    fn gather_cells(
+        &self,
+        n: usize,
+        mask: Option<&DiamondMask>,
+        buf: &[i32],
+        base: usize,
+        w: usize,
+        c: &mut [i32],
+    ) {
+        let [_, c0, si, sj] = self.lin(base, w);
+        for (i, row) in c.chunks_exact_mut(n).enumerate() {
+            let start = c0 + i as isize * si;
+            for (j, x) in row.iter_mut().enumerate() {
+                *x = if mask.is_none_or(|m| m.cell(i, j)) {
+                    buf[(start + j as isize * sj) as usize]
+                } else {
+                    0
+                };
+            }
+        }
+    }
+
+    /// Writes the interior vertices (all lifting changes).
+    fn scatter_interior(
+        &self,
+        n: usize,
+        mask: Option<&DiamondMask>,
+        v: &[i32],
+        buf: &mut [i32],
+        base: usize,
+        w: usize,
+    ) {
+        let [v0, _, si, sj] = self.lin(base, w);
+        for i in 1..n {
+            let start = v0 + i as isize * si;
+            for j in 1..n {
+                if mask.is_none_or(|m| m.vertex(i, j)) {
+                    buf[(start + j as isize * sj) as usize] = v[i * (n + 1) + j];
+                }
+            }
+        }
+    }
+}
+
+/// One octave of the chain: levels `A = 2k - 1 - 2o` (rotated, refines the quincunx of
+/// `R_o` into all its points) and `B = A - 1` (axis-aligned, refines `2Z^2` into the
+/// quincunx), over a rolling window of rows of `R_o`. Its output, the even rows and
+/// columns, is `R_{o+1}`.
+///
+/// Row spans in `R_o` (`N` = diamond size): an `A` diamond centred on row `cy` (a multiple
+/// of `N`, group `g = cy / N`) spans rows `cy - N ..= cy + N` and changes rows strictly
+/// between; `B` diamonds of band `j` span rows `2Nj ..= 2N(j+1)` and need the `A` groups
+/// `2j ..= 2j + 2` done first. After band `j`, rows up to `2N(j+1)` are final.
+struct Octave {
+    shift: u32,
+    width: usize,
+    height: usize,
+    n: usize,
+    level_a: usize,
+    level_b: usize,
+    a_groups: Vec<Vec<usize>>,
+    b_groups: Vec<Vec<usize>>,
+    next_a: usize,
+    next_b: usize,
+    /// Rows `base .. base + rows.len() / width` of `R_o`.
+    rows: Vec<i32>,
+    base: usize,
+    /// Next row of `R_o` that may be emitted (even rows only are).
+    next_emit: usize,
+}
+
+impl Octave {
+    fn new(geom: &RasterGeometry, plan: &Plan, o: usize) -> Result<Self, EncodeError> {
+        let n = plan.n;
+        let levels = geom.detail_levels();
+        let (level_a, level_b) = (levels - 1 - 2 * o, levels - 2 - 2 * o);
+        let f = 1i64 << o;
+        let ni = n as i64;
+        let mut a_groups: Vec<Vec<usize>> = Vec::new();
+        for (i, s) in geom.level(level_a).iter().enumerate() {
+            let cy = s.id.y / f;
+            if cy < 0 || cy % ni != 0 {
+                return Err(EncodeError::Internal("level A centre off its lattice"));
+            }
+            let g = (cy / ni) as usize;
+            if a_groups.len() <= g {
+                a_groups.resize(g + 1, Vec::new());
+            }
+            a_groups[g].push(i);
+        }
+        let mut b_groups: Vec<Vec<usize>> = Vec::new();
+        for (i, s) in geom.level(level_b).iter().enumerate() {
+            let cy = s.id.y / f;
+            if cy < ni || (cy - ni) % (2 * ni) != 0 {
+                return Err(EncodeError::Internal("level B centre off its lattice"));
+            }
+            let j = ((cy - ni) / (2 * ni)) as usize;
+            if b_groups.len() <= j {
+                b_groups.resize(j + 1, Vec::new());
+            }
+            b_groups[j].push(i);
+        }
+        // Every point of these levels must lie on the 2^o lattice, i.e. in `R_o`.
+        let on_lattice = |s: &DiamondSlot| {
+            let (v0, a, b) = s.frame();
+            v0.iter()
+                .chain(&a)
+                .chain(&b)
+                .chain(&[(a[0] + b[0]) / 2, (a[1] + b[1]) / 2])
+                .all(|c| c % f == 0)
+        };
+        if !geom.level(level_a).iter().all(on_lattice)
+            || !geom.level(level_b).iter().all(on_lattice)
+        {
+            return Err(EncodeError::Internal(
+                "octave points off the decimated lattice",
+            ));
+        }
+        let (width, height) = plan.dims[o];
+        Ok(Octave {
+            shift: o as u32,
+            width,
+            height,
+            n,
+            level_a,
+            level_b,
+            a_groups,
+            b_groups,
+            next_a: 0,
+            next_b: 0,
+            rows: Vec::with_capacity(plan.caps[o] * width),
+            base: 0,
+            next_emit: 0,
+        })
+    }
+
+    fn bytes(&self) -> usize {
+        self.rows.capacity() * 4
+    }
+
+    fn loaded(&self) -> usize {
+        self.base + self.rows.len() / self.width
+    }
+
+    fn done(&self) -> bool {
+        self.next_a == self.a_groups.len()
+            && self.next_b == self.b_groups.len()
+            && self.next_emit >= self.height
+    }
+
+    /// Analyses every diamond whose rows are final, emits the final even rows to `out`
+    /// (the next octave's window, or `R_k`), and drops rows nothing needs any more.
+    fn advance(
+        &mut self,
+        geom: &RasterGeometry,
+        out: &mut Vec<i32>,
+        work: &mut Work<'_>,
+        meter: &mut Meter,
+        held: usize,
+    ) -> Result<(), EncodeError> {
+        let n = self.n;
+        loop {
+            let loaded = self.loaded();
+            if self.next_a < self.a_groups.len() {
+                let g = self.next_a;
+                if loaded >= (n * (g + 1) + 1).min(self.height) {
+                    let group = std::mem::take(&mut self.a_groups[g]);
+                    self.run(geom, self.level_a, &group, work, meter, held)?;
+                    self.a_groups[g] = group;
+                    self.next_a += 1;
+                    continue;
+                }
+            }
+            if self.next_b < self.b_groups.len()
+                && self.next_a >= (2 * self.next_b + 3).min(self.a_groups.len())
+            {
+                let j = self.next_b;
+                let group = std::mem::take(&mut self.b_groups[j]);
+                self.run(geom, self.level_b, &group, work, meter, held)?;
+                self.b_groups[j] = group;
+                self.next_b += 1;
+                self.emit(out);
+                continue;
+            }
+            break;
+        }
+        self.emit(out);
+        // Keep the rows of the next A group and the next B band.
+        let mut keep = self.loaded();
+        if self.next_a < self.a_groups.len() {
+            keep = keep.min((n * self.next_a).saturating_sub(n));
+        }
+        if self.next_b < self.b_groups.len() {
+            keep = keep.min(2 * n * self.next_b);
+        }
+        if keep > self.base {
+            self.rows.drain(..(keep - self.base) * self.width);
+            self.base = keep;
+        }
+        Ok(())
+    }
+
+    /// Appends the final even rows (even columns) to `out`.
+    fn emit(&mut self, out: &mut Vec<i32>) {
+        let all = self.next_a == self.a_groups.len()
+            && self.next_b == self.b_groups.len()
+            && self.loaded() == self.height;
+        let end = if all {
+            self.height
+        } else if self.next_b > 0 {
+            (2 * self.n * self.next_b + 1).min(self.height)
+        } else {
+            0
+        };
+        while self.next_emit < end {
+            let r = self.next_emit;
+            if r.is_multiple_of(2) {
+                let start = (r - self.base) * self.width;
+                let row = &self.rows[start..start + self.width];
+                out.extend(row.iter().step_by(2));
+            }
+            self.next_emit += 1;
+        }
+    }
+
+    /// Analyses diamonds `group` of `level`, in batches of [`BATCH`] in parallel.
+    fn run(
+        &mut self,
+        geom: &RasterGeometry,
+        level: usize,
+        group: &[usize],
+        work: &mut Work<'_>,
+        meter: &mut Meter,
+        held: usize,
+    ) -> Result<(), EncodeError> {
+        let n = self.n;
+        let slots = geom.level(level);
+        let levels = geom.detail_levels();
+        let coder: Option<(&Side, &CodecModel)> = match &*work {
+            Work::Code { side, model, .. } => Some((*side, *model)),
+            Work::Analyse { .. } => None,
+        };
+        let measuring = coder.is_none();
+        for batch in group.chunks(BATCH) {
+            let (rows, base, width, shift) = (&self.rows, self.base, self.width, self.shift);
+            let results: Vec<Analysed> = batch
+                .par_iter()
+                .map(|&i| {
+                    let s = &slots[i];
+                    let mask = s.mask.as_ref();
+                    let f = Frame::of(s, shift);
+                    let mut v = vec![0; (n + 1) * (n + 1)];
+                    let mut c = vec![0; n * n];
+                    let mut h = vec![0; n * n];
+                    f.gather_vertices(n, mask, rows, base, width, &mut v);
+                    f.gather_cells(n, mask, rows, base, width, &mut c);
+                    let fine = measuring.then(|| v.clone());
+                    lifting::analyze(n, &mut v, &c, &mut h, mask);
+                    let m = fine.map(|fine| measure(n, mask, &v, &fine, &c));
+                    let blob = coder.and_then(|(side, model)| {
+                        side.has_data[level][i].then(|| {
+                            blob::encode(
+                                &geom.blob_context(level, i),
+                                model,
+                                &side.classes(geom, level, i),
+                                &h,
+                            )
+                        })
+                    });
+                    Analysed { v, h, m, blob }
+                })
+                .collect();
+            let in_flight: usize = results
+                .iter()
+                .map(|r| {
+                    4 * (r.v.len() + r.h.len() + (2 * (n + 1) * (n + 1) + n * n))
+                        + r.blob.as_ref().map_or(0, Vec::len)
+                })
+                .sum();
+            meter.note(held + in_flight);
+            for (&i, r) in batch.iter().zip(&results) {
+                let s = &slots[i];
+                Frame::of(s, self.shift).scatter_interior(
+                    n,
+                    s.mask.as_ref(),
+                    &r.v,
+                    &mut self.rows,
+                    self.base,
+                    self.width,
+                );
+            }
+            match work {
+                Work::Analyse { side, .. } => {
+                    for (&i, r) in batch.iter().zip(&results) {
+                        let m =
+                            r.m.as_ref()
+                                .ok_or(EncodeError::Internal("missing measure"))?;
+                        let own = r.h.iter().any(|&x| x != 0);
+                        let kids: &[usize] = if level + 1 < levels {
+                            &slots[i].children
+                        } else {
+                            &[]
+                        };
+                        let (gamma, data, bound) = {
+                            let side: &Side = side;
+                            side_info(
+                                m,
+                                own,
+                                kids.iter().map(|&k| {
+                                    (
+                                        side.gamma[level + 1][k],
+                                        side.has_data[level + 1][k],
+                                        side.bounds[level + 1][k],
+                                    )
+                                }),
+                            )
+                        };
+                        side.gamma[level][i] = gamma;
+                        side.has_data[level][i] = data;
+                        side.bounds[level][i] = bound;
+                    }
+                    let group_ctx = entropy::group(levels - 1 - level);
+                    let side_ref: &Side = side;
+                    let counts = batch
+                        .par_iter()
+                        .zip(&results)
+                        .filter(|(i, _)| side_ref.trains(geom, level, **i))
+                        .fold(ContextCounts::default, |mut acc, (&i, r)| {
+                            entropy::write_matrix(
+                                &mut acc,
+                                group_ctx,
+                                n,
+                                &r.h,
+                                slots[i].mask.as_ref().map(DiamondMask::cells),
+                            );
+                            acc
+                        })
+                        .reduce(ContextCounts::default, |mut a, b| {
+                            a.merge(&b);
+                            a
+                        });
+                    side.counts.merge(&counts);
+                }
+                Work::Code { sink, coded, .. } => {
+                    for (&i, r) in batch.iter().zip(&results) {
+                        if let Some(b) = &r.blob {
+                            sink.put(level, i, &slots[i].key, b)
+                                .map_err(EncodeError::Sink)?;
+                            coded.count += 1;
+                            coded.bytes += b.len();
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One analysed diamond.
+struct Analysed {
+    /// Coarse vertex values.
+    v: Vec<i32>,
+    /// Details.
+    h: Vec<i32>,
+    /// Side-information measure (pass 1).
+    m: Option<Measure>,
+    /// Coded blob (pass 2, diamonds with data).
+    blob: Option<Vec<u8>>,
+}

@@ -1,0 +1,461 @@
+//! The out-of-core encoder against the in-memory one and the standard decoder: lossless and
+//! max-error round trips on real and synthetic rasters of awkward sizes with nodata holes,
+//! the memory budget, and failures of the source and the sink.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use std::time::Instant;
+
+use common::{bundled_korea, grid, shared_file};
+use quincunx_codec::encode::{EncodeError, EncodeOptions, Grid, RateMode, decode, encode};
+use quincunx_codec::stream::{BlobSink, RowSource, StreamEncoded, StreamOptions, encode_streaming};
+
+/// An in-memory row source that records the largest request.
+struct GridSource<'a> {
+    grid: &'a Grid,
+    max_rows: usize,
+    reads: usize,
+    fail_at_row: Option<usize>,
+}
+
+impl<'a> GridSource<'a> {
+    fn new(grid: &'a Grid) -> Self {
+        GridSource {
+            grid,
+            max_rows: 0,
+            reads: 0,
+            fail_at_row: None,
+        }
+    }
+}
+
+impl RowSource for GridSource<'_> {
+    fn width(&self) -> usize {
+        self.grid.width
+    }
+    fn height(&self) -> usize {
+        self.grid.height
+    }
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String> {
+        self.reads += 1;
+        self.max_rows = self.max_rows.max(count);
+        if self.fail_at_row.is_some_and(|r| first + count > r) {
+            return Err(format!("disk on fire at row {first}"));
+        }
+        let w = self.grid.width;
+        assert_eq!(out.len(), w * count);
+        out.copy_from_slice(&self.grid.values_m[first * w..(first + count) * w]);
+        Ok(())
+    }
+    fn quantum_m(&self) -> Option<f64> {
+        self.grid.quantum_m
+    }
+}
+
+/// Collects blobs by level and index; rejects duplicates.
+struct Blobs {
+    blobs: Vec<Vec<Option<Vec<u8>>>>,
+    fail_after: Option<usize>,
+    puts: usize,
+}
+
+impl Blobs {
+    fn new(g: &Grid, n: usize) -> Self {
+        let geom = quincunx_codec::raster::RasterGeometry::new(g.width, g.height, n).unwrap();
+        Blobs {
+            blobs: (0..geom.detail_levels())
+                .map(|l| vec![None; geom.level(l).len()])
+                .collect(),
+            fail_after: None,
+            puts: 0,
+        }
+    }
+}
+
+impl BlobSink for Blobs {
+    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), String> {
+        if self.fail_after.is_some_and(|k| self.puts >= k) {
+            return Err("store is full".into());
+        }
+        self.puts += 1;
+        let slot = &mut self.blobs[level][index];
+        assert!(slot.is_none(), "blob ({level}, {index}) put twice");
+        *slot = Some(blob.to_vec());
+        Ok(())
+    }
+}
+
+fn stream(g: &Grid, n: usize, mode: RateMode, budget: usize) -> (StreamEncoded, Blobs, usize) {
+    let mut src = GridSource::new(g);
+    let mut sink = Blobs::new(g, n);
+    let enc = encode_streaming(
+        &mut src,
+        StreamOptions {
+            n,
+            mode,
+            memory_budget_bytes: budget,
+        },
+        &mut sink,
+    )
+    .unwrap();
+    assert!(
+        src.max_rows * g.width * 8 <= budget,
+        "a read of {} rows exceeds the budget",
+        src.max_rows
+    );
+    assert!(
+        enc.peak_buffer_bytes <= budget,
+        "peak {} > budget {budget}",
+        enc.peak_buffer_bytes
+    );
+    (enc, sink, src.max_rows)
+}
+
+/// Largest error over valid samples.
+fn max_error(g: &Grid, decoded: &[f64]) -> f64 {
+    g.values_m
+        .iter()
+        .zip(decoded)
+        .filter(|(v, _)| v.is_finite())
+        .map(|(v, d)| (v - d).abs())
+        .fold(0.0, f64::max)
+}
+
+fn round_trip(g: &Grid, n: usize, mode: RateMode, budget: usize) -> (StreamEncoded, usize, f64) {
+    let (enc, _, max_rows, max) = timed_round_trip(g, n, mode, budget);
+    (enc, max_rows, max)
+}
+
+/// Streams, decodes with the standard decoder and checks the reported error; also returns
+/// the time of the streaming encode alone.
+fn timed_round_trip(
+    g: &Grid,
+    n: usize,
+    mode: RateMode,
+    budget: usize,
+) -> (StreamEncoded, std::time::Duration, usize, f64) {
+    let t = Instant::now();
+    let (enc, sink, max_rows) = stream(g, n, mode, budget);
+    let elapsed = t.elapsed();
+    let report = enc.report.clone();
+    let decoded = decode(&enc.clone().into_encoded(sink.blobs)).unwrap();
+    let max = max_error(g, &decoded);
+    assert!(
+        (report.max_abs_m - max).abs() < 1e-9,
+        "reported max {} measured {max}",
+        report.max_abs_m
+    );
+    (enc, elapsed, max_rows, max)
+}
+
+/// The smallest budget (in steps of 25 %) the encoder accepts, from `start` bytes.
+fn smallest_budget(g: &Grid, n: usize, start: usize) -> usize {
+    let mut budget = start;
+    loop {
+        let mut src = GridSource::new(g);
+        let mut sink = Blobs::new(g, n);
+        let opts = StreamOptions {
+            n,
+            mode: RateMode::Lossless,
+            memory_budget_bytes: budget,
+        };
+        match encode_streaming(&mut src, opts, &mut sink) {
+            Err(EncodeError::Budget { needed, .. }) => {
+                assert!(needed > budget);
+                budget = budget * 5 / 4;
+            }
+            Ok(_) => return budget,
+            Err(e) => panic!("{e}"),
+        }
+    }
+}
+
+fn synthetic(w: usize, h: usize, seed: u64) -> Grid {
+    let values_m = (0..w * h)
+        .map(|k| {
+            let (x, y) = ((k % w) as f64, (k / w) as f64);
+            let noise = ((k as u64 ^ seed).wrapping_mul(2654435761) >> 7) % 13;
+            (300.0 * (x / 17.0).sin() * (y / 23.0).cos() + 0.5 * x + noise as f64).round()
+        })
+        .collect();
+    Grid {
+        width: w,
+        height: h,
+        values_m,
+        quantum_m: Some(1.0),
+    }
+}
+
+fn lcg(seed: &mut u64) -> u64 {
+    *seed = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    *seed >> 33
+}
+
+/// Scattered nodata, a few small holes and one tall hole (rows `h/5 .. 4h/5`).
+fn with_holes(mut g: Grid, seed: u64) -> Grid {
+    let (w, h) = (g.width, g.height);
+    if w * h < 4 {
+        return g;
+    }
+    let mut s = seed;
+    for _ in 0..(w * h / 50) {
+        let k = (lcg(&mut s) as usize) % (w * h);
+        g.values_m[k] = f64::NAN;
+    }
+    for _ in 0..3 {
+        let (cx, cy) = (lcg(&mut s) as usize % w, lcg(&mut s) as usize % h);
+        for y in cy.saturating_sub(4)..(cy + 4).min(h) {
+            for x in cx.saturating_sub(6)..(cx + 6).min(w) {
+                g.values_m[y * w + x] = f64::NAN;
+            }
+        }
+    }
+    {
+        let (x0, x1) = (w / 3, (2 * w / 3).max(w / 3 + 1).min(w));
+        for y in h / 5..(4 * h / 5) {
+            for x in x0..x1 {
+                g.values_m[y * w + x] = f64::NAN;
+            }
+        }
+    }
+    g
+}
+
+#[test]
+fn streaming_without_nodata_matches_the_in_memory_encoder_blob_for_blob() {
+    let g = synthetic(300, 200, 1);
+    let budget = smallest_budget(&g, 32, 100_000);
+    let (enc, sink, _) = stream(&g, 32, RateMode::Lossless, budget);
+    let mem = encode(
+        &g,
+        EncodeOptions {
+            n: 32,
+            mode: RateMode::Lossless,
+        },
+    )
+    .unwrap();
+    assert_eq!(enc.root, mem.root);
+    assert_eq!(enc.model, mem.model);
+    assert_eq!(enc.steps, mem.steps);
+    assert_eq!(sink.blobs, mem.blobs);
+    assert_eq!(enc.report, mem.report);
+}
+
+#[test]
+fn bundled_korea_streams_losslessly_under_a_budget_smaller_than_the_input() {
+    let g = grid(&bundled_korea());
+    let budget = 2_000_000;
+    let (enc, streamed, max_rows, max) = timed_round_trip(&g, 32, RateMode::Lossless, budget);
+    assert_eq!(max, 0.0);
+    let t = Instant::now();
+    let mem = encode(
+        &g,
+        EncodeOptions {
+            n: 32,
+            mode: RateMode::Lossless,
+        },
+    )
+    .unwrap();
+    let in_memory = t.elapsed();
+    let r = &enc.report;
+    println!(
+        "korea_srtm3_1025 lossless: streaming {} blobs {} bytes ({:.3} bits/sample), peak {} bytes \
+         of a {budget} budget, reads of {max_rows} rows, {streamed:.2?}; in memory {} blobs {} bytes \
+         ({:.3} bits/sample), {in_memory:.2?}",
+        r.blob_count,
+        r.blob_bytes,
+        r.bits_per_sample,
+        enc.peak_buffer_bytes,
+        mem.report.blob_count,
+        mem.report.blob_bytes,
+        mem.report.bits_per_sample
+    );
+    let ratio = r.blob_bytes as f64 / mem.report.blob_bytes as f64;
+    assert!((0.97..=1.03).contains(&ratio), "bytes ratio {ratio}");
+    let count_ratio = r.blob_count as f64 / mem.report.blob_count as f64;
+    assert!(
+        (0.97..=1.03).contains(&count_ratio),
+        "count ratio {count_ratio}"
+    );
+    assert_eq!(r.valid_samples, mem.report.valid_samples);
+}
+
+#[test]
+fn bundled_korea_max_error_streams_within_the_bound() {
+    let g = grid(&bundled_korea());
+    for e in [1.0, 4.0] {
+        let (enc, _, max) = round_trip(&g, 32, RateMode::MaxErrorM(e), 2_000_000);
+        println!(
+            "korea_srtm3_1025 max-error {e} m: max {max} m, rms {:.3} m, {:.3} bits/sample",
+            enc.report.rms_m, enc.report.bits_per_sample
+        );
+        assert!(max <= e + 1e-9, "e={e} max={max}");
+    }
+}
+
+#[test]
+fn odd_sizes_with_holes_round_trip_losslessly_on_valid_samples() {
+    for (w, h, n) in [
+        (300, 200, 32),
+        (1000, 37, 32),
+        (37, 1000, 32),
+        (37, 1000, 8),
+        (1, 1, 32),
+        (33, 33, 32),
+        (65, 66, 32),
+        (129, 200, 16),
+    ] {
+        let g = with_holes(synthetic(w, h, w as u64 * 31 + h as u64), 7 + w as u64);
+        let budget = smallest_budget(&g, n, 20_000);
+        let (enc, max_rows, max) = round_trip(&g, n, RateMode::Lossless, budget);
+        println!(
+            "{w}x{h} N={n}: budget {budget}, peak {}, reads of {max_rows} rows",
+            enc.peak_buffer_bytes
+        );
+        assert_eq!(max, 0.0, "{w}x{h} N={n}");
+        if h >= 200 {
+            // The tall hole spans several chunks.
+            assert!(
+                3 * h / 5 > 2 * max_rows,
+                "{w}x{h}: chunks of {max_rows} rows"
+            );
+        }
+    }
+}
+
+#[test]
+fn odd_sizes_meet_a_max_error_bound() {
+    for (w, h) in [(300, 200), (37, 1000)] {
+        let g = with_holes(synthetic(w, h, 3), 5);
+        for e in [0.5, 2.5] {
+            let (_, _, max) = round_trip(&g, 32, RateMode::MaxErrorM(e), 1_000_000);
+            assert!(max <= e + 1e-9, "{w}x{h} e={e} max={max}");
+        }
+    }
+}
+
+#[test]
+fn float_data_off_any_grid_is_refused_losslessly_and_bounded_in_max_error() {
+    let mut g = synthetic(90, 70, 9);
+    for (k, v) in g.values_m.iter_mut().enumerate() {
+        *v += (k as f64 * 0.7548776662).fract() * 0.37;
+    }
+    g.quantum_m = None;
+    let mut sink = Blobs::new(&g, 32);
+    let err = encode_streaming(
+        &mut GridSource::new(&g),
+        StreamOptions {
+            n: 32,
+            mode: RateMode::Lossless,
+            memory_budget_bytes: 1 << 20,
+        },
+        &mut sink,
+    )
+    .unwrap_err();
+    assert_eq!(err, EncodeError::NotOnGrid);
+    let (_, _, max) = round_trip(&g, 32, RateMode::MaxErrorM(0.25), 1 << 20);
+    assert!(max <= 0.25 + 1e-9, "max={max}");
+}
+
+#[test]
+fn a_failing_source_or_sink_is_an_error_not_a_panic() {
+    let g = synthetic(300, 200, 2);
+    let opts = StreamOptions {
+        n: 32,
+        mode: RateMode::Lossless,
+        memory_budget_bytes: 1_000_000,
+    };
+    for fail_at_row in [1, 100, 199] {
+        let mut src = GridSource::new(&g);
+        src.fail_at_row = Some(fail_at_row);
+        let err = encode_streaming(&mut src, opts, &mut Blobs::new(&g, 32)).unwrap_err();
+        assert!(
+            matches!(err, EncodeError::Source(ref m) if m.contains("disk on fire")),
+            "{err}"
+        );
+    }
+    let mut sink = Blobs::new(&g, 32);
+    sink.fail_after = Some(5);
+    let err = encode_streaming(&mut GridSource::new(&g), opts, &mut sink).unwrap_err();
+    assert_eq!(err, EncodeError::Sink("store is full".into()));
+}
+
+#[test]
+fn rms_mode_and_tiny_budgets_are_refused_clearly() {
+    let g = synthetic(100, 100, 4);
+    let run = |mode, budget| {
+        encode_streaming(
+            &mut GridSource::new(&g),
+            StreamOptions {
+                n: 32,
+                mode,
+                memory_budget_bytes: budget,
+            },
+            &mut Blobs::new(&g, 32),
+        )
+    };
+    let err = run(RateMode::RmsM(1.0), 1 << 20).unwrap_err();
+    assert_eq!(err, EncodeError::StreamingMode);
+    assert!(err.to_string().contains("lossless or max-error"));
+    assert!(matches!(
+        run(RateMode::Lossless, 1000),
+        Err(EncodeError::Budget { .. })
+    ));
+    assert!(matches!(
+        run(RateMode::MaxErrorM(-1.0), 1 << 20),
+        Err(EncodeError::BadTolerance(_))
+    ));
+    let nodata = Grid {
+        values_m: vec![f64::NAN; 100 * 100],
+        ..g.clone()
+    };
+    let err = encode_streaming(
+        &mut GridSource::new(&nodata),
+        StreamOptions {
+            n: 32,
+            mode: RateMode::Lossless,
+            memory_budget_bytes: 1 << 20,
+        },
+        &mut Blobs::new(&g, 32),
+    )
+    .unwrap_err();
+    assert_eq!(err, EncodeError::AllNodata);
+}
+
+#[test]
+fn shared_korea_4097_streams_losslessly_in_bounded_memory() {
+    let test = "shared_korea_4097_streams_losslessly_in_bounded_memory";
+    let Some(path) = shared_file(test, "korea_srtm3_4097.json") else {
+        return;
+    };
+    let g = grid(&path);
+    let budget = 8_000_000;
+    let (enc, streamed, max_rows, max) = timed_round_trip(&g, 32, RateMode::Lossless, budget);
+    assert_eq!(max, 0.0);
+    let t = Instant::now();
+    let mem = encode(
+        &g,
+        EncodeOptions {
+            n: 32,
+            mode: RateMode::Lossless,
+        },
+    )
+    .unwrap();
+    let in_memory = t.elapsed();
+    println!(
+        "korea_srtm3_4097 lossless: streaming {} blobs {} bytes, peak {} bytes of a {budget} \
+         budget (input {} bytes as f64), reads of {max_rows} rows, {streamed:.2?}; in memory {} blobs {} bytes, {in_memory:.2?}",
+        enc.report.blob_count,
+        enc.report.blob_bytes,
+        enc.peak_buffer_bytes,
+        g.values_m.len() * 8,
+        mem.report.blob_count,
+        mem.report.blob_bytes,
+    );
+    let ratio = enc.report.blob_bytes as f64 / mem.report.blob_bytes as f64;
+    assert!((0.97..=1.03).contains(&ratio), "bytes ratio {ratio}");
+}
