@@ -7,13 +7,15 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use quincunx_codec::colour::rgb_to_ycocg_r;
 use quincunx_codec::encode::{self, CubeGrid, EncodeOptions, Encoded, Grid, RateMode};
+use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::sphere_raster::SphereGeometry;
-use quincunx_store::{Attribute, Metadata, NodataPolicy, RepositoryBuilder};
+use quincunx_codec::stream::{self, BlobSink, StreamOptions};
+use quincunx_store::{Attribute, ChannelCoding, Metadata, NodataPolicy, RepositoryBuilder};
 use serde::Serialize;
 
 use crate::input::{self, Georef};
 use crate::layout::{self, COLOUR_CHANNELS, Geometry};
-use crate::{planet, progress};
+use crate::{info, planet, progress};
 
 /// Options of `quincunx build`.
 #[derive(Args, Debug, Clone)]
@@ -105,6 +107,9 @@ pub struct BuildSummary {
     pub max_abs: f64,
     /// Content hash of the published repository.
     pub content_hash: String,
+    /// Built out of core (streaming, bounded memory) because the in-memory estimate
+    /// exceeded `--memory-budget-mb`.
+    pub out_of_core: bool,
 }
 
 fn rate_mode(args: &BuildArgs) -> Result<RateMode> {
@@ -136,19 +141,136 @@ fn diamond_n(args: &BuildArgs) -> Result<usize> {
 /// transform workspace, detail matrices, blobs): measured on korea_srtm3_4097.
 const BUILD_BYTES_PER_SAMPLE: u64 = 48;
 
+fn in_memory_mb(samples: usize, channels: usize) -> u64 {
+    (samples as u64 * BUILD_BYTES_PER_SAMPLE * channels as u64).div_ceil(1 << 20)
+}
+
+fn is_raw(path: &Path) -> bool {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    matches!(ext.as_str(), "json" | "i16" | "f32")
+}
+
 fn check_budget(args: &BuildArgs, samples: usize, channels: usize) -> Result<()> {
     let Some(budget) = args.memory_budget_mb else {
         return Ok(());
     };
-    let need_mb = (samples as u64 * BUILD_BYTES_PER_SAMPLE * channels as u64).div_ceil(1 << 20);
+    let need_mb = in_memory_mb(samples, channels);
     if need_mb > budget {
         bail!(
-            "this build needs about {need_mb} MB in memory but --memory-budget-mb is {budget}: \
-             out-of-core building (by subtree) is not implemented yet; raise the budget or \
-             split the input"
+            "this build needs about {need_mb} MB in memory but --memory-budget-mb is {budget}; \
+             out-of-core builds cover planar elevation from a raw grid + JSON sidecar in \
+             --lossless or --max-error-m mode (convert other formats to raw, or raise the budget)"
         );
     }
     Ok(())
+}
+
+/// Receives blobs from the streaming encoder straight into the repository.
+struct StoreSink<'a> {
+    args: &'a BuildArgs,
+    builder: &'a mut RepositoryBuilder,
+    stored: u64,
+    spin: indicatif::ProgressBar,
+}
+
+impl BlobSink for StoreSink<'_> {
+    fn put(&mut self, level: usize, _index: usize, key: &[u8], blob: &[u8]) -> Result<(), String> {
+        self.builder
+            .put(level as u32, key, blob)
+            .map_err(|e| e.to_string())?;
+        self.stored += 1;
+        if self.stored % 256 == 0 {
+            self.spin.set_message(format!("{} blobs", self.stored));
+        }
+        stall_hook(self.args, self.stored);
+        Ok(())
+    }
+}
+
+/// The out-of-core build: rows are read from the file as the streaming encoder needs
+/// them (three passes), so memory holds a few diamond-heights of rows per octave, the
+/// per-diamond bookkeeping and the coded blobs, never the raster.
+fn build_streaming(
+    args: &BuildArgs,
+    mut rows: input::RawRows,
+    n: usize,
+    mode: RateMode,
+    budget_mb: u64,
+    started: Instant,
+) -> Result<BuildSummary> {
+    let (width, height) = (rows.raw().width, rows.raw().height);
+    let units = rows.raw().units.clone();
+    let georef = rows.raw().georef.clone();
+    tracing::info!(width, height, budget_mb, "out-of-core build");
+    let mut builder = RepositoryBuilder::create(&args.output)
+        .and_then(RepositoryBuilder::spill_to_disk)
+        .with_context(|| format!("creating {}", args.output.display()))?;
+    let encode_started = Instant::now();
+    let spin = progress::spinner("streaming");
+    spin.set_message(format!("{width} x {height} in {budget_mb} MB"));
+    // The budget covers the whole process: what is resident now (program, input
+    // header), the per-diamond bookkeeping (geometry and side information, measured at
+    // about 512 bytes per diamond), the spill database's cache, and the encoder's sample
+    // buffers, which get the rest.
+    let diamonds = 2 * width * height / (n * n) + 64;
+    let reserve = layout::rss_bytes() + diamonds * 512 + (4 << 20);
+    let budget = (budget_mb as usize) << 20;
+    if budget <= reserve {
+        bail!(
+            "out-of-core build: --memory-budget-mb {budget_mb} leaves nothing for sample buffers: the program, \
+             the geometry of {diamonds} diamonds and the blob spill already take about {} MB",
+            reserve.div_ceil(1 << 20)
+        );
+    }
+    let opts = StreamOptions {
+        n,
+        mode,
+        memory_budget_bytes: budget - reserve,
+    };
+    let mut sink = StoreSink {
+        args,
+        builder: &mut builder,
+        stored: 0,
+        spin: spin.clone(),
+    };
+    let enc =
+        stream::encode_streaming(&mut rows, opts, &mut sink).context("encoding out of core")?;
+    spin.finish_and_clear();
+    let encode_seconds = encode_started.elapsed().as_secs_f64();
+    tracing::info!(
+        peak_buffer_bytes = enc.peak_buffer_bytes,
+        peak_rss_mb = layout::peak_rss_mb(),
+        "streamed"
+    );
+    let description = Description {
+        geometry: Geometry::Planar(
+            RasterGeometry::new(width, height, n).context("raster geometry")?,
+        ),
+        radius_m: None,
+        kind: "elevation",
+        units,
+        samples: enc.report.samples,
+        nodata_count: enc.report.samples - enc.report.valid_samples,
+        georef,
+        channels: vec![ChannelCoding {
+            name: "height".into(),
+            value_scale: enc.value_scale_m,
+            value_offset: enc.value_offset_m,
+            steps: enc.steps.clone(),
+            model: enc.model.to_bytes(),
+            roots: vec![enc.root.clone()],
+            rate: layout::rate_label(mode),
+        }],
+        rms: enc.report.rms_m,
+        max_abs: enc.report.max_abs_m,
+    };
+    let meta = publish(args, builder, &description, n, mode)?;
+    let mut summary = summarise(args, &meta, &description, started, encode_seconds)?;
+    summary.out_of_core = true;
+    Ok(summary)
 }
 
 /// Runs `quincunx build`.
@@ -199,6 +321,18 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
     let started = Instant::now();
     let mode = rate_mode(args)?;
     let n = diamond_n(args)?;
+    if let Some(budget_mb) = args.memory_budget_mb
+        && !args.colour
+        && !args.planet
+        && is_raw(&args.input)
+    {
+        let rows = input::RawRows::open(&args.input)
+            .with_context(|| format!("reading {}", args.input.display()))?;
+        let samples = rows.raw().width * rows.raw().height;
+        if in_memory_mb(samples, 1) > budget_mb {
+            return build_streaming(args, rows, n, mode, budget_mb, started);
+        }
+    }
     let spin = progress::spinner("reading");
     spin.set_message(args.input.display().to_string());
     let encode_started;
@@ -212,10 +346,16 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         let (pixels, domain) = if args.planet {
             let geom = planet_geometry(args, image.georef.as_ref(), image.width, image.height, n)?;
             check_budget(args, geom.distinct_points(), 3)?;
-            (planet::resample_rgb(&image, &geom)?, ColourDomain::Sphere(geom))
+            (
+                planet::resample_rgb(&image, &geom)?,
+                ColourDomain::Sphere(geom),
+            )
         } else {
             check_budget(args, image.width * image.height, 3)?;
-            (image.pixels, ColourDomain::Planar(image.width, image.height))
+            (
+                image.pixels,
+                ColourDomain::Planar(image.width, image.height),
+            )
         };
         encode_started = Instant::now();
         let mut coded = encode_colour(&pixels, &domain, n, mode, image.georef)?;
@@ -250,41 +390,74 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         }
     };
     let encode_seconds = encode_started.elapsed().as_secs_f64();
-    let (summary_output, meta) = store(args, &coded, n, mode)?;
+    let mut builder = RepositoryBuilder::create(&args.output)
+        .with_context(|| format!("creating {}", args.output.display()))?;
+    write_blobs(args, &mut builder, &coded)?;
+    let description = Description {
+        channels: coded
+            .channels
+            .iter()
+            .map(|(name, e)| layout::channel_coding(name, e, mode))
+            .collect(),
+        geometry: coded.geometry,
+        radius_m: coded.radius_m,
+        kind: coded.kind,
+        units: coded.units,
+        samples: coded.samples,
+        nodata_count: coded.nodata_count,
+        georef: coded.georef,
+        rms: coded.rms,
+        max_abs: coded.max_abs,
+    };
+    let meta = publish(args, builder, &description, n, mode)?;
+    summarise(args, &meta, &description, started, encode_seconds)
+}
+
+/// What the metadata and summary say about the coded data (both build paths).
+struct Description {
+    geometry: Geometry,
+    radius_m: Option<f64>,
+    kind: &'static str,
+    units: String,
+    samples: usize,
+    nodata_count: usize,
+    georef: Option<Georef>,
+    channels: Vec<ChannelCoding>,
+    rms: f64,
+    max_abs: f64,
+}
+
+fn summarise(
+    args: &BuildArgs,
+    meta: &Metadata,
+    d: &Description,
+    started: Instant,
+    encode_seconds: f64,
+) -> Result<BuildSummary> {
     let seconds = started.elapsed().as_secs_f64();
     let blob_bytes: u64 = meta.level_stats.iter().map(|s| s.bytes).sum();
     let blob_count = meta.level_stats.iter().map(|s| s.blobs).sum::<u64>() as usize;
-    let side_bytes: usize = meta
-        .channels
-        .iter()
-        .map(|c| {
-            c.model.len()
-                + 4 * c.steps.len()
-                + c.roots
-                    .iter()
-                    .map(|r| encode::root_grid_bytes(r).len())
-                    .sum::<usize>()
-        })
-        .sum();
+    let side_bytes = info::side_bytes(meta) as usize;
     let repository_bytes = quincunx_store::dir_size(&args.output)?;
     let coded_bytes = blob_bytes + side_bytes as u64;
     Ok(BuildSummary {
-        output: summary_output,
-        kind: coded.kind.into(),
-        samples: coded.samples,
+        output: args.output.display().to_string(),
+        kind: d.kind.into(),
+        samples: d.samples,
         seconds,
-        msamples_per_s: coded.samples as f64 / seconds / 1e6,
+        msamples_per_s: d.samples as f64 / seconds / 1e6,
         encode_seconds,
         peak_rss_mb: layout::peak_rss_mb(),
         blob_count,
         blob_bytes,
         side_bytes,
-        bits_per_sample: 8.0 * coded_bytes as f64 / coded.samples as f64,
+        bits_per_sample: 8.0 * coded_bytes as f64 / d.samples as f64,
         repository_bytes,
         storage_overhead: repository_bytes as f64 / coded_bytes.max(1) as f64,
-        rms: coded.rms,
-        max_abs: coded.max_abs,
-        content_hash: meta.content_hash,
+        rms: d.rms,
+        max_abs: d.max_abs,
+        content_hash: meta.content_hash.clone(),
+        out_of_core: false,
     })
 }
 
@@ -347,8 +520,8 @@ fn encode_planet(
 ) -> Result<Coded> {
     let spin = progress::spinner("encoding");
     spin.set_message(format!("6 faces of {0} x {0}", cube.face_side));
-    let enc = encode::encode_sphere(&cube, EncodeOptions { n, mode })
-        .context("encoding the planet")?;
+    let enc =
+        encode::encode_sphere(&cube, EncodeOptions { n, mode }).context("encoding the planet")?;
     spin.finish_and_clear();
     Ok(Coded {
         geometry: Geometry::of(&enc)?,
@@ -468,16 +641,11 @@ pub fn rgb_error(pixels: &[[u8; 3]], y: &[i32], co: &[i32], cg: &[i32]) -> (f64,
             sum += (d * d) as f64;
         }
     }
-    (
-        (sum / (3 * pixels.len().max(1)) as f64).sqrt(),
-        max as f64,
-    )
+    ((sum / (3 * pixels.len().max(1)) as f64).sqrt(), max as f64)
 }
 
-fn store(args: &BuildArgs, coded: &Coded, n: usize, mode: RateMode) -> Result<(String, Metadata)> {
+fn write_blobs(args: &BuildArgs, builder: &mut RepositoryBuilder, coded: &Coded) -> Result<()> {
     let geom = &coded.geometry;
-    let mut builder = RepositoryBuilder::create(&args.output)
-        .with_context(|| format!("creating {}", args.output.display()))?;
     let total: usize = (0..geom.detail_levels()).map(|l| geom.level_len(l)).sum();
     let pb = progress::bar(total as u64, "writing", "diamonds");
     let mut stored = 0u64;
@@ -491,17 +659,34 @@ fn store(args: &BuildArgs, coded: &Coded, n: usize, mode: RateMode) -> Result<(S
             if let Some(blob) = layout::frame_channels(&parts) {
                 builder.put(level as u32, geom.key(level, index), &blob)?;
                 stored += 1;
-                if args.stall_after_blobs == Some(stored) {
-                    tracing::warn!("stalling after {stored} blobs (test hook)");
-                    loop {
-                        std::thread::sleep(std::time::Duration::from_secs(3600));
-                    }
-                }
+                stall_hook(args, stored);
             }
             pb.inc(1);
         }
     }
     pb.finish_and_clear();
+    Ok(())
+}
+
+/// Test hook (`--stall-after-blobs`): stop making progress so a test can kill the build
+/// mid-way.
+fn stall_hook(args: &BuildArgs, stored: u64) {
+    if args.stall_after_blobs == Some(stored) {
+        tracing::warn!("stalling after {stored} blobs (test hook)");
+        loop {
+            std::thread::sleep(std::time::Duration::from_secs(3600));
+        }
+    }
+}
+
+fn publish(
+    args: &BuildArgs,
+    builder: RepositoryBuilder,
+    d: &Description,
+    n: usize,
+    mode: RateMode,
+) -> Result<Metadata> {
+    let geom = &d.geometry;
     let meta = Metadata {
         format_version: quincunx_store::FORMAT_VERSION,
         complete: false,
@@ -511,44 +696,30 @@ fn store(args: &BuildArgs, coded: &Coded, n: usize, mode: RateMode) -> Result<(S
         n: n as u32,
         levels: geom.detail_levels() as u32,
         attribute: Attribute {
-            kind: coded.kind.into(),
-            units: coded.units.clone(),
+            kind: d.kind.into(),
+            units: d.units.clone(),
         },
         extent: geom.extent(),
         nodata: NodataPolicy {
-            source_count: coded.nodata_count as u64,
-            handling: if coded.nodata_count > 0 {
-                "filled"
-            } else {
-                "none"
-            }
-            .into(),
+            source_count: d.nodata_count as u64,
+            handling: if d.nodata_count > 0 { "filled" } else { "none" }.into(),
         },
-        georef: coded
-            .georef
-            .as_ref()
-            .map(serde_json::to_value)
-            .transpose()?,
-        radius_m: coded.radius_m,
-        channels: coded
-            .channels
-            .iter()
-            .map(|(name, e)| layout::channel_coding(name, e, mode))
-            .collect(),
+        georef: d.georef.as_ref().map(serde_json::to_value).transpose()?,
+        radius_m: d.radius_m,
+        channels: d.channels.clone(),
         build: serde_json::json!({
             "tool": concat!("quincunx ", env!("CARGO_PKG_VERSION")),
             "input": file_name(&args.input),
             "rate": layout::rate_label(mode),
             "diamond_size": n + 1,
-            "achieved_rms": coded.rms,
-            "achieved_max_abs": coded.max_abs,
+            "achieved_rms": d.rms,
+            "achieved_max_abs": d.max_abs,
         }),
         level_stats: Vec::new(),
     };
-    let meta = builder
+    builder
         .publish(meta, args.overwrite)
-        .with_context(|| format!("publishing {}", args.output.display()))?;
-    Ok((args.output.display().to_string(), meta))
+        .with_context(|| format!("publishing {}", args.output.display()))
 }
 
 fn file_name(p: &Path) -> String {

@@ -238,10 +238,12 @@ pub fn load_channel(repo: &Repository, geom: &Geometry, channel: usize) -> Resul
         Geometry::Planar(_) => 1,
         Geometry::Sphere(_) => 6,
     };
-    if coding.roots.len() != want_roots
-        || coding.roots.iter().any(|r| r.len() != (n + 1) * (n + 1))
+    if coding.roots.len() != want_roots || coding.roots.iter().any(|r| r.len() != (n + 1) * (n + 1))
     {
-        bail!("channel {channel} needs {want_roots} root grids of {} values", (n + 1) * (n + 1));
+        bail!(
+            "channel {channel} needs {want_roots} root grids of {} values",
+            (n + 1) * (n + 1)
+        );
     }
     let count = meta.channels.len();
     let mut blobs = Vec::with_capacity(geom.detail_levels());
@@ -293,17 +295,25 @@ pub fn load_channel(repo: &Repository, geom: &Geometry, channel: usize) -> Resul
     })
 }
 
-/// Peak resident memory of this process so far, MB (Linux; 0 elsewhere).
-pub fn peak_rss_mb() -> f64 {
+fn proc_status_kb(field: &str) -> Option<f64> {
     std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|s| {
             s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
+                .find(|l| l.starts_with(field))
                 .and_then(|l| l.split_whitespace().nth(1))
                 .and_then(|kb| kb.parse::<f64>().ok())
         })
-        .map_or(0.0, |kb| kb / 1024.0)
+}
+
+/// Peak resident memory of this process so far, MB (Linux; 0 elsewhere).
+pub fn peak_rss_mb() -> f64 {
+    proc_status_kb("VmHWM:").map_or(0.0, |kb| kb / 1024.0)
+}
+
+/// Resident memory of this process now, bytes (Linux; 0 elsewhere).
+pub fn rss_bytes() -> usize {
+    proc_status_kb("VmRSS:").map_or(0, |kb| (kb * 1024.0) as usize)
 }
 
 #[cfg(test)]

@@ -65,11 +65,7 @@ fn parse_lat_lon(s: &str) -> Result<(f64, f64), String> {
     let (lat, lon) = s
         .split_once(',')
         .ok_or_else(|| format!("{s:?} is not LAT,LON"))?;
-    let parse = |t: &str| {
-        t.trim()
-            .parse::<f64>()
-            .map_err(|e| format!("{t:?}: {e}"))
-    };
+    let parse = |t: &str| t.trim().parse::<f64>().map_err(|e| format!("{t:?}: {e}"));
     Ok((parse(lat)?, parse(lon)?))
 }
 

@@ -11,8 +11,8 @@
 //! source spans 360°.
 
 use anyhow::{Context, Result, bail};
-use quincunx_codec::encode::CubeGrid;
 use quincunx_codec::diamond::sphere::{cube_to_unit_sphere, unit_sphere_to_cube};
+use quincunx_codec::encode::CubeGrid;
 use quincunx_codec::sphere_raster::SphereGeometry;
 use rayon::prelude::*;
 
@@ -83,7 +83,11 @@ impl<'a> Equirect<'a> {
         {
             bail!("planet builds need a latitude/longitude grid; the source CRS is {crs}");
         }
-        if georef.west < -180.5 || georef.east > 360.5 || georef.north > 90.0 || georef.south < -90.0 {
+        if georef.west < -180.5
+            || georef.east > 360.5
+            || georef.north > 90.0
+            || georef.south < -90.0
+        {
             bail!(
                 "the georeference ({}..{} E, {}..{} N) is not in degrees of latitude/longitude",
                 georef.west,
@@ -105,7 +109,12 @@ impl<'a> Equirect<'a> {
             Registration::Cell => {
                 let dlon = (georef.east - georef.west) / width as f64;
                 let dlat = (georef.north - georef.south) / height as f64;
-                (georef.west + dlon / 2.0, dlon, georef.north - dlat / 2.0, dlat)
+                (
+                    georef.west + dlon / 2.0,
+                    dlon,
+                    georef.north - dlat / 2.0,
+                    dlat,
+                )
             }
         };
         let wraps = (width as f64 * dlon - 360.0).abs() < dlon * 0.01;
@@ -169,7 +178,8 @@ impl<'a> Equirect<'a> {
             sum / weight
         } else {
             // Exactly on a nodata sample with zero-weight neighbours: nearest.
-            let v = self.values[row.round() as usize * self.width + (col.round() as usize % self.width)];
+            let v = self.values
+                [row.round() as usize * self.width + (col.round() as usize % self.width)];
             if v.is_finite() { v } else { f64::NAN }
         }
     }
@@ -222,7 +232,11 @@ pub fn resample_rgb(image: &RgbImage, geom: &SphereGeometry) -> Result<Vec<[u8; 
         let plane: Vec<f64> = image.pixels.iter().map(|p| p[c] as f64).collect();
         let e = Equirect::new(image.width, image.height, &plane, georef)?;
         for (dst, v) in cube.iter_mut().zip(e.to_cube(geom, Some(1.0))) {
-            dst[c] = if v.is_finite() { v.clamp(0.0, 255.0) as u8 } else { 0 };
+            dst[c] = if v.is_finite() {
+                v.clamp(0.0, 255.0) as u8
+            } else {
+                0
+            };
         }
     }
     Ok(cube)
@@ -245,7 +259,10 @@ pub fn query(geom: &SphereGeometry, values: &[f64], lat: f64, lon: f64) -> f64 {
     let (face, u, v) = face_chart(lat, lon, side);
     let u = u.clamp(0.0, side as f64);
     let v = v.clamp(0.0, side as f64);
-    let (u0, v0) = ((u.floor() as usize).min(side - 1), (v.floor() as usize).min(side - 1));
+    let (u0, v0) = (
+        (u.floor() as usize).min(side - 1),
+        (v.floor() as usize).min(side - 1),
+    );
     let (fu, fv) = (u - u0 as f64, v - v0 as f64);
     let at = |uu: usize, vv: usize| values[geom.cube_index(face, uu, vv)];
     at(u0, v0) * (1.0 - fu) * (1.0 - fv)
@@ -292,7 +309,10 @@ mod tests {
             }
         }
         let (lat, _) = lat_lon(geom.sample_position(4, 32, 32));
-        assert!((lat - 90.0).abs() < 1e-9, "+Z face centre is the north pole");
+        assert!(
+            (lat - 90.0).abs() < 1e-9,
+            "+Z face centre is the north pole"
+        );
     }
 
     #[test]
@@ -310,7 +330,10 @@ mod tests {
         let e = Equirect::new(8, 5, &values, &g).unwrap();
         assert_eq!(e.sample(0.0, -180.0), 0.0);
         assert_eq!(e.sample(45.0, -90.0), 2.0);
-        assert!((e.sample(0.0, 157.5) - 3.5).abs() < 1e-9, "between col 7 and col 0");
+        assert!(
+            (e.sample(0.0, 157.5) - 3.5).abs() < 1e-9,
+            "between col 7 and col 0"
+        );
         assert!((e.sample(0.0, 180.0) - 0.0).abs() < 1e-9);
     }
 

@@ -181,8 +181,8 @@ pub fn decode_repository(repo: &Repository) -> Result<Decoded> {
 }
 
 fn verify(args: &VerifyArgs) -> Result<VerifyReport> {
-    let repo = Repository::open(&args.repo)
-        .with_context(|| format!("opening {}", args.repo.display()))?;
+    let repo =
+        Repository::open(&args.repo).with_context(|| format!("opening {}", args.repo.display()))?;
     let meta = repo.metadata().clone();
     let samples = info::samples(&meta);
     let blob_bytes: u64 = meta.level_stats.iter().map(|s| s.bytes).sum();
@@ -211,33 +211,49 @@ fn verify(args: &VerifyArgs) -> Result<VerifyReport> {
         return Ok(report);
     };
     let (rms, max) = if meta.attribute.kind == "colour" {
-        let image = input::read_rgb(source)
-            .with_context(|| format!("reading {}", source.display()))?;
+        let image =
+            input::read_rgb(source).with_context(|| format!("reading {}", source.display()))?;
         let pixels = match &decoded.geom {
             Geometry::Sphere(g) => planet::resample_rgb(&image, g)?,
             Geometry::Planar(_) => {
                 if [image.width as u64, image.height as u64] != meta.extent {
-                    bail!("source is {} x {}, repository {:?}", image.width, image.height, meta.extent);
+                    bail!(
+                        "source is {} x {}, repository {:?}",
+                        image.width,
+                        image.height,
+                        meta.extent
+                    );
                 }
                 image.pixels
             }
         };
         let planes: Vec<Vec<i32>> = (0..3)
-            .map(|c| decoded.channel(c).iter().map(|v| v.round() as i32).collect())
+            .map(|c| {
+                decoded
+                    .channel(c)
+                    .iter()
+                    .map(|v| v.round() as i32)
+                    .collect()
+            })
             .collect();
         if planes.len() != 3 {
             bail!("a colour repository needs 3 channels");
         }
         build::rgb_error(&pixels, &planes[0], &planes[1], &planes[2])
     } else {
-        let raster = input::read_heights(source)
-            .with_context(|| format!("reading {}", source.display()))?;
+        let raster =
+            input::read_heights(source).with_context(|| format!("reading {}", source.display()))?;
         let reference = match &decoded.geom {
             Geometry::Sphere(g) => planet::resample_heights(&raster, g)?.values_m,
             Geometry::Planar(_) => {
                 let g = &raster.grid;
                 if [g.width as u64, g.height as u64] != meta.extent {
-                    bail!("source is {} x {}, repository {:?}", g.width, g.height, meta.extent);
+                    bail!(
+                        "source is {} x {}, repository {:?}",
+                        g.width,
+                        g.height,
+                        meta.extent
+                    );
                 }
                 raster.grid.values_m
             }

@@ -391,13 +391,34 @@ fn check_planet(repo: &Path, everest_min: f64, trench_max: f64) {
             (45.0, 45.0),
         ],
     );
-    assert!(h[0] > everest_min && h[0] < 8849.0, "Everest area: {}", h[0]);
-    assert!(h[1] < trench_max && h[1] > -11035.0, "Mariana trench: {}", h[1]);
+    assert!(
+        h[0] > everest_min && h[0] < 8849.0,
+        "Everest area: {}",
+        h[0]
+    );
+    assert!(
+        h[1] < trench_max && h[1] > -11035.0,
+        "Mariana trench: {}",
+        h[1]
+    );
     assert_eq!(h[2], h[3], "north pole depends on longitude");
     assert_eq!(h[4], h[5], "south pole depends on longitude");
-    assert!((-4500.0..-3500.0).contains(&h[2]), "north pole is Arctic ocean floor: {}", h[2]);
-    assert!((2000.0..3500.0).contains(&h[4]), "south pole is the ice sheet: {}", h[4]);
-    assert!((h[6] - h[7]).abs() < 1e-6, "antimeridian seam: {} vs {}", h[6], h[7]);
+    assert!(
+        (-4500.0..-3500.0).contains(&h[2]),
+        "north pole is Arctic ocean floor: {}",
+        h[2]
+    );
+    assert!(
+        (2000.0..3500.0).contains(&h[4]),
+        "south pole is the ice sheet: {}",
+        h[4]
+    );
+    assert!(
+        (h[6] - h[7]).abs() < 1e-6,
+        "antimeridian seam: {} vs {}",
+        h[6],
+        h[7]
+    );
 }
 
 #[test]
@@ -411,7 +432,11 @@ fn bundled_planet_builds_without_seams_and_answers_point_queries() {
             .arg(&repo)
             .arg(&input),
     );
-    assert_eq!(built["samples"], 6 * 256 * 256 + 2, "face side follows the 20' source");
+    assert_eq!(
+        built["samples"],
+        6 * 256 * 256 + 2,
+        "face side follows the 20' source"
+    );
     let verified = ok_json(
         bin()
             .arg("verify")
@@ -431,7 +456,16 @@ fn bundled_planet_builds_without_seams_and_answers_point_queries() {
     let mars = dir.path().join("mars");
     ok_json(
         bin()
-            .args(["build", "--planet", "--body", "mars", "--face-side", "64", "--json", "-o"])
+            .args([
+                "build",
+                "--planet",
+                "--body",
+                "mars",
+                "--face-side",
+                "64",
+                "--json",
+                "-o",
+            ])
             .arg(&mars)
             .arg(&input),
     );
@@ -441,8 +475,10 @@ fn bundled_planet_builds_without_seams_and_answers_point_queries() {
 
 #[test]
 fn etopo5_planet_is_lossless_and_seamless() {
-    let Some(input) = shared_data("etopo5_planet_is_lossless_and_seamless", "etopo5_global.json")
-    else {
+    let Some(input) = shared_data(
+        "etopo5_planet_is_lossless_and_seamless",
+        "etopo5_global.json",
+    ) else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -479,7 +515,15 @@ fn blue_marble_colour_planet_is_within_the_requested_error() {
     let repo = dir.path().join("bmng");
     ok_json(
         bin()
-            .args(["build", "--planet", "--colour", "--max-error-m", "8", "--json", "-o"])
+            .args([
+                "build",
+                "--planet",
+                "--colour",
+                "--max-error-m",
+                "8",
+                "--json",
+                "-o",
+            ])
             .arg(&repo)
             .arg(&input),
     );
@@ -496,4 +540,100 @@ fn blue_marble_colour_planet_is_within_the_requested_error() {
     let info = ok_json(bin().arg("info").arg(&repo).arg("--json"));
     assert_eq!(info["metadata"]["attribute"]["kind"], "colour");
     assert_eq!(info["metadata"]["channels"].as_array().unwrap().len(), 3);
+}
+
+#[test]
+fn out_of_core_build_of_the_bundled_crop_is_lossless_within_its_budget() {
+    let input = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.json");
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("ooc");
+    let built = ok_json(
+        bin()
+            .args([
+                "build",
+                "--lossless",
+                "--memory-budget-mb",
+                "16",
+                "--json",
+                "-o",
+            ])
+            .arg(&repo)
+            .arg(&input),
+    );
+    assert_eq!(
+        built["out_of_core"], true,
+        "the in-memory estimate exceeds 16 MB"
+    );
+    let peak = built["peak_rss_mb"].as_f64().unwrap();
+    assert!(peak <= 16.0, "peak {peak} MB over a 16 MB budget");
+    assert!(!dir.path().join("ooc.spill").exists());
+    let verified = ok_json(
+        bin()
+            .arg("verify")
+            .arg(&repo)
+            .arg("--source")
+            .arg(&input)
+            .arg("--json"),
+    );
+    assert_eq!(verified["max_abs_m"], 0.0);
+    assert_eq!(verified["blob_errors"], 0);
+    // Same size as the in-memory build, give or take the nodata fill.
+    let in_memory = ok_json(
+        bin()
+            .args(["build", "--lossless", "--json", "-o"])
+            .arg(dir.path().join("mem"))
+            .arg(&input),
+    );
+    let (a, b) = (
+        built["bits_per_sample"].as_f64().unwrap(),
+        in_memory["bits_per_sample"].as_f64().unwrap(),
+    );
+    assert!(
+        (a - b).abs() / b < 0.01,
+        "out of core {a} vs in memory {b} bits/sample"
+    );
+}
+
+#[test]
+fn korea_builds_out_of_core_with_a_budget_below_its_input_size() {
+    let Some(input) = shared_data(
+        "korea_builds_out_of_core_with_a_budget_below_its_input_size",
+        "korea_srtm3_4097.json",
+    ) else {
+        return;
+    };
+    let input_mb = std::fs::metadata(input.with_extension("i16"))
+        .unwrap()
+        .len() as f64
+        / 1048576.0;
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("korea");
+    let built = ok_json(
+        bin()
+            .args([
+                "build",
+                "--max-error-m",
+                "1",
+                "--memory-budget-mb",
+                "32",
+                "--json",
+                "-o",
+            ])
+            .arg(&repo)
+            .arg(&input),
+    );
+    println!("korea out of core: {built} (input {input_mb:.1} MB)");
+    assert!(32.0 < input_mb);
+    assert_eq!(built["out_of_core"], true);
+    assert!(built["peak_rss_mb"].as_f64().unwrap() <= 32.0);
+    let verified = ok_json(
+        bin()
+            .arg("verify")
+            .arg(&repo)
+            .arg("--source")
+            .arg(&input)
+            .arg("--json"),
+    );
+    assert!(verified["max_abs_m"].as_f64().unwrap() <= 1.0);
+    assert_eq!(verified["blob_errors"], 0);
 }

@@ -242,9 +242,15 @@ fn open_db(path: &Path, segment_bytes: usize) -> Result<sled::Db> {
         // No background flusher: it would also garbage-collect, rewriting pages of a
         // repository that is written once (publish flushes explicitly) and then only read.
         .flush_every_ms(None)
+        // Pages are cached by the page reader and blobs by the server; sled's own cache
+        // only needs the tree directory and recently read pages.
+        .cache_capacity(SLED_CACHE_BYTES)
         .open()
         .map_err(sled_err(path))
 }
+
+/// sled's page cache per open repository (and per build).
+const SLED_CACHE_BYTES: u64 = 4 << 20;
 
 /// The segment size an existing database was created with (sled refuses to open it with
 /// another), read from its `conf`; the current default when that is unreadable (sled then
@@ -495,8 +501,26 @@ pub struct RepositoryBuilder {
     partial: PathBuf,
     db: sled::Db,
     blobs: BTreeMap<Vec<u8>, Vec<u8>>,
+    spill: Option<Spill>,
     stats: Vec<LevelStats>,
     page_bytes: Option<usize>,
+}
+
+/// Blobs held on disk instead of in memory until publication (out-of-core builds): an
+/// append-only file beside the partial database and an in-memory index of where each
+/// key's blob is (about 40 bytes per blob).
+struct Spill {
+    path: PathBuf,
+    file: std::fs::File,
+    end: u64,
+    index: BTreeMap<Vec<u8>, (u64, usize)>,
+}
+
+/// Where an out-of-core build of `path` keeps its blobs until publication.
+pub fn spill_path(path: &Path) -> PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".spill");
+    path.with_file_name(name)
 }
 
 /// Where a partial build of `path` is written.
@@ -521,14 +545,43 @@ impl RepositoryBuilder {
             std::fs::create_dir_all(parent).map_err(io_err("creating", parent))?;
         }
         let db = open_db(&partial, SEGMENT_BYTES)?;
+        // Under the partial database's lock: a stale spill is ours to remove.
+        let spill = spill_path(&final_path);
+        if spill.exists() {
+            std::fs::remove_file(&spill).map_err(io_err("removing", &spill))?;
+        }
         Ok(RepositoryBuilder {
             final_path,
             partial,
             db,
             blobs: BTreeMap::new(),
+            spill: None,
             stats: Vec::new(),
             page_bytes: None,
         })
+    }
+
+    /// Keeps blobs on disk (in `<path>.spill`, removed at publication) instead of in
+    /// memory, so a build's memory does not grow with its output. Call before any `put`.
+    pub fn spill_to_disk(mut self) -> Result<RepositoryBuilder> {
+        let path = spill_path(&self.final_path);
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create_new(true)
+            .open(&path)
+            .map_err(io_err("creating", &path))?;
+        let mut spill = Spill {
+            path,
+            file,
+            end: 0,
+            index: BTreeMap::new(),
+        };
+        for (k, v) in std::mem::take(&mut self.blobs) {
+            spill.insert(k, &v)?;
+        }
+        self.spill = Some(spill);
+        Ok(self)
     }
 
     /// Sets the target page size in bytes (a page closes once it reaches it; a larger blob
@@ -542,7 +595,13 @@ impl RepositoryBuilder {
 
     /// Stores the blob of a diamond of `level`. Keys are the codec's storage keys.
     pub fn put(&mut self, level: u32, key: &[u8], blob: &[u8]) -> Result<()> {
-        let previous = self.blobs.insert(key.to_vec(), blob.to_vec());
+        let previous_len = match &mut self.spill {
+            None => self
+                .blobs
+                .insert(key.to_vec(), blob.to_vec())
+                .map(|old| old.len()),
+            Some(spill) => spill.insert(key.to_vec(), blob)?,
+        };
         if self.stats.len() <= level as usize {
             self.stats
                 .resize_with(level as usize + 1, LevelStats::default);
@@ -551,9 +610,9 @@ impl RepositoryBuilder {
             }
         }
         let s = &mut self.stats[level as usize];
-        if let Some(old) = previous {
+        if let Some(old_len) = previous_len {
             s.blobs -= 1;
-            s.bytes -= old.len() as u64;
+            s.bytes -= old_len as u64;
         }
         s.blobs += 1;
         s.bytes += blob.len() as u64;
@@ -575,8 +634,9 @@ impl RepositoryBuilder {
         metadata.format_version = FORMAT_VERSION;
         metadata.level_stats = self.stats.clone();
         let mut h = Sha256::new();
-        for (k, v) in &self.blobs {
-            hash_pair(&mut h, k, v);
+        for kv in self.pending() {
+            let (k, v) = kv?;
+            hash_pair(&mut h, &k, &v);
         }
         metadata.content_hash = finish_hash(h, &metadata, &self.partial)?;
         metadata.complete = true;
@@ -584,18 +644,22 @@ impl RepositoryBuilder {
             path: self.partial.clone(),
             reason: e.to_string(),
         })?;
+        let total: u64 = self.stats.iter().map(|s| s.bytes).sum();
+        let page_bytes = self.page_bytes.unwrap_or_else(|| default_page_bytes(total));
+        write_pages(&self.db, self.pending(), page_bytes, &self.partial)?;
         let RepositoryBuilder {
             final_path,
             partial,
             db,
             blobs,
-            page_bytes,
+            spill,
             ..
         } = self;
-        let total: u64 = blobs.values().map(|v| v.len() as u64).sum();
-        let page_bytes = page_bytes.unwrap_or_else(|| default_page_bytes(total));
-        write_pages(&db, &blobs, page_bytes).map_err(sled_err(&partial))?;
         drop(blobs);
+        if let Some(spill) = spill {
+            drop(spill.file);
+            std::fs::remove_file(&spill.path).map_err(io_err("removing", &spill.path))?;
+        }
         db.insert(METADATA_KEY, json).map_err(sled_err(&partial))?;
         db.flush().map_err(sled_err(&partial))?;
         drop(db);
@@ -629,13 +693,48 @@ impl RepositoryBuilder {
     }
 }
 
+/// A key and its blob.
+type KeyBlob = (Vec<u8>, Vec<u8>);
+
+impl RepositoryBuilder {
+    /// Every blob put so far, in key order.
+    fn pending(&self) -> Box<dyn Iterator<Item = Result<KeyBlob>> + '_> {
+        match &self.spill {
+            None => Box::new(self.blobs.iter().map(|(k, v)| Ok((k.clone(), v.clone())))),
+            Some(spill) => Box::new(spill.index.iter().map(|(k, &(at, len))| {
+                use std::os::unix::fs::FileExt;
+                let mut v = vec![0; len];
+                spill
+                    .file
+                    .read_exact_at(&mut v, at)
+                    .map_err(io_err("reading", &spill.path))?;
+                Ok((k.clone(), v))
+            })),
+        }
+    }
+}
+
+impl Spill {
+    /// Appends a blob; returns the length of the blob it replaces, if any.
+    fn insert(&mut self, key: Vec<u8>, blob: &[u8]) -> Result<Option<usize>> {
+        use std::os::unix::fs::FileExt;
+        self.file
+            .write_all_at(blob, self.end)
+            .map_err(io_err("writing", &self.path))?;
+        let previous = self.index.insert(key, (self.end, blob.len()));
+        self.end += blob.len() as u64;
+        Ok(previous.map(|(_, len)| len))
+    }
+}
+
 /// Packs `blobs` (in key order) into pages of about `page_bytes` and writes them,
 /// [`PAGES_PER_TREE`] to a fresh tree, each with a single insert.
 fn write_pages(
     db: &sled::Db,
-    blobs: &BTreeMap<Vec<u8>, Vec<u8>>,
+    blobs: impl Iterator<Item = Result<KeyBlob>>,
     page_bytes: usize,
-) -> sled::Result<()> {
+    path: &Path,
+) -> Result<()> {
     let mut writer = page::PageWriter::default();
     let mut pending: Vec<(Vec<u8>, Vec<u8>)> = Vec::with_capacity(PAGES_PER_TREE);
     let write_tree = |pages: &mut Vec<(Vec<u8>, Vec<u8>)>| -> sled::Result<()> {
@@ -649,23 +748,27 @@ fn write_pages(
         for (key, page) in pages.drain(..) {
             tree.insert(key, page)?;
         }
+        // Written pages stay in sled's buffers until flushed: flush per tree so a large
+        // repository's publication does not hold its pages in memory.
+        db.flush()?;
         Ok(())
     };
-    for (key, blob) in blobs {
-        writer.push(key, blob);
+    for kv in blobs {
+        let (key, blob) = kv?;
+        writer.push(&key, &blob);
         if writer.len() >= page_bytes
             && let Some(page) = writer.finish()
         {
             pending.push(page);
             if pending.len() == PAGES_PER_TREE {
-                write_tree(&mut pending)?;
+                write_tree(&mut pending).map_err(sled_err(path))?;
             }
         }
     }
     if let Some(page) = writer.finish() {
         pending.push(page);
     }
-    write_tree(&mut pending)
+    write_tree(&mut pending).map_err(sled_err(path))
 }
 
 #[cfg(test)]
@@ -697,6 +800,40 @@ mod tests {
             build: serde_json::json!({}),
             level_stats: vec![],
         }
+    }
+
+    #[test]
+    fn spilled_builds_publish_the_same_repository_and_leave_no_spill() {
+        let dir = tempfile::tempdir().unwrap();
+        let pairs: Vec<(Vec<u8>, Vec<u8>)> = (0u32..3000)
+            .map(|i| {
+                let key = [&[(i % 3) as u8][..], &(i * 7919 % 3001).to_be_bytes()].concat();
+                (key, vec![(i % 251) as u8; (i % 97) as usize + 1])
+            })
+            .collect();
+        let mut hashes = Vec::new();
+        for spill in [false, true] {
+            let path = dir.path().join(format!("repo{spill}"));
+            let mut b = RepositoryBuilder::create(&path).unwrap();
+            if spill {
+                b.put(0, b"\x00early", b"kept").unwrap();
+                b = b.spill_to_disk().unwrap();
+            } else {
+                b.put(0, b"\x00early", b"kept").unwrap();
+            }
+            for (k, v) in &pairs {
+                b.put(u32::from(k[0]), k, v).unwrap();
+            }
+            let meta = b.publish(metadata(), false).unwrap();
+            assert!(!spill_path(&path).exists());
+            let repo = Repository::open(&path).unwrap();
+            assert_eq!(repo.get(b"\x00early").unwrap().unwrap(), b"kept");
+            for (k, v) in &pairs {
+                assert_eq!(repo.get(k).unwrap().unwrap(), v.as_slice());
+            }
+            hashes.push((meta.content_hash, meta.level_stats));
+        }
+        assert_eq!(hashes[0], hashes[1]);
     }
 
     #[test]

@@ -22,6 +22,7 @@ mod geotiff;
 mod hgt;
 mod png16;
 mod raw;
+pub use raw::{RawFile, RawRows};
 mod rgb;
 
 /// Largest width or height accepted from any file (2^24 samples).

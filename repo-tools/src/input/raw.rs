@@ -138,8 +138,31 @@ impl Sidecar {
     }
 }
 
-/// Reads a raw grid: `path` is the sidecar (`.json`) or the data (`.i16` / `.f32`).
-pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
+/// A raw grid whose sidecar and length have been checked, not yet read.
+pub struct RawFile {
+    /// The data file.
+    pub data_path: PathBuf,
+    /// Samples per row.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// Sample type.
+    pub ty: RawType,
+    /// Metres per raw unit.
+    pub scale: f64,
+    /// Metres at raw 0.
+    pub offset: f64,
+    /// Raw nodata value.
+    pub nodata: Option<f64>,
+    /// Units of the values.
+    pub units: String,
+    /// Where the grid lies.
+    pub georef: Option<Georef>,
+    len: usize,
+}
+
+/// Opens a raw grid: `path` is the sidecar (`.json`) or the data (`.i16` / `.f32`).
+pub fn open(path: &Path) -> Result<RawFile, InputError> {
     let is_sidecar = extension(path).as_deref() == Some("json");
     let sidecar_path = if is_sidecar {
         path.to_path_buf()
@@ -210,27 +233,119 @@ pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
         height: height_u64,
         reason: "too large for this machine",
     })?;
-    let bytes = read_exact_len(&data_path, len)?;
-    let grid = Grid::from_raw_le(
+    Ok(RawFile {
+        data_path,
         width,
         height,
         ty,
-        &bytes,
-        sidecar.scale,
-        sidecar.offset,
-        sidecar.nodata,
-    )
-    .map_err(|e| InputError::Corrupt {
-        path: data_path.clone(),
-        format: "raw grid",
-        message: e.to_string(),
-    })?;
-    Ok(height_raster(
-        grid,
-        sidecar.units,
-        sidecar.georef,
-        InputFormat::RawSidecar,
-    ))
+        scale: sidecar.scale,
+        offset: sidecar.offset,
+        nodata: sidecar.nodata,
+        units: sidecar.units,
+        georef: sidecar.georef,
+        len,
+    })
+}
+
+/// Reads a raw grid: `path` is the sidecar (`.json`) or the data (`.i16` / `.f32`).
+pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
+    let RawFile {
+        data_path,
+        width,
+        height,
+        ty,
+        scale,
+        offset,
+        nodata,
+        units,
+        georef,
+        len,
+    } = open(path)?;
+    let bytes = read_exact_len(&data_path, len)?;
+    let grid =
+        Grid::from_raw_le(width, height, ty, &bytes, scale, offset, nodata).map_err(|e| {
+            InputError::Corrupt {
+                path: data_path.clone(),
+                format: "raw grid",
+                message: e.to_string(),
+            }
+        })?;
+    Ok(height_raster(grid, units, georef, InputFormat::RawSidecar))
+}
+
+/// Rows of a raw grid read on demand from its file (for out-of-core builds): only the
+/// rows asked for are ever in memory.
+pub struct RawRows {
+    file: RawFile,
+    handle: std::fs::File,
+    buf: Vec<u8>,
+}
+
+impl RawRows {
+    /// Opens the grid for row reads.
+    pub fn open(path: &Path) -> Result<RawRows, InputError> {
+        let file = open(path)?;
+        let handle = std::fs::File::open(&file.data_path).map_err(|source| InputError::Io {
+            path: file.data_path.clone(),
+            source,
+        })?;
+        Ok(RawRows {
+            file,
+            handle,
+            buf: Vec::new(),
+        })
+    }
+
+    /// What the sidecar says.
+    pub fn raw(&self) -> &RawFile {
+        &self.file
+    }
+}
+
+impl quincunx_codec::stream::RowSource for RawRows {
+    fn width(&self) -> usize {
+        self.file.width
+    }
+
+    fn height(&self) -> usize {
+        self.file.height
+    }
+
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String> {
+        use std::io::{Seek, SeekFrom};
+        let f = &self.file;
+        let item = if f.ty == RawType::I16 { 2 } else { 4 };
+        if first + count > f.height || out.len() != f.width * count {
+            return Err(format!(
+                "rows {first}..{} of a {}-row grid into {} values",
+                first + count,
+                f.height,
+                out.len()
+            ));
+        }
+        let start = (first * f.width * item) as u64;
+        self.buf.resize(count * f.width * item, 0);
+        self.handle
+            .seek(SeekFrom::Start(start))
+            .and_then(|_| self.handle.read_exact(&mut self.buf))
+            .map_err(|e| format!("{}: {e}", f.data_path.display()))?;
+        for (dst, c) in out.iter_mut().zip(self.buf.chunks_exact(item)) {
+            let raw = match f.ty {
+                RawType::I16 => i16::from_le_bytes([c[0], c[1]]) as f64,
+                RawType::F32 => f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64,
+            };
+            *dst = if f.nodata == Some(raw) || !raw.is_finite() {
+                f64::NAN
+            } else {
+                raw * f.scale + f.offset
+            };
+        }
+        Ok(())
+    }
+
+    fn quantum_m(&self) -> Option<f64> {
+        (self.file.ty == RawType::I16).then_some(self.file.scale)
+    }
 }
 
 /// The data file a sidecar describes: its `file` key (a plain name beside it) or the
