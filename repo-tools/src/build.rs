@@ -182,7 +182,7 @@ impl BlobSink for StoreSink<'_> {
             .put(level as u32, key, blob)
             .map_err(|e| e.to_string())?;
         self.stored += 1;
-        if self.stored % 256 == 0 {
+        if self.stored.is_multiple_of(256) {
             self.spin.set_message(format!("{} blobs", self.stored));
         }
         stall_hook(self.args, self.stored);
