@@ -24,7 +24,8 @@ use rayon::prelude::*;
 use crate::blob::{self, DecodeError};
 use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::raster::{
-    Layout, RasterError, RasterGeometry, analyze_levels, synthesize_levels, synthesize_levels_par,
+    Layout, RasterError, RasterGeometry, analyze_levels_with, synthesize_levels,
+    synthesize_levels_par,
 };
 use crate::sphere_raster::SphereGeometry;
 
@@ -686,7 +687,12 @@ fn encode_layout<G: Layout>(
         .collect();
     let valid_count = counted.iter().filter(|&&b| b).count();
     let mut raster = ints.values.clone();
-    let details = analyze_levels(geom, &mut raster);
+    // Lossless and max-error decodes reproduce the integerised values exactly, so the
+    // side information is measured during analysis instead of by a verification decode.
+    let exact = !matches!(opts.mode, RateMode::RmsM(_));
+    let (details, analysis_measures) = analyze_levels_with(geom, &mut raster, |l, i, c, f, x| {
+        exact.then(|| measure(n, geom.mask(&geom.slot_levels()[l][i]), c, f, x))
+    });
     let roots = geom.gather_roots(&raster);
     let levels = geom.slot_levels().len();
     let level_len = |l: usize| geom.slot_levels()[l].len();
@@ -863,9 +869,11 @@ fn encode_layout<G: Layout>(
         decoded = dec;
         measures = ms;
     } else {
-        let (dec, ms) = decode_measure(&quantized, &steps)?;
-        decoded = dec;
-        measures = ms;
+        decoded = ints.values.clone();
+        measures = analysis_measures
+            .into_iter()
+            .map(|l| l.into_iter().flatten().collect::<Vec<Measure>>())
+            .collect::<Vec<_>>();
     }
     let (rms_m, max_abs_m) = error_of(&decoded);
     drop(std::mem::take(&mut decoded));

@@ -408,35 +408,56 @@ pub(crate) trait Layout: Sync {
 
 /// Forward transform of every level, fine to coarse, diamonds of a level in parallel.
 pub(crate) fn analyze_levels<G: Layout>(g: &G, raster: &mut [i32]) -> Vec<Vec<Vec<i32>>> {
+    analyze_levels_with(g, raster, |_, _, _, _, _| ()).0
+}
+
+/// [`analyze_levels`], calling `visit(level, index, coarse_vertices, fine_vertices, cells)`
+/// for each diamond (the lattice after and before its analysis: what synthesis will turn
+/// back into each other), in parallel within a level.
+pub(crate) fn analyze_levels_with<G: Layout, F, R>(
+    g: &G,
+    raster: &mut [i32],
+    visit: F,
+) -> (Vec<Vec<Vec<i32>>>, Vec<Vec<R>>)
+where
+    F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
+    R: Send,
+{
     let n = g.n();
     let levels = g.slot_levels();
     let mut details = vec![Vec::new(); levels.len()];
+    let mut visits: Vec<Vec<R>> = (0..levels.len()).map(|_| Vec::new()).collect();
     for level in (0..levels.len()).rev() {
         let slots = &levels[level];
         let shared: &[i32] = raster;
-        let results: Vec<(Vec<i32>, Vec<i32>)> = slots
+        let results: Vec<(Vec<i32>, Vec<i32>, R)> = slots
             .par_iter()
-            .map(|s| {
+            .enumerate()
+            .map(|(index, s)| {
                 let mut v = vec![0; (n + 1) * (n + 1)];
                 let mut c = vec![0; n * n];
                 let mut h = vec![0; n * n];
                 g.gather_vertices(s, shared, &mut v);
                 g.gather_cells(s, shared, &mut c);
+                let fine = v.clone();
                 lifting::analyze(n, &mut v, &c, &mut h, g.mask(s));
-                (v, h)
+                let r = visit(level, index, &v, &fine, &c);
+                (v, h, r)
             })
             .collect();
         let mut hs = Vec::with_capacity(results.len());
-        for (s, (v, h)) in slots.iter().zip(results) {
+        let mut rs = Vec::with_capacity(results.len());
+        for (s, (v, h, r)) in slots.iter().zip(results) {
             g.scatter_interior(s, &v, raster);
             hs.push(h);
+            rs.push(r);
         }
         details[level] = hs;
+        visits[level] = rs;
     }
-    details
+    (details, visits)
 }
 
-/// Inverse transform of every level, coarse to fine, on the calling thread.
 pub(crate) fn synthesize_levels<G: Layout, E>(
     g: &G,
     raster: &mut [i32],

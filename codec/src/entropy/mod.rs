@@ -337,15 +337,25 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
         return;
     }
     let bl = Blocks::new(n);
-    let block_any = |by: usize, bx: usize, size: usize, pred: &dyn Fn(usize) -> bool| {
-        (by * bl.b..(by + size) * bl.b)
-            .any(|i| (bx * bl.b..(bx + size) * bl.b).any(|j| pred(i * n + j)))
+    // Per block: any non-zero, any valid cell (the quadtree asks about unions of these).
+    let mut block_nz = vec![false; bl.nb * bl.nb];
+    let mut block_ok = vec![false; bl.nb * bl.nb];
+    for i in 0..n {
+        for j in 0..n {
+            let k = i * n + j;
+            let blk = (i / bl.b) * bl.nb + j / bl.b;
+            block_nz[blk] |= q[k] != 0;
+            block_ok[blk] |= is_valid(k);
+        }
+    }
+    let block_any = |by: usize, bx: usize, size: usize, table: &[bool]| {
+        (by..by + size).any(|y| table[y * bl.nb + bx..y * bl.nb + bx + size].iter().any(|&t| t))
     };
-    let mut sig = vec![vec![false; bl.nb * bl.nb]; bl.nb.trailing_zeros() as usize + 1];
+    let top = bl.nb.trailing_zeros() as usize;
+    let mut sig = vec![vec![false; bl.nb * bl.nb]; top + 1];
+    sig[top][0] = true;
     // Quadtree, depth first in Z-order.
     let mut stack = vec![(0usize, 0usize, bl.nb)];
-    let top = bl.nb.trailing_zeros() as usize;
-    sig[top][0] = true;
     let mut blocks = Vec::new();
     while let Some((by, bx, size)) = stack.pop() {
         if size == 1 {
@@ -354,24 +364,28 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
         }
         let half = size / 2;
         let lvl = half.trailing_zeros() as usize;
+        let side = bl.nb / half;
         let kids = [
             (by, bx),
             (by, bx + half),
             (by + half, bx),
             (by + half, bx + half),
         ];
-        let candidates: Vec<(usize, usize)> = kids
-            .into_iter()
-            .filter(|&(y, x)| block_any(y, x, half, &is_valid))
-            .collect();
+        let mut candidates = [(0usize, 0usize); 4];
+        let mut nc = 0;
+        for (y, x) in kids {
+            if block_any(y, x, half, &block_ok) {
+                candidates[nc] = (y, x);
+                nc += 1;
+            }
+        }
         let mut any = false;
-        let mut sig_kids = Vec::new();
-        for (k, &(y, x)) in candidates.iter().enumerate() {
-            let is_sig = block_any(y, x, half, &|idx| q[idx] != 0);
-            if k + 1 != candidates.len() || any {
-                let cy = y / half;
-                let cx = x / half;
-                let side = bl.nb / half;
+        let mut sig_kids = [(0usize, 0usize); 4];
+        let mut ns = 0;
+        for (k, &(y, x)) in candidates[..nc].iter().enumerate() {
+            let is_sig = block_any(y, x, half, &block_nz);
+            let (cy, cx) = (y / half, x / half);
+            if k + 1 != nc || any {
                 let left = cx > 0 && sig[lvl][cy * side + cx - 1];
                 let up = cy > 0 && sig[lvl][(cy - 1) * side + cx];
                 s.bit(
@@ -381,27 +395,34 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
             }
             if is_sig {
                 any = true;
-                sig[lvl][(y / half) * (bl.nb / half) + x / half] = true;
-                sig_kids.push((y, x));
+                sig[lvl][cy * side + cx] = true;
+                sig_kids[ns] = (y, x);
+                ns += 1;
             }
         }
-        for &(y, x) in sig_kids.iter().rev() {
+        for &(y, x) in sig_kids[..ns].iter().rev() {
             stack.push((y, x, half));
         }
     }
     let mut rec = vec![0i32; n * n];
     blocks.sort_unstable();
+    let mut cells = [0usize; 16];
     for (by, bx) in blocks {
-        let cells: Vec<usize> = (by * bl.b..(by + 1) * bl.b)
-            .flat_map(|i| (bx * bl.b..(bx + 1) * bl.b).map(move |j| i * n + j))
-            .filter(|&k| is_valid(k))
-            .collect();
+        let mut nc = 0;
+        for i in by * bl.b..(by + 1) * bl.b {
+            for j in bx * bl.b..(bx + 1) * bl.b {
+                if is_valid(i * n + j) {
+                    cells[nc] = i * n + j;
+                    nc += 1;
+                }
+            }
+        }
         let mut seen = false;
-        for (idx, &k) in cells.iter().enumerate() {
+        for (idx, &k) in cells[..nc].iter().enumerate() {
             let (i, j) = (k / n, k % n);
             let (class, sctx) = neighbourhood(&rec, n, i, j);
             let v = q[k];
-            if idx + 1 != cells.len() || seen {
+            if idx + 1 != nc || seen {
                 s.bit(ctx(g, SIG + class), v != 0);
             }
             if v == 0 {
