@@ -713,7 +713,7 @@ fn encode_layout<G: Layout>(
     };
 
     let mut steps = vec![256u32; levels];
-    let mut quantized: Vec<Vec<Vec<i32>>> = details.clone();
+    let quantized: Vec<Vec<Vec<i32>>>;
     let mut decoded;
     let measures;
     let (offset, exponent) = match opts.mode {
@@ -725,41 +725,40 @@ fn encode_layout<G: Layout>(
     };
     // Only the RMS mode trades individual details for rate; the other modes are exact.
     let prune = matches!(opts.mode, RateMode::RmsM(_));
-    let quantize_all = |steps: &[u32]| -> Vec<Vec<Vec<i32>>> {
-        details
-            .par_iter()
+    // Quantises every detail into `out` (reused between attempts: these are big).
+    let quantize_into = |steps: &[u32], out: &mut Vec<Vec<Vec<i32>>>| {
+        if out.len() != details.len() {
+            *out = details.clone();
+        }
+        out.par_iter_mut()
+            .zip(details.par_iter())
             .enumerate()
-            .map(|(l, ds)| {
-                ds.iter()
-                    .map(|h| {
-                        let mut q: Vec<i32> =
-                            h.iter().map(|&x| quantize(x, steps[l], offset)).collect();
-                        if prune && steps[l] > 256 {
-                            drop_isolated_ones(n, &mut q);
-                        }
-                        q
-                    })
-                    .collect()
-            })
-            .collect()
+            .for_each(|(l, (qs, ds))| {
+                for (q, h) in qs.iter_mut().zip(ds) {
+                    for (x, &d) in q.iter_mut().zip(h) {
+                        *x = quantize(d, steps[l], offset);
+                    }
+                    if prune && steps[l] > 256 {
+                        drop_isolated_ones(n, q);
+                    }
+                }
+            });
     };
     let decode_measure = |q: &[Vec<Vec<i32>>],
                           steps: &[u32]|
      -> Result<(Vec<i32>, Vec<Vec<Measure>>), EncodeError> {
-        let deq: Vec<Vec<Vec<i32>>> = q
-            .par_iter()
-            .enumerate()
-            .map(|(l, ds)| {
-                ds.iter()
-                    .map(|m| m.iter().map(|&x| dequantize(x, steps[l])).collect())
-                    .collect()
-            })
-            .collect();
         let mut out = vec![0; geom.raster_len()];
         geom.scatter_roots(&roots, &mut out)?;
-        let ms = synthesize_levels_par(geom, &mut out, &deq, |l, i, coarse, fine, cells| {
-            measure(n, geom.mask(slot(l, i)), coarse, fine, cells)
-        })?;
+        let ms = synthesize_levels_par(
+            geom,
+            &mut out,
+            |l, i, h| {
+                for (d, &x) in h.iter_mut().zip(&q[l][i]) {
+                    *d = dequantize(x, steps[l]);
+                }
+            },
+            |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
+        )?;
         Ok((out, ms))
     };
 
@@ -816,17 +815,20 @@ fn encode_layout<G: Layout>(
         let mut ratio = 1.0;
         let mut q = solve(target, ratio);
         let mut best: Option<Attempt> = None;
+        let mut qd = Vec::new();
         // Bracket of scales: the largest that met the target, the smallest that did not.
         let (mut met_q, mut missed_q) = (0.0f64, f64::INFINITY);
         for _ in 0..8 {
             let st: Vec<u32> = (0..levels).map(|l| step_of(q, l)).collect();
-            let qd = quantize_all(&st);
+            quantize_into(&st, &mut qd);
             let (dec, ms) = decode_measure(&qd, &st)?;
             let (rms, _) = error_of(&dec);
             if rms <= target {
                 if q > met_q {
                     met_q = q;
-                    best = Some((q, st, qd, dec, ms));
+                    // Keep this attempt; reuse the previous best's buffer next time.
+                    let spare = best.take().map(|b| b.2).unwrap_or_default();
+                    best = Some((q, st, std::mem::replace(&mut qd, spare), dec, ms));
                 }
                 if rms >= target * 0.99 {
                     break;
@@ -859,7 +861,7 @@ fn encode_layout<G: Layout>(
             None => {
                 // Fall back to the finest steps (integer lossless) if nothing met the target.
                 let st = vec![256; levels];
-                let qd = quantize_all(&st);
+                quantize_into(&st, &mut qd);
                 let (dec, ms) = decode_measure(&qd, &st)?;
                 (0.0, st, qd, dec, ms)
             }
@@ -869,6 +871,7 @@ fn encode_layout<G: Layout>(
         decoded = dec;
         measures = ms;
     } else {
+        quantized = details;
         decoded = ints.values.clone();
         measures = analysis_measures
             .into_iter()

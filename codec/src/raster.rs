@@ -349,7 +349,13 @@ impl RasterGeometry {
         R: Send,
     {
         self.check_len(raster)?;
-        synthesize_levels_par(self, raster, details, visit)
+        check_details(self, details)?;
+        synthesize_levels_par(
+            self,
+            raster,
+            |l, i, h| h.copy_from_slice(&details[l][i]),
+            visit,
+        )
     }
 
     fn check_len(&self, raster: &[i32]) -> Result<(), RasterError> {
@@ -481,26 +487,38 @@ pub(crate) fn synthesize_levels<G: Layout, E>(
 }
 
 /// Inverse transform with the diamonds of a level in parallel and a per-diamond visitor.
-pub(crate) fn synthesize_levels_par<G, F, R>(
-    g: &G,
-    raster: &mut [i32],
-    details: &[Vec<Vec<i32>>],
-    visit: F,
-) -> Result<Vec<Vec<R>>, RasterError>
-where
-    G: Layout,
-    F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
-    R: Send,
-{
-    let n = g.n();
+/// Checks that `details` has one `N x N` matrix per diamond of every level.
+pub(crate) fn check_details<G: Layout>(g: &G, details: &[Vec<Vec<i32>>]) -> Result<(), RasterError> {
     let levels = g.slot_levels();
-    if details.len() != levels.len() || details.iter().zip(levels).any(|(d, s)| d.len() != s.len())
+    let nn = g.n() * g.n();
+    if details.len() != levels.len()
+        || details
+            .iter()
+            .zip(levels)
+            .any(|(d, s)| d.len() != s.len() || d.iter().any(|h| h.len() != nn))
     {
         return Err(RasterError::WrongLength {
             expected: levels.iter().map(Vec::len).sum(),
             got: details.iter().map(Vec::len).sum(),
         });
     }
+    Ok(())
+}
+
+pub(crate) fn synthesize_levels_par<G, D, F, R>(
+    g: &G,
+    raster: &mut [i32],
+    details: D,
+    visit: F,
+) -> Result<Vec<Vec<R>>, RasterError>
+where
+    G: Layout,
+    D: Fn(usize, usize, &mut [i32]) + Sync,
+    F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
+    R: Send,
+{
+    let n = g.n();
+    let levels = g.slot_levels();
     let mut out = Vec::with_capacity(levels.len());
     for (level, slots) in levels.iter().enumerate() {
         let shared: &[i32] = raster;
@@ -510,9 +528,11 @@ where
             .map(|(index, s)| {
                 let mut v = vec![0; (n + 1) * (n + 1)];
                 let mut c = vec![0; n * n];
+                let mut h = vec![0; n * n];
+                details(level, index, &mut h);
                 g.gather_vertices(s, shared, &mut v);
                 let coarse = v.clone();
-                lifting::synthesize(n, &mut v, &details[level][index], &mut c, g.mask(s));
+                lifting::synthesize(n, &mut v, &h, &mut c, g.mask(s));
                 let r = visit(level, index, &coarse, &v, &c);
                 (v, c, r)
             })

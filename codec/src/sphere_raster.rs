@@ -31,7 +31,7 @@ use crate::diamond::{SphereDomain, SphereId, check_size};
 use crate::entropy;
 use crate::lifting::DiamondMask;
 use crate::raster::{
-    Layout, RasterError, analyze_levels, synthesize_levels, synthesize_levels_par,
+    Layout, RasterError, analyze_levels, check_details, synthesize_levels, synthesize_levels_par,
 };
 
 /// An affine index map: vertex `(i, j)` at `v0 + i si + j sj`, cell `(i, j)` at
@@ -556,7 +556,13 @@ impl SphereGeometry {
         R: Send,
     {
         self.check_len(raster)?;
-        synthesize_levels_par(self, raster, details, visit)
+        check_details(self, details)?;
+        synthesize_levels_par(
+            self,
+            raster,
+            |l, i, h| h.copy_from_slice(&details[l][i]),
+            visit,
+        )
     }
 }
 
