@@ -488,7 +488,10 @@ pub(crate) fn synthesize_levels<G: Layout, E>(
 
 /// Inverse transform with the diamonds of a level in parallel and a per-diamond visitor.
 /// Checks that `details` has one `N x N` matrix per diamond of every level.
-pub(crate) fn check_details<G: Layout>(g: &G, details: &[Vec<Vec<i32>>]) -> Result<(), RasterError> {
+pub(crate) fn check_details<G: Layout>(
+    g: &G,
+    details: &[Vec<Vec<i32>>],
+) -> Result<(), RasterError> {
     let levels = g.slot_levels();
     let nn = g.n() * g.n();
     if details.len() != levels.len()

@@ -282,9 +282,9 @@ pub fn run(args: &BuildArgs) -> Result<()> {
     let pool = builder.build().context("starting worker threads")?;
     let summary = pool.install(|| build(args))?;
     if args.json {
-        println!("{}", serde_json::to_string(&summary)?);
+        outln!("{}", serde_json::to_string(&summary)?);
     } else {
-        println!(
+        outln!(
             "built {} ({}): {} samples in {:.2} s ({:.2} M samples/s), {:.4} bits/sample, \
              rms {:.4}, max {:.4}, {} blobs, {:.2}x on disk, peak {:.0} MB",
             summary.output,

@@ -73,7 +73,7 @@ pub fn run(path: &Path, dir: &Path, name: Option<&str>) -> Result<()> {
     let meta_file = root.join("metadata.json");
     std::fs::write(&meta_file, serde_json::to_vec(meta)?)
         .with_context(|| format!("writing {}", meta_file.display()))?;
-    println!(
+    outln!(
         "exported {files} blobs and metadata.json to {}",
         root.display()
     );

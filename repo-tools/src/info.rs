@@ -67,16 +67,21 @@ pub fn run(path: &Path, json: bool) -> Result<()> {
         storage_overhead: repository_bytes as f64 / (blob_bytes + side).max(1) as f64,
     };
     if json {
-        println!("{}", serde_json::to_string(&info)?);
+        outln!("{}", serde_json::to_string(&info)?);
         return Ok(());
     }
-    println!("repository     {}", info.path);
-    println!("content hash   {}", meta.content_hash);
-    println!(
+    outln!("repository     {}", info.path);
+    outln!("content hash   {}", meta.content_hash);
+    outln!(
         "domain         {} (m = {}), N = {}, {} detail levels, extent {} x {}",
-        meta.domain, meta.m, meta.n, meta.levels, meta.extent[0], meta.extent[1]
+        meta.domain,
+        meta.m,
+        meta.n,
+        meta.levels,
+        meta.extent[0],
+        meta.extent[1]
     );
-    println!(
+    outln!(
         "attribute      {} [{}], channels {}",
         meta.attribute.kind,
         meta.attribute.units,
@@ -86,19 +91,20 @@ pub fn run(path: &Path, json: bool) -> Result<()> {
             .collect::<Vec<_>>()
             .join(", ")
     );
-    println!(
+    outln!(
         "nodata         {} source samples, {}",
-        meta.nodata.source_count, meta.nodata.handling
+        meta.nodata.source_count,
+        meta.nodata.handling
     );
     if let Some(g) = &meta.georef {
-        println!("georef         {g}");
+        outln!("georef         {g}");
     }
     if let Some(r) = meta.radius_m {
-        println!("radius         {r} m");
+        outln!("radius         {r} m");
     }
-    println!("level      blobs        bytes  bytes/blob");
+    outln!("level      blobs        bytes  bytes/blob");
     for s in &meta.level_stats {
-        println!(
+        outln!(
             "{:>5} {:>10} {:>12} {:>11.1}",
             s.level,
             s.blobs,
@@ -106,13 +112,18 @@ pub fn run(path: &Path, json: bool) -> Result<()> {
             s.bytes as f64 / s.blobs.max(1) as f64
         );
     }
-    println!(
+    outln!(
         "total {:>10} {:>12}   + {} bytes roots/models/steps",
-        blob_count, blob_bytes, side
+        blob_count,
+        blob_bytes,
+        side
     );
-    println!(
+    outln!(
         "bits/sample    {:.4} over {} samples; {} bytes on disk ({:.2}x the coded bytes)",
-        info.bits_per_sample, samples, repository_bytes, info.storage_overhead
+        info.bits_per_sample,
+        samples,
+        repository_bytes,
+        info.storage_overhead
     );
     Ok(())
 }

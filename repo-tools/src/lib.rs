@@ -4,7 +4,22 @@
 //! Invariants: nothing here panics on bad input (files, repositories, options); every
 //! failure is an `anyhow` error naming the file or option, and the binary exits with 1.
 
+/// `println!` that ends the process quietly when stdout is closed (`quincunx info | head`)
+/// instead of panicking on the broken pipe.
+#[macro_export]
+macro_rules! outln {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        if let Err(e) = writeln!(std::io::stdout(), $($arg)*) {
+            if e.kind() == std::io::ErrorKind::BrokenPipe {
+                std::process::exit(0);
+            }
+        }
+    }};
+}
+
 pub mod build;
+pub mod demo;
 pub mod export;
 pub mod info;
 pub mod input;

@@ -7,7 +7,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use quincunx_repo_tools::{build, export, info, query, verify};
+use quincunx_repo_tools::{build, demo, export, info, query, verify};
 
 /// Streams compressed multiresolution terrain: repository tools.
 #[derive(Parser, Debug)]
@@ -22,6 +22,16 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// Build the bundled sample repositories (planar SRTM crop, ETOPO20 planet) if they
+    /// are missing, verify them and query a few places.
+    Demo {
+        /// Where the sample repositories go.
+        #[arg(long, default_value = "quincunx-demo")]
+        dir: PathBuf,
+        /// Folder with the bundled data (default: the source checkout's `data/`).
+        #[arg(long)]
+        data: Option<PathBuf>,
+    },
     /// Build a repository from a DEM (raw + JSON sidecar, GeoTIFF, 16-bit PNG, SRTM .hgt)
     /// or from RGB imagery (JPEG/PNG, `--colour`).
     Build(build::BuildArgs),
@@ -79,6 +89,7 @@ fn main() -> ExitCode {
         .init();
     let result = match cli.command {
         Command::Build(args) => build::run(&args),
+        Command::Demo { dir, data } => demo::run(&dir, data.as_deref()),
         Command::Info { repo, json } => info::run(&repo, json),
         Command::Verify(args) => verify::run(&args),
         Command::Export { repo, dir, name } => export::run(&repo, &dir, name.as_deref()),

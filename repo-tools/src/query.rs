@@ -31,11 +31,11 @@ pub fn run(repo: &Path, points: &[(f64, f64)], json: bool) -> Result<()> {
         if json {
             out.push(serde_json::json!({"lat": lat, "lon": lon, "values": values, "units": units}));
         } else {
-            println!("{lat:.5} {lon:.5} {values:?} {units}");
+            outln!("{lat:.5} {lon:.5} {values:?} {units}");
         }
     }
     if json {
-        println!("{}", serde_json::Value::Array(out));
+        outln!("{}", serde_json::Value::Array(out));
     }
     Ok(())
 }

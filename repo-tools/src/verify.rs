@@ -56,9 +56,9 @@ pub struct VerifyReport {
 pub fn run(args: &VerifyArgs) -> Result<()> {
     let report = verify(args)?;
     if args.json {
-        println!("{}", serde_json::to_string(&report)?);
+        outln!("{}", serde_json::to_string(&report)?);
     } else {
-        println!(
+        outln!(
             "{} blobs checked, {} errors, content hash {}; {:.4} bits/sample over {} samples; \
              decode {:.1} M samples/s{}",
             report.blobs_checked,

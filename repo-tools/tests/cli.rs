@@ -637,3 +637,25 @@ fn korea_builds_out_of_core_with_a_budget_below_its_input_size() {
     assert!(verified["max_abs_m"].as_f64().unwrap() <= 1.0);
     assert_eq!(verified["blob_errors"], 0);
 }
+
+#[test]
+fn demo_builds_and_verifies_the_bundled_samples_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let repos = dir.path().join("demo");
+    for round in 0..2 {
+        let out = run(bin().arg("demo").arg("--dir").arg(&repos));
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert_eq!(
+            stdout.matches("0 errors, content hash ok").count(),
+            2,
+            "{stdout}"
+        );
+        assert_eq!(stdout.contains("building"), round == 0, "{stdout}");
+    }
+    assert!(repos.join("korea").exists() && repos.join("earth").exists());
+}

@@ -349,7 +349,11 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
         }
     }
     let block_any = |by: usize, bx: usize, size: usize, table: &[bool]| {
-        (by..by + size).any(|y| table[y * bl.nb + bx..y * bl.nb + bx + size].iter().any(|&t| t))
+        (by..by + size).any(|y| {
+            table[y * bl.nb + bx..y * bl.nb + bx + size]
+                .iter()
+                .any(|&t| t)
+        })
     };
     let top = bl.nb.trailing_zeros() as usize;
     let mut sig = vec![vec![false; bl.nb * bl.nb]; top + 1];
