@@ -25,6 +25,7 @@ pub mod info;
 pub mod input;
 pub mod layout;
 pub mod planet;
+pub mod preview;
 pub mod progress;
 pub mod query;
 pub mod verify;

@@ -7,7 +7,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use quincunx_repo_tools::{build, demo, export, info, query, verify};
+use quincunx_repo_tools::{build, demo, export, info, preview, query, verify};
 
 /// Streams compressed multiresolution terrain: repository tools.
 #[derive(Parser, Debug)]
@@ -58,6 +58,18 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// A PNG picture of a repository's decoded data (elevation hillshaded and tinted, a
+    /// planet as an equirectangular map, colour as is).
+    Preview {
+        /// Repository directory.
+        repo: PathBuf,
+        /// Output PNG.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Picture width in pixels.
+        #[arg(long, default_value_t = 1024)]
+        width: usize,
+    },
     /// Write one static file per blob (paths mirror the server's blob URLs) plus the
     /// metadata, for any static web server or object store.
     Export {
@@ -94,6 +106,11 @@ fn main() -> ExitCode {
         Command::Verify(args) => verify::run(&args),
         Command::Export { repo, dir, name } => export::run(&repo, &dir, name.as_deref()),
         Command::Query { repo, at, json } => query::run(&repo, &at, json),
+        Command::Preview {
+            repo,
+            output,
+            width,
+        } => preview::run(&repo, &output, width),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -658,4 +658,20 @@ fn demo_builds_and_verifies_the_bundled_samples_once() {
         assert_eq!(stdout.contains("building"), round == 0, "{stdout}");
     }
     assert!(repos.join("korea").exists() && repos.join("earth").exists());
+    for (name, w, h) in [("earth", 64, 32), ("korea", 64, 64)] {
+        let png = dir.path().join(format!("{name}.png"));
+        let out = run(bin()
+            .arg("preview")
+            .arg(repos.join(name))
+            .args(["--width", "64", "-o"])
+            .arg(&png));
+        assert!(out.status.success());
+        let bytes = std::fs::read(&png).unwrap();
+        assert_eq!(&bytes[..8], b"\x89PNG\r\n\x1a\n");
+        let dims = (
+            u32::from_be_bytes(bytes[16..20].try_into().unwrap()),
+            u32::from_be_bytes(bytes[20..24].try_into().unwrap()),
+        );
+        assert_eq!(dims, (w, h), "{name}");
+    }
 }
