@@ -9,6 +9,9 @@ use quincunx_store::Repository;
 use crate::layout::Geometry;
 use crate::{planet, verify};
 
+/// Value of channel `c` at picture pixel `(x, y)`.
+type Sampler<'a> = dyn Fn(usize, usize, usize) -> f64 + 'a;
+
 /// Runs `quincunx preview`.
 pub fn run(repo: &Path, out: &Path, width: usize) -> Result<()> {
     if !(16..=8192).contains(&width) {
@@ -21,29 +24,28 @@ pub fn run(repo: &Path, out: &Path, width: usize) -> Result<()> {
         .map(|c| decoded.channel(c))
         .collect();
     // Sample every channel on the picture's grid.
-    let (w, h, sample): (usize, usize, Box<dyn Fn(usize, usize, usize) -> f64>) =
-        match &decoded.geom {
-            Geometry::Sphere(g) => {
-                let h = width / 2;
-                let f = move |c: usize, x: usize, y: usize| {
-                    let lat = 90.0 - (y as f64 + 0.5) * 180.0 / h as f64;
-                    let lon = -180.0 + (x as f64 + 0.5) * 360.0 / width as f64;
-                    planet::query(g, &channels[c], lat, lon)
-                };
-                (width, h, Box::new(f))
-            }
-            Geometry::Planar(g) => {
-                let (gw, gh) = (g.width(), g.height());
-                let w = width.min(gw);
-                let h = ((gh as f64 * w as f64 / gw as f64).round() as usize).max(1);
-                let f = move |c: usize, x: usize, y: usize| {
-                    let col = ((x as f64 + 0.5) * gw as f64 / w as f64) as usize;
-                    let row = ((y as f64 + 0.5) * gh as f64 / h as f64) as usize;
-                    channels[c][row.min(gh - 1) * gw + col.min(gw - 1)]
-                };
-                (w, h, Box::new(f))
-            }
-        };
+    let (w, h, sample): (usize, usize, Box<Sampler>) = match &decoded.geom {
+        Geometry::Sphere(g) => {
+            let h = width / 2;
+            let f = move |c: usize, x: usize, y: usize| {
+                let lat = 90.0 - (y as f64 + 0.5) * 180.0 / h as f64;
+                let lon = -180.0 + (x as f64 + 0.5) * 360.0 / width as f64;
+                planet::query(g, &channels[c], lat, lon)
+            };
+            (width, h, Box::new(f))
+        }
+        Geometry::Planar(g) => {
+            let (gw, gh) = (g.width(), g.height());
+            let w = width.min(gw);
+            let h = ((gh as f64 * w as f64 / gw as f64).round() as usize).max(1);
+            let f = move |c: usize, x: usize, y: usize| {
+                let col = ((x as f64 + 0.5) * gw as f64 / w as f64) as usize;
+                let row = ((y as f64 + 0.5) * gh as f64 / h as f64) as usize;
+                channels[c][row.min(gh - 1) * gw + col.min(gw - 1)]
+            };
+            (w, h, Box::new(f))
+        }
+    };
     let mut rgb = vec![0u8; w * h * 3];
     if meta.attribute.kind == "colour" {
         for y in 0..h {
