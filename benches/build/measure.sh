@@ -7,7 +7,7 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 data="${1:-../shared/data}"
 cargo build --release -q -p quincunx-repo-tools
-q=target/release/quincunx
+q="${CARGO_TARGET_DIR:-target}/release/quincunx"
 out="$(mktemp -d)"
 trap 'rm -rf "$out"' EXIT
 
