@@ -467,9 +467,14 @@ fn encode_heights(raster: input::HeightRaster, n: usize, mode: RateMode) -> Resu
     let enc = encode::encode(&raster.grid, EncodeOptions { n, mode })
         .context("encoding the height grid")?;
     spin.finish_and_clear();
+    elevation(raster, enc, None)
+}
+
+/// An elevation result: one `height` channel.
+fn elevation(raster: input::HeightRaster, enc: Encoded, radius_m: Option<f64>) -> Result<Coded> {
     Ok(Coded {
         geometry: Geometry::of(&enc)?,
-        radius_m: None,
+        radius_m,
         kind: "elevation",
         units: raster.units,
         samples: enc.report.samples,
@@ -523,18 +528,7 @@ fn encode_planet(
     let enc =
         encode::encode_sphere(&cube, EncodeOptions { n, mode }).context("encoding the planet")?;
     spin.finish_and_clear();
-    Ok(Coded {
-        geometry: Geometry::of(&enc)?,
-        radius_m: Some(radius_m),
-        kind: "elevation",
-        units: raster.units,
-        samples: enc.report.samples,
-        nodata_count: raster.nodata_count,
-        georef: raster.georef,
-        rms: enc.report.rms_m,
-        max_abs: enc.report.max_abs_m,
-        channels: vec![("height".into(), enc)],
-    })
+    elevation(raster, enc, Some(radius_m))
 }
 
 /// Where colour pixels live.

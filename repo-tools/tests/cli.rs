@@ -47,6 +47,18 @@ fn ok_json(cmd: &mut Command) -> serde_json::Value {
         .unwrap_or_else(|e| panic!("bad JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
 }
 
+/// `quincunx verify <repo> --source <source> --json`.
+fn verify_json(repo: &Path, source: &Path) -> serde_json::Value {
+    ok_json(
+        bin()
+            .arg("verify")
+            .arg(repo)
+            .arg("--source")
+            .arg(source)
+            .arg("--json"),
+    )
+}
+
 fn build_and_verify(
     input: &Path,
     rate: &[&str],
@@ -64,14 +76,7 @@ fn build_and_verify(
             .args(extra)
             .arg("--json"),
     );
-    let verified = ok_json(
-        bin()
-            .arg("verify")
-            .arg(&repo)
-            .arg("--source")
-            .arg(input)
-            .arg("--json"),
-    );
+    let verified = verify_json(&repo, input);
     assert_eq!(verified["blob_errors"], 0);
     assert_eq!(verified["content_hash_ok"], true);
     assert!(verified["blobs_checked"].as_u64().unwrap() > 0);
@@ -437,14 +442,7 @@ fn bundled_planet_builds_without_seams_and_answers_point_queries() {
         6 * 256 * 256 + 2,
         "face side follows the 20' source"
     );
-    let verified = ok_json(
-        bin()
-            .arg("verify")
-            .arg(&repo)
-            .arg("--source")
-            .arg(&input)
-            .arg("--json"),
-    );
+    let verified = verify_json(&repo, &input);
     assert_eq!(verified["seam_mismatches"], 0);
     assert_eq!(verified["blob_errors"], 0);
     assert!(verified["max_abs_m"].as_f64().unwrap() <= 2.0);
@@ -489,14 +487,7 @@ fn etopo5_planet_is_lossless_and_seamless() {
             .arg(&repo)
             .arg(&input),
     );
-    let verified = ok_json(
-        bin()
-            .arg("verify")
-            .arg(&repo)
-            .arg("--source")
-            .arg(&input)
-            .arg("--json"),
-    );
+    let verified = verify_json(&repo, &input);
     println!("etopo5 planet: build {built}\nverify {verified}");
     assert_eq!(verified["seam_mismatches"], 0);
     assert_eq!(verified["max_abs_m"], 0.0);
@@ -527,14 +518,7 @@ fn blue_marble_colour_planet_is_within_the_requested_error() {
             .arg(&repo)
             .arg(&input),
     );
-    let verified = ok_json(
-        bin()
-            .arg("verify")
-            .arg(&repo)
-            .arg("--source")
-            .arg(&input)
-            .arg("--json"),
-    );
+    let verified = verify_json(&repo, &input);
     assert_eq!(verified["seam_mismatches"], 0);
     assert!(verified["max_abs_m"].as_f64().unwrap() <= 8.0);
     let info = ok_json(bin().arg("info").arg(&repo).arg("--json"));
@@ -567,14 +551,7 @@ fn out_of_core_build_of_the_bundled_crop_is_lossless_within_its_budget() {
     let peak = built["peak_rss_mb"].as_f64().unwrap();
     assert!(peak <= 16.0, "peak {peak} MB over a 16 MB budget");
     assert!(!dir.path().join("ooc.spill").exists());
-    let verified = ok_json(
-        bin()
-            .arg("verify")
-            .arg(&repo)
-            .arg("--source")
-            .arg(&input)
-            .arg("--json"),
-    );
+    let verified = verify_json(&repo, &input);
     assert_eq!(verified["max_abs_m"], 0.0);
     assert_eq!(verified["blob_errors"], 0);
     // Same size as the in-memory build, give or take the nodata fill.
@@ -626,14 +603,7 @@ fn korea_builds_out_of_core_with_a_budget_below_its_input_size() {
     assert!(32.0 < input_mb);
     assert_eq!(built["out_of_core"], true);
     assert!(built["peak_rss_mb"].as_f64().unwrap() <= 32.0);
-    let verified = ok_json(
-        bin()
-            .arg("verify")
-            .arg(&repo)
-            .arg("--source")
-            .arg(&input)
-            .arg("--json"),
-    );
+    let verified = verify_json(&repo, &input);
     assert!(verified["max_abs_m"].as_f64().unwrap() <= 1.0);
     assert_eq!(verified["blob_errors"], 0);
 }

@@ -17,18 +17,60 @@ use super::{
 /// Deflate expands at most about 1032 times; PNG adds one filter byte per row.
 pub(super) const PNG_MAX_RATIO: u64 = 1100;
 
-/// Reads a greyscale PNG as heights.
-pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
-    let corrupt = |e: png::DecodingError| InputError::Corrupt {
+/// A PNG decoding error as an [`InputError`].
+pub(super) fn corrupt(path: &Path) -> impl Fn(png::DecodingError) -> InputError + '_ {
+    move |e| InputError::Corrupt {
         path: path.to_path_buf(),
         format: "PNG",
         message: e.to_string(),
-    };
+    }
+}
+
+/// An open PNG reader (header read) and the file's size.
+pub(super) type PngReader = png::Reader<BufReader<std::fs::File>>;
+
+/// Opens a PNG with the given transformations and reads its header.
+pub(super) fn open(
+    path: &Path,
+    transformations: Transformations,
+) -> Result<(PngReader, u64), InputError> {
     let file_bytes = file_len(path)?;
     let file = std::fs::File::open(path).map_err(io_error(path))?;
     let mut decoder = png::Decoder::new(BufReader::new(file));
-    decoder.set_transformations(Transformations::IDENTITY);
-    let mut reader = decoder.read_info().map_err(corrupt)?;
+    decoder.set_transformations(transformations);
+    Ok((decoder.read_info().map_err(corrupt(path))?, file_bytes))
+}
+
+/// Decodes the first frame into a buffer whose size was checked against the file; returns
+/// it and its line size, after checking `height` lines of at least `row_bytes`.
+pub(super) fn read_frame(
+    path: &Path,
+    reader: &mut PngReader,
+    file_bytes: u64,
+    row_bytes: usize,
+    height: usize,
+) -> Result<(Vec<u8>, usize), InputError> {
+    let buffer_bytes = check_decoded_size(
+        path,
+        reader.output_buffer_size() as u64,
+        file_bytes,
+        PNG_MAX_RATIO,
+    )?;
+    let mut buf = vec![0u8; buffer_bytes];
+    let frame = reader.next_frame(&mut buf).map_err(corrupt(path))?;
+    if frame.line_size < row_bytes || buf.len() < frame.line_size * height {
+        return Err(InputError::Corrupt {
+            path: path.to_path_buf(),
+            format: "PNG",
+            message: "decoded rows are shorter than the header says".to_owned(),
+        });
+    }
+    Ok((buf, frame.line_size))
+}
+
+/// Reads a greyscale PNG as heights.
+pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
+    let (mut reader, file_bytes) = open(path, Transformations::IDENTITY)?;
     let info = reader.info();
     let (width, height) = check_dimensions(path, info.width.into(), info.height.into())?;
     let sample_bytes = match (info.color_type, info.bit_depth) {
@@ -54,22 +96,8 @@ pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
             });
         }
     };
-    let buffer_bytes = check_decoded_size(
-        path,
-        reader.output_buffer_size() as u64,
-        file_bytes,
-        PNG_MAX_RATIO,
-    )?;
-    let mut buf = vec![0u8; buffer_bytes];
-    let frame = reader.next_frame(&mut buf).map_err(corrupt)?;
     let row_bytes = width * sample_bytes;
-    if frame.line_size < row_bytes || buf.len() < frame.line_size * height {
-        return Err(InputError::Corrupt {
-            path: path.to_path_buf(),
-            format: "PNG",
-            message: "decoded rows are shorter than the header says".to_owned(),
-        });
-    }
+    let (buf, line_size) = read_frame(path, &mut reader, file_bytes, row_bytes, height)?;
 
     let sidecar = Sidecar::beside(path)?;
     if let Some(s) = &sidecar {
@@ -79,7 +107,7 @@ pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
         .as_ref()
         .map_or((1.0, 0.0, None), |s| (s.scale, s.offset, s.nodata));
     let mut values_m = Vec::with_capacity(width * height);
-    for line in buf.chunks_exact(frame.line_size).take(height) {
+    for line in buf.chunks_exact(line_size).take(height) {
         let row = &line[..row_bytes];
         let raw = |c: &[u8]| -> f64 {
             if sample_bytes == 2 {

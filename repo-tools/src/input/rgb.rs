@@ -9,7 +9,6 @@ use std::path::Path;
 use jpeg_decoder::PixelFormat;
 use png::{ColorType, Transformations};
 
-use super::png16::PNG_MAX_RATIO;
 use super::raw::Sidecar;
 use super::{InputError, RgbImage, check_decoded_size, check_dimensions, file_len, io_error};
 
@@ -76,16 +75,8 @@ pub(super) fn read_jpeg(path: &Path) -> Result<RgbImage, InputError> {
 
 /// Reads an 8-bit (or 16-bit, stripped to 8) colour or grey PNG.
 pub(super) fn read_png(path: &Path) -> Result<RgbImage, InputError> {
-    let corrupt = |e: png::DecodingError| InputError::Corrupt {
-        path: path.to_path_buf(),
-        format: "PNG",
-        message: e.to_string(),
-    };
-    let file_bytes = file_len(path)?;
-    let file = std::fs::File::open(path).map_err(io_error(path))?;
-    let mut decoder = png::Decoder::new(BufReader::new(file));
-    decoder.set_transformations(Transformations::EXPAND | Transformations::STRIP_16);
-    let mut reader = decoder.read_info().map_err(corrupt)?;
+    let (mut reader, file_bytes) =
+        super::png16::open(path, Transformations::EXPAND | Transformations::STRIP_16)?;
     let info = reader.info();
     let (width, height) = check_dimensions(path, info.width.into(), info.height.into())?;
     let (colour, _) = reader.output_color_type();
@@ -98,24 +89,11 @@ pub(super) fn read_png(path: &Path) -> Result<RgbImage, InputError> {
             return Err(unsupported(path, "PNG", "palette not expanded"));
         }
     };
-    let buffer_bytes = check_decoded_size(
-        path,
-        reader.output_buffer_size() as u64,
-        file_bytes,
-        PNG_MAX_RATIO,
-    )?;
-    let mut buf = vec![0u8; buffer_bytes];
-    let frame = reader.next_frame(&mut buf).map_err(corrupt)?;
     let row_bytes = width * channels;
-    if frame.line_size < row_bytes || buf.len() < frame.line_size * height {
-        return Err(InputError::Corrupt {
-            path: path.to_path_buf(),
-            format: "PNG",
-            message: "decoded rows are shorter than the header says".to_owned(),
-        });
-    }
+    let (buf, line_size) =
+        super::png16::read_frame(path, &mut reader, file_bytes, row_bytes, height)?;
     let mut pixels = Vec::with_capacity(width * height);
-    for line in buf.chunks_exact(frame.line_size).take(height) {
+    for line in buf.chunks_exact(line_size).take(height) {
         pixels.extend(line[..row_bytes].chunks_exact(channels).map(|p| {
             if channels < 3 {
                 [p[0], p[0], p[0]]
