@@ -303,18 +303,10 @@ pub fn run(args: &BuildArgs) -> Result<()> {
     Ok(())
 }
 
-/// What was encoded, ready to store.
+/// What was encoded, ready to store: the description and each channel's codec output.
 struct Coded {
-    geometry: Geometry,
-    radius_m: Option<f64>,
-    kind: &'static str,
-    units: String,
-    samples: usize,
-    nodata_count: usize,
-    georef: Option<Georef>,
-    channels: Vec<(String, Encoded)>,
-    rms: f64,
-    max_abs: f64,
+    desc: Description,
+    encoded: Vec<Encoded>,
 }
 
 fn build(args: &BuildArgs) -> Result<BuildSummary> {
@@ -360,7 +352,7 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         encode_started = Instant::now();
         let mut coded = encode_colour(&pixels, &domain, n, mode, image.georef)?;
         if args.planet {
-            coded.radius_m = Some(radius_m(args)?);
+            coded.desc.radius_m = Some(radius_m(args)?);
         }
         coded
     } else {
@@ -393,24 +385,8 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
     let mut builder = RepositoryBuilder::create(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
     write_blobs(args, &mut builder, &coded)?;
-    let description = Description {
-        channels: coded
-            .channels
-            .iter()
-            .map(|(name, e)| layout::channel_coding(name, e, mode))
-            .collect(),
-        geometry: coded.geometry,
-        radius_m: coded.radius_m,
-        kind: coded.kind,
-        units: coded.units,
-        samples: coded.samples,
-        nodata_count: coded.nodata_count,
-        georef: coded.georef,
-        rms: coded.rms,
-        max_abs: coded.max_abs,
-    };
-    let meta = publish(args, builder, &description, n, mode)?;
-    summarise(args, &meta, &description, started, encode_seconds)
+    let meta = publish(args, builder, &coded.desc, n, mode)?;
+    summarise(args, &meta, &coded.desc, started, encode_seconds)
 }
 
 /// What the metadata and summary say about the coded data (both build paths).
@@ -467,22 +443,30 @@ fn encode_heights(raster: input::HeightRaster, n: usize, mode: RateMode) -> Resu
     let enc = encode::encode(&raster.grid, EncodeOptions { n, mode })
         .context("encoding the height grid")?;
     spin.finish_and_clear();
-    elevation(raster, enc, None)
+    elevation(raster, enc, None, mode)
 }
 
 /// An elevation result: one `height` channel.
-fn elevation(raster: input::HeightRaster, enc: Encoded, radius_m: Option<f64>) -> Result<Coded> {
+fn elevation(
+    raster: input::HeightRaster,
+    enc: Encoded,
+    radius_m: Option<f64>,
+    mode: RateMode,
+) -> Result<Coded> {
     Ok(Coded {
-        geometry: Geometry::of(&enc)?,
-        radius_m,
-        kind: "elevation",
-        units: raster.units,
-        samples: enc.report.samples,
-        nodata_count: raster.nodata_count,
-        georef: raster.georef,
-        rms: enc.report.rms_m,
-        max_abs: enc.report.max_abs_m,
-        channels: vec![("height".into(), enc)],
+        desc: Description {
+            geometry: Geometry::of(&enc)?,
+            radius_m,
+            kind: "elevation",
+            units: raster.units,
+            samples: enc.report.samples,
+            nodata_count: raster.nodata_count,
+            georef: raster.georef,
+            channels: vec![layout::channel_coding("height", &enc, mode)],
+            rms: enc.report.rms_m,
+            max_abs: enc.report.max_abs_m,
+        },
+        encoded: vec![enc],
     })
 }
 
@@ -528,7 +512,7 @@ fn encode_planet(
     let enc =
         encode::encode_sphere(&cube, EncodeOptions { n, mode }).context("encoding the planet")?;
     spin.finish_and_clear();
-    elevation(raster, enc, Some(radius_m))
+    elevation(raster, enc, Some(radius_m), mode)
 }
 
 /// Where colour pixels live.
@@ -609,16 +593,22 @@ fn encode_colour(
         .context("decoding colour for measurement")?;
     let (rms, max_abs) = rgb_error(pixels, &decoded[0], &decoded[1], &decoded[2]);
     Ok(Coded {
-        geometry: Geometry::of(&channels[0].1)?,
-        radius_m: None,
-        kind: "colour",
-        units: "srgb8".into(),
-        samples: channels[0].1.report.samples,
-        nodata_count: 0,
-        georef,
-        channels,
-        rms,
-        max_abs,
+        desc: Description {
+            geometry: Geometry::of(&channels[0].1)?,
+            radius_m: None,
+            kind: "colour",
+            units: "srgb8".into(),
+            samples: channels[0].1.report.samples,
+            nodata_count: 0,
+            georef,
+            channels: channels
+                .iter()
+                .map(|(name, e)| layout::channel_coding(name, e, channel_mode))
+                .collect(),
+            rms,
+            max_abs,
+        },
+        encoded: channels.into_iter().map(|(_, e)| e).collect(),
     })
 }
 
@@ -639,16 +629,16 @@ pub fn rgb_error(pixels: &[[u8; 3]], y: &[i32], co: &[i32], cg: &[i32]) -> (f64,
 }
 
 fn write_blobs(args: &BuildArgs, builder: &mut RepositoryBuilder, coded: &Coded) -> Result<()> {
-    let geom = &coded.geometry;
+    let geom = &coded.desc.geometry;
     let total: usize = (0..geom.detail_levels()).map(|l| geom.level_len(l)).sum();
     let pb = progress::bar(total as u64, "writing", "diamonds");
     let mut stored = 0u64;
     for level in 0..geom.detail_levels() {
         for index in 0..geom.level_len(level) {
             let parts: Vec<Option<&[u8]>> = coded
-                .channels
+                .encoded
                 .iter()
-                .map(|(_, e)| e.blobs[level][index].as_deref())
+                .map(|e| e.blobs[level][index].as_deref())
                 .collect();
             if let Some(blob) = layout::frame_channels(&parts) {
                 builder.put(level as u32, geom.key(level, index), &blob)?;
