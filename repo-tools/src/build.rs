@@ -464,8 +464,15 @@ fn summarise(
 fn encode_heights(raster: input::HeightRaster, n: usize, mode: RateMode) -> Result<Coded> {
     let spin = progress::spinner("encoding");
     spin.set_message(format!("{} x {}", raster.grid.width, raster.grid.height));
-    let enc = encode::encode(&raster.grid, EncodeOptions { n, mode })
-        .context("encoding the height grid")?;
+    let enc = encode::encode(
+        &raster.grid,
+        EncodeOptions {
+            n,
+            mode,
+            sparse: false,
+        },
+    )
+    .context("encoding the height grid")?;
     spin.finish_and_clear();
     Ok(Coded {
         geometry: Geometry::of(&enc)?,
@@ -520,8 +527,15 @@ fn encode_planet(
 ) -> Result<Coded> {
     let spin = progress::spinner("encoding");
     spin.set_message(format!("6 faces of {0} x {0}", cube.face_side));
-    let enc =
-        encode::encode_sphere(&cube, EncodeOptions { n, mode }).context("encoding the planet")?;
+    let enc = encode::encode_sphere(
+        &cube,
+        EncodeOptions {
+            n,
+            mode,
+            sparse: false,
+        },
+    )
+    .context("encoding the planet")?;
     spin.finish_and_clear();
     Ok(Coded {
         geometry: Geometry::of(&enc)?,
@@ -583,6 +597,7 @@ fn encode_colour(
         let opts = EncodeOptions {
             n,
             mode: channel_mode,
+            sparse: false,
         };
         let enc = match domain {
             ColourDomain::Planar(width, height) => encode::encode(
