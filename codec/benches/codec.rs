@@ -64,7 +64,17 @@ fn codec(c: &mut Criterion) {
     configure(&mut group, samples);
     for (mode_name, mode) in modes() {
         group.bench_with_input(BenchmarkId::from_parameter(mode_name), &mode, |b, &mode| {
-            b.iter(|| encode::encode(&grid, EncodeOptions { n: N, mode }).unwrap())
+            b.iter(|| {
+                encode::encode(
+                    &grid,
+                    EncodeOptions {
+                        n: N,
+                        mode,
+                        sparse: false,
+                    },
+                )
+                .unwrap()
+            })
         });
     }
     group.finish();
@@ -72,7 +82,15 @@ fn codec(c: &mut Criterion) {
     let mut group = c.benchmark_group(format!("decode/{name}"));
     configure(&mut group, samples);
     for (mode_name, mode) in modes() {
-        let enc = encode::encode(&grid, EncodeOptions { n: N, mode }).unwrap();
+        let enc = encode::encode(
+            &grid,
+            EncodeOptions {
+                n: N,
+                mode,
+                sparse: false,
+            },
+        )
+        .unwrap();
         group.bench_with_input(BenchmarkId::from_parameter(mode_name), &enc, |b, enc| {
             b.iter(|| encode::decode_integers(enc).unwrap())
         });

@@ -40,7 +40,15 @@ fn run() -> Result<(), String> {
     let n = numbers.get(1).copied().unwrap_or(32);
     let grid = common::synthetic_planet(face_side, n)?;
     let t0 = Instant::now();
-    let enc = encode::encode_sphere(&grid, EncodeOptions { n, mode }).map_err(|e| e.to_string())?;
+    let enc = encode::encode_sphere(
+        &grid,
+        EncodeOptions {
+            n,
+            mode,
+            sparse: false,
+        },
+    )
+    .map_err(|e| e.to_string())?;
     let encode_s = t0.elapsed().as_secs_f64();
     let t1 = Instant::now();
     let dec = encode::decode(&enc).map_err(|e| e.to_string())?;

@@ -59,7 +59,15 @@ fn run() -> Result<(), String> {
     )?;
     let grid = common::load_grid(&path)?;
     let t0 = Instant::now();
-    let enc = encode::encode(&grid, EncodeOptions { n, mode }).map_err(|e| e.to_string())?;
+    let enc = encode::encode(
+        &grid,
+        EncodeOptions {
+            n,
+            mode,
+            sparse: false,
+        },
+    )
+    .map_err(|e| e.to_string())?;
     let encode_s = t0.elapsed().as_secs_f64();
     // Decode: median of several single-thread runs.
     let mut times = Vec::new();

@@ -15,6 +15,12 @@
 //!
 //! Nodata samples are filled smoothly before coding ([`crate::fill`]); errors are measured
 //! over valid samples only.
+//!
+//! Sparse mode ([`EncodeOptions::sparse`]): the blocks of samples with no data at all
+//! (see [`crate::coverage`]) are left out: their points are invalid, never coded and never
+//! read by predictions, so the diamonds over them carry no details and get no blob. The
+//! [`Coverage`] is part of the [`Encoded`] output (the decoder needs it to rebuild the
+//! diamonds' masks). Nodata samples inside covered blocks are filled as in dense mode.
 
 use std::collections::BTreeMap;
 use std::sync::{Mutex, OnceLock};
@@ -22,6 +28,7 @@ use std::sync::{Mutex, OnceLock};
 use rayon::prelude::*;
 
 use crate::blob::{self, DecodeError};
+use crate::coverage::Coverage;
 use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::raster::{
     Layout, RasterError, RasterGeometry, analyze_levels_with, synthesize_levels,
@@ -131,6 +138,10 @@ pub struct EncodeOptions {
     pub n: usize,
     /// Rate mode.
     pub mode: RateMode,
+    /// Sparse mode: blocks of samples without any data become invalid (uncoded, no
+    /// blobs) instead of being filled and coded; the output carries the [`Coverage`].
+    /// `false` (dense) fills every nodata sample.
+    pub sparse: bool,
 }
 
 /// Why a grid could not be encoded.
@@ -277,6 +288,9 @@ pub struct Encoded {
     pub model: CodecModel,
     /// Blob of each diamond of each detail level (`None` = no data below it).
     pub blobs: Vec<Vec<Option<Vec<u8>>>>,
+    /// Sparse mode: the blocks holding data (points outside them are invalid; decoders
+    /// build the geometry with it). `None`: dense, every point valid.
+    pub coverage: Option<Coverage>,
     /// Measured results.
     pub report: EncodeReport,
 }
@@ -619,6 +633,12 @@ pub(crate) fn side_info(
         gam = gam.max(g as i64);
         data |= d;
     }
+    if m.fine_min > m.fine_max {
+        // No valid point of its own (sparse mode): its grid bounds nothing, so the subtree's
+        // whole range is the departure (0 for an empty subtree, whose bounds stay empty).
+        gam = gam.max(hi.saturating_sub(lo));
+        return (gam.max(0) as u64, data, (lo, hi));
+    }
     gam = gam.max(m.grid_min - lo).max(hi - m.grid_max);
     (gam as u64, data, (lo, hi))
 }
@@ -633,7 +653,14 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
         });
     }
     check_tolerance(opts.mode)?;
-    let geom = RasterGeometry::new(grid.width, grid.height, opts.n)?;
+    let geom = if opts.sparse {
+        let coverage = Coverage::of_raster(grid.width, grid.height, opts.n, |k| {
+            grid.values_m[k].is_finite()
+        });
+        RasterGeometry::with_coverage(grid.width, grid.height, opts.n, &coverage)?
+    } else {
+        RasterGeometry::new(grid.width, grid.height, opts.n)?
+    };
     let domain = EncodedDomain::Planar {
         width: grid.width,
         height: grid.height,
@@ -654,6 +681,12 @@ pub fn encode_sphere(grid: &CubeGrid, opts: EncodeOptions) -> Result<Encoded, En
     check_tolerance(opts.mode)?;
     let mut values_m = grid.values_m.clone();
     geom.make_consistent(&mut values_m)?;
+    let geom = if opts.sparse {
+        let coverage = Coverage::of_cube(grid.face_side, opts.n, |k| values_m[k].is_finite());
+        geom.covered(&coverage)?
+    } else {
+        geom
+    };
     let domain = EncodedDomain::Sphere {
         face_side: grid.face_side,
     };
@@ -996,6 +1029,7 @@ fn encode_layout<G: Layout>(
         roots,
         model,
         blobs,
+        coverage: geom.coverage().cloned(),
         report,
     })
 }
@@ -1031,30 +1065,53 @@ impl From<RasterError> for DecodeError {
 }
 
 /// Decodes to integer values (full resolution, one thread), in the domain's sample order
-/// (for a planet: the cube raster, every copy of an edge point written).
+/// (for a planet: the cube raster, every copy of an edge point written). Invalid points of
+/// a sparse encoding ([`Encoded::coverage`]) decode to 0.
 pub fn decode_integers(enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
+    Ok(decode_with_validity(enc)?.0)
+}
+
+/// The integers and, for a sparse encoding, which entries are valid points.
+fn decode_with_validity(enc: &Encoded) -> Result<(Vec<i32>, Option<Vec<bool>>), DecodeError> {
     match enc.domain {
         EncodedDomain::Planar { width, height } => {
-            decode_integers_with(&RasterGeometry::new(width, height, enc.n)?, enc)
+            let geom = match &enc.coverage {
+                Some(c) => RasterGeometry::with_coverage(width, height, enc.n, c)?,
+                None => RasterGeometry::new(width, height, enc.n)?,
+            };
+            let values = decode_integers_with(&geom, enc)?;
+            Ok((values, geom.point_validity()))
         }
-        EncodedDomain::Sphere { .. } => decode_sphere_integers(enc),
+        EncodedDomain::Sphere { face_side } => {
+            let geom = sphere_geometry(enc, face_side)?;
+            let values = decode_sphere_integers_with(&geom, enc)?;
+            Ok((values, geom.point_validity()))
+        }
     }
 }
 
-/// Decodes with a prepared geometry.
+fn sphere_geometry(enc: &Encoded, face_side: usize) -> Result<SphereGeometry, RasterError> {
+    match &enc.coverage {
+        Some(c) => SphereGeometry::with_coverage(face_side, enc.n, c),
+        None => SphereGeometry::new(face_side, enc.n),
+    }
+}
+
+/// Decodes with a prepared geometry (built with the encoding's coverage, if any).
 pub fn decode_integers_with(geom: &RasterGeometry, enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
     decode_layout(geom, std::slice::from_ref(&enc.root), enc)
 }
 
 /// Decodes a planet to integer values: the cube raster at full resolution (one thread).
+/// Invalid points of a sparse encoding decode to 0.
 pub fn decode_sphere_integers(enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
     let EncodedDomain::Sphere { face_side } = enc.domain else {
         return Err(RasterError::BadDimensions(enc.width, enc.height).into());
     };
-    decode_sphere_integers_with(&SphereGeometry::new(face_side, enc.n)?, enc)
+    decode_sphere_integers_with(&sphere_geometry(enc, face_side)?, enc)
 }
 
-/// Decodes a planet with a prepared geometry.
+/// Decodes a planet with a prepared geometry (built with the encoding's coverage, if any).
 pub fn decode_sphere_integers_with(
     geom: &SphereGeometry,
     enc: &Encoded,
@@ -1067,6 +1124,9 @@ fn decode_layout<G: Layout>(
     roots: &[Vec<i32>],
     enc: &Encoded,
 ) -> Result<Vec<i32>, DecodeError> {
+    if geom.coverage() != enc.coverage.as_ref() {
+        return Err(RasterError::Coverage("the geometry was built with another coverage").into());
+    }
     let mut raster = vec![0; geom.raster_len()];
     geom.scatter_roots(roots, &mut raster)?;
     let mut q = Vec::with_capacity(enc.n * enc.n);
@@ -1086,14 +1146,29 @@ fn decode_layout<G: Layout>(
         }
         Ok(true)
     })?;
+    if let Some(valid) = geom.point_validity() {
+        raster
+            .iter_mut()
+            .zip(&valid)
+            .filter(|(_, ok)| !**ok)
+            .for_each(|(x, _)| *x = 0);
+    }
     Ok(raster)
 }
 
-/// Decodes to metres.
+/// Decodes to metres. Invalid points of a sparse encoding decode to `NaN` (nodata).
 pub fn decode(enc: &Encoded) -> Result<Vec<f64>, DecodeError> {
-    Ok(decode_integers(enc)?
+    let (values, valid) = decode_with_validity(enc)?;
+    Ok(values
         .into_iter()
-        .map(|v| enc.value_offset_m + v as f64 * enc.value_scale_m)
+        .enumerate()
+        .map(|(k, v)| {
+            if valid.as_ref().is_some_and(|ok| !ok[k]) {
+                f64::NAN
+            } else {
+                enc.value_offset_m + v as f64 * enc.value_scale_m
+            }
+        })
         .collect())
 }
 
@@ -1126,6 +1201,7 @@ mod tests {
             EncodeOptions {
                 n: 32,
                 mode: RateMode::Lossless,
+                sparse: false,
             },
         )
         .unwrap();
@@ -1142,6 +1218,7 @@ mod tests {
                 EncodeOptions {
                     n: 32,
                     mode: RateMode::MaxErrorM(e),
+                    sparse: false,
                 },
             )
             .unwrap();
@@ -1164,6 +1241,7 @@ mod tests {
                 EncodeOptions {
                     n: 32,
                     mode: RateMode::RmsM(t),
+                    sparse: false,
                 },
             )
             .unwrap();
@@ -1190,6 +1268,7 @@ mod tests {
             EncodeOptions {
                 n: 16,
                 mode: RateMode::Lossless,
+                sparse: false,
             },
         )
         .unwrap();

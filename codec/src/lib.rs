@@ -7,6 +7,8 @@
 //!   rasters and cube-mapped planets), rate control and blobs.
 //! - [`stream`]: the out-of-core encoder of planar rasters (bounded memory, rows read on
 //!   demand, blobs handed out as they are coded).
+//! - [`coverage`]: which coarse blocks hold data, for sparse encoding (nodata areas are
+//!   left out of the hierarchy instead of being filled and coded).
 //! - [`colour`]: the reversible YCoCg-R colour transform.
 //!
 //! The crate is pure: no I/O, no async. Untrusted bytes are decoded into `Result`s, never
@@ -14,6 +16,7 @@
 
 pub mod blob;
 pub mod colour;
+pub mod coverage;
 pub mod diamond;
 pub mod encode;
 pub mod entropy;

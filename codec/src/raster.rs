@@ -10,6 +10,7 @@
 use rayon::prelude::*;
 
 use crate::blob::BlobContext;
+use crate::coverage::{BlockState, Coverage};
 use crate::diamond::{PlanarDomain, PlanarId, check_size};
 use crate::entropy;
 use crate::lifting::{self, DiamondMask};
@@ -39,6 +40,9 @@ pub enum RasterError {
         /// values given
         got: usize,
     },
+    /// A coverage's shape does not fit the geometry.
+    #[error("the coverage does not fit the geometry: {0}")]
+    Coverage(&'static str),
 }
 
 /// Where one diamond's samples live in the raster.
@@ -101,6 +105,7 @@ pub struct RasterGeometry {
     n: usize,
     domain: PlanarDomain,
     levels: Vec<Vec<DiamondSlot>>,
+    coverage: Option<Coverage>,
 }
 
 impl RasterGeometry {
@@ -152,7 +157,71 @@ impl RasterGeometry {
             n,
             domain,
             levels,
+            coverage: None,
         })
+    }
+
+    /// Like [`RasterGeometry::new`], with the points outside the covered blocks of
+    /// `coverage` invalid too (sparse mode, see [`crate::coverage`]): diamonds that meet
+    /// uncovered blocks get masks. The diamonds are those of [`RasterGeometry::new`].
+    pub fn with_coverage(
+        width: usize,
+        height: usize,
+        n: usize,
+        coverage: &Coverage,
+    ) -> Result<Self, RasterError> {
+        let mut g = Self::new(width, height, n)?;
+        let b = coverage.block_side();
+        if coverage.faces() != 1
+            || coverage.cols() != (width - 1) / b + 1
+            || coverage.rows() != (height - 1) / b + 1
+        {
+            return Err(RasterError::Coverage("block grid of another raster size"));
+        }
+        let empty = DiamondMask::none(n);
+        let (w, h) = (width as i64, height as i64);
+        let inside = |(x, y): (i64, i64)| x >= 0 && y >= 0 && x < w && y < h;
+        let covered =
+            |(x, y): (i64, i64)| inside((x, y)) && coverage.covers_point(0, x as usize, y as usize);
+        for level in &mut g.levels {
+            level.par_iter_mut().for_each(|s| {
+                let corners = [(0, 0), (n, 0), (n, n), (0, n)].map(|(i, j)| s.vertex_xy(i, j));
+                let range = |k: usize, hi: i64| {
+                    let lo = corners.iter().map(|c| [c.0, c.1][k]).min().unwrap_or(0);
+                    let up = corners.iter().map(|c| [c.0, c.1][k]).max().unwrap_or(0);
+                    [lo.max(0) as usize, up.min(hi - 1).max(0) as usize]
+                };
+                match coverage.state(0, range(0, w), range(1, h)) {
+                    BlockState::Full => {}
+                    BlockState::Empty => s.mask = Some(empty.clone()),
+                    BlockState::Mixed => {
+                        s.mask = Some(DiamondMask::from_fn(
+                            n,
+                            |i, j| covered(s.vertex_xy(i, j)),
+                            |i, j| covered(s.cell_xy(i, j)),
+                        ));
+                    }
+                }
+            });
+        }
+        g.coverage = Some(coverage.clone());
+        Ok(g)
+    }
+
+    /// The coverage the geometry was built with ([`RasterGeometry::with_coverage`]).
+    pub fn coverage(&self) -> Option<&Coverage> {
+        self.coverage.as_ref()
+    }
+
+    /// Whether raster sample `(x, y)` is a valid point: inside the raster and, with a
+    /// coverage, in a covered block.
+    pub fn is_valid(&self, x: usize, y: usize) -> bool {
+        x < self.width
+            && y < self.height
+            && self
+                .coverage
+                .as_ref()
+                .is_none_or(|c| c.covers_point(0, x, y))
     }
 
     /// Raster width.
@@ -410,6 +479,10 @@ pub(crate) trait Layout: Sync {
     fn distinct_len(&self) -> usize;
     /// Fills `values` where `valid` is false, smoothly; `false` if nothing is valid.
     fn fill_nodata(&self, values: &mut [f64], valid: &[bool]) -> bool;
+    /// The coverage that makes points invalid (sparse mode), if any.
+    fn coverage(&self) -> Option<&Coverage>;
+    /// Per array entry, whether it is a valid point; `None` when every entry is.
+    fn point_validity(&self) -> Option<Vec<bool>>;
 }
 
 /// Forward transform of every level, fine to coarse, diamonds of a level in parallel.
@@ -626,6 +699,20 @@ impl Layout for RasterGeometry {
 
     fn fill_nodata(&self, values: &mut [f64], valid: &[bool]) -> bool {
         crate::fill::push_pull(self.width, self.height, values, valid)
+    }
+
+    fn coverage(&self) -> Option<&Coverage> {
+        self.coverage.as_ref()
+    }
+
+    fn point_validity(&self) -> Option<Vec<bool>> {
+        self.coverage.as_ref()?;
+        Some(
+            (0..self.width * self.height)
+                .into_par_iter()
+                .map(|k| self.is_valid(k % self.width, k / self.width))
+                .collect(),
+        )
     }
 }
 

@@ -17,7 +17,9 @@
 //! `0 ..= 2k - 1` end with rotated diamonds of half-diagonal `N` whose cells land exactly
 //! on the samples (the same choice as the planar [`crate::raster`]). With `k = 0` the six
 //! root grids hold every sample and there are no details. Every diamond of every level is
-//! present: the sphere has no invalid points, so no masks.
+//! present. Without a coverage the sphere has no invalid points, so no masks; with one
+//! ([`SphereGeometry::with_coverage`], sparse mode) the points outside covered blocks are
+//! invalid and the diamonds that meet uncovered blocks get masks.
 //!
 //! # Roots
 //! Six root grids, one per face root, in face order: [`SphereGeometry::gather_roots`] /
@@ -26,6 +28,7 @@
 use rayon::prelude::*;
 
 use crate::blob::BlobContext;
+use crate::coverage::{BlockState, Coverage};
 use crate::diamond::sphere::{axes, chart_of};
 use crate::diamond::{SphereDomain, SphereId, check_size};
 use crate::entropy;
@@ -74,6 +77,9 @@ pub struct SphereSlot {
     upper: Option<Placement>,
     /// Whether the canonical copy of a diagonal point is the `upper` one.
     diag_upper: bool,
+    /// Valid points; `None` when every vertex and cell is valid (always without a
+    /// coverage).
+    pub mask: Option<DiamondMask>,
 }
 
 impl SphereSlot {
@@ -167,6 +173,7 @@ pub struct SphereGeometry {
     domain: SphereDomain,
     roots: Vec<SphereSlot>,
     levels: Vec<Vec<SphereSlot>>,
+    coverage: Option<Coverage>,
 }
 
 impl SphereGeometry {
@@ -193,6 +200,7 @@ impl SphereGeometry {
             domain,
             roots: Vec::new(),
             levels: Vec::new(),
+            coverage: None,
         };
         geom.roots = domain
             .roots()
@@ -242,6 +250,122 @@ impl SphereGeometry {
             });
         }
         Ok(geom)
+    }
+
+    /// Like [`SphereGeometry::new`], with the points outside the covered blocks of
+    /// `coverage` invalid (sparse mode, see [`crate::coverage`]): diamonds that meet
+    /// uncovered blocks get masks. Both copies of a cube edge point agree: a point is
+    /// valid when a covered block of any face holding a copy contains it.
+    pub fn with_coverage(
+        face_side: usize,
+        n: usize,
+        coverage: &Coverage,
+    ) -> Result<Self, RasterError> {
+        Self::new(face_side, n)?.covered(coverage)
+    }
+
+    /// This geometry with `coverage` applied (see [`SphereGeometry::with_coverage`]).
+    pub(crate) fn covered(mut self, coverage: &Coverage) -> Result<Self, RasterError> {
+        let g = &mut self;
+        let (face_side, n) = (g.face_side, g.n);
+        let b = coverage.block_side();
+        if coverage.faces() != 6
+            || coverage.cols() != coverage.rows()
+            || coverage.cols().checked_mul(b) != Some(face_side)
+        {
+            return Err(RasterError::Coverage("block grid of another planet size"));
+        }
+        g.coverage = Some(coverage.clone());
+        let mut levels = std::mem::take(&mut g.levels);
+        let empty = DiamondMask::none(n);
+        for level in &mut levels {
+            level.par_iter_mut().for_each(|s| {
+                s.mask = g.coverage_mask(coverage, s, &empty);
+            });
+        }
+        g.levels = levels;
+        Ok(self)
+    }
+
+    /// The mask a coverage gives a diamond (`None`: all valid).
+    fn coverage_mask(
+        &self,
+        coverage: &Coverage,
+        s: &SphereSlot,
+        empty: &DiamondMask,
+    ) -> Option<DiamondMask> {
+        let n = self.n;
+        let two_n = 2 * n as i64;
+        let corners: Vec<[i64; 3]> = [(0, 0), (n, 0), (n, n), (0, n)]
+            .iter()
+            .filter_map(|&(i, j)| self.domain.vertex_position(s.id, n, i, j).ok())
+            .map(|p| p.map(|x| x / two_n))
+            .collect();
+        // Every point of the diamond lies in the box of its corners (each half is a flat
+        // triangle of three of them); the blocks met on every face the box touches decide.
+        let half = self.half();
+        let lo: [i64; 3] = std::array::from_fn(|k| corners.iter().map(|p| p[k]).min().unwrap_or(0));
+        let hi: [i64; 3] = std::array::from_fn(|k| corners.iter().map(|p| p[k]).max().unwrap_or(0));
+        let clamp = |x: i64| (x + half).clamp(0, 2 * half) as usize;
+        let mut state: Option<BlockState> = None;
+        for f in 0..6u8 {
+            let ax = axes(f);
+            if !(lo[ax.a]..=hi[ax.a]).contains(&(ax.s * half)) {
+                continue;
+            }
+            let here = coverage.state(
+                f as usize,
+                [clamp(lo[ax.b]), clamp(hi[ax.b])],
+                [clamp(lo[ax.c]), clamp(hi[ax.c])],
+            );
+            state = Some(match (state, here) {
+                (None, x) => x,
+                (Some(a), b) if a == b => a,
+                _ => BlockState::Mixed,
+            });
+        }
+        match state.unwrap_or(BlockState::Mixed) {
+            BlockState::Full => None,
+            BlockState::Empty => Some(empty.clone()),
+            BlockState::Mixed => Some(DiamondMask::from_fn(
+                n,
+                |i, j| self.is_valid_index(coverage, s.vertex_index(i, j)),
+                |i, j| self.is_valid_index(coverage, s.cell_index(i, j)),
+            )),
+        }
+    }
+
+    /// Whether cube-raster entry `index` is a valid point under `coverage`.
+    fn is_valid_index(&self, coverage: &Coverage, index: usize) -> bool {
+        let w = self.width();
+        let (face, rest) = (index / (w * w), index % (w * w));
+        let (u, v) = (rest % w, rest / w);
+        if (1..w - 1).contains(&u) && (1..w - 1).contains(&v) {
+            return coverage.covers_point(face, u, v);
+        }
+        let p = self.sample_position(face as u8, u, v);
+        let s = self.half();
+        (0..6u8).any(|f| {
+            let ax = axes(f);
+            p[ax.a] == ax.s * s && {
+                let [u, v] = chart_of(f, p, s);
+                coverage.covers_point(f as usize, u as usize, v as usize)
+            }
+        })
+    }
+
+    /// The coverage the geometry was built with ([`SphereGeometry::with_coverage`]).
+    pub fn coverage(&self) -> Option<&Coverage> {
+        self.coverage.as_ref()
+    }
+
+    /// Whether cube-raster entry `index` is a valid point (always, without a coverage).
+    pub fn is_valid(&self, index: usize) -> bool {
+        index < self.cube_len()
+            && self
+                .coverage
+                .as_ref()
+                .is_none_or(|c| self.is_valid_index(c, index))
     }
 
     /// Samples per face side (`2S`).
@@ -306,7 +430,7 @@ impl SphereGeometry {
             key: &s.key,
             n: self.n,
             group: entropy::group(self.levels.len() - 1 - level),
-            mask: None,
+            mask: s.mask.as_ref(),
             owned_children: s.owned.len(),
         }
     }
@@ -451,6 +575,7 @@ impl SphereGeometry {
             lower,
             upper,
             diag_upper,
+            mask: None,
         })
     }
 
@@ -581,8 +706,8 @@ impl Layout for SphereGeometry {
         self.cube_len()
     }
 
-    fn mask<'s>(&self, _s: &'s SphereSlot) -> Option<&'s DiamondMask> {
-        None
+    fn mask<'s>(&self, s: &'s SphereSlot) -> Option<&'s DiamondMask> {
+        s.mask.as_ref()
     }
 
     fn children<'s>(&self, s: &'s SphereSlot) -> &'s [usize] {
@@ -649,6 +774,20 @@ impl Layout for SphereGeometry {
                 }
             });
         self.make_consistent(values).is_ok()
+    }
+
+    fn coverage(&self) -> Option<&Coverage> {
+        self.coverage.as_ref()
+    }
+
+    fn point_validity(&self) -> Option<Vec<bool>> {
+        let c = self.coverage.as_ref()?;
+        Some(
+            (0..self.cube_len())
+                .into_par_iter()
+                .map(|k| self.is_valid_index(c, k))
+                .collect(),
+        )
     }
 }
 

@@ -115,6 +115,7 @@ impl StreamEncoded {
             roots: vec![self.root],
             model: self.model,
             blobs,
+            coverage: None,
             report: self.report,
         }
     }

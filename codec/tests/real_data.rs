@@ -24,8 +24,15 @@ use common::{Errors, bundled_korea, errors, grid, shared_dir, shared_file};
 const N: usize = 32;
 
 fn encode_grid(g: &Grid, mode: RateMode) -> Encoded {
-    encode::encode(g, EncodeOptions { n: N, mode })
-        .unwrap_or_else(|e| panic!("encode {mode:?} failed: {e}"))
+    encode::encode(
+        g,
+        EncodeOptions {
+            n: N,
+            mode,
+            sparse: false,
+        },
+    )
+    .unwrap_or_else(|e| panic!("encode {mode:?} failed: {e}"))
 }
 
 fn round_trip(g: &Grid, mode: RateMode) -> (Encoded, Errors) {

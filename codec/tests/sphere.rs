@@ -23,8 +23,15 @@ fn synthetic_planet(face_side: usize, n: usize) -> CubeGrid {
 }
 
 fn encode_planet(g: &CubeGrid, n: usize, mode: RateMode) -> Encoded {
-    encode::encode_sphere(g, EncodeOptions { n, mode })
-        .unwrap_or_else(|e| panic!("encode {mode:?} failed: {e}"))
+    encode::encode_sphere(
+        g,
+        EncodeOptions {
+            n,
+            mode,
+            sparse: false,
+        },
+    )
+    .unwrap_or_else(|e| panic!("encode {mode:?} failed: {e}"))
 }
 
 /// RMS and max error over the distinct valid points (canonical copies).

@@ -235,6 +235,7 @@ fn streaming_without_nodata_matches_the_in_memory_encoder_blob_for_blob() {
         EncodeOptions {
             n: 32,
             mode: RateMode::Lossless,
+            sparse: false,
         },
     )
     .unwrap();
@@ -257,6 +258,7 @@ fn bundled_korea_streams_losslessly_under_a_budget_smaller_than_the_input() {
         EncodeOptions {
             n: 32,
             mode: RateMode::Lossless,
+            sparse: false,
         },
     )
     .unwrap();
@@ -442,6 +444,7 @@ fn shared_korea_4097_streams_losslessly_in_bounded_memory() {
         EncodeOptions {
             n: 32,
             mode: RateMode::Lossless,
+            sparse: false,
         },
     )
     .unwrap();

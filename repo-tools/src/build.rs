@@ -440,8 +440,15 @@ fn summarise(
 fn encode_heights(raster: input::HeightRaster, n: usize, mode: RateMode) -> Result<Coded> {
     let spin = progress::spinner("encoding");
     spin.set_message(format!("{} x {}", raster.grid.width, raster.grid.height));
-    let enc = encode::encode(&raster.grid, EncodeOptions { n, mode })
-        .context("encoding the height grid")?;
+    let enc = encode::encode(
+        &raster.grid,
+        EncodeOptions {
+            n,
+            mode,
+            sparse: false,
+        },
+    )
+    .context("encoding the height grid")?;
     spin.finish_and_clear();
     elevation(raster, enc, None, mode)
 }
@@ -509,8 +516,15 @@ fn encode_planet(
 ) -> Result<Coded> {
     let spin = progress::spinner("encoding");
     spin.set_message(format!("6 faces of {0} x {0}", cube.face_side));
-    let enc =
-        encode::encode_sphere(&cube, EncodeOptions { n, mode }).context("encoding the planet")?;
+    let enc = encode::encode_sphere(
+        &cube,
+        EncodeOptions {
+            n,
+            mode,
+            sparse: false,
+        },
+    )
+    .context("encoding the planet")?;
     spin.finish_and_clear();
     elevation(raster, enc, Some(radius_m), mode)
 }
@@ -561,6 +575,7 @@ fn encode_colour(
         let opts = EncodeOptions {
             n,
             mode: channel_mode,
+            sparse: false,
         };
         let enc = match domain {
             ColourDomain::Planar(width, height) => encode::encode(

@@ -291,6 +291,7 @@ pub fn load_channel(repo: &Repository, geom: &Geometry, channel: usize) -> Resul
         roots: coding.roots.clone(),
         model,
         blobs,
+        coverage: None,
         report: EncodeReport::default(),
     })
 }

@@ -18,16 +18,19 @@
 
 mod gather;
 
+use std::sync::Arc;
+
 pub use gather::{child_half, scatter_to_child};
 
 /// Which vertices and cells of a diamond are valid samples (inside the domain and the
 /// valid extent). Invalid points are never read by prediction or update, and their
-/// details are never coded.
+/// details are never coded. Cloning is cheap (shared storage), so one mask can serve many
+/// diamonds.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct DiamondMask {
     n: usize,
-    vertex: Vec<bool>,
-    cell: Vec<bool>,
+    vertex: Arc<[bool]>,
+    cell: Arc<[bool]>,
 }
 
 impl DiamondMask {
@@ -41,6 +44,15 @@ impl DiamondMask {
         let vertex = (0..w * w).map(|k| vertex(k / w, k % w)).collect();
         let cell = (0..n * n).map(|k| cell(k / n, k % n)).collect();
         DiamondMask { n, vertex, cell }
+    }
+
+    /// The mask of a diamond with no valid point.
+    pub fn none(n: usize) -> Self {
+        DiamondMask {
+            n,
+            vertex: vec![false; (n + 1) * (n + 1)].into(),
+            cell: vec![false; n * n].into(),
+        }
     }
 
     /// Grid size `N`.
