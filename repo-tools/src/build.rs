@@ -39,6 +39,11 @@ pub struct BuildArgs {
     /// Named body for the radius: earth, mars (3396 km), moon, venus, mercury.
     #[arg(long, default_value = "earth", requires = "planet")]
     pub body: String,
+    /// Sparse repository: large areas without data (whole coverage blocks of nodata) become
+    /// holes that are not coded at all, instead of being filled and coded. For sources
+    /// that cover part of a planet or raster.
+    #[arg(long)]
+    pub sparse: bool,
     /// Samples per cube face side (a power-of-two multiple of N; default: closest to the
     /// source resolution).
     #[arg(long, requires = "planet")]
@@ -161,8 +166,8 @@ fn check_budget(args: &BuildArgs, samples: usize, channels: usize) -> Result<()>
     if need_mb > budget {
         bail!(
             "this build needs about {need_mb} MB in memory but --memory-budget-mb is {budget}; \
-             out-of-core builds cover planar elevation from a raw grid + JSON sidecar in \
-             --lossless or --max-error-m mode (convert other formats to raw, or raise the budget)"
+             out-of-core builds cover dense planar elevation from a raw grid + JSON sidecar \
+             in --lossless or --max-error-m mode (convert other formats to raw, or raise the budget)"
         );
     }
     Ok(())
@@ -246,6 +251,7 @@ fn build_streaming(
         "streamed"
     );
     let description = Description {
+        coverage: None,
         geometry: Geometry::Planar(
             RasterGeometry::new(width, height, n).context("raster geometry")?,
         ),
@@ -316,6 +322,7 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
     if let Some(budget_mb) = args.memory_budget_mb
         && !args.colour
         && !args.planet
+        && !args.sparse
         && is_raw(&args.input)
     {
         let rows = input::RawRows::open(&args.input)
@@ -350,7 +357,7 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
             )
         };
         encode_started = Instant::now();
-        let mut coded = encode_colour(&pixels, &domain, n, mode, image.georef)?;
+        let mut coded = encode_colour(&pixels, &domain, n, mode, image.georef, args.sparse)?;
         if args.planet {
             coded.desc.radius_m = Some(radius_m(args)?);
         }
@@ -374,11 +381,11 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
             let cube = planet::resample_heights(&raster, &geom)?;
             spin.finish_and_clear();
             encode_started = Instant::now();
-            encode_planet(raster, cube, n, mode, radius_m(args)?)?
+            encode_planet(raster, cube, n, mode, radius_m(args)?, args.sparse)?
         } else {
             check_budget(args, raster.grid.width * raster.grid.height, 1)?;
             encode_started = Instant::now();
-            encode_heights(raster, n, mode)?
+            encode_heights(raster, n, mode, args.sparse)?
         }
     };
     let encode_seconds = encode_started.elapsed().as_secs_f64();
@@ -391,6 +398,8 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
 
 /// What the metadata and summary say about the coded data (both build paths).
 struct Description {
+    /// Sparse builds: the coverage bitmap's bytes.
+    coverage: Option<Vec<u8>>,
     geometry: Geometry,
     radius_m: Option<f64>,
     kind: &'static str,
@@ -437,18 +446,16 @@ fn summarise(
     })
 }
 
-fn encode_heights(raster: input::HeightRaster, n: usize, mode: RateMode) -> Result<Coded> {
+fn encode_heights(
+    raster: input::HeightRaster,
+    n: usize,
+    mode: RateMode,
+    sparse: bool,
+) -> Result<Coded> {
     let spin = progress::spinner("encoding");
     spin.set_message(format!("{} x {}", raster.grid.width, raster.grid.height));
-    let enc = encode::encode(
-        &raster.grid,
-        EncodeOptions {
-            n,
-            mode,
-            sparse: false,
-        },
-    )
-    .context("encoding the height grid")?;
+    let enc = encode::encode(&raster.grid, EncodeOptions { n, mode, sparse })
+        .context("encoding the height grid")?;
     spin.finish_and_clear();
     elevation(raster, enc, None, mode)
 }
@@ -462,6 +469,7 @@ fn elevation(
 ) -> Result<Coded> {
     Ok(Coded {
         desc: Description {
+            coverage: enc.coverage.as_ref().map(|c| c.to_bytes()),
             geometry: Geometry::of(&enc)?,
             radius_m,
             kind: "elevation",
@@ -513,18 +521,12 @@ fn encode_planet(
     n: usize,
     mode: RateMode,
     radius_m: f64,
+    sparse: bool,
 ) -> Result<Coded> {
     let spin = progress::spinner("encoding");
     spin.set_message(format!("6 faces of {0} x {0}", cube.face_side));
-    let enc = encode::encode_sphere(
-        &cube,
-        EncodeOptions {
-            n,
-            mode,
-            sparse: false,
-        },
-    )
-    .context("encoding the planet")?;
+    let enc = encode::encode_sphere(&cube, EncodeOptions { n, mode, sparse })
+        .context("encoding the planet")?;
     spin.finish_and_clear();
     elevation(raster, enc, Some(radius_m), mode)
 }
@@ -550,6 +552,7 @@ fn encode_colour(
     n: usize,
     mode: RateMode,
     georef: Option<Georef>,
+    sparse: bool,
 ) -> Result<Coded> {
     let mut planes = [
         Vec::with_capacity(pixels.len()),
@@ -575,7 +578,7 @@ fn encode_colour(
         let opts = EncodeOptions {
             n,
             mode: channel_mode,
-            sparse: false,
+            sparse,
         };
         let enc = match domain {
             ColourDomain::Planar(width, height) => encode::encode(
@@ -609,6 +612,7 @@ fn encode_colour(
     let (rms, max_abs) = rgb_error(pixels, &decoded[0], &decoded[1], &decoded[2]);
     Ok(Coded {
         desc: Description {
+            coverage: channels[0].1.coverage.as_ref().map(|c| c.to_bytes()),
             geometry: Geometry::of(&channels[0].1)?,
             radius_m: None,
             kind: "colour",
@@ -715,6 +719,7 @@ fn publish(
             "achieved_max_abs": d.max_abs,
         }),
         level_stats: Vec::new(),
+        coverage: d.coverage.clone(),
     };
     builder
         .publish(meta, args.overwrite)

@@ -57,6 +57,7 @@ pub fn run(dir: &Path, data: Option<&Path>) -> Result<()> {
                 radius_m: None,
                 body: "earth".into(),
                 face_side: None,
+                sparse: false,
                 diamond_size: None,
                 lossless: false,
                 rms_m: s.rms_m,

@@ -10,6 +10,7 @@
 
 use anyhow::{Context, Result, bail};
 use quincunx_codec::blob::BlobContext;
+use quincunx_codec::coverage::Coverage;
 use quincunx_codec::encode::{self, EncodeReport, Encoded, EncodedDomain, RateMode};
 use quincunx_codec::entropy::CodecModel;
 use quincunx_codec::raster::RasterGeometry;
@@ -134,17 +135,17 @@ impl Geometry {
     /// The geometry a repository's metadata describes (checked against `m` and `levels`).
     pub fn from_metadata(meta: &Metadata) -> Result<Geometry> {
         let [a, b] = meta.extent;
+        let (a, b) = (a as usize, b as usize);
         let n = meta.n as usize;
-        let geom = match meta.domain.as_str() {
-            "planar" => Geometry::Planar(
-                RasterGeometry::new(a as usize, b as usize, n)
-                    .context("repository extent or diamond size is invalid")?,
-            ),
-            "sphere" if a == b => Geometry::Sphere(
-                SphereGeometry::new(a as usize, n)
-                    .context("repository face side or diamond size is invalid")?,
-            ),
-            other => bail!("unknown domain {other:?} with extent {a} x {b}"),
+        let coverage = coverage(meta)?;
+        let geom = match (meta.domain.as_str(), &coverage) {
+            ("planar", None) => Geometry::Planar(RasterGeometry::new(a, b, n)?),
+            ("planar", Some(c)) => Geometry::Planar(RasterGeometry::with_coverage(a, b, n, c)?),
+            ("sphere", None) if a == b => Geometry::Sphere(SphereGeometry::new(a, n)?),
+            ("sphere", Some(c)) if a == b => {
+                Geometry::Sphere(SphereGeometry::with_coverage(a, n, c)?)
+            }
+            (other, _) => bail!("unknown domain {other:?} with extent {a} x {b}"),
         };
         if geom.detail_levels() != meta.levels as usize || geom.m() != meta.m {
             bail!(
@@ -224,6 +225,15 @@ impl Geometry {
     }
 }
 
+/// The coverage of a sparse repository (`None` = dense).
+pub fn coverage(meta: &Metadata) -> Result<Option<Coverage>> {
+    meta.coverage
+        .as_deref()
+        .map(Coverage::from_bytes)
+        .transpose()
+        .context("the repository's coverage bitmap is malformed")
+}
+
 /// Reassembles channel `channel` of a repository as the codec's in-memory form (blobs
 /// read from the store), ready to decode.
 pub fn load_channel(repo: &Repository, geom: &Geometry, channel: usize) -> Result<Encoded> {
@@ -291,7 +301,7 @@ pub fn load_channel(repo: &Repository, geom: &Geometry, channel: usize) -> Resul
         roots: coding.roots.clone(),
         model,
         blobs,
-        coverage: None,
+        coverage: coverage(meta)?,
         report: EncodeReport::default(),
     })
 }

@@ -253,7 +253,8 @@ pub fn default_face_side(spacing_deg: f64, n: usize) -> usize {
     side
 }
 
-/// Bilinear sample of a decoded cube raster at a latitude/longitude.
+/// Bilinear sample of a decoded cube raster at a latitude/longitude; corners that are
+/// holes of a sparse repository are left out (`NaN` when all four are).
 pub fn query(geom: &SphereGeometry, values: &[f64], lat: f64, lon: f64) -> f64 {
     let side = geom.face_side();
     let (face, u, v) = face_chart(lat, lon, side);
@@ -264,11 +265,20 @@ pub fn query(geom: &SphereGeometry, values: &[f64], lat: f64, lon: f64) -> f64 {
         (v.floor() as usize).min(side - 1),
     );
     let (fu, fv) = (u - u0 as f64, v - v0 as f64);
-    let at = |uu: usize, vv: usize| values[geom.cube_index(face, uu, vv)];
-    at(u0, v0) * (1.0 - fu) * (1.0 - fv)
-        + at(u0 + 1, v0) * fu * (1.0 - fv)
-        + at(u0, v0 + 1) * (1.0 - fu) * fv
-        + at(u0 + 1, v0 + 1) * fu * fv
+    let (mut sum, mut weight) = (0.0, 0.0);
+    for (du, dv, w) in [
+        (0, 0, (1.0 - fu) * (1.0 - fv)),
+        (1, 0, fu * (1.0 - fv)),
+        (0, 1, (1.0 - fu) * fv),
+        (1, 1, fu * fv),
+    ] {
+        let k = geom.cube_index(face, u0 + du, v0 + dv);
+        if geom.is_valid(k) && values[k].is_finite() {
+            sum += values[k] * w;
+            weight += w;
+        }
+    }
+    if weight > 0.0 { sum / weight } else { f64::NAN }
 }
 
 /// Cube edge and corner samples whose copies on different faces disagree.

@@ -375,7 +375,7 @@ fn query(repo: &Path, points: &[(f64, f64)]) -> Vec<f64> {
     v.as_array()
         .unwrap()
         .iter()
-        .map(|p| p["values"][0].as_f64().unwrap())
+        .map(|p| p["values"][0].as_f64().unwrap_or(f64::NAN))
         .collect()
 }
 
@@ -644,4 +644,72 @@ fn demo_builds_and_verifies_the_bundled_samples_once() {
         );
         assert_eq!(dims, (w, h), "{name}");
     }
+}
+
+#[test]
+fn sparse_planet_codes_only_where_there_is_data() {
+    // The bundled ETOPO20 cut to North America (20..60 N, 130..60 W), NaN elsewhere.
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data");
+    let raw = std::fs::read(data.join("etopo20_global.i16")).unwrap();
+    let mut sidecar: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(data.join("etopo20_global.json")).unwrap()).unwrap();
+    let (w, h) = (1080usize, 540usize);
+    let mut f32s = Vec::with_capacity(w * h * 4);
+    for r in 0..h {
+        let lat = 90.0 - (r as f64 + 0.5) / 3.0;
+        for c in 0..w {
+            let lon = -180.0 + (c as f64 + 0.5) / 3.0;
+            let k = 2 * (r * w + c);
+            let v = i16::from_le_bytes([raw[k], raw[k + 1]]) as f32;
+            let inside = (20.0..60.0).contains(&lat) && (-130.0..-60.0).contains(&lon);
+            f32s.extend_from_slice(&if inside { v } else { f32::NAN }.to_le_bytes());
+        }
+    }
+    let dir = tempfile::tempdir().unwrap();
+    sidecar["file"] = "na.f32".into();
+    sidecar["dtype"] = "float32".into();
+    sidecar["nodata"] = "NaN".into();
+    std::fs::write(dir.path().join("na.f32"), f32s).unwrap();
+    let input = dir.path().join("na.json");
+    std::fs::write(&input, sidecar.to_string()).unwrap();
+    let mut blobs = Vec::new();
+    for sparse in [false, true] {
+        let repo = dir.path().join(format!("na_{sparse}"));
+        let mut cmd = bin();
+        cmd.args(["build", "--planet", "--max-error-m", "0.5", "--json", "-o"])
+            .arg(&repo)
+            .arg(&input);
+        if sparse {
+            cmd.arg("--sparse");
+        }
+        let built = ok_json(&mut cmd);
+        let verified = verify_json(&repo, &input);
+        assert!(
+            verified["max_abs_m"].as_f64().unwrap() <= 0.5,
+            "bound on every data sample"
+        );
+        assert_eq!(verified["seam_mismatches"], 0);
+        blobs.push(built["blob_count"].as_u64().unwrap());
+        let heights = query(&repo, &[(40.0, -105.0), (-30.0, 20.0)]);
+        assert!(heights[0] > 1000.0, "Rocky Mountains: {}", heights[0]);
+        if sparse {
+            assert!(
+                heights[1].is_nan(),
+                "no data in southern Africa: {}",
+                heights[1]
+            );
+            let info = ok_json(bin().arg("info").arg(&repo).arg("--json"));
+            assert!(info["metadata"]["coverage"].is_array());
+        }
+    }
+    println!(
+        "North America on ETOPO20: dense {} blobs, sparse {}",
+        blobs[0], blobs[1]
+    );
+    assert!(
+        blobs[1] * 2 < blobs[0],
+        "sparse {} blobs vs dense {}",
+        blobs[1],
+        blobs[0]
+    );
 }

@@ -166,6 +166,10 @@ pub struct Metadata {
     pub build: serde_json::Value,
     /// Blob count and bytes per level.
     pub level_stats: Vec<LevelStats>,
+    /// Sparse repositories: the codec's coverage bitmap (`Coverage::to_bytes`), which
+    /// says where data exists; points elsewhere are invalid (holes). `None` = dense.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coverage: Option<Vec<u8>>,
 }
 
 /// The attribute a repository carries.
@@ -799,6 +803,7 @@ mod tests {
             channels: vec![],
             build: serde_json::json!({}),
             level_stats: vec![],
+            coverage: None,
         }
     }
 
