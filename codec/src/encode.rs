@@ -544,6 +544,16 @@ impl ValueMap {
     }
 }
 
+/// Whether diamond `index` of a level of `level_len` diamonds trains the entropy model:
+/// priors need approximate statistics only, so large levels are subsampled (every
+/// `TRAIN_STRIDE`-th diamond) and small ones used whole.
+pub(crate) fn trains_on(level_len: usize, index: usize) -> bool {
+    level_len < 4096 || index.is_multiple_of(TRAIN_STRIDE)
+}
+
+/// Subsampling of large levels for model training (see [`trains_on`]).
+const TRAIN_STRIDE: usize = 4;
+
 /// One rate-control attempt: scale, steps, quantised details, decoded raster, measures.
 type Attempt = (
     f64,
@@ -953,13 +963,11 @@ fn encode_layout<G: Layout>(
             .map(|&k| entropy::gamma_class(gamma[l + 1][k]))
             .collect()
     };
-    // Train the model on every blob, then code.
+    // Train the model (on a subsample of the large levels, see `trains_on`), then code.
     let counts = (0..levels)
         .into_par_iter()
         .flat_map(|l| (0..level_len(l)).into_par_iter().map(move |i| (l, i)))
-        // Priors need approximate statistics only: train on every 4th diamond of the
-        // large levels (all of the small ones).
-        .filter(|&(l, i)| has_data[l][i] && (level_len(l) < 4096 || i % 4 == 0))
+        .filter(|&(l, i)| has_data[l][i] && trains_on(level_len(l), i))
         .fold(ContextCounts::default, |mut acc, (l, i)| {
             let ctx = geom.blob_context(l, i);
             entropy::write_gammas(&mut acc, ctx.group, &classes_of(l, i));

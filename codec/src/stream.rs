@@ -421,7 +421,7 @@ impl Side {
     /// chooses it: every blob of the small levels, every 4th diamond of the large ones).
     fn trains(&self, geom: &RasterGeometry, l: usize, i: usize) -> bool {
         let len = geom.level(l).len();
-        self.has_data[l][i] && (len < 4096 || i.is_multiple_of(4))
+        self.has_data[l][i] && crate::encode::trains_on(len, i)
     }
 
     fn classes(&self, geom: &RasterGeometry, l: usize, i: usize) -> Vec<u8> {
