@@ -713,3 +713,48 @@ fn sparse_planet_codes_only_where_there_is_data() {
         blobs[0]
     );
 }
+
+#[test]
+fn a_corrupted_repository_fails_verification_without_panicking() {
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("jb");
+    ok_json(
+        bin()
+            .args(["build", "--lossless", "--json", "-o"])
+            .arg(&repo)
+            .arg(fixture("jacksboro.json")),
+    );
+    let db = repo.join("db");
+    let clean = std::fs::read(&db).unwrap();
+    // Flip bytes at several places of sled's log (pages, metadata, headers): every outcome
+    // must be a clean failure (exit 1 with a message) or a verification that still holds.
+    let mut failures = 0;
+    for k in 1..=16 {
+        let mut bytes = clean.clone();
+        let at = bytes.len() * k / 17;
+        for b in &mut bytes[at..(at + 8).min(clean.len())] {
+            *b ^= 0x5A;
+        }
+        std::fs::write(&db, &bytes).unwrap();
+        let out = run(bin().arg("verify").arg(&repo).arg("--json"));
+        match out.status.code() {
+            Some(0) => {
+                let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+                assert_eq!(v["blob_errors"], 0);
+                assert_eq!(v["content_hash_ok"], true);
+            }
+            Some(1) => {
+                failures += 1;
+                assert!(String::from_utf8_lossy(&out.stderr).starts_with("error:"));
+            }
+            other => panic!("exit {other:?}: {}", String::from_utf8_lossy(&out.stderr)),
+        }
+    }
+    println!("{failures} of 16 corruptions failed verification, the rest were harmless");
+    assert!(failures > 0, "no corruption was detected");
+    std::fs::write(&db, &clean).unwrap();
+    assert_eq!(
+        ok_json(bin().arg("verify").arg(&repo).arg("--json"))["blob_errors"],
+        0
+    );
+}
