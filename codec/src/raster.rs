@@ -384,7 +384,7 @@ impl RasterGeometry {
     /// the result holds one `N x N` detail matrix per diamond per level (zeros at
     /// invalid cells). Diamonds of a level are processed in parallel.
     pub fn analyze(&self, raster: &mut [i32]) -> Result<Vec<Vec<Vec<i32>>>, RasterError> {
-        self.check_len(raster)?;
+        check_len(self, raster)?;
         Ok(analyze_levels(self, raster))
     }
 
@@ -400,8 +400,7 @@ impl RasterGeometry {
     where
         E: From<RasterError>,
     {
-        self.check_len(raster)?;
-        synthesize_levels(self, raster, details)
+        synthesize_checked(self, raster, details)
     }
 
     /// Like [`RasterGeometry::synthesize`] with the diamonds of a level in parallel, calling
@@ -417,27 +416,53 @@ impl RasterGeometry {
         F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
         R: Send,
     {
-        self.check_len(raster)?;
-        check_details(self, details)?;
-        synthesize_levels_par(
-            self,
-            raster,
-            |l, i, h| h.copy_from_slice(&details[l][i]),
-            visit,
-        )
+        synthesize_par_checked(self, raster, details, visit)
     }
+}
 
-    fn check_len(&self, raster: &[i32]) -> Result<(), RasterError> {
-        let expected = self.width * self.height;
-        if raster.len() == expected {
-            Ok(())
-        } else {
-            Err(RasterError::WrongLength {
-                expected,
-                got: raster.len(),
-            })
-        }
+/// Checks that `raster` has the geometry's sample count.
+pub(crate) fn check_len<G: Layout>(g: &G, raster: &[i32]) -> Result<(), RasterError> {
+    if raster.len() == g.raster_len() {
+        Ok(())
+    } else {
+        Err(RasterError::WrongLength {
+            expected: g.raster_len(),
+            got: raster.len(),
+        })
     }
+}
+
+/// The public `synthesize` of both geometries: length check, then [`synthesize_levels`].
+pub(crate) fn synthesize_checked<G: Layout, E: From<RasterError>>(
+    g: &G,
+    raster: &mut [i32],
+    details: impl FnMut(usize, usize, &mut [i32]) -> Result<bool, E>,
+) -> Result<(), E> {
+    check_len(g, raster)?;
+    synthesize_levels(g, raster, details)
+}
+
+/// The public `synthesize_par` of both geometries: length checks, then
+/// [`synthesize_levels_par`] over the given detail matrices.
+pub(crate) fn synthesize_par_checked<G, F, R>(
+    g: &G,
+    raster: &mut [i32],
+    details: &[Vec<Vec<i32>>],
+    visit: F,
+) -> Result<Vec<Vec<R>>, RasterError>
+where
+    G: Layout,
+    F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
+    R: Send,
+{
+    check_len(g, raster)?;
+    check_details(g, details)?;
+    synthesize_levels_par(
+        g,
+        raster,
+        |l, i, h| h.copy_from_slice(&details[l][i]),
+        visit,
+    )
 }
 
 /// A placement of diamonds in a flat sample array (a planar raster, or the six face arrays

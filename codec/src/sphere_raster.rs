@@ -34,7 +34,7 @@ use crate::diamond::{SphereDomain, SphereId, check_size};
 use crate::entropy;
 use crate::lifting::DiamondMask;
 use crate::raster::{
-    Layout, RasterError, analyze_levels, check_details, synthesize_levels, synthesize_levels_par,
+    Layout, RasterError, analyze_levels, check_len, synthesize_checked, synthesize_par_checked,
 };
 
 /// An affine index map: vertex `(i, j)` at `v0 + i si + j sj`, cell `(i, j)` at
@@ -515,17 +515,6 @@ impl SphereGeometry {
         Ok(())
     }
 
-    fn check_len(&self, raster: &[i32]) -> Result<(), RasterError> {
-        if raster.len() == self.cube_len() {
-            Ok(())
-        } else {
-            Err(RasterError::WrongLength {
-                expected: self.cube_len(),
-                got: raster.len(),
-            })
-        }
-    }
-
     /// The cube-raster placement of a diamond.
     fn slot(&self, id: SphereId) -> Result<SphereSlot, RasterError> {
         let d = &self.domain;
@@ -618,7 +607,7 @@ impl SphereGeometry {
                 got: roots.iter().map(Vec::len).sum(),
             });
         }
-        self.check_len(raster)?;
+        check_len(self, raster)?;
         for (s, grid) in self.roots.iter().zip(roots) {
             s.scatter(side, 1, false, grid, raster);
             for i in 0..side {
@@ -664,8 +653,7 @@ impl SphereGeometry {
     where
         E: From<RasterError>,
     {
-        self.check_len(raster)?;
-        synthesize_levels(self, raster, details)
+        synthesize_checked(self, raster, details)
     }
 
     /// Like [`SphereGeometry::synthesize`] with the diamonds of a level in parallel,
@@ -680,14 +668,7 @@ impl SphereGeometry {
         F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
         R: Send,
     {
-        self.check_len(raster)?;
-        check_details(self, details)?;
-        synthesize_levels_par(
-            self,
-            raster,
-            |l, i, h| h.copy_from_slice(&details[l][i]),
-            visit,
-        )
+        synthesize_par_checked(self, raster, details, visit)
     }
 }
 
