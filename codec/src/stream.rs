@@ -630,16 +630,15 @@ impl Frame {
         v: &mut [i32],
     ) {
         let [v0, _, si, sj] = self.lin(base, w);
-        for (i, row) in v.chunks_exact_mut(n + 1).enumerate() {
-            let start = v0 + i as isize * si;
-            for (j, x) in row.iter_mut().enumerate() {
-                *x = if mask.is_none_or(|m| m.vertex(i, j)) {
-                    buf[(start + j as isize * sj) as usize]
-                } else {
-                    0
-                };
-            }
-        }
+        gather_strided(
+            n + 1,
+            v0,
+            si,
+            sj,
+            |i, j| mask.is_none_or(|m| m.vertex(i, j)),
+            buf,
+            v,
+        );
     }
 
     fn gather_cells(
@@ -652,16 +651,15 @@ impl Frame {
         c: &mut [i32],
     ) {
         let [_, c0, si, sj] = self.lin(base, w);
-        for (i, row) in c.chunks_exact_mut(n).enumerate() {
-            let start = c0 + i as isize * si;
-            for (j, x) in row.iter_mut().enumerate() {
-                *x = if mask.is_none_or(|m| m.cell(i, j)) {
-                    buf[(start + j as isize * sj) as usize]
-                } else {
-                    0
-                };
-            }
-        }
+        gather_strided(
+            n,
+            c0,
+            si,
+            sj,
+            |i, j| mask.is_none_or(|m| m.cell(i, j)),
+            buf,
+            c,
+        );
     }
 
     /// Writes the interior vertices (all lifting changes).
@@ -682,6 +680,29 @@ impl Frame {
                     buf[(start + j as isize * sj) as usize] = v[i * (n + 1) + j];
                 }
             }
+        }
+    }
+}
+
+/// Reads a `side x side` lattice starting at buffer index `start` with steps `si`, `sj`
+/// into `out` (row-major); points where `valid(i, j)` is false read as 0.
+fn gather_strided(
+    side: usize,
+    start: isize,
+    si: isize,
+    sj: isize,
+    valid: impl Fn(usize, usize) -> bool,
+    buf: &[i32],
+    out: &mut [i32],
+) {
+    for (i, row) in out.chunks_exact_mut(side).enumerate() {
+        let row_start = start + i as isize * si;
+        for (j, x) in row.iter_mut().enumerate() {
+            *x = if valid(i, j) {
+                buf[(row_start + j as isize * sj) as usize]
+            } else {
+                0
+            };
         }
     }
 }

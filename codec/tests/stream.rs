@@ -6,7 +6,7 @@
 
 mod common;
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use common::{bundled_korea, grid, shared_file};
 use quincunx_codec::encode::{EncodeError, EncodeOptions, Grid, RateMode, decode, encode};
@@ -130,6 +130,21 @@ fn round_trip(g: &Grid, n: usize, mode: RateMode, budget: usize) -> (StreamEncod
 
 /// Streams, decodes with the standard decoder and checks the reported error; also returns
 /// the time of the streaming encode alone.
+/// The in-memory lossless encode (N = 32) of the same grid, for comparison, and its time.
+fn timed_in_memory_lossless(g: &Grid) -> (quincunx_codec::encode::Encoded, Duration) {
+    let t = Instant::now();
+    let mem = encode(
+        g,
+        EncodeOptions {
+            n: 32,
+            mode: RateMode::Lossless,
+            sparse: false,
+        },
+    )
+    .unwrap();
+    (mem, t.elapsed())
+}
+
 fn timed_round_trip(
     g: &Grid,
     n: usize,
@@ -252,17 +267,7 @@ fn bundled_korea_streams_losslessly_under_a_budget_smaller_than_the_input() {
     let budget = 2_000_000;
     let (enc, streamed, max_rows, max) = timed_round_trip(&g, 32, RateMode::Lossless, budget);
     assert_eq!(max, 0.0);
-    let t = Instant::now();
-    let mem = encode(
-        &g,
-        EncodeOptions {
-            n: 32,
-            mode: RateMode::Lossless,
-            sparse: false,
-        },
-    )
-    .unwrap();
-    let in_memory = t.elapsed();
+    let (mem, in_memory) = timed_in_memory_lossless(&g);
     let r = &enc.report;
     println!(
         "korea_srtm3_1025 lossless: streaming {} blobs {} bytes ({:.3} bits/sample), peak {} bytes \
@@ -438,17 +443,7 @@ fn shared_korea_4097_streams_losslessly_in_bounded_memory() {
     let budget = 8_000_000;
     let (enc, streamed, max_rows, max) = timed_round_trip(&g, 32, RateMode::Lossless, budget);
     assert_eq!(max, 0.0);
-    let t = Instant::now();
-    let mem = encode(
-        &g,
-        EncodeOptions {
-            n: 32,
-            mode: RateMode::Lossless,
-            sparse: false,
-        },
-    )
-    .unwrap();
-    let in_memory = t.elapsed();
+    let (mem, in_memory) = timed_in_memory_lossless(&g);
     println!(
         "korea_srtm3_4097 lossless: streaming {} blobs {} bytes, peak {} bytes of a {budget} \
          budget (input {} bytes as f64), reads of {max_rows} rows, {streamed:.2?}; in memory {} blobs {} bytes, {in_memory:.2?}",
