@@ -17,7 +17,6 @@
 pub mod blob;
 pub mod colour;
 pub mod coverage;
-pub mod diamond;
 pub mod encode;
 pub mod entropy;
 pub mod fill;
@@ -25,3 +24,6 @@ pub mod lifting;
 pub mod raster;
 pub mod sphere_raster;
 pub mod stream;
+
+/// Diamond ids and hierarchy laws (the `quincunx-diamond` crate).
+pub use quincunx_diamond as diamond;

@@ -1,9 +1,13 @@
-//! Diamond ids and the hierarchy laws of the 4-8 (longest-edge bisection) hierarchy.
+//! quincunx diamond ids and the hierarchy laws of the 4-8 (longest-edge bisection) hierarchy.
 //!
 //! A diamond is identified by the integer coordinates of its centre only: level,
 //! orientation, parents, children, neighbours and sample positions are pure functions
 //! of the id and the domain. Two domains exist: a planar square ([`planar`]) and the
 //! cube-mapped sphere ([`sphere`]).
+//!
+//! This crate is the part of the codec's vocabulary that the server also needs (to
+//! validate ids and find storage keys) without linking a decoder; `quincunx-codec`
+//! re-exports it as `quincunx_codec::diamond`. Pure: std and thiserror only.
 //!
 //! Every diamond has an intrinsic *frame*: corners `[E1, P1, E2, P2]` where `E1`, `E2`
 //! are the ends of its hypotenuse and `P1`, `P2` the centres of its parents. Vertex

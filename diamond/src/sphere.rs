@@ -57,8 +57,8 @@
 //! angular distortion. The unit-sphere point is then scaled by the radius or ellipsoid and
 //! displaced by elevation, in `f64`.
 
-use super::planar::{frame_order, frame_point};
-use super::{IdError, MAX_M, Orientation, check_size, morton2, push_be, read_be, tz, unmorton2};
+use crate::planar::{frame_order, frame_point};
+use crate::{IdError, MAX_M, Orientation, check_size, morton2, push_be, read_be, tz, unmorton2};
 
 /// Face `+X` (index 0).
 pub const POS_X: u8 = 0;
@@ -98,15 +98,19 @@ pub struct SphereDomain {
 
 /// Axes of a face: normal axis `a` with sign `s`, chart axes `b` (u) and `c` (v).
 #[derive(Clone, Copy, Debug)]
-pub(crate) struct Axes {
-    pub(crate) a: usize,
-    pub(crate) s: i64,
-    pub(crate) b: usize,
-    pub(crate) c: usize,
+pub struct Axes {
+    /// Normal axis (0 = x, 1 = y, 2 = z).
+    pub a: usize,
+    /// Sign of the face along its normal axis (+1 or -1).
+    pub s: i64,
+    /// Axis of the chart's u coordinate.
+    pub b: usize,
+    /// Axis of the chart's v coordinate.
+    pub c: usize,
 }
 
 /// Axes of face `face` (< 6).
-pub(crate) fn axes(face: u8) -> Axes {
+pub fn axes(face: u8) -> Axes {
     let a = (face / 2) as usize % 3;
     if face.is_multiple_of(2) {
         Axes {
@@ -126,7 +130,7 @@ pub(crate) fn axes(face: u8) -> Axes {
 }
 
 /// Chart coordinates on `face` of a point lying on that face (half side `s`).
-pub(crate) fn chart_of(face: u8, p: [i64; 3], s: i64) -> [i64; 2] {
+pub fn chart_of(face: u8, p: [i64; 3], s: i64) -> [i64; 2] {
     let ax = axes(face);
     [p[ax.b] + s, p[ax.c] + s]
 }

@@ -6,7 +6,7 @@
 //! diamond. Rotated diamonds centred on the border are *half diamonds*: one triangle in the
 //! domain, one parent, two children.
 
-use super::{IdError, MAX_M, Orientation, check_size, morton2, push_be, read_be, tz, unmorton2};
+use crate::{IdError, MAX_M, Orientation, check_size, morton2, push_be, read_be, tz, unmorton2};
 
 /// A planar diamond id: the integer centre of the diamond.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
