@@ -40,37 +40,56 @@ const SAMPLES: [Sample; 2] = [
     },
 ];
 
+/// `quincunx demo` options.
+#[derive(clap::Args, Debug, Clone)]
+pub struct DemoArgs {
+    /// Where the sample repositories go.
+    #[arg(long, default_value = "quincunx-demo")]
+    pub dir: PathBuf,
+    /// Folder with the bundled data (default: the source checkout's `data/`).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Address the server listens on.
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub addr: std::net::SocketAddr,
+    /// Request the example URLs over a real socket, check the answers, and stop instead
+    /// of serving until Ctrl-C (used by CI).
+    #[arg(long)]
+    pub smoke: bool,
+}
+
 /// Runs `quincunx demo`.
-pub fn run(dir: &Path, data: Option<&Path>) -> Result<()> {
-    let data = data.map_or_else(bundled_data, Path::to_path_buf);
+pub fn run(args: &DemoArgs) -> Result<()> {
+    let dir = args.dir.as_path();
+    let data = args.data.clone().unwrap_or_else(bundled_data);
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     for s in &SAMPLES {
         let repo = dir.join(s.name);
         let source = data.join(s.source);
-        if quincunx_store::Repository::open(&repo).is_err() {
-            outln!("building {} from {} ...", repo.display(), source.display());
-            build::run(&BuildArgs {
-                input: source.clone(),
-                output: repo.clone(),
-                colour: false,
-                planet: s.planet,
-                radius_m: None,
-                body: "earth".into(),
-                face_side: None,
-                sparse: false,
-                diamond_size: None,
-                lossless: false,
-                rms_m: s.rms_m,
-                max_error_m: s.max_error_m,
-                threads: None,
-                memory_budget_mb: None,
-                overwrite: true,
-                json: false,
-                stall_after_blobs: None,
-            })?;
-        } else {
+        if quincunx_store::Repository::open(&repo).is_ok() {
             outln!("{} exists", repo.display());
+            continue;
         }
+        outln!("building {} from {} ...", repo.display(), source.display());
+        build::run(&BuildArgs {
+            input: source.clone(),
+            output: repo.clone(),
+            colour: false,
+            planet: s.planet,
+            radius_m: None,
+            body: "earth".into(),
+            face_side: None,
+            sparse: false,
+            diamond_size: None,
+            lossless: false,
+            rms_m: s.rms_m,
+            max_error_m: s.max_error_m,
+            threads: None,
+            memory_budget_mb: None,
+            overwrite: true,
+            json: false,
+            stall_after_blobs: None,
+        })?;
         outln!("verifying {} against {} ...", s.name, s.source);
         verify::run(&VerifyArgs {
             repo: repo.clone(),
@@ -83,10 +102,113 @@ pub fn run(dir: &Path, data: Option<&Path>) -> Result<()> {
     let places = [(27.988, 86.925), (11.35, 142.2), (90.0, 0.0), (-90.0, 0.0)];
     query::run(&earth, &places, false)?;
     outln!(
-        "radius {} m; try: quincunx info {}  |  quincunx export {} <dir>",
-        planet::body_radius_m("earth").unwrap_or_default(),
-        earth.display(),
-        earth.display()
+        "radius {} m",
+        planet::body_radius_m("earth").unwrap_or_default()
     );
+    serve(args)
+}
+
+/// Starts the server on the sample repositories and prints example requests.
+fn serve(args: &DemoArgs) -> Result<()> {
+    let repos: Vec<quincunx_server::RepoConfig> = SAMPLES
+        .iter()
+        .map(|s| quincunx_server::RepoConfig {
+            name: s.name.to_string(),
+            path: args.dir.join(s.name),
+        })
+        .collect();
+    let mut config = quincunx_server::ServerConfig {
+        addr: args.addr,
+        repos,
+        ..Default::default()
+    };
+    config.cache_bytes = 64 << 20;
+    let examples = example_paths(&config)?;
+    let runtime = tokio::runtime::Runtime::new().context("starting the runtime")?;
+    runtime.block_on(async move {
+        let server = quincunx_server::Server::bind(config)
+            .await
+            .with_context(|| {
+                format!(
+                    "starting the server (pass --addr to use another address than {})",
+                    args.addr
+                )
+            })?;
+        let addr = server.local_addr()?;
+        outln!("\nserving the sample repositories on http://{addr}/");
+        outln!("example requests:");
+        for (path, _) in &examples {
+            outln!("  curl -sI http://{addr}{path}");
+        }
+        outln!(
+            "  quincunx loadtest --url http://{addr} --repo korea --connections 64 --duration-s 10"
+        );
+        if !args.smoke {
+            outln!("press Ctrl-C to stop");
+            server.run(quincunx_server::shutdown_signal()).await;
+            return Ok(());
+        }
+        let (done_tx, done_rx) = tokio::sync::oneshot::channel::<()>();
+        let serving = tokio::spawn(server.run(async {
+            let _ = done_rx.await;
+        }));
+        let checked = tokio::task::spawn_blocking(move || smoke_check(addr, &examples))
+            .await
+            .context("smoke check panicked")?;
+        let _ = done_tx.send(());
+        serving.await.context("server task failed")?;
+        checked
+    })
+}
+
+/// URL paths worth trying, with the status each must answer: the listing, metadata, the
+/// root blobs, a leaf too deep to hold data (empty 200) and a non-centre (400).
+fn example_paths(config: &quincunx_server::ServerConfig) -> Result<Vec<(String, u16)>> {
+    use quincunx_codec::diamond::{PlanarDomain, SphereDomain};
+    let mut paths = vec![("/repos".to_string(), 200), ("/healthz".to_string(), 200)];
+    for rc in &config.repos {
+        let repo = quincunx_store::Repository::open(&rc.path)?;
+        let meta = repo.metadata();
+        let base = format!("/repos/{}", rc.name);
+        let v = &meta.content_hash[..16.min(meta.content_hash.len())];
+        paths.push((format!("{base}/metadata.json"), 200));
+        if meta.domain == "sphere" {
+            let [x, y, z] = SphereDomain::new(meta.m)?.roots()[0].c;
+            paths.push((format!("{base}/v/{v}/d/{x}/{y}/{z}"), 200));
+        } else {
+            let domain = PlanarDomain::new(meta.m)?;
+            let root = domain.root();
+            paths.push((format!("{base}/v/{v}/d/{}/{}", root.x, root.y), 200));
+            paths.push((format!("{base}/v/{v}/d/0/0"), 400));
+        }
+    }
+    Ok(paths)
+}
+
+/// Requests every example over a real socket and checks its status.
+fn smoke_check(addr: std::net::SocketAddr, examples: &[(String, u16)]) -> Result<()> {
+    use std::io::{Read, Write};
+    for (path, want) in examples {
+        let mut stream = std::net::TcpStream::connect(addr)?;
+        stream.set_read_timeout(Some(std::time::Duration::from_secs(10)))?;
+        write!(
+            stream,
+            "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+        )?;
+        let mut response = Vec::new();
+        stream.read_to_end(&mut response)?;
+        let head = String::from_utf8_lossy(&response[..response.len().min(64)]).into_owned();
+        let status: u16 = head
+            .split(' ')
+            .nth(1)
+            .and_then(|s| s.parse().ok())
+            .with_context(|| format!("GET {path}: no status line in {head:?}"))?;
+        anyhow::ensure!(
+            status == *want,
+            "GET {path}: status {status}, expected {want}"
+        );
+        outln!("  GET {path} -> {status} ({} bytes)", response.len());
+    }
+    outln!("smoke check passed");
     Ok(())
 }

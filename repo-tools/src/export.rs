@@ -45,12 +45,7 @@ pub fn run(path: &Path, dir: &Path, name: Option<&str>) -> Result<()> {
             .map(|s| s.to_string_lossy().into_owned())
             .context("repository path has no name; pass --name")?,
     };
-    if name.is_empty()
-        || !name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
-        || name.starts_with('.')
-    {
+    if !quincunx_store::is_valid_name(&name) {
         bail!("repository name {name:?} must be ASCII letters, digits, '-', '_' or '.'");
     }
     let meta = repo.metadata();

@@ -7,15 +7,16 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use quincunx_repo_tools::{build, demo, export, info, preview, query, verify};
+use quincunx_repo_tools::{build, demo, export, info, outln, preview, query, verify};
 
 /// Streams compressed multiresolution terrain: repository tools.
 #[derive(Parser, Debug)]
 #[command(name = "quincunx", version, about)]
 struct Cli {
     /// Log filter (tracing `EnvFilter` syntax), e.g. `info`, `quincunx=debug`.
-    #[arg(long, global = true, default_value = "warn")]
-    log: String,
+    /// Default: `info` for `serve` and `demo`, `warn` otherwise.
+    #[arg(long, global = true)]
+    log: Option<String>,
     #[command(subcommand)]
     command: Command,
 }
@@ -24,14 +25,9 @@ struct Cli {
 enum Command {
     /// Build the bundled sample repositories (planar SRTM crop, ETOPO20 planet) if they
     /// are missing, verify them and query a few places.
-    Demo {
-        /// Where the sample repositories go.
-        #[arg(long, default_value = "quincunx-demo")]
-        dir: PathBuf,
-        /// Folder with the bundled data (default: the source checkout's `data/`).
-        #[arg(long)]
-        data: Option<PathBuf>,
-    },
+    Demo(demo::DemoArgs),
+    /// Serve repositories over HTTP/1.1 (pipelined) and HTTP/2 (docs/http-api.md).
+    Serve(quincunx_server::ServeArgs),
     /// Build a repository from a DEM (raw + JSON sidecar, GeoTIFF, 16-bit PNG, SRTM .hgt)
     /// or from RGB imagery (JPEG/PNG, `--colour`).
     Build(build::BuildArgs),
@@ -93,7 +89,11 @@ fn parse_lat_lon(s: &str) -> Result<(f64, f64), String> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let filter = tracing_subscriber::EnvFilter::try_new(&cli.log)
+    let default_log = match cli.command {
+        Command::Serve(_) | Command::Demo(_) => "info",
+        _ => "warn",
+    };
+    let filter = tracing_subscriber::EnvFilter::try_new(cli.log.as_deref().unwrap_or(default_log))
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
     tracing_subscriber::fmt()
         .with_env_filter(filter)
@@ -101,7 +101,11 @@ fn main() -> ExitCode {
         .init();
     let result = match cli.command {
         Command::Build(args) => build::run(&args),
-        Command::Demo { dir, data } => demo::run(&dir, data.as_deref()),
+        Command::Demo(args) => demo::run(&args),
+        Command::Serve(args) => quincunx_server::run_cli(&args, |addr| {
+            outln!("serving on http://{addr}/  (repositories: http://{addr}/repos)");
+        })
+        .map_err(anyhow::Error::from),
         Command::Info { repo, json } => info::run(&repo, json),
         Command::Verify(args) => verify::run(&args),
         Command::Export { repo, dir, name } => export::run(&repo, &dir, name.as_deref()),

@@ -128,6 +128,17 @@ pub enum StoreError {
     },
 }
 
+/// Whether `name` may name a repository in URLs and export folders: ASCII letters, digits,
+/// `-`, `_` and `.`, not empty and not starting with `.` (so it is never a path step like
+/// `..`).
+pub fn is_valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && !name.starts_with('.')
+        && name
+            .bytes()
+            .all(|c| c.is_ascii_alphanumeric() || b"-_.".contains(&c))
+}
+
 /// Shorthand.
 pub type Result<T> = std::result::Result<T, StoreError>;
 

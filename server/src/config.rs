@@ -1,0 +1,294 @@
+//! Server configuration: a TOML file, overridden by command-line flags and `QUINCUNX_*`
+//! environment variables (flags win over the environment, both over the file).
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use serde::Deserialize;
+
+use crate::ServeError;
+
+/// Everything the server needs, with defaults suitable for the internet.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServerConfig {
+    /// Address to listen on.
+    pub addr: SocketAddr,
+    /// Repositories to serve, by name.
+    #[serde(rename = "repo")]
+    pub repos: Vec<RepoConfig>,
+    /// Bytes of blobs kept in the in-memory hot cache in front of sled.
+    pub cache_bytes: u64,
+    /// Connection and request limits.
+    pub limits: Limits,
+    /// Cross-origin resource sharing.
+    pub cors: Cors,
+}
+
+/// One repository to serve.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RepoConfig {
+    /// Name in URLs: ASCII letters, digits, `-`, `_`, `.` (not leading).
+    pub name: String,
+    /// The repository directory (built by `quincunx build`).
+    pub path: PathBuf,
+}
+
+/// Limits that keep one client (or many) from exhausting the server.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Limits {
+    /// Open connections at most; more are answered `503` and closed at once.
+    pub max_connections: usize,
+    /// Bytes of a request head (request line + headers) at most; larger heads get `431`.
+    /// HTTP/1 reads at most this many bytes ahead of the request being answered, which
+    /// bounds the pipelined requests buffered per connection.
+    pub max_header_bytes: usize,
+    /// Header fields per request at most.
+    pub max_headers: usize,
+    /// HTTP/2 streams in flight per connection at most.
+    pub max_concurrent_streams: u32,
+    /// Seconds a client has to send a complete request head once it started one, and to
+    /// send the first bytes of a connection (slow-loris defence).
+    pub header_timeout_s: f64,
+    /// Seconds without any bytes moving in either direction before a connection is closed
+    /// (idle keep-alive connections, and clients that stop reading their responses).
+    pub idle_timeout_s: f64,
+    /// Seconds graceful shutdown waits for in-flight requests before closing the rest.
+    pub shutdown_grace_s: f64,
+}
+
+/// Which origins may read responses from scripts.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Cors {
+    /// Allowed origins: `["*"]` (any, the default: blobs are public), a list of exact
+    /// origins (echoed back with `Vary: Origin`), or empty to send no CORS headers.
+    pub allow_origins: Vec<String>,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        ServerConfig {
+            addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            repos: Vec::new(),
+            cache_bytes: 256 << 20,
+            limits: Limits::default(),
+            cors: Cors::default(),
+        }
+    }
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_connections: 16_384,
+            max_header_bytes: 16 << 10,
+            max_headers: 64,
+            max_concurrent_streams: 128,
+            header_timeout_s: 10.0,
+            idle_timeout_s: 120.0,
+            shutdown_grace_s: 10.0,
+        }
+    }
+}
+
+impl Default for Cors {
+    fn default() -> Self {
+        Cors {
+            allow_origins: vec!["*".to_string()],
+        }
+    }
+}
+
+impl Limits {
+    /// [`Limits::header_timeout_s`] as a duration.
+    pub fn header_timeout(&self) -> Duration {
+        Duration::from_secs_f64(self.header_timeout_s)
+    }
+    /// [`Limits::idle_timeout_s`] as a duration.
+    pub fn idle_timeout(&self) -> Duration {
+        Duration::from_secs_f64(self.idle_timeout_s)
+    }
+    /// [`Limits::shutdown_grace_s`] as a duration.
+    pub fn shutdown_grace(&self) -> Duration {
+        Duration::from_secs_f64(self.shutdown_grace_s)
+    }
+}
+
+/// Command-line flags of `quincunx serve` (and of the `quincunx-server` binary).
+#[derive(Clone, Debug, Default, clap::Args)]
+pub struct ServeArgs {
+    /// TOML configuration file (see docs/http-api.md); flags override it.
+    #[arg(long, env = "QUINCUNX_CONFIG")]
+    pub config: Option<PathBuf>,
+    /// Address to listen on, e.g. 127.0.0.1:8080 or 0.0.0.0:80.
+    #[arg(long, env = "QUINCUNX_ADDR")]
+    pub addr: Option<SocketAddr>,
+    /// A repository to serve, as NAME=PATH (repeatable; adds to the configuration file's).
+    #[arg(long = "repo", value_name = "NAME=PATH", value_parser = parse_repo)]
+    pub repos: Vec<RepoConfig>,
+    /// Hot cache size in MiB.
+    #[arg(long, env = "QUINCUNX_CACHE_MB")]
+    pub cache_mb: Option<u64>,
+    /// Open connections at most.
+    #[arg(long, env = "QUINCUNX_MAX_CONNECTIONS")]
+    pub max_connections: Option<usize>,
+    /// Idle connection timeout in seconds.
+    #[arg(long, env = "QUINCUNX_IDLE_TIMEOUT_S")]
+    pub idle_timeout_s: Option<f64>,
+    /// Request-head timeout in seconds.
+    #[arg(long, env = "QUINCUNX_HEADER_TIMEOUT_S")]
+    pub header_timeout_s: Option<f64>,
+    /// Allowed CORS origins, comma separated (`*` for any, empty for none).
+    #[arg(long, env = "QUINCUNX_CORS")]
+    pub cors: Option<String>,
+    /// Runtime worker threads (default: one per core).
+    #[arg(long, env = "QUINCUNX_THREADS")]
+    pub threads: Option<usize>,
+}
+
+fn parse_repo(s: &str) -> Result<RepoConfig, String> {
+    let (name, path) = s
+        .split_once('=')
+        .ok_or_else(|| format!("expected NAME=PATH, got {s:?}"))?;
+    Ok(RepoConfig {
+        name: name.to_string(),
+        path: PathBuf::from(path),
+    })
+}
+
+impl ServerConfig {
+    /// Parses a TOML configuration.
+    pub fn from_toml(text: &str, origin: &Path) -> Result<ServerConfig, ServeError> {
+        toml::from_str(text).map_err(|e| ServeError::Config(format!("{}: {e}", origin.display())))
+    }
+
+    /// The file (if any) with the flags applied, checked.
+    pub fn from_args(args: &ServeArgs) -> Result<ServerConfig, ServeError> {
+        let mut config = match &args.config {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).map_err(|source| ServeError::Io {
+                    context: format!("reading {}", path.display()),
+                    source,
+                })?;
+                ServerConfig::from_toml(&text, path)?
+            }
+            None => ServerConfig::default(),
+        };
+        if let Some(addr) = args.addr {
+            config.addr = addr;
+        }
+        config.repos.extend(args.repos.iter().cloned());
+        if let Some(mb) = args.cache_mb {
+            config.cache_bytes = mb << 20;
+        }
+        if let Some(n) = args.max_connections {
+            config.limits.max_connections = n;
+        }
+        if let Some(s) = args.idle_timeout_s {
+            config.limits.idle_timeout_s = s;
+        }
+        if let Some(s) = args.header_timeout_s {
+            config.limits.header_timeout_s = s;
+        }
+        if let Some(cors) = &args.cors {
+            config.cors.allow_origins = cors
+                .split(',')
+                .map(str::trim)
+                .filter(|s| !s.is_empty())
+                .map(String::from)
+                .collect();
+        }
+        config.check()?;
+        Ok(config)
+    }
+
+    /// Rejects configurations the server cannot honour.
+    pub fn check(&self) -> Result<(), ServeError> {
+        let bad = |what: String| Err(ServeError::Config(what));
+        if self.repos.is_empty() {
+            return bad("no repositories to serve (pass --repo NAME=PATH)".into());
+        }
+        for (i, repo) in self.repos.iter().enumerate() {
+            if !quincunx_store::is_valid_name(&repo.name) {
+                return bad(format!(
+                    "repository name {:?} must be ASCII letters, digits, '-', '_' or '.' (not leading)",
+                    repo.name
+                ));
+            }
+            if self.repos[..i].iter().any(|r| r.name == repo.name) {
+                return bad(format!("repository name {:?} is given twice", repo.name));
+            }
+        }
+        let l = &self.limits;
+        if l.max_connections == 0 {
+            return bad("limits.max_connections must be at least 1".into());
+        }
+        if !(1024..=1 << 20).contains(&l.max_header_bytes) {
+            return bad("limits.max_header_bytes must be in 1024..=1048576".into());
+        }
+        if l.max_headers == 0 || l.max_concurrent_streams == 0 {
+            return bad("limits.max_headers and max_concurrent_streams must be positive".into());
+        }
+        for (name, s) in [
+            ("header_timeout_s", l.header_timeout_s),
+            ("idle_timeout_s", l.idle_timeout_s),
+            ("shutdown_grace_s", l.shutdown_grace_s),
+        ] {
+            if !(s.is_finite() && s > 0.0 && s < 1e7) {
+                return bad(format!(
+                    "limits.{name} must be a positive number of seconds"
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn toml_file_is_read_and_flags_override_it() {
+        let text = r#"
+            addr = "0.0.0.0:9000"
+            cache_bytes = 1000
+            [limits]
+            max_connections = 7
+            [cors]
+            allow_origins = ["https://a.example"]
+            [[repo]]
+            name = "earth"
+            path = "/srv/earth"
+        "#;
+        let config = ServerConfig::from_toml(text, Path::new("x.toml")).unwrap();
+        assert_eq!(config.addr.port(), 9000);
+        assert_eq!(config.limits.max_connections, 7);
+        assert_eq!(config.limits.max_headers, Limits::default().max_headers);
+        assert_eq!(config.repos[0].name, "earth");
+        assert_eq!(config.cors.allow_origins, ["https://a.example"]);
+        config.check().unwrap();
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_names_are_rejected() {
+        assert!(ServerConfig::from_toml("adr = \"1.2.3.4:5\"", Path::new("x")).is_err());
+        let args = ServeArgs {
+            repos: vec![parse_repo("../etc=/x").unwrap()],
+            ..ServeArgs::default()
+        };
+        assert!(ServerConfig::from_args(&args).is_err());
+        let args = ServeArgs {
+            repos: vec![parse_repo("a=/x").unwrap(), parse_repo("a=/y").unwrap()],
+            ..ServeArgs::default()
+        };
+        assert!(ServerConfig::from_args(&args).is_err());
+        assert!(parse_repo("noequals").is_err());
+        assert!(ServerConfig::from_args(&ServeArgs::default()).is_err());
+    }
+}

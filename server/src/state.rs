@@ -1,0 +1,254 @@
+//! What the server holds: the open repositories, their precomputed JSON, the hot blob
+//! cache and the metrics.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use axum::http::HeaderValue;
+use bytes::Bytes;
+use quincunx_diamond::{PlanarDomain, PlanarId, SphereDomain, SphereId};
+use quincunx_store::Repository;
+
+use crate::ServeError;
+use crate::config::{Cors, ServerConfig};
+use crate::error::ApiError;
+use crate::metrics::Metrics;
+
+/// Shared, cheaply cloned server state.
+#[derive(Clone)]
+pub struct AppState(Arc<Inner>);
+
+/// The fields behind [`AppState`].
+pub struct Inner {
+    repos: Vec<Served>,
+    by_name: HashMap<String, usize>,
+    cache: BlobCache,
+    /// Request and connection counters.
+    pub metrics: Metrics,
+    /// CORS policy.
+    pub cors: Cors,
+    /// `GET /repos` body.
+    pub listing: Bytes,
+}
+
+impl std::ops::Deref for AppState {
+    type Target = Inner;
+    fn deref(&self) -> &Inner {
+        &self.0
+    }
+}
+
+/// The id space of a repository.
+#[derive(Clone, Copy, Debug)]
+pub enum Domain {
+    /// Planar square `[0, 2^m]^2`: ids have 2 coordinates.
+    Planar(PlanarDomain),
+    /// Cube-mapped sphere `[-2^m, 2^m]^3`: ids have 3 coordinates.
+    Sphere(SphereDomain),
+}
+
+impl Domain {
+    /// Coordinates in an id.
+    pub fn dims(&self) -> usize {
+        match self {
+            Domain::Planar(_) => 2,
+            Domain::Sphere(_) => 3,
+        }
+    }
+
+    /// The storage key and level of a centre, or why it is not a diamond of this domain.
+    fn key(&self, c: [i64; 3]) -> Result<(Vec<u8>, u32), quincunx_diamond::IdError> {
+        match self {
+            Domain::Planar(d) => {
+                let id = PlanarId { x: c[0], y: c[1] };
+                Ok((d.key(id)?, d.level(id)?))
+            }
+            Domain::Sphere(d) => {
+                let id = SphereId { c };
+                Ok((d.key(id)?, d.level(id)?))
+            }
+        }
+    }
+}
+
+/// One repository being served.
+pub struct Served {
+    /// Name in URLs.
+    pub name: String,
+    repo: Repository,
+    /// Its id space.
+    pub domain: Domain,
+    levels: u32,
+    /// First 16 hex digits of the content hash: the version in blob URLs.
+    pub version: String,
+    /// `GET /repos/<name>/metadata.json` body (byte-identical to `quincunx export`'s).
+    pub metadata_json: Bytes,
+    /// Strong validator of the metadata.
+    pub metadata_etag: HeaderValue,
+}
+
+/// A blob (or the empty body of a leaf) ready to send.
+#[derive(Clone)]
+pub struct CachedBlob {
+    /// The bytes; empty for a leaf.
+    pub body: Bytes,
+    /// Strong validator: repository version + centre (blob URLs are immutable).
+    pub etag: HeaderValue,
+}
+
+#[derive(Clone)]
+struct BlobWeighter;
+
+/// Per-entry bookkeeping beyond the body, counted against the byte budget.
+const ENTRY_OVERHEAD_BYTES: u64 = 96;
+
+impl quick_cache::Weighter<(u32, [i64; 3]), CachedBlob> for BlobWeighter {
+    fn weight(&self, _key: &(u32, [i64; 3]), val: &CachedBlob) -> u64 {
+        val.body.len() as u64 + val.etag.len() as u64 + ENTRY_OVERHEAD_BYTES
+    }
+}
+
+/// The hot cache: `(repository index, centre)` -> blob, bounded in bytes.
+type BlobCache = quick_cache::sync::Cache<(u32, [i64; 3]), CachedBlob, BlobWeighter>;
+
+impl AppState {
+    /// Opens every configured repository (read-only).
+    pub fn open(config: &ServerConfig) -> Result<AppState, ServeError> {
+        let mut repos = Vec::new();
+        for rc in &config.repos {
+            let repo = Repository::open(&rc.path).map_err(|source| ServeError::Store {
+                name: rc.name.clone(),
+                source,
+            })?;
+            repos.push(Served::new(rc.name.clone(), repo)?);
+        }
+        AppState::from_served(repos, config)
+    }
+
+    fn from_served(repos: Vec<Served>, config: &ServerConfig) -> Result<AppState, ServeError> {
+        let by_name = repos
+            .iter()
+            .enumerate()
+            .map(|(i, r)| (r.name.clone(), i))
+            .collect();
+        let listing = serde_json::to_vec(&serde_json::json!({
+            "repositories": repos.iter().map(Served::summary).collect::<Vec<_>>()
+        }))
+        .map_err(|e| ServeError::Config(format!("listing: {e}")))?;
+        let estimated_items = (config.cache_bytes / 512).clamp(16, 1 << 24) as usize;
+        Ok(AppState(Arc::new(Inner {
+            repos,
+            by_name,
+            cache: BlobCache::with_weighter(
+                estimated_items,
+                config.cache_bytes.max(1),
+                BlobWeighter,
+            ),
+            metrics: Metrics::default(),
+            cors: config.cors.clone(),
+            listing: Bytes::from(listing),
+        })))
+    }
+
+    /// A repository by name.
+    pub fn repo(&self, name: &str) -> Option<(u32, &Served)> {
+        let &i = self.by_name.get(name)?;
+        Some((i as u32, &self.repos[i]))
+    }
+
+    /// The blob of the diamond centred at `c` in repository `index`: from the hot cache,
+    /// else validated, read from sled and cached. In-domain diamonds without a blob (leaves,
+    /// holes of sparse repositories, levels deeper than the repository) get an empty body.
+    pub fn blob(&self, index: u32, c: [i64; 3]) -> Result<CachedBlob, ApiError> {
+        if let Some(hit) = self.cache.get(&(index, c)) {
+            self.metrics
+                .cache_hits
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            return Ok(hit);
+        }
+        self.metrics
+            .cache_misses
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let served = &self.repos[index as usize];
+        let (key, level) = served
+            .domain
+            .key(c)
+            .map_err(|e| ApiError::bad_request(format!("not a diamond of this repository: {e}")))?;
+        let body = if level >= served.levels {
+            Bytes::new()
+        } else {
+            match served.repo.get(&key) {
+                Ok(Some(blob)) => Bytes::copy_from_slice(&blob),
+                Ok(None) => Bytes::new(),
+                Err(e) => return Err(ApiError::internal(&served.name, &e)),
+            }
+        };
+        let etag = match served.domain {
+            Domain::Planar(_) => format!("\"{}.{}.{}\"", served.version, c[0], c[1]),
+            Domain::Sphere(_) => format!("\"{}.{}.{}.{}\"", served.version, c[0], c[1], c[2]),
+        };
+        let blob = CachedBlob {
+            body,
+            etag: HeaderValue::try_from(etag).map_err(|e| ApiError::internal(&served.name, &e))?,
+        };
+        self.cache.insert((index, c), blob.clone());
+        Ok(blob)
+    }
+
+    /// Hot cache occupancy: bytes (as weighed) and entries.
+    pub fn cache_usage(&self) -> (u64, usize) {
+        (self.cache.weight(), self.cache.len())
+    }
+}
+
+impl Served {
+    fn new(name: String, repo: Repository) -> Result<Served, ServeError> {
+        let meta = repo.metadata();
+        let bad = |what: String| ServeError::Config(format!("repository {name:?}: {what}"));
+        let domain = match meta.domain.as_str() {
+            "planar" => Domain::Planar(PlanarDomain::new(meta.m).map_err(|e| bad(e.to_string()))?),
+            "sphere" => Domain::Sphere(SphereDomain::new(meta.m).map_err(|e| bad(e.to_string()))?),
+            other => return Err(bad(format!("unknown domain {other:?}"))),
+        };
+        if meta.content_hash.len() < 16 || !meta.content_hash.bytes().all(|b| b.is_ascii_hexdigit())
+        {
+            return Err(bad("content hash missing or malformed".into()));
+        }
+        let version = meta.content_hash[..16].to_string();
+        let metadata_json = serde_json::to_vec(meta).map_err(|e| bad(e.to_string()))?;
+        let metadata_etag = HeaderValue::try_from(format!("\"{}\"", meta.content_hash))
+            .map_err(|e| bad(e.to_string()))?;
+        Ok(Served {
+            levels: meta.levels,
+            name,
+            repo,
+            domain,
+            version,
+            metadata_json: Bytes::from(metadata_json),
+            metadata_etag,
+        })
+    }
+
+    /// The repository's entry in `GET /repos`.
+    fn summary(&self) -> serde_json::Value {
+        let meta = self.repo.metadata();
+        let centre = match self.domain {
+            Domain::Planar(_) => "{x}/{y}",
+            Domain::Sphere(_) => "{x}/{y}/{z}",
+        };
+        serde_json::json!({
+            "name": self.name,
+            "domain": meta.domain,
+            "attribute": meta.attribute.kind,
+            "units": meta.attribute.units,
+            "m": meta.m,
+            "n": meta.n,
+            "levels": meta.levels,
+            "radius_m": meta.radius_m,
+            "blobs": meta.level_stats.iter().map(|l| l.blobs).sum::<u64>(),
+            "content_hash": meta.content_hash,
+            "metadata_url": format!("/repos/{}/metadata.json", self.name),
+            "blob_url_template": format!("/repos/{}/v/{}/d/{centre}", self.name, self.version),
+        })
+    }
+}
