@@ -125,11 +125,12 @@ async fn connection(
         }
     };
     let activity = Arc::new(AtomicU64::new(now_ms()));
-    let io = TokioIo::new(Tracked {
+    let io = TokioIo::new(Tracked::new(
         stream,
-        activity: activity.clone(),
-        state: state.clone(),
-    });
+        activity.clone(),
+        state.clone(),
+        matches!(protocol, Protocol::Http1),
+    ));
     let service = TowerToHyperService::new(app);
     match protocol {
         Protocol::Http1 => {
@@ -138,7 +139,6 @@ async fn connection(
                 .header_read_timeout(limits.header_timeout())
                 .max_buf_size(limits.max_header_bytes.max(8192))
                 .max_headers(limits.max_headers)
-                .pipeline_flush(true)
                 .keep_alive(true)
                 .serve_connection(io, service);
             drive(conn, &activity, state, limits, shutdown).await;
@@ -203,20 +203,99 @@ fn now_ms() -> u64 {
     START.get_or_init(Instant::now).elapsed().as_millis() as u64
 }
 
-/// A client socket that records when bytes last moved and counts system calls.
+/// Bytes of responses collected before they are written even though more pipelined
+/// requests are waiting (and the most a connection buffers when its client stops reading).
+const OUT_CAP: usize = 64 << 10;
+
+/// A client socket that records when bytes last moved, counts system calls, and (for
+/// HTTP/1) aggregates the responses to pipelined requests into few writes.
+///
+/// Aggregation: reads hand hyper one request head at a time, keeping the rest of what
+/// arrived here; responses are collected in `out`, and a flush is deferred while more
+/// requests are already waiting (up to [`OUT_CAP`]), so a pipeline of 16 requests is
+/// answered with one write. Whenever the connection would wait for input, `out` is
+/// written first. This replaces hyper's own `pipeline_flush`, which never stops
+/// answering into its write buffer while the socket is full: a client pipelining without
+/// reading would grow it without bound. Here a full `out` makes writes wait, and hyper
+/// reads no further request until its response is written.
 struct Tracked {
     stream: TcpStream,
     activity: Arc<AtomicU64>,
     state: AppState,
+    /// HTTP/1: split reads per request and aggregate writes.
+    aggregate: bool,
+    /// Request bytes read from the socket and not yet handed to hyper (`input[consumed..]`).
+    input: Vec<u8>,
+    consumed: usize,
+    /// Response bytes not yet written.
+    out: Vec<u8>,
+}
+
+/// Length of the first request head in `bytes` (through its blank line), if complete.
+fn first_head_len(bytes: &[u8]) -> Option<usize> {
+    bytes
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .map(|p| p + 4)
 }
 
 impl Tracked {
+    fn new(stream: TcpStream, activity: Arc<AtomicU64>, state: AppState, aggregate: bool) -> Self {
+        Tracked {
+            stream,
+            activity,
+            state,
+            aggregate,
+            input: Vec::new(),
+            consumed: 0,
+            out: Vec::new(),
+        }
+    }
+
     fn wrote(&self, n: usize) {
         if n > 0 {
             self.activity.store(now_ms(), Relaxed);
             let m = &self.state.metrics;
             m.socket_writes.fetch_add(1, Relaxed);
             m.socket_bytes_written.fetch_add(n as u64, Relaxed);
+        }
+    }
+
+    fn has_input(&self) -> bool {
+        self.consumed < self.input.len()
+    }
+
+    /// Writes all of `out`.
+    fn poll_drain(&mut self, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        while !self.out.is_empty() {
+            match Pin::new(&mut self.stream).poll_write(cx, &self.out) {
+                Poll::Ready(Ok(0)) => return Poll::Ready(Err(io::ErrorKind::WriteZero.into())),
+                Poll::Ready(Ok(n)) => {
+                    self.wrote(n);
+                    self.out.drain(..n);
+                }
+                Poll::Ready(Err(e)) => return Poll::Ready(Err(e)),
+                Poll::Pending => return Poll::Pending,
+            }
+        }
+        if self.out.capacity() > OUT_CAP {
+            // Idle connections keep no large buffers.
+            self.out = Vec::new();
+        }
+        Poll::Ready(Ok(()))
+    }
+
+    /// Hands hyper at most one request head from `input`.
+    fn give_input(&mut self, buf: &mut ReadBuf<'_>) {
+        let rest = &self.input[self.consumed..];
+        let take = first_head_len(rest)
+            .unwrap_or(rest.len())
+            .min(buf.remaining());
+        buf.put_slice(&rest[..take]);
+        self.consumed += take;
+        if self.consumed == self.input.len() {
+            self.input = Vec::new();
+            self.consumed = 0;
         }
     }
 }
@@ -228,13 +307,45 @@ impl AsyncRead for Tracked {
         buf: &mut ReadBuf<'_>,
     ) -> Poll<io::Result<()>> {
         let this = self.get_mut();
-        let before = buf.filled().len();
-        let poll = Pin::new(&mut this.stream).poll_read(cx, buf);
-        if matches!(poll, Poll::Ready(Ok(()))) && buf.filled().len() > before {
-            this.activity.store(now_ms(), Relaxed);
-            this.state.metrics.socket_reads.fetch_add(1, Relaxed);
+        if !this.aggregate {
+            let before = buf.filled().len();
+            let poll = Pin::new(&mut this.stream).poll_read(cx, buf);
+            if matches!(poll, Poll::Ready(Ok(()))) && buf.filled().len() > before {
+                this.activity.store(now_ms(), Relaxed);
+                this.state.metrics.socket_reads.fetch_add(1, Relaxed);
+            }
+            return poll;
         }
-        poll
+        if this.has_input() {
+            this.give_input(buf);
+            return Poll::Ready(Ok(()));
+        }
+        // About to wait for the client: first send what it is owed.
+        match this.poll_drain(cx) {
+            Poll::Ready(Ok(())) => {}
+            other => return other,
+        }
+        let before = buf.filled().len();
+        match Pin::new(&mut this.stream).poll_read(cx, buf) {
+            Poll::Ready(Ok(())) => {}
+            other => return other,
+        }
+        let filled = buf.filled().len();
+        if filled == before {
+            return Poll::Ready(Ok(())); // end of stream
+        }
+        this.activity.store(now_ms(), Relaxed);
+        this.state.metrics.socket_reads.fetch_add(1, Relaxed);
+        // Keep everything after the first request head for later reads.
+        if let Some(head) = first_head_len(&buf.filled()[before..]) {
+            let end = before + head;
+            if end < filled {
+                this.input.extend_from_slice(&buf.filled()[end..]);
+                this.consumed = 0;
+                buf.set_filled(end);
+            }
+        }
+        Poll::Ready(Ok(()))
     }
 }
 
@@ -244,12 +355,7 @@ impl AsyncWrite for Tracked {
         cx: &mut Context<'_>,
         buf: &[u8],
     ) -> Poll<io::Result<usize>> {
-        let this = self.get_mut();
-        let poll = Pin::new(&mut this.stream).poll_write(cx, buf);
-        if let Poll::Ready(Ok(n)) = poll {
-            this.wrote(n);
-        }
-        poll
+        self.poll_write_vectored(cx, &[io::IoSlice::new(buf)])
     }
 
     fn poll_write_vectored(
@@ -258,22 +364,49 @@ impl AsyncWrite for Tracked {
         bufs: &[io::IoSlice<'_>],
     ) -> Poll<io::Result<usize>> {
         let this = self.get_mut();
-        let poll = Pin::new(&mut this.stream).poll_write_vectored(cx, bufs);
-        if let Poll::Ready(Ok(n)) = poll {
-            this.wrote(n);
+        if !this.aggregate {
+            let poll = Pin::new(&mut this.stream).poll_write_vectored(cx, bufs);
+            if let Poll::Ready(Ok(n)) = poll {
+                this.wrote(n);
+            }
+            return poll;
         }
-        poll
+        if this.out.len() >= OUT_CAP {
+            match this.poll_drain(cx) {
+                Poll::Ready(Ok(())) => {}
+                Poll::Ready(Err(e)) => return Poll::Ready(Err(e)),
+                Poll::Pending => return Poll::Pending,
+            }
+        }
+        let mut n = 0;
+        for b in bufs {
+            this.out.extend_from_slice(b);
+            n += b.len();
+        }
+        Poll::Ready(Ok(n))
     }
 
     fn is_write_vectored(&self) -> bool {
-        self.stream.is_write_vectored()
+        true
     }
 
     fn poll_flush(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.get_mut().stream).poll_flush(cx)
+        let this = self.get_mut();
+        // More pipelined requests are already here: answer them before writing.
+        if this.aggregate && this.has_input() && this.out.len() < OUT_CAP {
+            return Poll::Ready(Ok(()));
+        }
+        match this.poll_drain(cx) {
+            Poll::Ready(Ok(())) => Pin::new(&mut this.stream).poll_flush(cx),
+            other => other,
+        }
     }
 
     fn poll_shutdown(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.get_mut().stream).poll_shutdown(cx)
+        let this = self.get_mut();
+        match this.poll_drain(cx) {
+            Poll::Ready(Ok(())) => Pin::new(&mut this.stream).poll_shutdown(cx),
+            other => other,
+        }
     }
 }

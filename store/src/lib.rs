@@ -310,6 +310,26 @@ impl PageTree {
 }
 
 impl Repository {
+    /// [`Repository::open`] right after this process closed the database: sled's I/O
+    /// threads can hold the closed database's file lock for a moment, so lock conflicts
+    /// are retried for up to two seconds.
+    fn open_settling(path: &Path) -> Result<Repository> {
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(2);
+        loop {
+            match Repository::open(path) {
+                Err(StoreError::Sled {
+                    source: sled::Error::Io(e),
+                    ..
+                }) if e.to_string().contains("could not acquire lock")
+                    && std::time::Instant::now() < deadline =>
+                {
+                    std::thread::sleep(std::time::Duration::from_millis(10));
+                }
+                other => return other,
+            }
+        }
+    }
+
     /// Opens a published repository. Fails with [`StoreError::Incomplete`] for anything an
     /// interrupted build left behind.
     pub fn open(path: impl AsRef<Path>) -> Result<Repository> {
@@ -681,7 +701,7 @@ impl RepositoryBuilder {
         // Open and close it once the way readers do: recovery writes sled's snapshot and
         // settles the log, so the published directory is the size it will stay (and a
         // database that does not open is never published).
-        drop(Repository::open(&partial)?);
+        drop(Repository::open_settling(&partial)?);
         let old = if final_path.exists() {
             let mut name = final_path.file_name().unwrap_or_default().to_os_string();
             name.push(".old");
