@@ -124,7 +124,7 @@ pub struct Report {
     pub error_kinds: BTreeMap<String, u64>,
     /// Tokio worker threads.
     pub threads: usize,
-    /// Distinct flights and their mean length in requests.
+    /// Distinct flights in the pool (client `i` flies flight `i mod flights`).
     pub flights: usize,
     /// Mean stream length, requests.
     pub stream_len_mean: f64,
