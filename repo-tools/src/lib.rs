@@ -24,6 +24,7 @@ pub mod export;
 pub mod info;
 pub mod input;
 pub mod layout;
+pub mod loadtest;
 pub mod planet;
 pub mod preview;
 pub mod progress;

@@ -7,7 +7,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use quincunx_repo_tools::{build, demo, export, info, outln, preview, query, verify};
+use quincunx_repo_tools::{build, demo, export, info, loadtest, outln, preview, query, verify};
 
 /// Streams compressed multiresolution terrain: repository tools.
 #[derive(Parser, Debug)]
@@ -77,6 +77,9 @@ enum Command {
         #[arg(long)]
         name: Option<String>,
     },
+    /// Simulated view-dependent clients against a server (or a static export behind any
+    /// web server): N persistent, optionally pipelined connections replaying flights.
+    Loadtest(loadtest::LoadtestArgs),
 }
 
 fn parse_lat_lon(s: &str) -> Result<(f64, f64), String> {
@@ -110,6 +113,7 @@ fn main() -> ExitCode {
         Command::Verify(args) => verify::run(&args),
         Command::Export { repo, dir, name } => export::run(&repo, &dir, name.as_deref()),
         Command::Query { repo, at, json } => query::run(&repo, &at, json),
+        Command::Loadtest(args) => loadtest::run(&args),
         Command::Preview {
             repo,
             output,

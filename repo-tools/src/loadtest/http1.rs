@@ -1,0 +1,661 @@
+//! A minimal pipelined HTTP/1.1 client: one persistent TCP connection, GET requests written
+//! in batches, responses read back in order.
+//!
+//! Responses are framed strictly: a status line and headers parsed by `httparse`, a body of
+//! exactly `Content-Length` bytes (none for 204 and 304). Chunked bodies, informational
+//! (1xx) responses, oversized heads and bodies are errors, never panics, and no allocation
+//! follows a length field beyond [`Limits::max_body_bytes`].
+//!
+//! The byte-level framing lives in [`ResponseDecoder`], which is pure (bytes in, responses
+//! out) so it can be tested with responses split anywhere; [`Connection`] feeds it from a
+//! socket.
+
+use std::net::SocketAddr;
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+/// Most headers accepted in one response.
+pub const MAX_HEADERS: usize = 64;
+
+/// Size bounds on responses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Limits {
+    /// Longest accepted status line plus headers, in bytes.
+    pub max_head_bytes: usize,
+    /// Largest accepted body, in bytes.
+    pub max_body_bytes: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_head_bytes: 64 * 1024,
+            max_body_bytes: 16 * 1024 * 1024,
+        }
+    }
+}
+
+/// Why a response could not be read.
+#[derive(Debug, thiserror::Error)]
+pub enum Http1Error {
+    /// The socket failed.
+    #[error("connection: {0}")]
+    Io(#[from] std::io::Error),
+    /// The server closed the connection before a whole response arrived.
+    #[error("connection closed by the server")]
+    Closed,
+    /// The status line or headers are not valid HTTP/1.x.
+    #[error("malformed response head: {0}")]
+    Malformed(httparse::Error),
+    /// The status line and headers exceed [`Limits::max_head_bytes`].
+    #[error("response head longer than {0} bytes")]
+    HeadTooLarge(usize),
+    /// `Content-Length` exceeds [`Limits::max_body_bytes`].
+    #[error("response body of {0} bytes exceeds the limit")]
+    BodyTooLarge(u64),
+    /// No `Content-Length` on a response that has a body.
+    #[error("response without Content-Length")]
+    MissingContentLength,
+    /// `Content-Length` is not a decimal number, or two of them disagree.
+    #[error("invalid Content-Length")]
+    BadContentLength,
+    /// `Transfer-Encoding` is set (chunked bodies are not supported).
+    #[error("Transfer-Encoding is not supported")]
+    TransferEncoding,
+    /// A 1xx response (this client never asks for one).
+    #[error("unexpected informational response {0}")]
+    Informational(u16),
+    /// The URL is not `http://host[:port][/prefix]`.
+    #[error("bad URL {0:?}: expected http://host[:port][/prefix]")]
+    BadUrl(String),
+}
+
+/// Where requests go: a resolved address, the `Host` header value and a path prefix.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Endpoint {
+    /// The server's socket address.
+    pub addr: SocketAddr,
+    /// `Host` header value (`host[:port]` as written in the URL).
+    pub host: String,
+    /// Path prefix without a trailing slash (empty for the server root).
+    pub prefix: String,
+}
+
+impl Endpoint {
+    /// Parses `http://host[:port][/prefix]` and resolves the host (blocking DNS lookup).
+    pub fn from_url(url: &str) -> Result<Endpoint, Http1Error> {
+        let bad = || Http1Error::BadUrl(url.to_string());
+        let rest = url.strip_prefix("http://").ok_or_else(bad)?;
+        let (authority, path) = match rest.find('/') {
+            Some(i) => rest.split_at(i),
+            None => (rest, ""),
+        };
+        if authority.is_empty()
+            || path.contains(['?', '#', ' '])
+            || !authority
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || "-._:[]".contains(c))
+        {
+            return Err(bad());
+        }
+        let with_port = if authority.ends_with(']') || !authority.contains(':') {
+            format!("{authority}:80")
+        } else {
+            authority.to_string()
+        };
+        let addr = std::net::ToSocketAddrs::to_socket_addrs(&with_port)
+            .map_err(|_| bad())?
+            .next()
+            .ok_or_else(bad)?;
+        Ok(Endpoint {
+            addr,
+            host: authority.to_string(),
+            prefix: path.trim_end_matches('/').to_string(),
+        })
+    }
+}
+
+/// Appends `GET <path> HTTP/1.1` with a `Host` header to `out`.
+pub fn write_get(out: &mut Vec<u8>, host: &str, path: &[u8]) {
+    out.extend_from_slice(b"GET ");
+    out.extend_from_slice(path);
+    out.extend_from_slice(b" HTTP/1.1\r\nHost: ");
+    out.extend_from_slice(host.as_bytes());
+    out.extend_from_slice(b"\r\n\r\n");
+}
+
+/// Pre-rendered request bytes for GETs of paths sharing a prefix: rendering one request is
+/// three copies, with no formatting and no allocation once `out` has grown.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct GetTemplate {
+    head: Vec<u8>,
+    tail: Vec<u8>,
+}
+
+impl GetTemplate {
+    /// Requests for `<path_prefix><suffix>` with `Host: host`.
+    pub fn new(host: &str, path_prefix: &str) -> Self {
+        GetTemplate {
+            head: format!("GET {path_prefix}").into_bytes(),
+            tail: format!(" HTTP/1.1\r\nHost: {host}\r\n\r\n").into_bytes(),
+        }
+    }
+
+    /// Appends the request for `suffix` to `out`.
+    pub fn push(&self, out: &mut Vec<u8>, suffix: &[u8]) {
+        out.extend_from_slice(&self.head);
+        out.extend_from_slice(suffix);
+        out.extend_from_slice(&self.tail);
+    }
+}
+
+/// One response, borrowed from the decoder's buffer until the next one is decoded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Response<'a> {
+    /// Status code.
+    pub status: u16,
+    /// The body (empty for 204 and 304).
+    pub body: &'a [u8],
+    /// The server announced `Connection: close`: nothing more will arrive.
+    pub close: bool,
+}
+
+/// Where a decoded response lies in the buffer.
+#[derive(Clone, Copy, Debug)]
+struct Frame {
+    status: u16,
+    body_start: usize,
+    end: usize,
+    close: bool,
+}
+
+/// Splits a byte stream into responses. Reuses one buffer, which grows only as far as the
+/// largest response (bounded by [`Limits`]).
+#[derive(Debug)]
+pub struct ResponseDecoder {
+    limits: Limits,
+    buf: Vec<u8>,
+    /// Unconsumed bytes are `buf[start..end]`.
+    start: usize,
+    end: usize,
+    /// Length of the response handed out last, dropped at the next decode.
+    pending: usize,
+}
+
+/// Initial (and minimum free) buffer space, in bytes.
+const READ_CHUNK: usize = 16 * 1024;
+
+impl ResponseDecoder {
+    /// An empty decoder; allocates on first use.
+    pub fn new(limits: Limits) -> Self {
+        ResponseDecoder {
+            limits,
+            buf: Vec::new(),
+            start: 0,
+            end: 0,
+            pending: 0,
+        }
+    }
+
+    /// Bytes received and not yet part of a decoded response.
+    pub fn buffered(&self) -> usize {
+        self.end - self.start - self.pending
+    }
+
+    /// Forgets all buffered bytes (after a reconnect).
+    pub fn clear(&mut self) {
+        self.start = 0;
+        self.end = 0;
+        self.pending = 0;
+    }
+
+    fn consume_pending(&mut self) {
+        self.start += self.pending;
+        self.pending = 0;
+        if self.start == self.end {
+            self.start = 0;
+            self.end = 0;
+        }
+    }
+
+    /// Free space to receive into; call [`ResponseDecoder::filled`] with the count written.
+    /// Compacts or grows the buffer, up to the largest response [`Limits`] allow.
+    pub fn spare(&mut self) -> Result<&mut [u8], Http1Error> {
+        self.consume_pending();
+        if self.buf.len() - self.end < READ_CHUNK / 4 && self.start > 0 {
+            self.buf.copy_within(self.start..self.end, 0);
+            self.end -= self.start;
+            self.start = 0;
+        }
+        if self.buf.len() - self.end < READ_CHUNK / 4 {
+            let cap = self.limits.max_head_bytes + self.limits.max_body_bytes + READ_CHUNK;
+            if self.buf.len() >= cap {
+                // Unreachable while decode() enforces the limits; an error, not a panic.
+                return Err(Http1Error::HeadTooLarge(self.limits.max_head_bytes));
+            }
+            let grown = (self.buf.len() * 2).clamp(READ_CHUNK, cap);
+            self.buf.resize(grown, 0);
+        }
+        Ok(&mut self.buf[self.end..])
+    }
+
+    /// Records that `n` bytes were written at the start of [`ResponseDecoder::spare`].
+    pub fn filled(&mut self, n: usize) {
+        self.end = (self.end + n).min(self.buf.len());
+    }
+
+    /// Appends bytes (for tests and callers that do not read into [`ResponseDecoder::spare`]).
+    pub fn extend(&mut self, mut bytes: &[u8]) -> Result<(), Http1Error> {
+        while !bytes.is_empty() {
+            let spare = self.spare()?;
+            let n = spare.len().min(bytes.len());
+            spare[..n].copy_from_slice(&bytes[..n]);
+            self.filled(n);
+            bytes = &bytes[n..];
+        }
+        Ok(())
+    }
+
+    /// The next complete response, `None` if more bytes are needed.
+    pub fn decode(&mut self) -> Result<Option<Response<'_>>, Http1Error> {
+        Ok(self.decode_frame()?.map(|f| self.response(f)))
+    }
+
+    fn response(&self, f: Frame) -> Response<'_> {
+        Response {
+            status: f.status,
+            body: &self.buf[f.body_start..f.end],
+            close: f.close,
+        }
+    }
+
+    fn decode_frame(&mut self) -> Result<Option<Frame>, Http1Error> {
+        self.consume_pending();
+        let data = &self.buf[self.start..self.end];
+        if data.is_empty() {
+            return Ok(None);
+        }
+        let mut headers = [httparse::EMPTY_HEADER; MAX_HEADERS];
+        let mut resp = httparse::Response::new(&mut headers);
+        let head_len = match resp.parse(data).map_err(Http1Error::Malformed)? {
+            httparse::Status::Complete(n) => n,
+            httparse::Status::Partial => {
+                if data.len() > self.limits.max_head_bytes {
+                    return Err(Http1Error::HeadTooLarge(self.limits.max_head_bytes));
+                }
+                return Ok(None);
+            }
+        };
+        if head_len > self.limits.max_head_bytes {
+            return Err(Http1Error::HeadTooLarge(self.limits.max_head_bytes));
+        }
+        let status = resp
+            .code
+            .ok_or(Http1Error::Malformed(httparse::Error::Status))?;
+        if (100..200).contains(&status) {
+            return Err(Http1Error::Informational(status));
+        }
+        let mut length: Option<u64> = None;
+        let mut close = false;
+        for h in resp.headers.iter() {
+            if h.name.eq_ignore_ascii_case("content-length") {
+                let v = parse_length(h.value).ok_or(Http1Error::BadContentLength)?;
+                if length.is_some_and(|old| old != v) {
+                    return Err(Http1Error::BadContentLength);
+                }
+                length = Some(v);
+            } else if h.name.eq_ignore_ascii_case("transfer-encoding") {
+                return Err(Http1Error::TransferEncoding);
+            } else if h.name.eq_ignore_ascii_case("connection") {
+                close = h
+                    .value
+                    .split(|&b| b == b',')
+                    .any(|t| t.trim_ascii().eq_ignore_ascii_case(b"close"));
+            }
+        }
+        let body_len = match (status, length) {
+            (204 | 304, _) => 0,
+            (_, Some(n)) => n,
+            (_, None) => return Err(Http1Error::MissingContentLength),
+        };
+        if body_len > self.limits.max_body_bytes as u64 {
+            return Err(Http1Error::BodyTooLarge(body_len));
+        }
+        let total = head_len + body_len as usize;
+        if data.len() < total {
+            return Ok(None);
+        }
+        let frame = Frame {
+            status,
+            body_start: self.start + head_len,
+            end: self.start + total,
+            close,
+        };
+        self.pending = total;
+        Ok(Some(frame))
+    }
+}
+
+/// A decimal `Content-Length` value: digits only, fitting a `u64`.
+fn parse_length(v: &[u8]) -> Option<u64> {
+    let v = v.trim_ascii();
+    if v.is_empty() {
+        return None;
+    }
+    v.iter().try_fold(0u64, |acc, &d| {
+        if d.is_ascii_digit() {
+            acc.checked_mul(10)?.checked_add(u64::from(d - b'0'))
+        } else {
+            None
+        }
+    })
+}
+
+/// One persistent HTTP/1.1 connection (`TCP_NODELAY`), for pipelined GETs.
+#[derive(Debug)]
+pub struct Connection {
+    stream: TcpStream,
+    decoder: ResponseDecoder,
+    closing: bool,
+}
+
+impl Connection {
+    /// Connects to `addr`.
+    pub async fn connect(addr: SocketAddr, limits: Limits) -> Result<Connection, Http1Error> {
+        let stream = TcpStream::connect(addr).await?;
+        stream.set_nodelay(true)?;
+        Ok(Connection {
+            stream,
+            decoder: ResponseDecoder::new(limits),
+            closing: false,
+        })
+    }
+
+    /// Writes a batch of already rendered requests (see [`write_get`]) in one write.
+    pub async fn send(&mut self, requests: &[u8]) -> Result<(), Http1Error> {
+        self.stream.write_all(requests).await?;
+        Ok(())
+    }
+
+    /// Reads the next response; the body is valid until the next call.
+    pub async fn read_response(&mut self) -> Result<Response<'_>, Http1Error> {
+        let frame = loop {
+            if let Some(f) = self.decoder.decode_frame()? {
+                break f;
+            }
+            let spare = self.decoder.spare()?;
+            let n = self.stream.read(spare).await?;
+            if n == 0 {
+                return Err(Http1Error::Closed);
+            }
+            self.decoder.filled(n);
+        };
+        self.closing |= frame.close;
+        Ok(self.decoder.response(frame))
+    }
+
+    /// Whether the server announced it closes the connection after a response read so far.
+    pub fn closing(&self) -> bool {
+        self.closing
+    }
+
+    /// Waits until the server closes the connection (or sends anything, or fails); for
+    /// holding a connection idle and noticing when the server drops it.
+    pub async fn wait_closed(&mut self) -> Result<(), Http1Error> {
+        let mut byte = [0u8; 1];
+        match self.stream.read(&mut byte).await? {
+            0 => Ok(()),
+            _ => Err(Http1Error::Malformed(httparse::Error::Status)),
+        }
+    }
+}
+
+/// Fetches one resource on a fresh connection: status and body.
+pub async fn get(endpoint: &Endpoint, path: &str) -> Result<(u16, Vec<u8>), Http1Error> {
+    let mut conn = Connection::connect(endpoint.addr, Limits::default()).await?;
+    let mut req = Vec::new();
+    let full = format!("{}{path}", endpoint.prefix);
+    write_get(&mut req, &endpoint.host, full.as_bytes());
+    conn.send(&req).await?;
+    let resp = conn.read_response().await?;
+    Ok((resp.status, resp.body.to_vec()))
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    fn ok(body: &str) -> Vec<u8> {
+        format!(
+            "HTTP/1.1 200 OK\r\nContent-Type: application/octet-stream\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        )
+        .into_bytes()
+    }
+
+    /// Decodes everything in `chunks` fed one after another: (status, body) per response.
+    fn decode_all(chunks: &[&[u8]], limits: Limits) -> Result<Vec<(u16, Vec<u8>)>, Http1Error> {
+        let mut d = ResponseDecoder::new(limits);
+        let mut out = Vec::new();
+        for c in chunks {
+            d.extend(c)?;
+            while let Some(r) = d.decode()? {
+                out.push((r.status, r.body.to_vec()));
+            }
+        }
+        Ok(out)
+    }
+
+    #[test]
+    fn a_response_split_at_every_byte_decodes_the_same() {
+        let mut stream = ok("hello");
+        stream.extend(b"HTTP/1.1 204 No Content\r\n\r\n");
+        stream.extend(ok(""));
+        stream.extend(ok("world!"));
+        let want = vec![
+            (200, b"hello".to_vec()),
+            (204, Vec::new()),
+            (200, Vec::new()),
+            (200, b"world!".to_vec()),
+        ];
+        for cut in 0..=stream.len() {
+            let (a, b) = stream.split_at(cut);
+            assert_eq!(
+                decode_all(&[a, b], Limits::default()).unwrap(),
+                want,
+                "{cut}"
+            );
+        }
+        let bytes: Vec<&[u8]> = stream.chunks(1).collect();
+        assert_eq!(decode_all(&bytes, Limits::default()).unwrap(), want);
+    }
+
+    #[test]
+    fn many_responses_in_one_buffer_all_decode_in_order() {
+        let mut stream = Vec::new();
+        for i in 0..1000 {
+            stream.extend(ok(&"x".repeat(i % 37)));
+        }
+        let got = decode_all(&[&stream], Limits::default()).unwrap();
+        assert_eq!(got.len(), 1000);
+        for (i, (status, body)) in got.iter().enumerate() {
+            assert_eq!(*status, 200);
+            assert_eq!(body.len(), i % 37);
+        }
+    }
+
+    #[test]
+    fn a_body_larger_than_the_read_chunk_is_reassembled() {
+        let body = "abcdefgh".repeat(READ_CHUNK / 2);
+        let stream = ok(&body);
+        let chunks: Vec<&[u8]> = stream.chunks(1000).collect();
+        let got = decode_all(&chunks, Limits::default()).unwrap();
+        assert_eq!(got, vec![(200, body.into_bytes())]);
+    }
+
+    #[test]
+    fn a_partial_response_is_not_an_error() {
+        let stream = ok("abc");
+        let got = decode_all(&[&stream[..stream.len() - 1]], Limits::default()).unwrap();
+        assert!(got.is_empty());
+    }
+
+    #[test]
+    fn missing_content_length_is_an_error() {
+        let r = decode_all(
+            &[b"HTTP/1.1 200 OK\r\nServer: x\r\n\r\nabc"],
+            Limits::default(),
+        );
+        assert!(matches!(r, Err(Http1Error::MissingContentLength)), "{r:?}");
+        // Except where no body is allowed.
+        let r = decode_all(&[b"HTTP/1.1 304 Not Modified\r\n\r\n"], Limits::default());
+        assert_eq!(r.unwrap(), vec![(304, Vec::new())]);
+    }
+
+    #[test]
+    fn bad_and_conflicting_lengths_are_errors() {
+        for head in [
+            "Content-Length: -1",
+            "Content-Length: 1x",
+            "Content-Length: ",
+            "Content-Length: 99999999999999999999999",
+            "Content-Length: 3\r\nContent-Length: 4",
+        ] {
+            let msg = format!("HTTP/1.1 200 OK\r\n{head}\r\n\r\nabcd");
+            let r = decode_all(&[msg.as_bytes()], Limits::default());
+            assert!(
+                matches!(r, Err(Http1Error::BadContentLength)),
+                "{head}: {r:?}"
+            );
+        }
+        let same = b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\ncontent-length: 2\r\n\r\nab";
+        assert_eq!(
+            decode_all(&[same], Limits::default()).unwrap(),
+            vec![(200, b"ab".to_vec())]
+        );
+    }
+
+    #[test]
+    fn chunked_and_informational_responses_are_errors() {
+        let r = decode_all(
+            &[b"HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n3\r\nabc\r\n0\r\n\r\n"],
+            Limits::default(),
+        );
+        assert!(matches!(r, Err(Http1Error::TransferEncoding)), "{r:?}");
+        let r = decode_all(&[b"HTTP/1.1 100 Continue\r\n\r\n"], Limits::default());
+        assert!(matches!(r, Err(Http1Error::Informational(100))), "{r:?}");
+    }
+
+    #[test]
+    fn garbage_is_an_error_not_a_panic() {
+        for junk in [
+            &b"garbage\r\n\r\n"[..],
+            b"HTTP/1.1 abc OK\r\n\r\n",
+            b"HTTP/9.9 200 OK\r\n\r\n",
+            b"\x00\x01\x02\x03\r\n\r\n",
+            b"HTTP/1.1 200 OK\r\nbad header line\r\n\r\n",
+        ] {
+            let r = decode_all(&[junk], Limits::default());
+            assert!(
+                matches!(r, Err(Http1Error::Malformed(_))),
+                "{junk:?}: {r:?}"
+            );
+        }
+        // A deterministic byte soup never panics.
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        for _ in 0..2000 {
+            let mut soup = b"HTTP/1.1 200 OK\r\nContent-Length: 5\r\n".to_vec();
+            for _ in 0..40 {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                let alphabet = b"HTTP/1.0 2045\r\n: ContentLgh-ab";
+                soup.push(alphabet[(x % alphabet.len() as u64) as usize]);
+            }
+            let _ = decode_all(&[&soup], Limits::default());
+        }
+    }
+
+    #[test]
+    fn oversized_heads_and_bodies_are_errors() {
+        let limits = Limits {
+            max_head_bytes: 256,
+            max_body_bytes: 1000,
+        };
+        let long = format!("HTTP/1.1 200 OK\r\nX-Pad: {}\r\n", "p".repeat(300));
+        // Incomplete head already past the limit.
+        let r = decode_all(&[long.as_bytes()], limits);
+        assert!(matches!(r, Err(Http1Error::HeadTooLarge(256))), "{r:?}");
+        // Complete head past the limit.
+        let whole = format!("{long}Content-Length: 0\r\n\r\n");
+        let r = decode_all(&[whole.as_bytes()], limits);
+        assert!(matches!(r, Err(Http1Error::HeadTooLarge(256))), "{r:?}");
+        // A body beyond the limit is refused before it arrives (no allocation for it).
+        let r = decode_all(
+            &[b"HTTP/1.1 200 OK\r\nContent-Length: 1001\r\n\r\n"],
+            limits,
+        );
+        assert!(matches!(r, Err(Http1Error::BodyTooLarge(1001))), "{r:?}");
+        let r = decode_all(
+            &[b"HTTP/1.1 200 OK\r\nContent-Length: 18446744073709551615\r\n\r\n"],
+            Limits::default(),
+        );
+        assert!(matches!(r, Err(Http1Error::BodyTooLarge(_))), "{r:?}");
+        // Too many headers.
+        let mut many = String::from("HTTP/1.1 200 OK\r\n");
+        for i in 0..=MAX_HEADERS {
+            many.push_str(&format!("X-{i}: y\r\n"));
+        }
+        many.push_str("Content-Length: 0\r\n\r\n");
+        let r = decode_all(&[many.as_bytes()], Limits::default());
+        assert!(matches!(r, Err(Http1Error::Malformed(_))), "{r:?}");
+    }
+
+    #[test]
+    fn connection_close_is_reported() {
+        let mut d = ResponseDecoder::new(Limits::default());
+        d.extend(b"HTTP/1.1 200 OK\r\nConnection: keep-alive, Close\r\nContent-Length: 0\r\n\r\n")
+            .unwrap();
+        assert!(d.decode().unwrap().unwrap().close);
+        assert_eq!(d.buffered(), 0);
+    }
+
+    #[test]
+    fn urls_parse_into_endpoints() {
+        let e = Endpoint::from_url("http://127.0.0.1:8080").unwrap();
+        assert_eq!(e.addr, "127.0.0.1:8080".parse().unwrap());
+        assert_eq!((e.host.as_str(), e.prefix.as_str()), ("127.0.0.1:8080", ""));
+        let e = Endpoint::from_url("http://127.0.0.1/tiles/").unwrap();
+        assert_eq!(e.addr.port(), 80);
+        assert_eq!(e.prefix, "/tiles");
+        let e = Endpoint::from_url("http://[::1]:81/").unwrap();
+        assert_eq!(e.addr, "[::1]:81".parse().unwrap());
+        for bad in [
+            "https://x",
+            "127.0.0.1:80",
+            "http://",
+            "http://a b/",
+            "http://h/p?q",
+        ] {
+            assert!(Endpoint::from_url(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn requests_are_rendered_with_a_host_header() {
+        let mut out = Vec::new();
+        write_get(&mut out, "h:1", b"/a");
+        write_get(&mut out, "h:1", b"/b");
+        assert_eq!(
+            out,
+            b"GET /a HTTP/1.1\r\nHost: h:1\r\n\r\nGET /b HTTP/1.1\r\nHost: h:1\r\n\r\n"
+        );
+        let t = GetTemplate::new("h:1", "/");
+        let mut again = Vec::new();
+        t.push(&mut again, b"a");
+        t.push(&mut again, b"b");
+        assert_eq!(again, out);
+    }
+}

@@ -1,0 +1,707 @@
+//! `quincunx loadtest`: simulated view-dependent clients against a blob server.
+//!
+//! Each of N clients keeps one persistent HTTP/1.1 connection and replays a request stream
+//! generated before timing starts ([`flight`]): the diamonds a client needs while a camera
+//! flies over the domain, parents first. Requests go out in batches of `--pipeline-depth`
+//! in one write (wrk-style); a request's latency runs from its batch's write to the end of
+//! its response. The URLs are those of `quincunx export`, so the same run works against our
+//! server and against any static web server serving an export.
+//!
+//! `--idle` instead opens N connections, makes one request on each and holds them idle, to
+//! measure what idle connections cost the server.
+//!
+//! Streams are shared between clients through a pool of `--flights` distinct flights
+//! (client `i` flies flight `i mod flights`), which bounds memory and start-up time for
+//! thousands of clients.
+
+pub mod flight;
+pub mod http1;
+pub mod latency;
+
+use std::collections::BTreeMap;
+use std::io::IsTerminal as _;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use quincunx_store::Metadata;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use flight::{FlightPlan, Rng, Stream};
+use http1::{Connection, Endpoint, GetTemplate, Http1Error, Limits};
+use latency::Histogram;
+
+/// Options of `quincunx loadtest`.
+#[derive(Args, Debug, Clone)]
+pub struct LoadtestArgs {
+    /// Server base URL, plain HTTP only, e.g. `http://127.0.0.1:8080`.
+    #[arg(long)]
+    pub url: String,
+    /// Repository name (as in `/repos/<name>/...`).
+    #[arg(long)]
+    pub repo: String,
+    /// Concurrent clients, one persistent connection each.
+    #[arg(long, default_value_t = 64)]
+    pub connections: usize,
+    /// How long to run, in seconds (with `--requests`, whichever ends first).
+    #[arg(long, default_value_t = 10.0)]
+    pub duration_s: f64,
+    /// Stop after this many requests in total.
+    #[arg(long)]
+    pub requests: Option<u64>,
+    /// Requests written per batch on each connection (1 = no pipelining).
+    #[arg(long, default_value_t = 1)]
+    pub pipeline_depth: usize,
+    /// Tokio worker threads (default: the available cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Seed of the flights.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Distinct flights generated and shared round-robin by the clients.
+    #[arg(long, default_value_t = 64)]
+    pub flights: usize,
+    /// Longest request stream of one flight.
+    #[arg(long, default_value_t = 20_000)]
+    pub max_stream: usize,
+    /// A batch (or, with `--idle`, a connection's first request) not answered within this
+    /// many seconds fails and its connection is replaced.
+    #[arg(long, default_value_t = 10.0)]
+    pub timeout_s: f64,
+    /// Open the connections, make one request on each, then hold them idle for the
+    /// duration and report how many are still open (`idle_open`).
+    #[arg(long)]
+    pub idle: bool,
+    /// One JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+    /// No progress line on stderr.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+/// File descriptors kept free for the process itself (stdio, runtime, metadata fetch).
+const SPARE_FDS: u64 = 64;
+
+/// Most connections opening at once in `--idle` mode (keeps SYN queues from overflowing).
+const IDLE_CONNECT_CONCURRENCY: usize = 256;
+
+/// What a run measured.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// `"load"` or `"idle"`.
+    pub mode: &'static str,
+    /// Responses received (any status).
+    pub requests: u64,
+    /// Non-200 responses plus requests lost to connection, protocol or timeout failures.
+    pub errors: u64,
+    /// `requests / duration_s`.
+    pub rps: f64,
+    /// Median latency, milliseconds.
+    pub p50_ms: f64,
+    /// 90th percentile latency, milliseconds.
+    pub p90_ms: f64,
+    /// 99th percentile latency, milliseconds.
+    pub p99_ms: f64,
+    /// Largest latency, milliseconds.
+    pub max_ms: f64,
+    /// Body bytes received.
+    pub bytes: u64,
+    /// 200 responses with an empty body (leaves).
+    pub empty_bodies: u64,
+    /// Clients (connections).
+    pub connections: usize,
+    /// Requests per batch.
+    pub pipeline_depth: usize,
+    /// Wall time from the first request to the last response, seconds.
+    pub duration_s: f64,
+    /// Responses by status code.
+    pub statuses: BTreeMap<String, u64>,
+    /// Failed requests by cause (`connect`, `closed`, `io`, `protocol`, `timeout`, `status`).
+    pub error_kinds: BTreeMap<String, u64>,
+    /// Tokio worker threads.
+    pub threads: usize,
+    /// Distinct flights in the pool (client `i` flies flight `i mod flights`).
+    pub flights: usize,
+    /// Mean stream length, requests.
+    pub stream_len_mean: f64,
+    /// `--idle`: connections still open at the end.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub idle_open: Option<u64>,
+}
+
+/// Runs `quincunx loadtest`.
+pub fn run(args: &LoadtestArgs) -> Result<()> {
+    check_args(args)?;
+    let fd_limit = rlimit::increase_nofile_limit(u64::MAX)
+        .context("raising the open file limit (RLIMIT_NOFILE)")?;
+    let needed = args.connections as u64 + SPARE_FDS;
+    if needed > fd_limit {
+        bail!(
+            "--connections {} needs about {needed} file descriptors but the limit is {fd_limit} \
+             (raise the hard limit, e.g. `ulimit -Hn`, or use fewer connections)",
+            args.connections
+        );
+    }
+    let endpoint =
+        Endpoint::from_url(&args.url).with_context(|| format!("--url {:?}", args.url))?;
+    let threads = args.threads.unwrap_or_else(|| {
+        std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(1)
+    });
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(threads)
+        .enable_io()
+        .enable_time()
+        .build()
+        .context("starting the tokio runtime")?;
+    let meta = runtime.block_on(fetch_metadata(&endpoint, &args.repo))?;
+    tracing::info!(domain = %meta.domain, m = meta.m, levels = meta.levels, "metadata");
+    let flights = generate_flights(args, &meta)?;
+    let stream_len_mean =
+        flights.iter().map(|s| s.len() as f64).sum::<f64>() / flights.len() as f64;
+    let hash16 = &meta.content_hash[..meta.content_hash.len().min(16)];
+    let template = GetTemplate::new(
+        &endpoint.host,
+        &format!("{}/repos/{}/v/{hash16}/d/", endpoint.prefix, args.repo),
+    );
+    let ctx = Arc::new(Ctx {
+        addr: endpoint.addr,
+        template,
+        flights,
+        depth: args.pipeline_depth,
+        timeout: Duration::from_secs_f64(args.timeout_s),
+        budget: args.requests.map(AtomicU64::new),
+        done: AtomicU64::new(0),
+        failed: AtomicU64::new(0),
+        open: AtomicU64::new(0),
+        finished: AtomicBool::new(false),
+    });
+    let duration = Duration::from_secs_f64(args.duration_s);
+    let progress = (!args.quiet).then(|| std::io::stderr().is_terminal());
+    let (stats, elapsed_s) = runtime.block_on(async {
+        let ticker = progress.map(|tty| tokio::spawn(print_progress(ctx.clone(), args.idle, tty)));
+        let result = if args.idle {
+            drive_idle(ctx.clone(), args.connections, duration).await
+        } else {
+            drive_load(ctx.clone(), args.connections, duration).await
+        };
+        ctx.finished.store(true, Ordering::Relaxed);
+        if let Some(t) = ticker {
+            let _ = t.await;
+        }
+        result
+    })?;
+    let report = make_report(args, threads, &ctx, &stats, elapsed_s, stream_len_mean);
+    if args.json {
+        outln!("{}", serde_json::to_string(&report)?);
+    } else {
+        print_text(&report);
+    }
+    Ok(())
+}
+
+fn check_args(args: &LoadtestArgs) -> Result<()> {
+    if args.connections == 0 {
+        bail!("--connections must be at least 1");
+    }
+    if !(1..=1024).contains(&args.pipeline_depth) {
+        bail!("--pipeline-depth must be between 1 and 1024");
+    }
+    for (name, v) in [
+        ("--duration-s", args.duration_s),
+        ("--timeout-s", args.timeout_s),
+    ] {
+        if !(v.is_finite() && v > 0.0 && v < 1e9) {
+            bail!("{name} must be a positive number of seconds");
+        }
+    }
+    if args.threads == Some(0) || args.flights == 0 || args.max_stream == 0 {
+        bail!("--threads, --flights and --max-stream must be at least 1");
+    }
+    let name = &args.repo;
+    if name.is_empty()
+        || name.starts_with('.')
+        || !name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
+    {
+        bail!("--repo {name:?} must be ASCII letters, digits, '-', '_' or '.'");
+    }
+    Ok(())
+}
+
+async fn fetch_metadata(endpoint: &Endpoint, repo: &str) -> Result<Metadata> {
+    let path = format!("/repos/{repo}/metadata.json");
+    let (status, body) = http1::get(endpoint, &path)
+        .await
+        .with_context(|| format!("fetching {}{path}", endpoint.prefix))?;
+    if status != 200 {
+        bail!("GET {}{path}: status {status}", endpoint.prefix);
+    }
+    let meta: Metadata =
+        serde_json::from_slice(&body).with_context(|| format!("parsing {path}"))?;
+    if meta.content_hash.len() < 16 || !meta.content_hash.bytes().all(|b| b.is_ascii_hexdigit()) {
+        bail!("{path}: content_hash {:?} is not hex", meta.content_hash);
+    }
+    Ok(meta)
+}
+
+/// The flight pool, generated in parallel before any timing.
+fn generate_flights(args: &LoadtestArgs, meta: &Metadata) -> Result<Vec<Arc<Stream>>> {
+    // Idle clients make one request each: a root is all they need.
+    let max_requests = if args.idle { 1 } else { args.max_stream };
+    let plan = FlightPlan::for_metadata(meta, max_requests)?;
+    let count = args.flights.min(args.connections);
+    let started = Instant::now();
+    let flights: Vec<Arc<Stream>> = (0..count as u64)
+        .into_par_iter()
+        .map(|i| Arc::new(plan.generate(Rng::client_seed(args.seed, i))))
+        .collect();
+    if flights.iter().any(|s| s.is_empty()) {
+        bail!("a flight requested nothing (repository without levels?)");
+    }
+    tracing::info!(
+        flights = count,
+        seconds = started.elapsed().as_secs_f64(),
+        "flights generated"
+    );
+    Ok(flights)
+}
+
+/// What every client shares; counters are touched once per batch, not per request.
+struct Ctx {
+    addr: std::net::SocketAddr,
+    template: GetTemplate,
+    flights: Vec<Arc<Stream>>,
+    depth: usize,
+    timeout: Duration,
+    /// Requests left to start (`--requests`), `None` when only the duration limits.
+    budget: Option<AtomicU64>,
+    /// Responses received so far (for the progress line).
+    done: AtomicU64,
+    /// Errors so far (for the progress line).
+    failed: AtomicU64,
+    /// `--idle`: connections currently established.
+    open: AtomicU64,
+    finished: AtomicBool,
+}
+
+impl Ctx {
+    /// Takes up to `want` requests from the budget; 0 when it is spent.
+    fn claim(&self, want: u64) -> u64 {
+        let Some(budget) = &self.budget else {
+            return want;
+        };
+        let mut left = budget.load(Ordering::Relaxed);
+        loop {
+            let take = want.min(left);
+            if take == 0 {
+                return 0;
+            }
+            match budget.compare_exchange_weak(
+                left,
+                left - take,
+                Ordering::Relaxed,
+                Ordering::Relaxed,
+            ) {
+                Ok(_) => return take,
+                Err(now) => left = now,
+            }
+        }
+    }
+}
+
+/// Causes of failed requests, in report order.
+const ERROR_KINDS: [&str; 6] = ["connect", "closed", "io", "protocol", "timeout", "status"];
+
+/// One client's (or the merged) counts.
+#[derive(Debug, Default)]
+struct Stats {
+    responses: u64,
+    errors: u64,
+    bytes: u64,
+    empty: u64,
+    ok: u64,
+    /// Non-200 statuses (rare: a short list beats a map).
+    other_statuses: Vec<(u16, u64)>,
+    kinds: [u64; ERROR_KINDS.len()],
+    latency: Histogram,
+    idle_open: u64,
+}
+
+impl Stats {
+    fn response(&mut self, status: u16, body_len: usize, latency: Duration) {
+        self.responses += 1;
+        self.latency.record(latency.as_micros() as u64);
+        if status == 200 {
+            self.ok += 1;
+            self.bytes += body_len as u64;
+            self.empty += u64::from(body_len == 0);
+        } else {
+            self.fail(1, 5);
+            match self.other_statuses.iter_mut().find(|(s, _)| *s == status) {
+                Some((_, n)) => *n += 1,
+                None => self.other_statuses.push((status, 1)),
+            }
+        }
+    }
+
+    fn fail(&mut self, n: u64, kind: usize) {
+        self.errors += n;
+        self.kinds[kind] += n;
+    }
+
+    fn merge(&mut self, o: &Stats) {
+        self.responses += o.responses;
+        self.errors += o.errors;
+        self.bytes += o.bytes;
+        self.empty += o.empty;
+        self.ok += o.ok;
+        for &(s, n) in &o.other_statuses {
+            match self.other_statuses.iter_mut().find(|(t, _)| *t == s) {
+                Some((_, m)) => *m += n,
+                None => self.other_statuses.push((s, n)),
+            }
+        }
+        for (a, b) in self.kinds.iter_mut().zip(o.kinds) {
+            *a += b;
+        }
+        self.latency.merge(&o.latency);
+        self.idle_open += o.idle_open;
+    }
+}
+
+fn error_kind(e: &Http1Error) -> usize {
+    match e {
+        Http1Error::Closed => 1,
+        Http1Error::Io(_) => 2,
+        _ => 3,
+    }
+}
+
+async fn join_all(handles: Vec<tokio::task::JoinHandle<Stats>>) -> Result<Stats> {
+    let mut total = Stats::default();
+    for h in handles {
+        total.merge(&h.await.context("a client task failed")?);
+    }
+    Ok(total)
+}
+
+async fn drive_load(ctx: Arc<Ctx>, clients: usize, duration: Duration) -> Result<(Stats, f64)> {
+    let start = Instant::now();
+    let deadline = start + duration;
+    let handles = (0..clients)
+        .map(|i| tokio::spawn(load_client(ctx.clone(), i, deadline)))
+        .collect();
+    let stats = join_all(handles).await?;
+    Ok((stats, start.elapsed().as_secs_f64()))
+}
+
+/// One client: batches of pipelined requests on a persistent connection, replaced after
+/// any failure, until the deadline or the request budget.
+async fn load_client(ctx: Arc<Ctx>, index: usize, deadline: Instant) -> Stats {
+    let stream = ctx.flights[index % ctx.flights.len()].clone();
+    let mut next = 0;
+    let mut stats = Stats::default();
+    let mut conn: Option<Connection> = None;
+    let mut batch = Vec::with_capacity(ctx.depth * 128);
+    while Instant::now() < deadline {
+        let n = ctx.claim(ctx.depth as u64);
+        if n == 0 {
+            break;
+        }
+        batch.clear();
+        for _ in 0..n {
+            ctx.template.push(&mut batch, stream.get(next));
+            next = (next + 1) % stream.len();
+        }
+        let (done_before, errors_before) = (stats.responses, stats.errors);
+        let c = match conn.as_mut() {
+            Some(c) => c,
+            None => match tokio::time::timeout(
+                ctx.timeout,
+                Connection::connect(ctx.addr, Limits::default()),
+            )
+            .await
+            {
+                Ok(Ok(c)) => conn.insert(c),
+                Ok(Err(e)) => {
+                    tracing::debug!(error = %e, "connect failed");
+                    stats.fail(n, 0);
+                    ctx.failed.fetch_add(n, Ordering::Relaxed);
+                    // Do not spin against a server that refuses connections.
+                    tokio::time::sleep(Duration::from_millis(10)).await;
+                    continue;
+                }
+                Err(_) => {
+                    stats.fail(n, 4);
+                    ctx.failed.fetch_add(n, Ordering::Relaxed);
+                    continue;
+                }
+            },
+        };
+        let result = tokio::time::timeout(ctx.timeout, exchange(c, &batch, n, &mut stats)).await;
+        let answered = stats.responses - done_before;
+        let keep = match result {
+            Ok(Ok(())) => !c.closing(),
+            Ok(Err(e)) => {
+                tracing::debug!(error = %e, "connection failed");
+                stats.fail(n - answered, error_kind(&e));
+                false
+            }
+            Err(_) => {
+                stats.fail(n - answered, 4);
+                false
+            }
+        };
+        if !keep {
+            conn = None;
+        }
+        ctx.done.fetch_add(answered, Ordering::Relaxed);
+        ctx.failed
+            .fetch_add(stats.errors - errors_before, Ordering::Relaxed);
+    }
+    stats
+}
+
+/// Writes one batch and reads its `n` responses.
+async fn exchange(
+    conn: &mut Connection,
+    batch: &[u8],
+    n: u64,
+    stats: &mut Stats,
+) -> Result<(), Http1Error> {
+    let sent = Instant::now();
+    conn.send(batch).await?;
+    for _ in 0..n {
+        let r = conn.read_response().await?;
+        stats.response(r.status, r.body.len(), sent.elapsed());
+    }
+    Ok(())
+}
+
+async fn drive_idle(ctx: Arc<Ctx>, clients: usize, duration: Duration) -> Result<(Stats, f64)> {
+    let start = Instant::now();
+    let ready = Arc::new(tokio::sync::Barrier::new(clients + 1));
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let gate = Arc::new(tokio::sync::Semaphore::new(IDLE_CONNECT_CONCURRENCY));
+    let handles = (0..clients)
+        .map(|i| {
+            tokio::spawn(idle_client(
+                ctx.clone(),
+                i,
+                ready.clone(),
+                gate.clone(),
+                stop_rx.clone(),
+            ))
+        })
+        .collect();
+    ready.wait().await;
+    tracing::info!(
+        seconds = start.elapsed().as_secs_f64(),
+        open = ctx.open.load(Ordering::Relaxed),
+        "idle connections established"
+    );
+    tokio::time::sleep(duration).await;
+    let _ = stop_tx.send(true);
+    let stats = join_all(handles).await?;
+    Ok((stats, start.elapsed().as_secs_f64()))
+}
+
+/// One idle client: connect, one request, then wait for the stop signal or the server
+/// closing the connection.
+async fn idle_client(
+    ctx: Arc<Ctx>,
+    index: usize,
+    ready: Arc<tokio::sync::Barrier>,
+    gate: Arc<tokio::sync::Semaphore>,
+    mut stop: tokio::sync::watch::Receiver<bool>,
+) -> Stats {
+    let mut stats = Stats::default();
+    let stream = &ctx.flights[index % ctx.flights.len()];
+    let mut request = Vec::new();
+    ctx.template.push(&mut request, stream.get(0));
+    let opened = {
+        let _permit = gate.acquire().await;
+        tokio::time::timeout(ctx.timeout, async {
+            let mut conn = Connection::connect(ctx.addr, Limits::default())
+                .await
+                .map_err(|e| (0, e))?;
+            let sent = Instant::now();
+            conn.send(&request).await.map_err(|e| (1, e))?;
+            let r = conn.read_response().await.map_err(|e| (1, e))?;
+            stats.response(r.status, r.body.len(), sent.elapsed());
+            Ok::<_, (usize, Http1Error)>(conn)
+        })
+        .await
+    };
+    let mut conn = match opened {
+        Ok(Ok(c)) => {
+            ctx.done.fetch_add(1, Ordering::Relaxed);
+            ctx.open.fetch_add(1, Ordering::Relaxed);
+            Some(c)
+        }
+        Ok(Err((stage, e))) => {
+            tracing::debug!(error = %e, "idle connection failed");
+            stats.fail(1, if stage == 0 { 0 } else { error_kind(&e) });
+            ctx.failed.fetch_add(1, Ordering::Relaxed);
+            None
+        }
+        Err(_) => {
+            stats.fail(1, 4);
+            ctx.failed.fetch_add(1, Ordering::Relaxed);
+            None
+        }
+    };
+    ready.wait().await;
+    if let Some(c) = conn.as_mut() {
+        tokio::select! {
+            _ = c.wait_closed() => {
+                ctx.open.fetch_sub(1, Ordering::Relaxed);
+            }
+            _ = stop.wait_for(|s| *s) => stats.idle_open = 1,
+        }
+    }
+    stats
+}
+
+/// Prints a status line once a second until the run finishes: in place on a terminal,
+/// one line per second otherwise.
+async fn print_progress(ctx: Arc<Ctx>, idle: bool, tty: bool) {
+    let start = Instant::now();
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    tick.tick().await;
+    let mut last = (0u64, Instant::now());
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {}
+            _ = wait_finished(&ctx) => break,
+        }
+        let done = ctx.done.load(Ordering::Relaxed);
+        let failed = ctx.failed.load(Ordering::Relaxed);
+        let now = Instant::now();
+        let rate = (done - last.0) as f64 / (now - last.1).as_secs_f64();
+        last = (done, now);
+        let elapsed = start.elapsed().as_secs_f64();
+        let line = if idle {
+            format!(
+                "{elapsed:6.1} s  {} open  {done} answered  {failed} errors",
+                ctx.open.load(Ordering::Relaxed)
+            )
+        } else {
+            format!("{elapsed:6.1} s  {done} requests  {rate:.0} req/s  {failed} errors")
+        };
+        if tty {
+            eprint!("\r{line}\x1b[K");
+        } else {
+            eprintln!("{line}");
+        }
+    }
+    if tty {
+        eprint!("\r\x1b[K");
+    }
+}
+
+async fn wait_finished(ctx: &Ctx) {
+    while !ctx.finished.load(Ordering::Relaxed) {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+fn make_report(
+    args: &LoadtestArgs,
+    threads: usize,
+    ctx: &Ctx,
+    s: &Stats,
+    duration_s: f64,
+    stream_len_mean: f64,
+) -> Report {
+    let ms = |us: u64| us as f64 / 1000.0;
+    let mut statuses = BTreeMap::new();
+    if s.ok > 0 {
+        statuses.insert("200".to_string(), s.ok);
+    }
+    for (code, n) in &s.other_statuses {
+        statuses.insert(code.to_string(), *n);
+    }
+    let error_kinds = ERROR_KINDS
+        .iter()
+        .zip(s.kinds)
+        .filter(|(_, n)| *n > 0)
+        .map(|(k, n)| (k.to_string(), n))
+        .collect();
+    Report {
+        mode: if args.idle { "idle" } else { "load" },
+        requests: s.responses,
+        errors: s.errors,
+        rps: if duration_s > 0.0 {
+            s.responses as f64 / duration_s
+        } else {
+            0.0
+        },
+        p50_ms: ms(s.latency.quantile_us(0.50)),
+        p90_ms: ms(s.latency.quantile_us(0.90)),
+        p99_ms: ms(s.latency.quantile_us(0.99)),
+        max_ms: ms(s.latency.max_us()),
+        bytes: s.bytes,
+        empty_bodies: s.empty,
+        connections: args.connections,
+        pipeline_depth: args.pipeline_depth,
+        duration_s,
+        statuses,
+        error_kinds,
+        threads,
+        flights: ctx.flights.len(),
+        stream_len_mean,
+        idle_open: args.idle.then_some(s.idle_open),
+    }
+}
+
+fn print_text(r: &Report) {
+    outln!(
+        "{} connections, pipeline depth {}, {} threads, {:.2} s ({} mode)",
+        r.connections,
+        r.pipeline_depth,
+        r.threads,
+        r.duration_s,
+        r.mode
+    );
+    outln!(
+        "requests {}  errors {}  {:.0} req/s  {} body bytes ({} empty bodies)",
+        r.requests,
+        r.errors,
+        r.rps,
+        r.bytes,
+        r.empty_bodies
+    );
+    outln!(
+        "latency ms: p50 {:.3}  p90 {:.3}  p99 {:.3}  max {:.3}",
+        r.p50_ms,
+        r.p90_ms,
+        r.p99_ms,
+        r.max_ms
+    );
+    let join = |m: &BTreeMap<String, u64>| {
+        m.iter()
+            .map(|(k, v)| format!("{k}: {v}"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    outln!("statuses: {}", join(&r.statuses));
+    if !r.error_kinds.is_empty() {
+        outln!("errors by cause: {}", join(&r.error_kinds));
+    }
+    outln!(
+        "{} flights, {:.0} requests per stream on average",
+        r.flights,
+        r.stream_len_mean
+    );
+    if let Some(open) = r.idle_open {
+        outln!("idle connections still open at the end: {open}");
+    }
+}

@@ -1,0 +1,275 @@
+//! End-to-end tests of `quincunx loadtest`: build the bundled korea crop, export it, serve the
+//! export with a tiny static-file server written here (pipelining-capable, like nginx set up
+//! to answer missing files with an empty 200), and check the load generator's accounting
+//! against what the server actually sent.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_quincunx"))
+}
+
+fn run(cmd: &mut Command) -> Output {
+    let out = cmd.output().expect("run quincunx");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "panic: {stderr}");
+    out
+}
+
+fn ok_json(cmd: &mut Command) -> serde_json::Value {
+    let out = run(cmd);
+    assert!(
+        out.status.success(),
+        "failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("bad JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
+}
+
+/// Builds the bundled korea crop and exports it as `<dir>/www/repos/korea/...`.
+fn exported_korea(dir: &Path) -> PathBuf {
+    let input = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.json");
+    let repo = dir.join("korea");
+    ok_json(
+        bin()
+            .args(["build", "--max-error-m", "2", "--json", "-o"])
+            .arg(&repo)
+            .arg(&input),
+    );
+    let www = dir.join("www");
+    let out = run(bin().arg("export").arg(&repo).arg(&www));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    www
+}
+
+/// What the static server sent for blob requests (metadata excluded).
+#[derive(Default)]
+struct Served {
+    requests: AtomicU64,
+    body_bytes: AtomicU64,
+    empty: AtomicU64,
+}
+
+/// Serves files under `root`, in request order on each connection. A missing file is an
+/// empty 200 (or a 404 with `missing_is_404`).
+async fn serve(listener: TcpListener, root: PathBuf, missing_is_404: bool, served: Arc<Served>) {
+    loop {
+        let Ok((sock, _)) = listener.accept().await else {
+            return;
+        };
+        tokio::spawn(connection(
+            sock,
+            root.clone(),
+            missing_is_404,
+            served.clone(),
+        ));
+    }
+}
+
+async fn connection(mut sock: TcpStream, root: PathBuf, missing_is_404: bool, served: Arc<Served>) {
+    let mut buf = Vec::new();
+    let mut chunk = [0u8; 8192];
+    let mut out = Vec::new();
+    loop {
+        // Answer every complete request already buffered, then write them all at once.
+        loop {
+            let mut headers = [httparse::EMPTY_HEADER; 32];
+            let mut req = httparse::Request::new(&mut headers);
+            let Ok(httparse::Status::Complete(n)) = req.parse(&buf) else {
+                break;
+            };
+            let path = req.path.unwrap().to_string();
+            buf.drain(..n);
+            assert!(!path.contains(".."));
+            let file = root.join(path.trim_start_matches('/'));
+            let (status, body) = match std::fs::read(&file) {
+                Ok(b) => ("200 OK", b),
+                Err(_) if missing_is_404 => ("404 Not Found", Vec::new()),
+                Err(_) => ("200 OK", Vec::new()),
+            };
+            if !path.ends_with("metadata.json") {
+                served.requests.fetch_add(1, Ordering::Relaxed);
+                if status.starts_with("200") {
+                    served
+                        .body_bytes
+                        .fetch_add(body.len() as u64, Ordering::Relaxed);
+                    served
+                        .empty
+                        .fetch_add(u64::from(body.is_empty()), Ordering::Relaxed);
+                }
+            }
+            out.extend_from_slice(
+                format!(
+                    "HTTP/1.1 {status}\r\nContent-Type: application/octet-stream\r\nContent-Length: {}\r\n\r\n",
+                    body.len()
+                )
+                .as_bytes(),
+            );
+            out.extend_from_slice(&body);
+        }
+        if !out.is_empty() {
+            if sock.write_all(&out).await.is_err() {
+                return;
+            }
+            out.clear();
+        }
+        match sock.read(&mut chunk).await {
+            Ok(0) | Err(_) => return,
+            Ok(n) => buf.extend_from_slice(&chunk[..n]),
+        }
+    }
+}
+
+/// Starts the server on a runtime of its own; returns the runtime (keep it alive), the URL
+/// and the counters.
+fn start_server(
+    root: PathBuf,
+    missing_is_404: bool,
+) -> (tokio::runtime::Runtime, String, Arc<Served>) {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let listener = rt
+        .block_on(TcpListener::bind("127.0.0.1:0"))
+        .expect("bind a local port");
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let served = Arc::new(Served::default());
+    rt.spawn(serve(listener, root, missing_is_404, served.clone()));
+    (rt, url, served)
+}
+
+fn loadtest(url: &str, extra: &[&str]) -> serde_json::Value {
+    ok_json(
+        bin()
+            .args([
+                "loadtest", "--url", url, "--repo", "korea", "--json", "--quiet",
+            ])
+            .args(extra),
+    )
+}
+
+#[test]
+fn pipelined_clients_receive_exactly_the_bytes_the_server_sent() {
+    let dir = tempfile::tempdir().unwrap();
+    let www = exported_korea(dir.path());
+    let (_rt, url, served) = start_server(www, false);
+    let report = loadtest(
+        &url,
+        &[
+            "--requests",
+            "2000",
+            "--connections",
+            "4",
+            "--pipeline-depth",
+            "8",
+            "--duration-s",
+            "120",
+            "--threads",
+            "2",
+        ],
+    );
+    println!("{report}");
+    assert_eq!(report["mode"], "load");
+    assert_eq!(report["requests"], 2000);
+    assert_eq!(report["errors"], 0);
+    assert_eq!(report["statuses"]["200"], 2000);
+    assert_eq!(report["connections"], 4);
+    assert_eq!(report["pipeline_depth"], 8);
+    let bytes = report["bytes"].as_u64().unwrap();
+    assert!(bytes > 0);
+    assert_eq!(served.requests.load(Ordering::Relaxed), 2000);
+    assert_eq!(bytes, served.body_bytes.load(Ordering::Relaxed));
+    assert_eq!(report["empty_bodies"], served.empty.load(Ordering::Relaxed));
+    for key in ["rps", "p50_ms", "p90_ms", "p99_ms", "max_ms", "duration_s"] {
+        assert!(report[key].as_f64().unwrap() >= 0.0, "{key}");
+    }
+    assert!(report["p50_ms"].as_f64() <= report["p99_ms"].as_f64());
+    assert!(report["p99_ms"].as_f64() <= report["max_ms"].as_f64());
+}
+
+#[test]
+fn non_200_statuses_are_counted_as_errors_by_code() {
+    let dir = tempfile::tempdir().unwrap();
+    let www = exported_korea(dir.path());
+    // Leaves (sea, no blob) become 404s.
+    let (_rt, url, served) = start_server(www, true);
+    let report = loadtest(
+        &url,
+        &[
+            "--requests",
+            "1500",
+            "--connections",
+            "3",
+            "--pipeline-depth",
+            "4",
+        ],
+    );
+    println!("{report}");
+    let not_found = report["statuses"]["404"].as_u64().unwrap();
+    assert!(not_found > 0, "the korea crop has leaves");
+    assert_eq!(report["requests"], 1500);
+    assert_eq!(report["errors"], not_found);
+    assert_eq!(report["error_kinds"]["status"], not_found);
+    assert_eq!(report["empty_bodies"], 0);
+    assert_eq!(report["bytes"], served.body_bytes.load(Ordering::Relaxed));
+}
+
+#[test]
+fn idle_connections_are_held_open_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let www = exported_korea(dir.path());
+    let (_rt, url, served) = start_server(www, false);
+    let report = loadtest(
+        &url,
+        &["--idle", "--connections", "50", "--duration-s", "0.5"],
+    );
+    println!("{report}");
+    assert_eq!(report["mode"], "idle");
+    assert_eq!(report["idle_open"], 50);
+    assert_eq!(report["requests"], 50);
+    assert_eq!(report["errors"], 0);
+    assert_eq!(served.requests.load(Ordering::Relaxed), 50);
+}
+
+#[test]
+fn an_unreachable_server_or_impossible_options_fail_cleanly() {
+    // Nothing listens on a port we just released.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let url = format!("http://127.0.0.1:{port}");
+    for (args, needle) in [
+        (vec!["--url", url.as_str()], "metadata.json"),
+        (vec!["--url", "https://example.invalid"], "--url"),
+        (
+            vec!["--url", url.as_str(), "--connections", "2000000000"],
+            "file descriptors",
+        ),
+        (
+            vec!["--url", url.as_str(), "--pipeline-depth", "0"],
+            "--pipeline-depth",
+        ),
+    ] {
+        let out = run(bin().args(["loadtest", "--repo", "korea"]).args(&args));
+        assert_eq!(out.status.code(), Some(1), "{args:?}");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(needle), "{args:?}: {stderr}");
+    }
+}
