@@ -20,6 +20,8 @@ pub struct ServerConfig {
     pub repos: Vec<RepoConfig>,
     /// Bytes of blobs kept in the in-memory hot cache in front of sled.
     pub cache_bytes: u64,
+    /// Worker threads, each with its own listener and event loop (0 = one per core).
+    pub workers: usize,
     /// Connection and request limits.
     pub limits: Limits,
     /// Cross-origin resource sharing.
@@ -75,6 +77,7 @@ impl Default for ServerConfig {
             addr: SocketAddr::from(([127, 0, 0, 1], 8080)),
             repos: Vec::new(),
             cache_bytes: 256 << 20,
+            workers: 0,
             limits: Limits::default(),
             cors: Cors::default(),
         }
@@ -145,7 +148,7 @@ pub struct ServeArgs {
     /// Allowed CORS origins, comma separated (`*` for any, empty for none).
     #[arg(long, env = "QUINCUNX_CORS")]
     pub cors: Option<String>,
-    /// Runtime worker threads (default: one per core).
+    /// Worker threads, each with its own listener and event loop (default: one per core).
     #[arg(long, env = "QUINCUNX_THREADS")]
     pub threads: Option<usize>,
 }
@@ -184,6 +187,9 @@ impl ServerConfig {
         config.repos.extend(args.repos.iter().cloned());
         if let Some(mb) = args.cache_mb {
             config.cache_bytes = mb << 20;
+        }
+        if let Some(n) = args.threads {
+            config.workers = n;
         }
         if let Some(n) = args.max_connections {
             config.limits.max_connections = n;

@@ -64,12 +64,10 @@ impl Server {
     pub async fn bind(config: ServerConfig) -> Result<Server, ServeError> {
         config.check()?;
         let state = AppState::open(&config)?;
-        let listener = tokio::net::TcpListener::bind(config.addr)
-            .await
-            .map_err(|source| ServeError::Io {
-                context: format!("binding {}", config.addr),
-                source,
-            })?;
+        let listener = listener::bind(config.addr).map_err(|source| ServeError::Io {
+            context: format!("binding {}", config.addr),
+            source,
+        })?;
         Ok(Server {
             listener,
             state,
@@ -98,15 +96,20 @@ impl Server {
             let _ = stop_tx.send(true);
         });
         let summary = tokio::spawn(summaries(self.state.clone()));
-        let app = router(self.state.clone());
-        listener::serve(
-            self.listener,
-            app,
-            self.state.clone(),
-            self.config.limits.clone(),
-            stop_rx,
-        )
-        .await;
+        let workers = match self.config.workers {
+            0 => std::thread::available_parallelism().map_or(1, usize::from),
+            n => n,
+        };
+        let shared = std::sync::Arc::new(listener::Shared {
+            app: router(self.state.clone()),
+            state: self.state.clone(),
+            permits: std::sync::Arc::new(tokio::sync::Semaphore::new(
+                self.config.limits.max_connections,
+            )),
+            limits: self.config.limits.clone(),
+            shutdown: stop_rx,
+        });
+        listener::serve(self.listener, workers, shared).await;
         summary.abort();
         tracing::info!(
             requests = self.state.metrics.requests_total(),
@@ -153,11 +156,8 @@ async fn summaries(state: AppState) {
 pub fn run_cli(args: &ServeArgs, on_ready: impl FnOnce(SocketAddr)) -> Result<(), ServeError> {
     let config = ServerConfig::from_args(args)?;
     raise_descriptor_limit(config.limits.max_connections);
-    let mut runtime = tokio::runtime::Builder::new_multi_thread();
-    if let Some(threads) = args.threads {
-        runtime.worker_threads(threads.max(1));
-    }
-    let runtime = runtime
+    // This thread is the first worker; `Server::run` starts the others.
+    let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .map_err(|source| ServeError::Io {

@@ -1,8 +1,11 @@
-//! Accepting and driving connections: the connection limit, HTTP/1.1 (keep-alive,
-//! pipelining with aggregated flushes) or HTTP/2 (prior knowledge) per connection, the
-//! slow-loris and idle timeouts, and graceful shutdown.
+//! Accepting and driving connections: one acceptor and event loop per worker thread
+//! (`SO_REUSEPORT` listeners, like nginx's worker processes: no work stealing, no
+//! cross-thread wake-ups), the connection limit, HTTP/1.1 (keep-alive, pipelining with
+//! aggregated writes) or HTTP/2 (prior knowledge) per connection, the slow-loris and
+//! idle timeouts, and graceful shutdown.
 
 use std::io;
+use std::net::SocketAddr;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -14,7 +17,7 @@ use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
 use hyper_util::server::graceful::GracefulConnection;
 use hyper_util::service::TowerToHyperService;
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
-use tokio::net::{TcpListener, TcpStream};
+use tokio::net::{TcpListener, TcpSocket, TcpStream};
 use tokio::sync::{Semaphore, watch};
 
 use crate::config::Limits;
@@ -26,17 +29,97 @@ const BUSY: &[u8] = b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/pla
 /// The HTTP/2 connection preface; HTTP/1 requests never start with its first bytes.
 const H2_PREFACE: &[u8] = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n";
 
-/// Accepts until `shutdown` turns true, then drains: open connections finish the request
-/// in hand (HTTP/1) or their open streams (HTTP/2) and close, for at most the grace period.
-pub(crate) async fn serve(
-    listener: TcpListener,
-    app: Router,
-    state: AppState,
-    limits: Limits,
-    mut shutdown: watch::Receiver<bool>,
-) {
-    let permits = Arc::new(Semaphore::new(limits.max_connections));
-    let limits = Arc::new(limits);
+/// Pending connections the kernel queues per listener.
+const BACKLOG: u32 = 4096;
+
+/// A listening socket that other workers can bind too (`SO_REUSEPORT`).
+pub(crate) fn bind(addr: SocketAddr) -> io::Result<TcpListener> {
+    let socket = if addr.is_ipv4() {
+        TcpSocket::new_v4()?
+    } else {
+        TcpSocket::new_v6()?
+    };
+    socket.set_reuseaddr(true)?;
+    #[cfg(unix)]
+    socket.set_reuseport(true)?;
+    socket.bind(addr)?;
+    socket.listen(BACKLOG)
+}
+
+/// What every worker shares.
+pub(crate) struct Shared {
+    pub(crate) app: Router,
+    pub(crate) state: AppState,
+    pub(crate) limits: Limits,
+    pub(crate) permits: Arc<Semaphore>,
+    pub(crate) shutdown: watch::Receiver<bool>,
+}
+
+/// Serves `first` on the current runtime and `workers - 1` more listeners on the same
+/// address, each on its own thread and single-threaded runtime, until shutdown; then
+/// drains: open connections finish the request in hand (HTTP/1) or their open streams
+/// (HTTP/2) and close, for at most the grace period.
+pub(crate) async fn serve(first: TcpListener, workers: usize, shared: Arc<Shared>) {
+    let mut threads = Vec::new();
+    if let Ok(addr) = first.local_addr() {
+        for i in 1..workers {
+            let shared = shared.clone();
+            let spawned = std::thread::Builder::new()
+                .name(format!("quincunx-worker-{i}"))
+                .spawn(move || worker(addr, shared));
+            match spawned {
+                Ok(handle) => threads.push(handle),
+                Err(e) => tracing::warn!("could not start worker {i}: {e}"),
+            }
+        }
+    }
+    accept_loop(first, &shared).await;
+    drain(&shared).await;
+    let _ = tokio::task::spawn_blocking(move || {
+        for t in threads {
+            let _ = t.join();
+        }
+    })
+    .await;
+}
+
+fn worker(addr: SocketAddr, shared: Arc<Shared>) {
+    let runtime = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => return tracing::warn!("worker runtime: {e}"),
+    };
+    runtime.block_on(async {
+        match bind(addr) {
+            Ok(listener) => accept_loop(listener, &shared).await,
+            Err(e) => tracing::warn!("worker could not listen on {addr}: {e}"),
+        }
+        drain(&shared).await;
+    });
+}
+
+/// Waits until every connection closed or the grace period is over.
+async fn drain(shared: &Shared) {
+    let limits = &shared.limits;
+    let all = u32::try_from(limits.max_connections).unwrap_or(u32::MAX);
+    if tokio::time::timeout(limits.shutdown_grace(), shared.permits.acquire_many(all))
+        .await
+        .is_err()
+    {
+        tracing::warn!(
+            "shutdown grace period over; closing {} connections",
+            limits
+                .max_connections
+                .saturating_sub(shared.permits.available_permits())
+        );
+    }
+}
+
+async fn accept_loop(listener: TcpListener, shared: &Arc<Shared>) {
+    let mut shutdown = shared.shutdown.clone();
+    let metrics = &shared.state.metrics;
     loop {
         let accepted = tokio::select! {
             biased;
@@ -52,31 +135,19 @@ pub(crate) async fn serve(
                 continue;
             }
         };
-        let Ok(permit) = permits.clone().try_acquire_owned() else {
-            state.metrics.connections_rejected.fetch_add(1, Relaxed);
+        let Ok(permit) = shared.permits.clone().try_acquire_owned() else {
+            metrics.connections_rejected.fetch_add(1, Relaxed);
             let _ = stream.try_write(BUSY);
             continue;
         };
-        state.metrics.connections_accepted.fetch_add(1, Relaxed);
-        state.metrics.connections_open.fetch_add(1, Relaxed);
-        let (app, state, limits, shutdown) =
-            (app.clone(), state.clone(), limits.clone(), shutdown.clone());
+        metrics.connections_accepted.fetch_add(1, Relaxed);
+        metrics.connections_open.fetch_add(1, Relaxed);
+        let shared = shared.clone();
         tokio::spawn(async move {
-            connection(stream, app, &state, &limits, shutdown).await;
-            state.metrics.connections_open.fetch_sub(1, Relaxed);
+            connection(stream, &shared).await;
+            shared.state.metrics.connections_open.fetch_sub(1, Relaxed);
             drop(permit);
         });
-    }
-    drop(listener);
-    let all = u32::try_from(limits.max_connections).unwrap_or(u32::MAX);
-    if tokio::time::timeout(limits.shutdown_grace(), permits.acquire_many(all))
-        .await
-        .is_err()
-    {
-        tracing::warn!(
-            "shutdown grace period over; closing {} connections",
-            limits.max_connections - permits.available_permits()
-        );
     }
 }
 
@@ -85,8 +156,8 @@ enum Protocol {
     Http2,
 }
 
-/// Waits for the first bytes of a connection (at most the header timeout) and tells
-/// HTTP/2 prior knowledge from HTTP/1.
+/// Waits for the first bytes of a connection and tells HTTP/2 prior knowledge from
+/// HTTP/1.
 async fn detect(stream: &TcpStream) -> io::Result<Option<Protocol>> {
     let mut buf = [0u8; 4];
     loop {
@@ -105,13 +176,16 @@ async fn detect(stream: &TcpStream) -> io::Result<Option<Protocol>> {
     }
 }
 
-async fn connection(
-    stream: TcpStream,
-    app: Router,
-    state: &AppState,
-    limits: &Limits,
-    shutdown: watch::Receiver<bool>,
-) {
+/// When bytes last moved on a connection, and since when a request head has been
+/// arriving (0 = none), on the [`now_ms`] clock.
+#[derive(Default)]
+struct Clock {
+    activity_ms: AtomicU64,
+    head_since_ms: AtomicU64,
+}
+
+async fn connection(stream: TcpStream, shared: &Shared) {
+    let (state, limits) = (&shared.state, &shared.limits);
     let _ = stream.set_nodelay(true);
     let protocol = match tokio::time::timeout(limits.header_timeout(), detect(&stream)).await {
         Ok(Ok(Some(p))) => p,
@@ -124,24 +198,26 @@ async fn connection(
             return;
         }
     };
-    let activity = Arc::new(AtomicU64::new(now_ms()));
+    let clock = Arc::new(Clock::default());
+    clock.activity_ms.store(now_ms(), Relaxed);
     let io = TokioIo::new(Tracked::new(
         stream,
-        activity.clone(),
+        clock.clone(),
         state.clone(),
         matches!(protocol, Protocol::Http1),
     ));
-    let service = TowerToHyperService::new(app);
+    let service = TowerToHyperService::new(shared.app.clone());
     match protocol {
         Protocol::Http1 => {
+            // Head and idle timeouts are enforced by `drive` from `Clock`: no timer is
+            // armed per request.
             let conn = hyper::server::conn::http1::Builder::new()
-                .timer(TokioTimer::new())
-                .header_read_timeout(limits.header_timeout())
+                .header_read_timeout(None)
                 .max_buf_size(limits.max_header_bytes.max(8192))
                 .max_headers(limits.max_headers)
                 .keep_alive(true)
                 .serve_connection(io, service);
-            drive(conn, &activity, state, limits, shutdown).await;
+            drive(conn, &clock, shared).await;
         }
         Protocol::Http2 => {
             state.metrics.connections_h2.fetch_add(1, Relaxed);
@@ -150,27 +226,28 @@ async fn connection(
                 .max_concurrent_streams(limits.max_concurrent_streams)
                 .max_header_list_size(u32::try_from(limits.max_header_bytes).unwrap_or(u32::MAX))
                 .serve_connection(io, service);
-            drive(conn, &activity, state, limits, shutdown).await;
+            drive(conn, &clock, shared).await;
         }
     }
 }
 
-/// Runs a connection to its end, closing it when nothing moved for the idle timeout and
-/// starting a graceful close when the server shuts down.
-async fn drive<C>(
-    conn: C,
-    activity: &AtomicU64,
-    state: &AppState,
-    limits: &Limits,
-    mut shutdown: watch::Receiver<bool>,
-) where
+/// Runs a connection to its end. A watchdog closes it when nothing moved for the idle
+/// timeout or a request head has been arriving for longer than the header timeout
+/// (slow-loris), and a graceful close starts when the server shuts down.
+async fn drive<C>(conn: C, clock: &Clock, shared: &Shared)
+where
     C: GracefulConnection,
     C::Error: std::fmt::Display,
 {
+    let (metrics, limits) = (&shared.state.metrics, &shared.limits);
+    let mut shutdown = shared.shutdown.clone();
     tokio::pin!(conn);
     let idle_ms = limits.idle_timeout().as_millis() as u64;
-    let idle = tokio::time::sleep(limits.idle_timeout());
-    tokio::pin!(idle);
+    let head_ms = limits.header_timeout().as_millis() as u64;
+    let period = (limits.idle_timeout().min(limits.header_timeout()) / 4)
+        .clamp(Duration::from_millis(10), Duration::from_secs(5));
+    let mut watchdog = tokio::time::interval(period);
+    watchdog.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut closing = false;
     loop {
         tokio::select! {
@@ -184,46 +261,101 @@ async fn drive<C>(
                 closing = true;
                 conn.as_mut().graceful_shutdown();
             }
-            _ = idle.as_mut() => {
-                let last = activity.load(Relaxed);
-                let quiet_ms = now_ms().saturating_sub(last);
-                if quiet_ms >= idle_ms {
-                    state.metrics.connections_idle_closed.fetch_add(1, Relaxed);
+            _ = watchdog.tick() => {
+                let now = now_ms();
+                if now.saturating_sub(clock.activity_ms.load(Relaxed)) >= idle_ms {
+                    metrics.connections_idle_closed.fetch_add(1, Relaxed);
                     return;
                 }
-                idle.as_mut().reset(tokio::time::Instant::now() + Duration::from_millis(idle_ms - quiet_ms));
+                let since = clock.head_since_ms.load(Relaxed);
+                if since != 0 && now.saturating_sub(since) >= head_ms {
+                    metrics.connections_header_timeout.fetch_add(1, Relaxed);
+                    return;
+                }
             }
         }
     }
 }
 
-/// Milliseconds on a process-wide monotonic clock.
+/// Milliseconds since the process started (at least 1), from a coarse clock that a
+/// background thread advances every 5 ms: reading it costs an atomic load, not a system
+/// call per socket operation.
 fn now_ms() -> u64 {
-    static START: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
-    START.get_or_init(Instant::now).elapsed().as_millis() as u64
+    static CLOCK: std::sync::OnceLock<Arc<AtomicU64>> = std::sync::OnceLock::new();
+    let clock = CLOCK.get_or_init(|| {
+        let start = Instant::now();
+        let clock = Arc::new(AtomicU64::new(1));
+        let ticking = clock.clone();
+        let spawned = std::thread::Builder::new()
+            .name("quincunx-clock".into())
+            .spawn(move || {
+                loop {
+                    std::thread::sleep(Duration::from_millis(5));
+                    ticking.store(start.elapsed().as_millis() as u64 + 1, Relaxed);
+                }
+            });
+        if let Err(e) = spawned {
+            tracing::warn!("clock thread: {e}; timeouts will not fire");
+        }
+        clock
+    });
+    clock.load(Relaxed)
+}
+
+/// Finds the blank line that ends a request head, across reads.
+#[derive(Default)]
+struct HeadScanner {
+    /// Bytes of `\r\n\r\n` matched at the end of what was fed so far.
+    matched: usize,
+}
+
+impl HeadScanner {
+    /// The length of `bytes` through the first head end in them, if any.
+    fn feed(&mut self, bytes: &[u8]) -> Option<usize> {
+        const END: &[u8; 4] = b"\r\n\r\n";
+        for (i, &b) in bytes.iter().enumerate() {
+            self.matched = if b == END[self.matched] {
+                self.matched + 1
+            } else if b == b'\r' {
+                1
+            } else {
+                0
+            };
+            if self.matched == END.len() {
+                self.matched = 0;
+                return Some(i + 1);
+            }
+        }
+        None
+    }
 }
 
 /// Bytes of responses collected before they are written even though more pipelined
 /// requests are waiting (and the most a connection buffers when its client stops reading).
 const OUT_CAP: usize = 64 << 10;
 
-/// A client socket that records when bytes last moved, counts system calls, and (for
-/// HTTP/1) aggregates the responses to pipelined requests into few writes.
+/// A client socket that records when bytes last moved and when a request head started,
+/// counts system calls, and (for HTTP/1) aggregates the responses to pipelined requests
+/// into few writes.
 ///
 /// Aggregation: reads hand hyper one request head at a time, keeping the rest of what
-/// arrived here; responses are collected in `out`, and a flush is deferred while more
-/// requests are already waiting (up to [`OUT_CAP`]), so a pipeline of 16 requests is
-/// answered with one write. Whenever the connection would wait for input, `out` is
-/// written first. This replaces hyper's own `pipeline_flush`, which never stops
-/// answering into its write buffer while the socket is full: a client pipelining without
-/// reading would grow it without bound. Here a full `out` makes writes wait, and hyper
-/// reads no further request until its response is written.
+/// arrived here; while more requests are waiting, responses are collected in `out` and
+/// flushes deferred (up to [`OUT_CAP`]), so a pipeline of 16 requests is answered with one
+/// write. Whenever the connection would wait for input, `out` is written first; with no
+/// request waiting, responses are written straight from hyper's buffers. This replaces
+/// hyper's own `pipeline_flush`, which keeps answering into its write buffer while the
+/// socket is full (a client pipelining without reading grew it by gigabytes). Here a full
+/// `out` makes writes wait, and hyper reads no further request until its response is
+/// written.
 struct Tracked {
     stream: TcpStream,
-    activity: Arc<AtomicU64>,
+    clock: Arc<Clock>,
     state: AppState,
-    /// HTTP/1: split reads per request and aggregate writes.
+    /// HTTP/1: split reads per request, track heads, aggregate writes.
     aggregate: bool,
+    scanner: HeadScanner,
+    /// A request head has started and not ended.
+    in_head: bool,
     /// Request bytes read from the socket and not yet handed to hyper (`input[consumed..]`).
     input: Vec<u8>,
     consumed: usize,
@@ -231,21 +363,15 @@ struct Tracked {
     out: Vec<u8>,
 }
 
-/// Length of the first request head in `bytes` (through its blank line), if complete.
-fn first_head_len(bytes: &[u8]) -> Option<usize> {
-    bytes
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .map(|p| p + 4)
-}
-
 impl Tracked {
-    fn new(stream: TcpStream, activity: Arc<AtomicU64>, state: AppState, aggregate: bool) -> Self {
+    fn new(stream: TcpStream, clock: Arc<Clock>, state: AppState, aggregate: bool) -> Self {
         Tracked {
             stream,
-            activity,
+            clock,
             state,
             aggregate,
+            scanner: HeadScanner::default(),
+            in_head: false,
             input: Vec::new(),
             consumed: 0,
             out: Vec::new(),
@@ -254,7 +380,7 @@ impl Tracked {
 
     fn wrote(&self, n: usize) {
         if n > 0 {
-            self.activity.store(now_ms(), Relaxed);
+            self.clock.activity_ms.store(now_ms(), Relaxed);
             let m = &self.state.metrics;
             m.socket_writes.fetch_add(1, Relaxed);
             m.socket_bytes_written.fetch_add(n as u64, Relaxed);
@@ -263,6 +389,19 @@ impl Tracked {
 
     fn has_input(&self) -> bool {
         self.consumed < self.input.len()
+    }
+
+    /// Records whether the bytes just handed to hyper ended a request head.
+    fn handed(&mut self, head_ended: bool) {
+        if head_ended {
+            if self.in_head {
+                self.in_head = false;
+                self.clock.head_since_ms.store(0, Relaxed);
+            }
+        } else if !self.in_head {
+            self.in_head = true;
+            self.clock.head_since_ms.store(now_ms(), Relaxed);
+        }
     }
 
     /// Writes all of `out`.
@@ -288,11 +427,12 @@ impl Tracked {
     /// Hands hyper at most one request head from `input`.
     fn give_input(&mut self, buf: &mut ReadBuf<'_>) {
         let rest = &self.input[self.consumed..];
-        let take = first_head_len(rest)
-            .unwrap_or(rest.len())
-            .min(buf.remaining());
+        let avail = rest.len().min(buf.remaining());
+        let end = self.scanner.feed(&rest[..avail]);
+        let take = end.unwrap_or(avail);
         buf.put_slice(&rest[..take]);
         self.consumed += take;
+        self.handed(end == Some(take));
         if self.consumed == self.input.len() {
             self.input = Vec::new();
             self.consumed = 0;
@@ -307,23 +447,16 @@ impl AsyncRead for Tracked {
         buf: &mut ReadBuf<'_>,
     ) -> Poll<io::Result<()>> {
         let this = self.get_mut();
-        if !this.aggregate {
-            let before = buf.filled().len();
-            let poll = Pin::new(&mut this.stream).poll_read(cx, buf);
-            if matches!(poll, Poll::Ready(Ok(()))) && buf.filled().len() > before {
-                this.activity.store(now_ms(), Relaxed);
-                this.state.metrics.socket_reads.fetch_add(1, Relaxed);
-            }
-            return poll;
-        }
         if this.has_input() {
             this.give_input(buf);
             return Poll::Ready(Ok(()));
         }
-        // About to wait for the client: first send what it is owed.
-        match this.poll_drain(cx) {
-            Poll::Ready(Ok(())) => {}
-            other => return other,
+        if this.aggregate {
+            // About to wait for the client: first send what it is owed.
+            match this.poll_drain(cx) {
+                Poll::Ready(Ok(())) => {}
+                other => return other,
+            }
         }
         let before = buf.filled().len();
         match Pin::new(&mut this.stream).poll_read(cx, buf) {
@@ -334,16 +467,20 @@ impl AsyncRead for Tracked {
         if filled == before {
             return Poll::Ready(Ok(())); // end of stream
         }
-        this.activity.store(now_ms(), Relaxed);
+        this.clock.activity_ms.store(now_ms(), Relaxed);
         this.state.metrics.socket_reads.fetch_add(1, Relaxed);
-        // Keep everything after the first request head for later reads.
-        if let Some(head) = first_head_len(&buf.filled()[before..]) {
-            let end = before + head;
-            if end < filled {
-                this.input.extend_from_slice(&buf.filled()[end..]);
-                this.consumed = 0;
-                buf.set_filled(end);
+        if this.aggregate {
+            // Hand over the first request head; keep the rest for later reads.
+            let end = this.scanner.feed(&buf.filled()[before..]);
+            if let Some(head) = end {
+                let cut = before + head;
+                if cut < filled {
+                    this.input.extend_from_slice(&buf.filled()[cut..]);
+                    this.consumed = 0;
+                    buf.set_filled(cut);
+                }
             }
+            this.handed(end.is_some());
         }
         Poll::Ready(Ok(()))
     }
@@ -364,7 +501,8 @@ impl AsyncWrite for Tracked {
         bufs: &[io::IoSlice<'_>],
     ) -> Poll<io::Result<usize>> {
         let this = self.get_mut();
-        if !this.aggregate {
+        if !this.aggregate || (this.out.is_empty() && !this.has_input()) {
+            // Nothing to aggregate with: write straight from hyper's buffers.
             let poll = Pin::new(&mut this.stream).poll_write_vectored(cx, bufs);
             if let Poll::Ready(Ok(n)) = poll {
                 this.wrote(n);
@@ -408,5 +546,22 @@ impl AsyncWrite for Tracked {
             Poll::Ready(Ok(())) => Pin::new(&mut this.stream).poll_shutdown(cx),
             other => other,
         }
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn head_ends_are_found_across_reads() {
+        let mut s = HeadScanner::default();
+        assert_eq!(s.feed(b"GET / HTTP/1.1\r\nHost: a\r\n\r"), None);
+        assert_eq!(s.feed(b"\nGET /x"), Some(1));
+        assert_eq!(s.feed(b" HTTP/1.1\r\n\r\n"), Some(13));
+        assert_eq!(s.feed(b"\r\r\n\r\n"), Some(5));
+        assert_eq!(s.feed(b"a\r\na\r\n"), None);
+        assert_eq!(s.feed(b"\r\n"), Some(2));
     }
 }
