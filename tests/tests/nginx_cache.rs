@@ -1,0 +1,434 @@
+//! The `docker/` topology without Docker: two quincunx servers, each on its own copy of a
+//! repository built from the bundled data, behind nginx running the shipped
+//! `docker/nginx-cache.conf` (only host names, ports and paths are replaced). Also runs the
+//! image's health check script, `docker/healthcheck.sh`, against the replicas.
+//!
+//! Prints `SKIP nginx_cache: ...` and passes when nginx is not installed.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use std::net::{SocketAddr, TcpListener};
+use std::os::unix::fs::MetadataExt as _;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use common::{Response, get, metric, try_get, workspace_root};
+use quincunx_repo_tools::build::{self, BuildArgs};
+use quincunx_server::{RepoConfig, Server, ServerConfig};
+
+const REPO: &str = "korea";
+const IMMUTABLE: &str = "public, max-age=31536000, immutable";
+const BLOB_200: &str = "quincunx_http_requests_total{route=\"blob\",status=\"200\"}";
+const BLOB_400: &str = "quincunx_http_requests_total{route=\"blob\",status=\"400\"}";
+
+#[test]
+fn nginx_caches_blobs_across_two_replicas_and_survives_losing_one() {
+    let Some(nginx) = find_nginx() else {
+        println!("SKIP nginx_cache: nginx not installed");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+
+    // One build, one copy per replica (sled locks a repository directory per open), and a
+    // third copy this test reads the expected blobs from.
+    let built = root.join("built").join(REPO);
+    build::run(&BuildArgs {
+        input: workspace_root().join("data/korea_srtm3_1025.json"),
+        output: built.clone(),
+        colour: false,
+        planet: false,
+        radius_m: None,
+        body: "earth".into(),
+        face_side: None,
+        sparse: false,
+        diamond_size: None,
+        lossless: false,
+        rms_m: Some(2.0),
+        max_error_m: None,
+        threads: None,
+        memory_budget_mb: None,
+        overwrite: true,
+        json: false,
+        stall_after_blobs: None,
+    })
+    .unwrap();
+    for copy in ["repos-a", "repos-b", "expected"] {
+        copy_dir(&built, &root.join(copy).join(REPO));
+    }
+    let (version, blobs) = sample_blobs(&root.join("expected").join(REPO), 24);
+    assert!(blobs.len() >= 20, "only {} blobs", blobs.len());
+
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .unwrap();
+    let mut a = Replica::start(&runtime, &root.join("repos-a").join(REPO), &version);
+    let mut b = Replica::start(&runtime, &root.join("repos-b").join(REPO), &version);
+
+    let proxy = Nginx::start(&nginx, &root.join("nginx"), [a.addr, b.addr]);
+    let via = proxy.addr;
+
+    // The health check script of the image: healthy replicas pass.
+    let healthcheck = workspace_root().join("docker/healthcheck.sh");
+    let healthy = |addr: SocketAddr| {
+        Command::new("bash")
+            .arg(&healthcheck)
+            .arg(addr.ip().to_string())
+            .arg(addr.port().to_string())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status()
+            .map(|s| s.success())
+    };
+    let bash_found = healthy(a.addr).is_ok();
+    if bash_found {
+        assert!(healthy(a.addr).unwrap() && healthy(b.addr).unwrap());
+    } else {
+        println!("SKIP nginx_cache (health check part): bash not found");
+    }
+
+    // A blob: MISS, then HIT; the bytes, ETag and Cache-Control of the replicas.
+    let (path, bytes) = &blobs[0];
+    let direct = get(a.addr, path, &[]);
+    assert_eq!(direct.status, 200);
+    assert_eq!(&direct.body, bytes);
+    let etag = direct
+        .header("etag")
+        .expect("blobs carry an ETag")
+        .to_string();
+    assert!(etag.starts_with('"'), "strong ETag: {etag}");
+    let first = get(via, path, &[]);
+    assert_eq!(first.status, 200, "{}", first.text());
+    assert_eq!(first.header("x-cache-status"), Some("MISS"));
+    let second = get(via, path, &[]);
+    assert_eq!(second.status, 200);
+    assert_eq!(second.header("x-cache-status"), Some("HIT"));
+    for r in [&first, &second] {
+        assert_eq!(&r.body, bytes);
+        assert_eq!(r.header("etag"), Some(etag.as_str()));
+        assert_eq!(r.header("cache-control"), Some(IMMUTABLE));
+    }
+
+    // Conditional requests: answered 304 from the cache, and on a cache miss too.
+    let conditional = get(via, path, &[&format!("If-None-Match: {etag}")]);
+    assert_eq!(conditional.status, 304);
+    assert!(conditional.body.is_empty());
+    assert_eq!(conditional.header("etag"), Some(etag.as_str()));
+    let (fresh_path, _) = &blobs[1];
+    let fresh_etag = get(b.addr, fresh_path, &[])
+        .header("etag")
+        .unwrap()
+        .to_string();
+    let conditional = get(via, fresh_path, &[&format!("If-None-Match: {fresh_etag}")]);
+    assert_eq!(conditional.status, 304);
+    assert_eq!(conditional.header("x-cache-status"), Some("MISS"));
+
+    // metadata.json and the listing pass through, uncached.
+    let metadata = get(via, &format!("/repos/{REPO}/metadata.json"), &[]);
+    assert_eq!(metadata.status, 200);
+    assert_eq!(metadata.header("x-cache-status"), None);
+    assert_eq!(
+        metadata.body,
+        get(b.addr, &format!("/repos/{REPO}/metadata.json"), &[]).body
+    );
+    let json: serde_json::Value = serde_json::from_slice(&metadata.body).unwrap();
+    assert!(json["content_hash"].as_str().unwrap().starts_with(&version));
+    assert_eq!(json["domain"], "planar");
+    let listing = get(via, "/repos", &[]);
+    assert_eq!(listing.status, 200);
+    assert!(listing.text().contains(REPO), "{}", listing.text());
+    assert_eq!(get(via, "/metrics", &[]).status, 404);
+
+    // An invalid id is a 400 that is not cached: both requests reach a replica.
+    let invalid = format!("/repos/{REPO}/v/{version}/d/01/2");
+    let blob_400_before = blob_requests(&[a.addr, b.addr], BLOB_400);
+    for _ in 0..2 {
+        let r = get(via, &invalid, &[]);
+        assert_eq!(r.status, 400);
+        assert_ne!(r.header("x-cache-status"), Some("HIT"));
+    }
+    assert_eq!(
+        blob_requests(&[a.addr, b.addr], BLOB_400),
+        blob_400_before + 2
+    );
+
+    // Distinct blobs are spread over both replicas, each fetched once from upstream.
+    let before = blob_requests(&[a.addr, b.addr], BLOB_200);
+    for (path, bytes) in &blobs[2..12] {
+        let r = get(via, path, &[]);
+        assert_eq!((r.status, r.header("x-cache-status")), (200, Some("MISS")));
+        assert_eq!(&r.body, bytes);
+    }
+    for (path, _) in &blobs[2..12] {
+        assert_eq!(get(via, path, &[]).header("x-cache-status"), Some("HIT"));
+    }
+    assert_eq!(blob_requests(&[a.addr, b.addr], BLOB_200), before + 10);
+    let served_by_a = blob_requests(&[a.addr], BLOB_200);
+    let served_by_b = blob_requests(&[b.addr], BLOB_200);
+    assert!(
+        served_by_a > 0 && served_by_b > 0,
+        "blob requests per replica: a {served_by_a}, b {served_by_b}"
+    );
+
+    // Replica A stops: cached blobs are still hits, the others come from B.
+    a.stop(&runtime);
+    if bash_found {
+        assert!(!healthy(a.addr).unwrap(), "a stopped replica is unhealthy");
+    }
+    for (path, bytes) in blobs[..1].iter().chain(&blobs[2..12]) {
+        let r = get(via, path, &[]);
+        assert_eq!((r.status, r.header("x-cache-status")), (200, Some("HIT")));
+        assert_eq!(&r.body, bytes);
+    }
+    let b_before = blob_requests(&[b.addr], BLOB_200);
+    for (path, bytes) in &blobs[12..] {
+        let r = get(via, path, &[]);
+        assert_eq!(r.status, 200, "{path} without replica a: {}", r.text());
+        assert_eq!(r.header("x-cache-status"), Some("MISS"));
+        assert_eq!(&r.body, bytes);
+    }
+    assert_eq!(
+        blob_requests(&[b.addr], BLOB_200),
+        b_before + (blobs.len() - 12) as u64
+    );
+    println!(
+        "nginx_cache: {} blobs via nginx {via} over replicas {} (stopped) and {}; \
+         upstream blob 200s: a {served_by_a}, b {}",
+        blobs.len(),
+        a.addr,
+        b.addr,
+        blob_requests(&[b.addr], BLOB_200)
+    );
+
+    drop(proxy);
+    b.stop(&runtime);
+}
+
+/// `/usr/sbin/nginx`, else `nginx` on `PATH`.
+fn find_nginx() -> Option<PathBuf> {
+    let debian = PathBuf::from("/usr/sbin/nginx");
+    if debian.is_file() {
+        return Some(debian);
+    }
+    let path = std::env::var_os("PATH")?;
+    std::env::split_paths(&path)
+        .map(|dir| dir.join("nginx"))
+        .find(|candidate| candidate.is_file())
+}
+
+/// Copies a directory tree (files and directories only: what a repository holds).
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let target = to.join(entry.file_name());
+        if entry.file_type().unwrap().is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), &target).unwrap();
+        }
+    }
+}
+
+/// The URL version (`hash16`) of a repository and `count` of its blobs spread over the
+/// key space: (URL path, bytes).
+fn sample_blobs(repo: &Path, count: usize) -> (String, Vec<(String, Vec<u8>)>) {
+    let repo = quincunx_store::Repository::open(repo).unwrap();
+    let meta = repo.metadata().clone();
+    let total = repo.blob_count();
+    let step = (total / count).max(1);
+    let blobs = repo
+        .blobs()
+        .step_by(step)
+        .take(count)
+        .map(|item| {
+            let (key, blob) = item.unwrap();
+            let path = quincunx_repo_tools::export::blob_path(&meta, REPO, &key).unwrap();
+            (format!("/{path}"), blob.to_vec())
+        })
+        .collect();
+    (meta.content_hash[..16].to_string(), blobs)
+}
+
+/// The sum of a request counter over replicas' `/metrics`.
+fn blob_requests(replicas: &[SocketAddr], sample: &str) -> u64 {
+    replicas
+        .iter()
+        .map(|&addr| {
+            let r = get(addr, "/metrics", &[]);
+            assert_eq!(r.status, 200);
+            metric(&r.text(), sample)
+        })
+        .sum()
+}
+
+/// A server on a loopback port, on the shared runtime.
+struct Replica {
+    addr: SocketAddr,
+    stop: Option<tokio::sync::oneshot::Sender<()>>,
+    task: Option<tokio::task::JoinHandle<()>>,
+}
+
+impl Replica {
+    fn start(runtime: &tokio::runtime::Runtime, repo: &Path, version: &str) -> Replica {
+        let config = ServerConfig {
+            addr: "127.0.0.1:0".parse().unwrap(),
+            repos: vec![RepoConfig {
+                name: REPO.into(),
+                path: repo.to_path_buf(),
+            }],
+            ..Default::default()
+        };
+        let server = runtime.block_on(Server::bind(config)).unwrap();
+        let addr = server.local_addr().unwrap();
+        // The URLs the test computed with `quincunx export`'s mapping are the server's.
+        assert_eq!(server.state().repo(REPO).unwrap().1.version, version);
+        let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+        let task = runtime.spawn(server.run(async {
+            let _ = stopped.await;
+        }));
+        Replica {
+            addr,
+            stop: Some(stop),
+            task: Some(task),
+        }
+    }
+
+    /// Shuts down gracefully and waits until the socket is closed.
+    fn stop(&mut self, runtime: &tokio::runtime::Runtime) {
+        if let Some(stop) = self.stop.take() {
+            let _ = stop.send(());
+        }
+        if let Some(task) = self.task.take() {
+            runtime
+                .block_on(async { tokio::time::timeout(Duration::from_secs(60), task).await })
+                .expect("the server drains within a minute")
+                .unwrap();
+        }
+    }
+}
+
+/// nginx running the shipped configuration, stopped when dropped.
+struct Nginx {
+    binary: PathBuf,
+    dir: PathBuf,
+    child: Child,
+    addr: SocketAddr,
+}
+
+impl Nginx {
+    /// Writes `dir/nginx.conf` (the shipped snippet inside a main context whose paths are
+    /// all under `dir`) and starts nginx in the foreground, waiting until it answers.
+    fn start(binary: &Path, dir: &Path, replicas: [SocketAddr; 2]) -> Nginx {
+        let shipped =
+            std::fs::read_to_string(workspace_root().join("docker/nginx-cache.conf")).unwrap();
+        let addr = free_port();
+        let d = dir.display();
+        let mut snippet = shipped;
+        for (from, to) in [
+            ("listen 80;", format!("listen {addr};")),
+            ("server-a:8080", replicas[0].to_string()),
+            ("server-b:8080", replicas[1].to_string()),
+            ("/var/cache/nginx/quincunx", format!("{d}/cache")),
+            ("/var/log/nginx/access.log", format!("{d}/access.log")),
+        ] {
+            assert_eq!(
+                snippet.matches(from).count(),
+                1,
+                "docker/nginx-cache.conf must contain {from:?} once (the test replaces it)"
+            );
+            snippet = snippet.replace(from, &to);
+        }
+        // Workers of a root master run as `nobody` unless told otherwise, and could not
+        // enter the 0700 temporary directory.
+        let running_as_root = std::fs::metadata("/proc/self").is_ok_and(|m| m.uid() == 0);
+        let user = if running_as_root { "user root;" } else { "" };
+        std::fs::create_dir_all(dir.join("tmp")).unwrap();
+        let conf = format!(
+            "daemon off;\nmaster_process on;\nworker_processes 1;\n{user}\n\
+             pid {d}/nginx.pid;\nerror_log {d}/error.log info;\n\
+             events {{ worker_connections 256; }}\n\
+             http {{\n\
+             client_body_temp_path {d}/tmp/body;\nproxy_temp_path {d}/tmp/proxy;\n\
+             fastcgi_temp_path {d}/tmp/fastcgi;\nuwsgi_temp_path {d}/tmp/uwsgi;\n\
+             scgi_temp_path {d}/tmp/scgi;\n\
+             {snippet}\n}}\n"
+        );
+        std::fs::write(dir.join("nginx.conf"), conf).unwrap();
+        let child = Command::new(binary)
+            .args(Self::location_args(dir))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap();
+        let mut nginx = Nginx {
+            binary: binary.to_path_buf(),
+            dir: dir.to_path_buf(),
+            child,
+            addr,
+        };
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            if let Some(status) = nginx.child.try_wait().unwrap() {
+                panic!("nginx exited with {status}:\n{}", nginx.error_log());
+            }
+            if let Ok(Response { status: 200, .. }) = try_get(addr, "/healthz", &[]) {
+                return nginx;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "nginx did not answer on {addr} within 30 s:\n{}",
+                nginx.error_log()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    fn location_args(dir: &Path) -> Vec<PathBuf> {
+        vec![
+            "-p".into(),
+            dir.to_path_buf(),
+            "-c".into(),
+            dir.join("nginx.conf"),
+            "-e".into(),
+            dir.join("error.log"),
+        ]
+    }
+
+    fn error_log(&self) -> String {
+        std::fs::read_to_string(self.dir.join("error.log")).unwrap_or_default()
+    }
+}
+
+impl Drop for Nginx {
+    fn drop(&mut self) {
+        // SIGTERM through the pid file: the master stops its workers (SIGKILL to the master
+        // alone would leave the worker serving).
+        let _ = Command::new(&self.binary)
+            .args(Self::location_args(&self.dir))
+            .args(["-s", "stop"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .status();
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while Instant::now() < deadline {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A loopback address nothing listens on right now.
+fn free_port() -> SocketAddr {
+    let probe = TcpListener::bind("127.0.0.1:0").unwrap();
+    probe.local_addr().unwrap()
+}
