@@ -19,6 +19,7 @@ fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::new(&cli.log))
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
     match quincunx_server::run_cli(&cli.serve, |addr| {
         tracing::info!("serving on http://{addr}/ (repositories: http://{addr}/repos)");
