@@ -5,6 +5,7 @@
 //! - [`lifting`]: integer-to-integer wavelet lifting of one diamond (analysis/synthesis).
 //! - [`raster`] / [`sphere_raster`] / [`encode`]: the whole-raster transform (planar
 //!   rasters and cube-mapped planets), rate control and blobs.
+//! - [`incremental`]: one diamond at a time, as a streaming client refines its cut.
 //! - [`stream`]: the out-of-core encoder of planar rasters (bounded memory, rows read on
 //!   demand, blobs handed out as they are coded).
 //! - [`coverage`]: which coarse blocks hold data, for sparse encoding (nodata areas are
@@ -20,6 +21,7 @@ pub mod coverage;
 pub mod encode;
 pub mod entropy;
 pub mod fill;
+pub mod incremental;
 pub mod lifting;
 pub mod raster;
 pub mod sphere_raster;
