@@ -84,6 +84,17 @@ pub struct Refined {
     pub child_classes: Vec<(PlanarId, u8)>,
 }
 
+/// A diamond's decoded blob: dequantised details and side information.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Details {
+    /// The diamond.
+    pub id: PlanarId,
+    /// `N^2` dequantised details.
+    pub h: Vec<i32>,
+    /// Side information per owned child (see [`Refined::child_classes`]).
+    pub child_classes: Vec<(PlanarId, u8)>,
+}
+
 /// What a client needs to know about a diamond besides its grid.
 #[derive(Clone, Debug)]
 pub struct DiamondInfo<'a> {
@@ -226,14 +237,42 @@ impl PlanarRefiner {
         min(0) < w && max(0) >= 0 && min(1) < h && max(1) >= 0
     }
 
-    /// Refines `id` from its vertex `grid` and its blob (`None`: no details, a leaf's
-    /// zero refinement). The blob is checked (checksum over key and content) and decoded
-    /// with the repository's model.
-    pub fn refine(
+    /// Decodes the blob of `id` (checksum over key and content, the repository's model,
+    /// dequantisation): the part of refinement that can run off the frame loop.
+    pub fn decode(&self, id: PlanarId, blob: &[u8]) -> Result<Details, RefineError> {
+        let n = self.n();
+        let &(level, index) = self.slots.get(&id).ok_or(RefineError::NotRefinable(id))?;
+        let slot = &self.geometry.level(level)[index];
+        let mut q = Vec::with_capacity(n * n);
+        let ctx = self.geometry.blob_context(level, index);
+        let classes = blob::decode_into(blob, &ctx, &self.model, &mut q)?;
+        let step = self.steps.get(level).copied().unwrap_or(256);
+        let h = q.iter().map(|&x| dequantize(x, step)).collect();
+        let next: &[_] = if level + 1 < self.geometry.detail_levels() {
+            self.geometry.level(level + 1)
+        } else {
+            &[]
+        };
+        let child_classes = slot
+            .owned
+            .iter()
+            .zip(classes)
+            .filter_map(|(&k, class)| next.get(k).map(|c| (c.id, class)))
+            .collect();
+        Ok(Details {
+            id,
+            h,
+            child_classes,
+        })
+    }
+
+    /// Refines `id` from its vertex `grid` and its decoded details (`None`: no blob, the
+    /// zero refinement of a leaf).
+    pub fn synthesize(
         &self,
         id: PlanarId,
         grid: &[i32],
-        blob: Option<&[u8]>,
+        details: Option<&Details>,
     ) -> Result<Refined, RefineError> {
         let n = self.n();
         let &(level, index) = self.slots.get(&id).ok_or(RefineError::NotRefinable(id))?;
@@ -243,38 +282,43 @@ impl PlanarRefiner {
                 got: grid.len(),
             });
         }
-        let slot = &self.geometry.level(level)[index];
-        let mut h = vec![0; n * n];
-        let mut child_classes = Vec::new();
-        if let Some(bytes) = blob {
-            let mut q = Vec::with_capacity(n * n);
-            let ctx = self.geometry.blob_context(level, index);
-            let classes = blob::decode_into(bytes, &ctx, &self.model, &mut q)?;
-            let step = self.steps.get(level).copied().unwrap_or(256);
-            for (dst, &x) in h.iter_mut().zip(&q) {
-                *dst = dequantize(x, step);
-            }
-            let next: &[_] = if level + 1 < self.geometry.detail_levels() {
-                self.geometry.level(level + 1)
-            } else {
-                &[]
-            };
-            child_classes = slot
-                .owned
-                .iter()
-                .zip(classes)
-                .filter_map(|(&k, class)| next.get(k).map(|c| (c.id, class)))
-                .collect();
+        if let Some(d) = details
+            && (d.id != id || d.h.len() != n * n)
+        {
+            return Err(RefineError::WrongLength {
+                expected: n * n,
+                got: d.h.len(),
+            });
         }
+        let slot = &self.geometry.level(level)[index];
+        let zeros;
+        let h = match details {
+            Some(d) => &d.h,
+            None => {
+                zeros = vec![0; n * n];
+                &zeros
+            }
+        };
         let mut vertices = grid.to_vec();
         let mut cells = vec![0; n * n];
-        lifting::synthesize(n, &mut vertices, &h, &mut cells, slot.mask.as_ref());
+        lifting::synthesize(n, &mut vertices, h, &mut cells, slot.mask.as_ref());
         Ok(Refined {
             id,
             vertices,
             cells,
-            child_classes,
+            child_classes: details.map(|d| d.child_classes.clone()).unwrap_or_default(),
         })
+    }
+
+    /// [`PlanarRefiner::decode`] then [`PlanarRefiner::synthesize`].
+    pub fn refine(
+        &self,
+        id: PlanarId,
+        grid: &[i32],
+        blob: Option<&[u8]>,
+    ) -> Result<Refined, RefineError> {
+        let details = blob.map(|b| self.decode(id, b)).transpose()?;
+        self.synthesize(id, grid, details.as_ref())
     }
 
     /// The vertex grid of `child`, cut from its refined parents' lattices. Every valid
