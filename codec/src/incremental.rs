@@ -182,6 +182,11 @@ impl PlanarRefiner {
         self.geometry.n()
     }
 
+    /// Raster width and height in samples (id units: sample `(x, y)` is at point `(x, y)`).
+    pub fn raster_size(&self) -> (usize, usize) {
+        (self.geometry.width(), self.geometry.height())
+    }
+
     /// The id space.
     pub fn domain(&self) -> PlanarDomain {
         self.geometry.domain()
@@ -321,14 +326,14 @@ impl PlanarRefiner {
         self.synthesize(id, grid, details.as_ref())
     }
 
-    /// The vertex grid of `child`, cut from its refined parents' lattices. Every valid
-    /// vertex must lie in one of `parents` (pass both parents; border half diamonds have
-    /// one). Invalid vertices are 0.
-    pub fn child_grid(
+    /// The part of `child`'s vertex grid that lies in the given refined parents: the grid
+    /// (unwritten vertices are 0) and which vertices were written. A client holds one
+    /// half of a child as soon as one of its parents is refined.
+    pub fn partial_child_grid(
         &self,
         child: PlanarId,
         parents: &[&Refined],
-    ) -> Result<Vec<i32>, RefineError> {
+    ) -> Result<(Vec<i32>, Vec<bool>), RefineError> {
         let n = self.n();
         let domain = self.geometry.domain();
         let child_frame = domain.corners(child)?;
@@ -336,16 +341,16 @@ impl PlanarRefiner {
         let mut grid = vec![0; (n + 1) * (n + 1)];
         let mut written = vec![false; (n + 1) * (n + 1)];
         for parent in parents {
-            if parent.vertices.len() != grid.len() || parent.cells.len() != n * n {
-                return Err(RefineError::WrongLength {
-                    expected: grid.len() + n * n,
-                    got: parent.vertices.len() + parent.cells.len(),
-                });
-            }
             if !true_parents.contains(&parent.id) {
                 return Err(RefineError::NotAParent {
                     child,
                     parent: parent.id,
+                });
+            }
+            if parent.vertices.len() != grid.len() || parent.cells.len() != n * n {
+                return Err(RefineError::WrongLength {
+                    expected: grid.len() + n * n,
+                    got: parent.vertices.len() + parent.cells.len(),
                 });
             }
             let map = lifting::child_half(&domain.corners(parent.id)?, &child_frame, n).ok_or(
@@ -363,6 +368,19 @@ impl PlanarRefiner {
                 Some(&mut written),
             );
         }
+        Ok((grid, written))
+    }
+
+    /// The vertex grid of `child`, cut from its refined parents' lattices. Every valid
+    /// vertex must lie in one of `parents` (pass both parents; border half diamonds have
+    /// one). Invalid vertices are 0.
+    pub fn child_grid(
+        &self,
+        child: PlanarId,
+        parents: &[&Refined],
+    ) -> Result<Vec<i32>, RefineError> {
+        let n = self.n();
+        let (grid, written) = self.partial_child_grid(child, parents)?;
         let mask = self.info(child).and_then(|info| info.mask);
         let missing = (0..=n)
             .flat_map(|i| (0..=n).map(move |j| (i, j)))

@@ -1,0 +1,407 @@
+//! The in-core diamond DAG: the diamonds from the root down to the current cut, each with
+//! its reconstructed vertex grid.
+//!
+//! A diamond is two triangles (halves) that lie in its two parents. As soon as one parent
+//! is refined, the half inside it is known (cut from that parent's refined lattice) and
+//! can be drawn; the diamond itself can be refined only once both halves are present,
+//! that is when all its parents are refined (the 4-8 rule that keeps every cut free of
+//! cracks and T-junctions). The cut is the set of present halves of unrefined diamonds.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use quincunx_codec::diamond::{PlanarDomain, PlanarId};
+use quincunx_codec::incremental::{Details, PlanarRefiner, RefineError, Refined};
+
+/// Why the DAG refused an operation.
+#[derive(Debug, thiserror::Error)]
+pub enum DagError {
+    /// Not in the DAG, not complete (a parent is unrefined), already refined, or finer
+    /// than the repository.
+    #[error("{0:?} cannot be refined now")]
+    NotRefinable(PlanarId),
+    /// Not refined, or a child is refined.
+    #[error("{0:?} cannot be coarsened now")]
+    NotCoarsenable(PlanarId),
+    /// Synthesis failed (bad details).
+    #[error(transparent)]
+    Refine(#[from] RefineError),
+}
+
+/// One triangle of a diamond's grid. Grid vertex `(i, j)` lies at
+/// `E1 + (i (P1 - E1) + j (P2 - E1)) / N` in the diamond's frame `[E1, P1, E2, P2]`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Half {
+    /// Entries with `i >= j`: the triangle `E1 P1 E2`, inside the parent centred at `P1`.
+    Lower,
+    /// Entries with `i <= j`: the triangle `E1 P2 E2`, inside the parent centred at `P2`.
+    Upper,
+}
+
+impl Half {
+    /// Both halves.
+    pub const BOTH: [Half; 2] = [Half::Lower, Half::Upper];
+
+    fn index(self) -> usize {
+        match self {
+            Half::Lower => 0,
+            Half::Upper => 1,
+        }
+    }
+
+    /// Whether grid entry `(i, j)` belongs to this half (the diagonal to both).
+    pub fn contains(self, i: usize, j: usize) -> bool {
+        match self {
+            Half::Lower => i >= j,
+            Half::Upper => i <= j,
+        }
+    }
+}
+
+/// A diamond in the DAG.
+#[derive(Clone, Debug)]
+pub struct Node {
+    /// The diamond.
+    pub id: PlanarId,
+    /// Its `(N+1)^2` vertex grid; entries of absent halves are 0.
+    pub grid: Arc<Vec<i32>>,
+    /// Which halves are present (index by [`Half`]).
+    pub present: [bool; 2],
+    /// Which halves exist at all (a border diamond has one; a half inside a parent that
+    /// lies outside the raster never arrives).
+    pub expected: [bool; 2],
+    /// Its refined lattice, while it is refined.
+    pub refined: Option<Refined>,
+    /// The side-information class its first parent's blob carries for it: a bound on how
+    /// far its finer surface departs from its grid (`None` until known).
+    pub class: Option<u8>,
+    /// Smallest and largest grid value over its present halves.
+    pub z_range: (i32, i32),
+}
+
+impl Node {
+    /// Whether every half that exists is present.
+    pub fn complete(&self) -> bool {
+        self.present
+            .iter()
+            .zip(&self.expected)
+            .all(|(p, e)| *p || !*e)
+    }
+
+    /// Whether a half is present.
+    pub fn has(&self, half: Half) -> bool {
+        self.present[half.index()]
+    }
+}
+
+/// The DAG of one planar repository.
+#[derive(Debug)]
+pub struct Dag {
+    refiner: Arc<PlanarRefiner>,
+    domain: PlanarDomain,
+    nodes: HashMap<PlanarId, Node>,
+}
+
+impl Dag {
+    /// A DAG holding the root diamond (complete, from the repository's root grid).
+    pub fn new(refiner: Arc<PlanarRefiner>) -> Dag {
+        let domain = refiner.domain();
+        let (root, grid) = refiner.root();
+        let n = refiner.n();
+        let node = Node {
+            id: root,
+            z_range: z_range(grid, n, [true, true]),
+            grid: Arc::new(grid.to_vec()),
+            present: [true, true],
+            expected: [true, true],
+            refined: None,
+            class: None,
+        };
+        Dag {
+            domain,
+            nodes: HashMap::from([(root, node)]),
+            refiner,
+        }
+    }
+
+    /// The incremental decoder this DAG refines with.
+    pub fn refiner(&self) -> &PlanarRefiner {
+        &self.refiner
+    }
+
+    /// A diamond, if it is in the DAG.
+    pub fn node(&self, id: PlanarId) -> Option<&Node> {
+        self.nodes.get(&id)
+    }
+
+    /// Every diamond in the DAG.
+    pub fn nodes(&self) -> impl Iterator<Item = &Node> {
+        self.nodes.values()
+    }
+
+    /// Diamonds in the DAG.
+    pub fn len(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Whether only nothing is held (never: the root stays).
+    pub fn is_empty(&self) -> bool {
+        self.nodes.is_empty()
+    }
+
+    /// Bytes of grids and lattices held.
+    pub fn memory_bytes(&self) -> usize {
+        self.nodes
+            .values()
+            .map(|n| {
+                4 * n.grid.len()
+                    + n.refined
+                        .as_ref()
+                        .map_or(0, |r| 4 * (r.vertices.len() + r.cells.len()))
+                    + std::mem::size_of::<Node>()
+            })
+            .sum()
+    }
+
+    /// Whether `id` can be refined now: present, complete, unrefined and carrying details.
+    pub fn is_refinable(&self, id: PlanarId) -> bool {
+        self.nodes
+            .get(&id)
+            .is_some_and(|n| n.complete() && n.refined.is_none())
+            && self.refiner.info(id).is_some()
+    }
+
+    /// Whether `id` can be coarsened now: refined, and none of its children refined.
+    pub fn is_coarsenable(&self, id: PlanarId) -> bool {
+        self.nodes.get(&id).is_some_and(|n| n.refined.is_some())
+            && self
+                .children(id)
+                .iter()
+                .all(|c| self.nodes.get(c).is_none_or(|n| n.refined.is_none()))
+    }
+
+    /// The children of `id` that the repository holds (inside the raster).
+    pub fn children(&self, id: PlanarId) -> Vec<PlanarId> {
+        self.refiner
+            .info(id)
+            .map(|i| i.children)
+            .unwrap_or_default()
+    }
+
+    /// The parents of `id` (one for border half diamonds, none for the root).
+    pub fn parents(&self, id: PlanarId) -> Vec<PlanarId> {
+        self.domain.parents(id).unwrap_or_default()
+    }
+
+    /// Refines `id` with its decoded details (`None`: no blob): synthesises its lattice
+    /// and gives each child the half that lies in it. Returns the children.
+    pub fn refine(
+        &mut self,
+        id: PlanarId,
+        details: Option<&Details>,
+    ) -> Result<Vec<PlanarId>, DagError> {
+        if !self.is_refinable(id) {
+            return Err(DagError::NotRefinable(id));
+        }
+        let node = self.nodes.get(&id).ok_or(DagError::NotRefinable(id))?;
+        let refined = self.refiner.synthesize(id, &node.grid, details)?;
+        let classes: HashMap<PlanarId, u8> = refined.child_classes.iter().copied().collect();
+        if let Some(node) = self.nodes.get_mut(&id) {
+            node.refined = Some(refined);
+        }
+        let children = self.children(id);
+        for &child in &children {
+            self.rebuild_child(child)?;
+            if let (Some(class), Some(node)) = (classes.get(&child), self.nodes.get_mut(&child)) {
+                node.class = Some(*class);
+            }
+        }
+        Ok(children)
+    }
+
+    /// Coarsens `id`: drops its lattice and the halves of its children that lay in it
+    /// (children left with no half leave the DAG).
+    pub fn coarsen(&mut self, id: PlanarId) -> Result<(), DagError> {
+        if !self.is_coarsenable(id) {
+            return Err(DagError::NotCoarsenable(id));
+        }
+        if let Some(node) = self.nodes.get_mut(&id) {
+            node.refined = None;
+        }
+        for child in self.children(id) {
+            self.rebuild_child(child)?;
+        }
+        Ok(())
+    }
+
+    /// Recomputes a child's grid and halves from its currently refined parents.
+    fn rebuild_child(&mut self, child: PlanarId) -> Result<(), DagError> {
+        let corners = self.domain.corners(child).map_err(RefineError::from)?;
+        let at = |k: usize| PlanarId {
+            x: corners[k][0],
+            y: corners[k][1],
+        };
+        let side_parents = [at(1), at(3)];
+        let parents = self.parents(child);
+        let refined: Vec<&Refined> = parents
+            .iter()
+            .filter_map(|p| self.nodes.get(p).and_then(|n| n.refined.as_ref()))
+            .collect();
+        if refined.is_empty() {
+            self.nodes.remove(&child);
+            return Ok(());
+        }
+        let present = side_parents.map(|p| refined.iter().any(|r| r.id == p));
+        let expected = side_parents.map(|p| parents.contains(&p) && self.refiner.info(p).is_some());
+        let (grid, _) = self.refiner.partial_child_grid(child, &refined)?;
+        let class = self.nodes.get(&child).and_then(|n| n.class);
+        self.nodes.insert(
+            child,
+            Node {
+                id: child,
+                z_range: z_range(&grid, self.refiner.n(), present),
+                grid: Arc::new(grid),
+                present,
+                expected,
+                refined: None,
+                class,
+            },
+        );
+        Ok(())
+    }
+
+    /// The cut: every present half of every unrefined diamond, in a stable order.
+    pub fn cut(&self) -> Vec<(PlanarId, Half)> {
+        let mut out: Vec<(PlanarId, Half)> = self
+            .nodes
+            .values()
+            .filter(|n| n.refined.is_none())
+            .flat_map(|n| {
+                Half::BOTH
+                    .into_iter()
+                    .filter(|h| n.has(*h))
+                    .map(move |h| (n.id, h))
+            })
+            .collect();
+        out.sort_by_key(|(id, h)| (id.x, id.y, *h));
+        out
+    }
+
+    /// Checks the cut: neighbouring halves agree bit for bit on every shared valid vertex,
+    /// and every point of the raster lies in exactly one half (probed on a lattice of
+    /// points that avoids all diamond edges).
+    pub fn check_cut(&self) -> CutCheck {
+        let n = self.refiner.n();
+        let mut values: HashMap<[i64; 2], i32> = HashMap::new();
+        let mut check = CutCheck::default();
+        let cut = self.cut();
+        let mut triangles: Vec<[[f64; 2]; 3]> = Vec::with_capacity(cut.len());
+        for &(id, half) in &cut {
+            check.halves += 1;
+            let (Some(node), Ok(c)) = (self.nodes.get(&id), self.domain.corners(id)) else {
+                continue;
+            };
+            let apex = match half {
+                Half::Lower => c[1],
+                Half::Upper => c[3],
+            };
+            triangles.push([c[0], apex, c[2]].map(|p| [p[0] as f64, p[1] as f64]));
+            let mask = self.refiner.info(id).and_then(|i| i.mask);
+            for i in 0..=n {
+                for j in 0..=n {
+                    let on_edge = i == j || i == 0 || j == 0 || i == n || j == n;
+                    if !on_edge || !half.contains(i, j) || mask.is_some_and(|m| !m.vertex(i, j)) {
+                        continue;
+                    }
+                    let (ii, jj) = (i as i64, j as i64);
+                    // Position in id units times N (exact).
+                    let pos = [0, 1].map(|k| {
+                        c[0][k] * n as i64 + ii * (c[1][k] - c[0][k]) + jj * (c[3][k] - c[0][k])
+                    });
+                    if !self.inside_raster(pos, n) {
+                        continue;
+                    }
+                    let v = node.grid[i * (n + 1) + j];
+                    match values.insert(pos, v) {
+                        Some(old) if old != v => check.cracks += 1,
+                        Some(_) => check.shared_vertices += 1,
+                        None => {}
+                    }
+                }
+            }
+        }
+        // Probe points: irrational offsets keep them off every diamond edge.
+        let (w, h) = self.refiner.raster_size();
+        let (w, h) = ((w - 1) as f64, (h - 1) as f64);
+        let steps = 41;
+        for a in 0..steps {
+            for b in 0..steps {
+                let p = [
+                    w * (a as f64 + 0.5 + 0.1 * std::f64::consts::SQRT_2) / (steps as f64 + 0.5),
+                    h * (b as f64 + 0.5 + 0.1 * std::f64::consts::E) / (steps as f64 + 0.5),
+                ];
+                let hits = triangles.iter().filter(|t| in_triangle(p, t)).count();
+                match hits {
+                    0 => check.uncovered += 1,
+                    1 => check.probes += 1,
+                    _ => check.overlaps += 1,
+                }
+            }
+        }
+        check
+    }
+
+    /// Whether a position (id units times `n`) is a raster sample.
+    fn inside_raster(&self, pos: [i64; 2], n: usize) -> bool {
+        let (w, h) = self.refiner.raster_size();
+        let n = n as i64;
+        (0..=(w as i64 - 1) * n).contains(&pos[0]) && (0..=(h as i64 - 1) * n).contains(&pos[1])
+    }
+}
+
+/// Smallest and largest value of the present halves of a grid.
+fn z_range(grid: &[i32], n: usize, present: [bool; 2]) -> (i32, i32) {
+    let mut range = (i32::MAX, i32::MIN);
+    for i in 0..=n {
+        for j in 0..=n {
+            let in_present = (present[0] && i >= j) || (present[1] && i <= j);
+            if in_present {
+                let v = grid[i * (n + 1) + j];
+                range = (range.0.min(v), range.1.max(v));
+            }
+        }
+    }
+    if range.0 > range.1 { (0, 0) } else { range }
+}
+
+/// Whether `p` is strictly inside triangle `t` (either orientation).
+fn in_triangle(p: [f64; 2], t: &[[f64; 2]; 3]) -> bool {
+    let side =
+        |a: [f64; 2], b: [f64; 2]| (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]);
+    let s = [side(t[0], t[1]), side(t[1], t[2]), side(t[2], t[0])];
+    s.iter().all(|&x| x > 0.0) || s.iter().all(|&x| x < 0.0)
+}
+
+/// What [`Dag::check_cut`] found.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CutCheck {
+    /// Halves in the cut.
+    pub halves: usize,
+    /// Edge vertices seen by more than one half, with equal values.
+    pub shared_vertices: usize,
+    /// Edge vertices seen by more than one half with different values (must be 0).
+    pub cracks: usize,
+    /// Probe points of the raster covered by exactly one half.
+    pub probes: usize,
+    /// Probe points covered by no half (must be 0).
+    pub uncovered: usize,
+    /// Probe points covered by more than one half (must be 0).
+    pub overlaps: usize,
+}
+
+impl CutCheck {
+    /// No cracks, and the cut covers the raster exactly once.
+    pub fn ok(&self) -> bool {
+        self.cracks == 0 && self.uncovered == 0 && self.overlaps == 0 && self.probes > 0
+    }
+}

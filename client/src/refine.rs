@@ -1,0 +1,415 @@
+//! Time-budgeted dual-queue refinement (the paper's section 4.2, after ROAM).
+//!
+//! Each frame:
+//! 1. **Split queue.** The cut's diamonds whose projected error exceeds the tolerance, most
+//!    urgent first.
+//!    - A diamond is refined once its parents are refined; missing parents are refined
+//!      first.
+//!    - Details come from a [`DetailSource`]; when they have not arrived yet, the diamond
+//!      waits and others go ahead.
+//! 2. **Merge queue.** Refined diamonds whose error is below the tolerance (with
+//!    hysteresis), or that are off-screen, and whose children are unrefined, are coarsened,
+//!    least urgent first.
+//!
+//! The frame stops when the budget is spent. The DAG stays consistent after every single
+//! operation, so the cut is crack-free whenever the frame ends.
+//!
+//! **Error** is the mean projected edge length of a diamond's grid in pixels, measured at
+//! the nearest point of its bounding box: `max(edge, texel)` once a colour layer exists.
+//! The box is the diamond's footprint times its height range, widened by the side
+//! information bound its parent's blob carries. That makes it conservative for culling.
+//! The same bound skips refinement of flat regions: when refining could move the surface
+//! by less than [`RefineConfig::flat_fraction`] of the tolerance, the diamond is not
+//! refined.
+
+use std::cmp::Ordering;
+use std::collections::BinaryHeap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use glam::DVec3;
+use quincunx_codec::diamond::PlanarId;
+use quincunx_codec::entropy::class_bound;
+use quincunx_codec::incremental::Details;
+
+use crate::dag::{Dag, DagError};
+use crate::view::{Aabb, Frustum, PlanarWorld, View};
+
+/// Whether a diamond's details are here.
+#[derive(Clone, Debug)]
+pub enum Availability {
+    /// Arrived: decoded details, or `None` for a diamond without a blob (zero details).
+    Ready(Option<Arc<Details>>),
+    /// Requested (or queued) and not here yet.
+    Pending,
+}
+
+/// Where details come from: the data access layer (network thread, caches) or, in tests
+/// and local apps, a repository in memory.
+pub trait DetailSource {
+    /// The details of `id` if they are here; otherwise records that they are wanted with
+    /// this priority (higher first) and returns [`Availability::Pending`].
+    fn details(&mut self, id: PlanarId, priority: f64) -> Availability;
+}
+
+/// A monotonic clock, passed in so refinement is testable deterministically.
+pub trait Clock {
+    /// Time since an arbitrary origin.
+    fn now(&self) -> Duration;
+}
+
+/// The real clock.
+#[derive(Clone, Copy, Debug)]
+pub struct SystemClock(pub std::time::Instant);
+
+impl Clock for SystemClock {
+    fn now(&self) -> Duration {
+        self.0.elapsed()
+    }
+}
+
+/// Tuning of refinement.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RefineConfig {
+    /// Coarsen when the error is below `tolerance * hysteresis`. Below 1 it keeps
+    /// diamonds that hover around the tolerance from being refined and coarsened in turn
+    /// while the camera jitters, at the price of a cut that depends on the path taken;
+    /// 1 (the default) makes the cut a function of the view alone.
+    pub hysteresis: f64,
+    /// Skip refining where the side information bounds the change of the surface below
+    /// this fraction of the tolerance (flat regions).
+    pub flat_fraction: f64,
+}
+
+impl Default for RefineConfig {
+    fn default() -> Self {
+        RefineConfig {
+            hysteresis: 1.0,
+            flat_fraction: 0.1,
+        }
+    }
+}
+
+/// What one frame did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FrameStats {
+    /// Diamonds refined.
+    pub refined: usize,
+    /// Diamonds coarsened.
+    pub coarsened: usize,
+    /// Diamonds waiting for their details.
+    pub pending: usize,
+    /// Diamonds in the DAG and halves in the cut after the frame.
+    pub dag_nodes: usize,
+    /// Halves in the cut after the frame.
+    pub cut_halves: usize,
+    /// Largest projected error of a visible cut diamond that still wants refining (0 when
+    /// the cut meets the tolerance).
+    pub max_error_px: f64,
+    /// The budget ran out before both queues were empty.
+    pub out_of_time: bool,
+    /// Nothing left to do for this view: every visible diamond meets the tolerance (or is
+    /// as fine as the repository) and nothing waits for data.
+    pub converged: bool,
+    /// Time used.
+    pub elapsed: Duration,
+}
+
+/// An `f64` ordered for the heaps (NaN never occurs: errors are finite by construction).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Key(f64, PlanarId);
+
+impl Eq for Key {}
+
+impl PartialOrd for Key {
+    fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
+        Some(self.cmp(other))
+    }
+}
+
+impl Ord for Key {
+    fn cmp(&self, other: &Self) -> Ordering {
+        self.0
+            .total_cmp(&other.0)
+            .then_with(|| (self.1.x, self.1.y).cmp(&(other.1.x, other.1.y)))
+    }
+}
+
+/// How a diamond looks from the camera.
+#[derive(Clone, Copy, Debug)]
+pub struct Appearance {
+    /// Projected mean edge length, pixels.
+    pub error_px: f64,
+    /// Inside the frustum (conservatively).
+    pub visible: bool,
+    /// The side information says refining cannot change the picture.
+    pub flat: bool,
+}
+
+/// Projects diamonds for one view.
+struct Projector<'a> {
+    view: &'a View,
+    frustum: Frustum,
+    world: PlanarWorld,
+    config: RefineConfig,
+}
+
+impl Projector<'_> {
+    fn appearance(&self, dag: &Dag, id: PlanarId) -> Appearance {
+        let n = dag.refiner().n() as f64;
+        let invisible = Appearance {
+            error_px: 0.0,
+            visible: false,
+            flat: true,
+        };
+        let (Some(node), Ok(c)) = (dag.node(id), dag.refiner().domain().corners(id)) else {
+            return invisible;
+        };
+        let bound_m = node.class.map_or(0.0, |k| {
+            class_bound(k) as f64 * self.world.value_scale_m.abs()
+        });
+        let (z0, z1) = node.z_range;
+        let lo = self
+            .world
+            .point([0, 0], z0)
+            .z
+            .min(self.world.point([0, 0], z1).z)
+            - bound_m;
+        let hi = self
+            .world
+            .point([0, 0], z0)
+            .z
+            .max(self.world.point([0, 0], z1).z)
+            + bound_m;
+        let xs = c.iter().map(|p| p[0] as f64 * self.world.spacing_m);
+        let ys = c.iter().map(|p| p[1] as f64 * self.world.spacing_m);
+        let bbox = Aabb {
+            min: DVec3::new(
+                xs.clone().fold(f64::MAX, f64::min),
+                ys.clone().fold(f64::MAX, f64::min),
+                lo,
+            ),
+            max: DVec3::new(xs.fold(f64::MIN, f64::max), ys.fold(f64::MIN, f64::max), hi),
+        };
+        let edge_m = {
+            let d = [(c[1][0] - c[0][0]) as f64, (c[1][1] - c[0][1]) as f64];
+            (d[0] * d[0] + d[1] * d[1]).sqrt() / n * self.world.spacing_m
+        };
+        let px_per_m = self.view.px_per_m(bbox.distance(self.view.eye));
+        let flat = node.class.is_some_and(|_| {
+            bound_m * px_per_m < self.config.flat_fraction * self.view.tolerance_px
+        });
+        Appearance {
+            error_px: edge_m * px_per_m,
+            visible: self.frustum.intersects(&bbox),
+            flat,
+        }
+    }
+
+    fn wants_split(&self, a: &Appearance) -> bool {
+        a.visible && !a.flat && a.error_px > self.view.tolerance_px
+    }
+
+    fn allows_merge(&self, a: &Appearance) -> bool {
+        !a.visible || a.flat || a.error_px < self.view.tolerance_px * self.config.hysteresis
+    }
+}
+
+/// Refinement state kept across frames.
+#[derive(Clone, Debug, Default)]
+pub struct Refinement {
+    /// Tuning.
+    pub config: RefineConfig,
+}
+
+enum Outcome {
+    Done,
+    Pending,
+    Impossible,
+}
+
+impl Refinement {
+    /// Runs one frame: splits and merges until both queues are empty or `budget` is
+    /// spent (checked between operations against `clock`).
+    pub fn update(
+        &mut self,
+        dag: &mut Dag,
+        view: &View,
+        world: PlanarWorld,
+        source: &mut dyn DetailSource,
+        clock: &dyn Clock,
+        budget: Duration,
+    ) -> Result<FrameStats, DagError> {
+        let start = clock.now();
+        let deadline = start + budget;
+        let projector = Projector {
+            view,
+            frustum: view.frustum(),
+            world,
+            config: self.config,
+        };
+        let mut stats = FrameStats::default();
+
+        // Split queue: the cut's diamonds that want refining, most urgent first.
+        let mut splits: BinaryHeap<Key> = dag
+            .nodes()
+            .filter(|n| n.refined.is_none() && dag.refiner().info(n.id).is_some())
+            .filter_map(|n| {
+                let a = projector.appearance(dag, n.id);
+                projector.wants_split(&a).then_some(Key(a.error_px, n.id))
+            })
+            .collect();
+        let mut waiting = 0;
+        let mut worked = true;
+        while let Some(Key(error, id)) = splits.pop() {
+            // The clock is read after each operation that did work.
+            if worked && clock.now() >= deadline {
+                stats.out_of_time = true;
+                stats.max_error_px = stats.max_error_px.max(error);
+                break;
+            }
+            let refined_before = stats.refined;
+            if dag.node(id).is_none_or(|n| n.refined.is_some()) {
+                continue;
+            }
+            let mut newly = Vec::new();
+            let outcome = self.refine_with_parents(
+                dag, id, error, source, &mut stats, 0, &projector, &mut newly,
+            )?;
+            // Children of everything refined (the diamond and any parents it needed),
+            // complete or not: an incomplete one gets its other parent refined first when
+            // it comes up.
+            for refined in newly {
+                for child in dag.children(refined) {
+                    if dag.node(child).is_some_and(|n| n.refined.is_none())
+                        && dag.refiner().info(child).is_some()
+                    {
+                        let a = projector.appearance(dag, child);
+                        if projector.wants_split(&a) {
+                            splits.push(Key(a.error_px, child));
+                        }
+                    }
+                }
+            }
+            match outcome {
+                Outcome::Done => {}
+                Outcome::Pending => {
+                    waiting += 1;
+                    stats.max_error_px = stats.max_error_px.max(error);
+                }
+                Outcome::Impossible => {}
+            }
+            worked = stats.refined > refined_before;
+        }
+
+        // Merge queue: refined diamonds with unrefined children that are now too fine or
+        // off-screen, least urgent first.
+        if !stats.out_of_time {
+            let mut merges: Vec<Key> = dag
+                .nodes()
+                .filter(|n| n.refined.is_some())
+                .filter_map(|n| {
+                    let a = projector.appearance(dag, n.id);
+                    projector.allows_merge(&a).then_some(Key(a.error_px, n.id))
+                })
+                .collect();
+            merges.sort();
+            let mut progress = true;
+            while progress && !stats.out_of_time {
+                progress = false;
+                for key in &merges {
+                    let id = key.1;
+                    if !dag.is_coarsenable(id) {
+                        continue;
+                    }
+                    let children_calm = dag.children(id).iter().all(|&c| {
+                        dag.node(c)
+                            .is_none_or(|_| !projector.wants_split(&projector.appearance(dag, c)))
+                    });
+                    if !children_calm {
+                        continue;
+                    }
+                    if clock.now() >= deadline {
+                        stats.out_of_time = true;
+                        break;
+                    }
+                    dag.coarsen(id)?;
+                    stats.coarsened += 1;
+                    progress = true;
+                }
+                merges.retain(|k| dag.node(k.1).is_some_and(|n| n.refined.is_some()));
+            }
+        }
+
+        stats.pending = waiting;
+        stats.dag_nodes = dag.len();
+        stats.cut_halves = dag.cut().len();
+        stats.converged = !stats.out_of_time && waiting == 0;
+        stats.elapsed = clock.now().saturating_sub(start);
+        Ok(stats)
+    }
+
+    /// Refines `id`, refining its missing parents first.
+    #[allow(clippy::too_many_arguments)]
+    fn refine_with_parents(
+        &mut self,
+        dag: &mut Dag,
+        id: PlanarId,
+        priority: f64,
+        source: &mut dyn DetailSource,
+        stats: &mut FrameStats,
+        depth: usize,
+        projector: &Projector<'_>,
+        newly: &mut Vec<PlanarId>,
+    ) -> Result<Outcome, DagError> {
+        if depth > 128 || dag.refiner().info(id).is_none() {
+            return Ok(Outcome::Impossible);
+        }
+        if dag.node(id).is_some_and(|n| n.refined.is_some()) {
+            return Ok(Outcome::Done);
+        }
+        let mut pending = false;
+        for parent in dag.parents(id) {
+            if dag.refiner().info(parent).is_none() {
+                continue; // outside the raster: that half never exists
+            }
+            if dag.node(parent).is_none_or(|n| n.refined.is_none()) {
+                match self.refine_with_parents(
+                    dag,
+                    parent,
+                    priority,
+                    source,
+                    stats,
+                    depth + 1,
+                    projector,
+                    newly,
+                )? {
+                    Outcome::Done => {}
+                    Outcome::Pending => pending = true,
+                    Outcome::Impossible => return Ok(Outcome::Impossible),
+                }
+            }
+        }
+        if pending {
+            return Ok(Outcome::Pending);
+        }
+        if !dag.is_refinable(id) {
+            return Ok(Outcome::Impossible);
+        }
+        // With its parents refined, its side information is known: a diamond refined for
+        // its own sake (not as a parent) is refined only if it still wants to be, so the
+        // cut does not depend on the order in which its parents arrived.
+        if depth == 0 && !projector.wants_split(&projector.appearance(dag, id)) {
+            return Ok(Outcome::Impossible);
+        }
+        match source.details(id, priority) {
+            Availability::Ready(details) => {
+                dag.refine(id, details.as_deref())?;
+                stats.refined += 1;
+                newly.push(id);
+                Ok(Outcome::Done)
+            }
+            Availability::Pending => Ok(Outcome::Pending),
+        }
+    }
+}

@@ -1,0 +1,170 @@
+//! The camera and what refinement needs from it: a frustum for culling, the projected
+//! size of a world length at a distance, and the mapping from diamond ids and integer
+//! samples to world metres.
+
+use glam::{DMat4, DVec3, DVec4};
+
+/// A camera for one frame. Everything is `f64`: planet-sized worlds keep metre precision.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct View {
+    /// Eye position (world metres).
+    pub eye: DVec3,
+    /// A point the camera looks at.
+    pub target: DVec3,
+    /// Up direction.
+    pub up: DVec3,
+    /// Vertical field of view, radians.
+    pub fov_y_rad: f64,
+    /// Viewport width and height, pixels.
+    pub viewport_px: [u32; 2],
+    /// Screen-space error tolerance, pixels.
+    pub tolerance_px: f64,
+}
+
+/// An axis-aligned box in world metres.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Aabb {
+    /// Smallest corner.
+    pub min: DVec3,
+    /// Largest corner.
+    pub max: DVec3,
+}
+
+impl Aabb {
+    /// Distance from `p` to the box (0 inside).
+    pub fn distance(&self, p: DVec3) -> f64 {
+        let d = (self.min - p).max(p - self.max).max(DVec3::ZERO);
+        d.length()
+    }
+}
+
+/// Six clip planes `(a, b, c, d)` with `a x + b y + c z + d >= 0` inside.
+#[derive(Clone, Copy, Debug)]
+pub struct Frustum {
+    planes: [DVec4; 6],
+}
+
+impl Frustum {
+    /// Whether the box may be visible (conservative: never culls a visible box).
+    pub fn intersects(&self, b: &Aabb) -> bool {
+        self.planes.iter().all(|p| {
+            // The box corner furthest along the plane normal.
+            let corner = DVec3::new(
+                if p.x >= 0.0 { b.max.x } else { b.min.x },
+                if p.y >= 0.0 { b.max.y } else { b.min.y },
+                if p.z >= 0.0 { b.max.z } else { b.min.z },
+            );
+            p.truncate().dot(corner) + p.w >= 0.0
+        })
+    }
+}
+
+impl View {
+    /// Near plane distance (metres): small enough for a camera 1 m above ground.
+    pub const NEAR_M: f64 = 0.1;
+
+    /// Clip space from world space (right-handed, depth 0..1, infinite far plane).
+    pub fn clip_from_world(&self) -> DMat4 {
+        let [w, h] = self.viewport_px;
+        let aspect = f64::from(w.max(1)) / f64::from(h.max(1));
+        let proj = DMat4::perspective_infinite_rh(self.fov_y_rad, aspect, Self::NEAR_M);
+        proj * DMat4::look_at_rh(self.eye, self.target, self.up)
+    }
+
+    /// The view frustum (the far plane is at infinity).
+    pub fn frustum(&self) -> Frustum {
+        let m = self.clip_from_world();
+        let (r0, r1, r2, r3) = (m.row(0), m.row(1), m.row(2), m.row(3));
+        let planes = [r3 + r0, r3 - r0, r3 + r1, r3 - r1, r2, r3 - r2];
+        Frustum {
+            planes: planes.map(|p| {
+                let len = p.truncate().length();
+                if len > 0.0 { p / len } else { p }
+            }),
+        }
+    }
+
+    /// Pixels per metre of a length facing the camera at `distance_m`.
+    pub fn px_per_m(&self, distance_m: f64) -> f64 {
+        let h = f64::from(self.viewport_px[1].max(1));
+        h / (2.0 * (self.fov_y_rad / 2.0).tan() * distance_m.max(Self::NEAR_M))
+    }
+}
+
+/// Where a planar repository's ids and integer samples are in the world.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PlanarWorld {
+    /// Metres per id unit (the raster's sample spacing).
+    pub spacing_m: f64,
+    /// Metres per integer sample value.
+    pub value_scale_m: f64,
+    /// Metres at integer 0.
+    pub value_offset_m: f64,
+}
+
+impl PlanarWorld {
+    /// World position of a point in id units with integer value `v`.
+    pub fn point(&self, xy: [i64; 2], v: i32) -> DVec3 {
+        DVec3::new(
+            xy[0] as f64 * self.spacing_m,
+            xy[1] as f64 * self.spacing_m,
+            self.value_offset_m + f64::from(v) * self.value_scale_m,
+        )
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    fn view() -> View {
+        View {
+            eye: DVec3::new(0.0, 0.0, 100.0),
+            target: DVec3::new(0.0, 1000.0, 0.0),
+            up: DVec3::Z,
+            fov_y_rad: 60f64.to_radians(),
+            viewport_px: [1920, 1080],
+            tolerance_px: 1.0,
+        }
+    }
+
+    #[test]
+    fn frustum_keeps_what_is_ahead_and_culls_what_is_behind() {
+        let f = view().frustum();
+        let ahead = Aabb {
+            min: DVec3::new(-10.0, 500.0, 0.0),
+            max: DVec3::new(10.0, 510.0, 10.0),
+        };
+        let behind = Aabb {
+            min: DVec3::new(-10.0, -510.0, 0.0),
+            max: DVec3::new(10.0, -500.0, 10.0),
+        };
+        let around_eye = Aabb {
+            min: DVec3::new(-1.0, -1.0, 99.0),
+            max: DVec3::new(1.0, 1.0, 101.0),
+        };
+        assert!(f.intersects(&ahead));
+        assert!(!f.intersects(&behind));
+        assert!(f.intersects(&around_eye));
+    }
+
+    #[test]
+    fn projected_size_halves_with_twice_the_distance_and_stays_finite() {
+        let v = view();
+        let a = v.px_per_m(100.0);
+        assert!((a / v.px_per_m(200.0) - 2.0).abs() < 1e-12);
+        assert!((1080.0 / (2.0 * 30f64.to_radians().tan() * 100.0) - a).abs() < 1e-9);
+        assert!(v.px_per_m(0.0).is_finite() && v.px_per_m(1e12) > 0.0);
+    }
+
+    #[test]
+    fn distance_to_a_box_is_zero_inside() {
+        let b = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::ONE,
+        };
+        assert_eq!(b.distance(DVec3::splat(0.5)), 0.0);
+        assert!((b.distance(DVec3::new(4.0, 5.0, 1.0)) - 5.0).abs() < 1e-12);
+    }
+}

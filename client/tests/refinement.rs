@@ -1,0 +1,426 @@
+//! Refinement over a real DEM (the bundled SRTM crop), without a network: every frame of a
+//! flight ends crack-free and covering the raster exactly once; the budget is respected;
+//! the cut converges to the same result whatever the budget; details that arrive late
+//! only delay refinement; the DAG behaves like a naive model under random operations.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::cell::Cell;
+use std::collections::{BTreeSet, HashMap, HashSet};
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Duration;
+
+use glam::DVec3;
+use quincunx_client::dag::{Dag, Half};
+use quincunx_client::refine::{
+    Availability, Clock, DetailSource, FrameStats, Refinement, SystemClock,
+};
+use quincunx_client::view::{PlanarWorld, View};
+use quincunx_codec::diamond::PlanarId;
+use quincunx_codec::encode::{EncodeOptions, Encoded, Grid, RateMode, encode};
+use quincunx_codec::incremental::PlanarRefiner;
+
+/// The bundled 1025 x 1025 SRTM3 crop (int16 + JSON sidecar), cropped to 700 x 513 so
+/// border diamonds are partial, coded at 2 m RMS.
+fn korea() -> Arc<Encoded> {
+    static ENC: std::sync::OnceLock<Arc<Encoded>> = std::sync::OnceLock::new();
+    ENC.get_or_init(|| {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data");
+        let raw = std::fs::read(dir.join("korea_srtm3_1025.i16")).unwrap();
+        let (w0, w, h) = (1025, 700, 513);
+        let values_m = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let k = 2 * (y * w0 + x);
+                f64::from(i16::from_le_bytes([raw[k], raw[k + 1]]))
+            })
+            .collect();
+        let grid = Grid {
+            width: w,
+            height: h,
+            values_m,
+            quantum_m: Some(1.0),
+        };
+        let opts = EncodeOptions {
+            n: 32,
+            mode: RateMode::RmsM(2.0),
+            sparse: false,
+        };
+        Arc::new(encode(&grid, opts).unwrap())
+    })
+    .clone()
+}
+
+fn world(enc: &Encoded) -> PlanarWorld {
+    PlanarWorld {
+        spacing_m: 90.0,
+        value_scale_m: enc.value_scale_m,
+        value_offset_m: enc.value_offset_m,
+    }
+}
+
+/// Details straight from the encoding; with `delay`, each diamond is only ready from the
+/// `delay`-th time it is asked for (a slow network).
+struct LocalSource {
+    enc: Arc<Encoded>,
+    refiner: Arc<PlanarRefiner>,
+    delay: usize,
+    asked: HashMap<PlanarId, usize>,
+    requests: usize,
+}
+
+impl LocalSource {
+    fn new(enc: Arc<Encoded>, refiner: Arc<PlanarRefiner>, delay: usize) -> Self {
+        LocalSource {
+            enc,
+            refiner,
+            delay,
+            asked: HashMap::new(),
+            requests: 0,
+        }
+    }
+}
+
+impl DetailSource for LocalSource {
+    fn details(&mut self, id: PlanarId, _priority: f64) -> Availability {
+        let asked = self.asked.entry(id).or_insert(0);
+        *asked += 1;
+        self.requests += 1;
+        if *asked <= self.delay {
+            return Availability::Pending;
+        }
+        let info = self.refiner.info(id).unwrap();
+        let blob = self.enc.blobs[info.level][info.index].as_deref();
+        Availability::Ready(blob.map(|b| Arc::new(self.refiner.decode(id, b).unwrap())))
+    }
+}
+
+/// A clock that advances `step` every time it is read.
+struct FakeClock {
+    t: Cell<Duration>,
+    step: Duration,
+}
+
+impl Clock for FakeClock {
+    fn now(&self) -> Duration {
+        let t = self.t.get() + self.step;
+        self.t.set(t);
+        t
+    }
+}
+
+/// A low flight across the crop: 1 km above sea level, looking ahead and down.
+fn flight(frames: usize) -> Vec<View> {
+    (0..frames)
+        .map(|k| {
+            let t = k as f64 / frames.max(2) as f64;
+            let eye = DVec3::new(5_000.0 + t * 50_000.0, 8_000.0 + t * 25_000.0, 1_500.0);
+            View {
+                eye,
+                target: eye + DVec3::new(2_000.0, 1_000.0, -600.0),
+                up: DVec3::Z,
+                fov_y_rad: 60f64.to_radians(),
+                viewport_px: [1920, 1080],
+                tolerance_px: 4.0,
+            }
+        })
+        .collect()
+}
+
+fn setup(delay: usize) -> (Arc<Encoded>, Dag, LocalSource) {
+    let enc = korea();
+    let refiner = Arc::new(PlanarRefiner::from_encoded(&enc).unwrap());
+    let dag = Dag::new(refiner.clone());
+    let source = LocalSource::new(enc.clone(), refiner, delay);
+    (enc, dag, source)
+}
+
+fn cut_set(dag: &Dag) -> BTreeSet<(i64, i64, Half)> {
+    dag.cut()
+        .into_iter()
+        .map(|(id, h)| (id.x, id.y, h))
+        .collect()
+}
+
+#[test]
+fn every_frame_of_a_flight_ends_crack_free_and_covering_the_raster_once() {
+    let (enc, mut dag, mut source) = setup(0);
+    let mut refinement = Refinement::default();
+    let clock = SystemClock(std::time::Instant::now());
+    let mut max_halves = 0;
+    for (k, view) in flight(24).iter().enumerate() {
+        let stats = refinement
+            .update(
+                &mut dag,
+                view,
+                world(&enc),
+                &mut source,
+                &clock,
+                Duration::from_secs(10),
+            )
+            .unwrap();
+        let check = dag.check_cut();
+        assert!(check.ok(), "frame {k}: {check:?}");
+        assert!(check.shared_vertices > 0);
+        assert!(stats.converged, "frame {k}: {stats:?}");
+        max_halves = max_halves.max(stats.cut_halves);
+    }
+    assert!(
+        max_halves > 50,
+        "the flight never refined much ({max_halves} halves)"
+    );
+}
+
+#[test]
+fn a_converged_cut_meets_the_tolerance_where_visible() {
+    let (enc, mut dag, mut source) = setup(0);
+    let view = flight(10)[5];
+    let clock = SystemClock(std::time::Instant::now());
+    let stats = Refinement::default()
+        .update(
+            &mut dag,
+            &view,
+            world(&enc),
+            &mut source,
+            &clock,
+            Duration::from_secs(10),
+        )
+        .unwrap();
+    assert!(stats.converged && stats.max_error_px == 0.0, "{stats:?}");
+    assert!(stats.refined > 20, "{stats:?}");
+    // Tightening the tolerance refines further.
+    let finer = View {
+        tolerance_px: 1.0,
+        ..view
+    };
+    let more = Refinement::default()
+        .update(
+            &mut dag,
+            &finer,
+            world(&enc),
+            &mut source,
+            &clock,
+            Duration::from_secs(10),
+        )
+        .unwrap();
+    assert!(
+        more.refined > 0 && more.cut_halves > stats.cut_halves,
+        "{more:?}"
+    );
+}
+
+#[test]
+fn the_budget_is_respected_and_every_budget_converges_to_the_same_cut() {
+    let view = flight(10)[3];
+    // One frame with all the time it needs.
+    let (enc, mut reference, mut source) = setup(0);
+    let clock = SystemClock(std::time::Instant::now());
+    Refinement::default()
+        .update(
+            &mut reference,
+            &view,
+            world(&enc),
+            &mut source,
+            &clock,
+            Duration::from_secs(10),
+        )
+        .unwrap();
+    // Frames of 5 fake milliseconds, the clock advancing 1 ms per reading.
+    for step_ms in [1u64, 3] {
+        let (_, mut dag, mut source) = setup(0);
+        let clock = FakeClock {
+            t: Cell::new(Duration::ZERO),
+            step: Duration::from_millis(step_ms),
+        };
+        let budget = Duration::from_millis(5);
+        let mut frames = 0;
+        loop {
+            let stats: FrameStats = Refinement::default()
+                .update(&mut dag, &view, world(&enc), &mut source, &clock, budget)
+                .unwrap();
+            frames += 1;
+            // The clock is read between operations: a frame overruns its budget by at
+            // most the operation in hand (a few readings of the fake clock).
+            assert!(stats.elapsed <= budget + 3 * clock.step, "{stats:?}");
+            assert!(dag.check_cut().ok(), "frame {frames} is not crack-free");
+            if stats.converged {
+                break;
+            }
+            if frames > 9990 {
+                eprintln!("{stats:?}");
+            }
+            assert!(frames < 10_000, "never converged");
+        }
+        assert!(frames > 3, "the budget did not limit the work");
+        assert_eq!(cut_set(&dag), cut_set(&reference), "step {step_ms} ms");
+    }
+}
+
+#[test]
+fn late_details_only_delay_refinement() {
+    let view = flight(10)[7];
+    let (enc, mut reference, mut source) = setup(0);
+    let clock = SystemClock(std::time::Instant::now());
+    Refinement::default()
+        .update(
+            &mut reference,
+            &view,
+            world(&enc),
+            &mut source,
+            &clock,
+            Duration::from_secs(10),
+        )
+        .unwrap();
+    let (_, mut dag, mut slow) = setup(2);
+    let mut frames = 0;
+    loop {
+        let stats = Refinement::default()
+            .update(
+                &mut dag,
+                &view,
+                world(&enc),
+                &mut slow,
+                &clock,
+                Duration::from_secs(10),
+            )
+            .unwrap();
+        frames += 1;
+        assert!(dag.check_cut().ok());
+        if stats.converged {
+            break;
+        }
+        assert!(stats.pending > 0 || stats.refined > 0, "stuck: {stats:?}");
+        assert!(frames < 1000);
+    }
+    assert!(frames > 2);
+    assert_eq!(cut_set(&dag), cut_set(&reference));
+}
+
+#[test]
+fn moving_away_coarsens_and_frees_memory() {
+    let (enc, mut dag, mut source) = setup(0);
+    let clock = SystemClock(std::time::Instant::now());
+    let mut refinement = Refinement::default();
+    let near = flight(10)[5];
+    refinement
+        .update(
+            &mut dag,
+            &near,
+            world(&enc),
+            &mut source,
+            &clock,
+            Duration::from_secs(10),
+        )
+        .unwrap();
+    let (nodes_near, bytes_near) = (dag.len(), dag.memory_bytes());
+    let far = View {
+        eye: DVec3::new(30_000.0, 20_000.0, 3_000_000.0),
+        target: DVec3::new(30_000.0, 20_000.0, 0.0),
+        up: DVec3::Y,
+        ..near
+    };
+    let stats = refinement
+        .update(
+            &mut dag,
+            &far,
+            world(&enc),
+            &mut source,
+            &clock,
+            Duration::from_secs(10),
+        )
+        .unwrap();
+    assert!(stats.coarsened > 0 && stats.converged, "{stats:?}");
+    assert!(dag.len() < nodes_near && dag.memory_bytes() < bytes_near);
+    assert!(dag.check_cut().ok());
+}
+
+/// Random refine/coarsen operations against a naive model: the set of refined diamonds.
+/// Presence, halves, refinability and grids must follow from it alone.
+#[test]
+fn the_dag_follows_a_naive_model_under_random_operations() {
+    let (enc, mut dag, mut source) = setup(0);
+    let refiner = Arc::new(PlanarRefiner::from_encoded(&enc).unwrap());
+    let domain = refiner.domain();
+    let mut refined: HashSet<PlanarId> = HashSet::new();
+    let mut rng = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = move || {
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        rng
+    };
+    for step in 0..600 {
+        // Pick an operation and a candidate from the model.
+        let present: Vec<PlanarId> = {
+            let mut v: Vec<PlanarId> = dag.nodes().map(|n| n.id).collect();
+            v.sort_by_key(|id| (id.x, id.y));
+            v
+        };
+        let id = present[(next() as usize) % present.len()];
+        let in_raster = |p: &PlanarId| refiner.info(*p).is_some();
+        let parents_refined = domain
+            .parents(id)
+            .unwrap()
+            .iter()
+            .filter(|p| in_raster(p))
+            .all(|p| refined.contains(p));
+        if next() % 3 != 0 {
+            let allowed = !refined.contains(&id) && parents_refined && in_raster(&id);
+            assert_eq!(
+                dag.is_refinable(id),
+                allowed,
+                "step {step}: refinable {id:?}"
+            );
+            if allowed {
+                let details = match source.details(id, 0.0) {
+                    Availability::Ready(d) => d,
+                    Availability::Pending => unreachable!(),
+                };
+                dag.refine(id, details.as_deref()).unwrap();
+                refined.insert(id);
+            } else {
+                assert!(dag.refine(id, None).is_err());
+            }
+        } else {
+            let children_unrefined = domain
+                .children(id)
+                .unwrap()
+                .iter()
+                .all(|c| !refined.contains(c));
+            let allowed = refined.contains(&id) && children_unrefined;
+            assert_eq!(
+                dag.is_coarsenable(id),
+                allowed,
+                "step {step}: coarsenable {id:?}"
+            );
+            if allowed {
+                dag.coarsen(id).unwrap();
+                refined.remove(&id);
+            } else {
+                assert!(dag.coarsen(id).is_err());
+            }
+        }
+        // Presence follows from the model: the root, or a child of a refined diamond.
+        let root = refiner.root().0;
+        let mut expected: HashSet<PlanarId> = HashSet::from([root]);
+        for r in &refined {
+            for c in refiner.info(*r).unwrap().children {
+                expected.insert(c);
+            }
+        }
+        let held: HashSet<PlanarId> = dag.nodes().map(|n| n.id).collect();
+        assert_eq!(held, expected, "step {step}: presence");
+        // Grids equal a fresh computation from the refined parents.
+        for node in dag.nodes().filter(|n| n.id != root) {
+            let parents: Vec<_> = domain
+                .parents(node.id)
+                .unwrap()
+                .into_iter()
+                .filter_map(|p| dag.node(p).and_then(|n| n.refined.as_ref()))
+                .collect();
+            let (grid, _) = refiner.partial_child_grid(node.id, &parents).unwrap();
+            assert_eq!(*node.grid, grid, "step {step}: grid of {:?}", node.id);
+        }
+        assert!(dag.check_cut().ok(), "step {step}: {:?}", dag.check_cut());
+    }
+}
