@@ -77,6 +77,10 @@ pub struct Node {
     pub class: Option<u8>,
     /// Smallest and largest grid value over its present halves.
     pub z_range: (i32, i32),
+    /// Its frame corners `[E1, P1, E2, P2]` (id units).
+    pub corners: [[i64; 2]; 4],
+    /// Its children inside the raster (empty for the finest diamonds).
+    pub children: Arc<[PlanarId]>,
 }
 
 impl Node {
@@ -110,6 +114,12 @@ impl Dag {
         let n = refiner.n();
         let node = Node {
             id: root,
+            corners: domain.corners(root).unwrap_or_default(),
+            children: refiner
+                .info(root)
+                .map(|i| i.children)
+                .unwrap_or_default()
+                .into(),
             z_range: z_range(grid, n, [true, true]),
             grid: Arc::new(grid.to_vec()),
             present: [true, true],
@@ -181,11 +191,16 @@ impl Dag {
     }
 
     /// The children of `id` that the repository holds (inside the raster).
-    pub fn children(&self, id: PlanarId) -> Vec<PlanarId> {
-        self.refiner
-            .info(id)
-            .map(|i| i.children)
-            .unwrap_or_default()
+    pub fn children(&self, id: PlanarId) -> Arc<[PlanarId]> {
+        match self.nodes.get(&id) {
+            Some(node) => node.children.clone(),
+            None => self
+                .refiner
+                .info(id)
+                .map(|i| i.children)
+                .unwrap_or_default()
+                .into(),
+        }
     }
 
     /// The parents of `id` (one for border half diamonds, none for the root).
@@ -210,13 +225,13 @@ impl Dag {
             node.refined = Some(refined);
         }
         let children = self.children(id);
-        for &child in &children {
+        for &child in children.iter() {
             self.rebuild_child(child)?;
             if let (Some(class), Some(node)) = (classes.get(&child), self.nodes.get_mut(&child)) {
                 node.class = Some(*class);
             }
         }
-        Ok(children)
+        Ok(children.to_vec())
     }
 
     /// Coarsens `id`: drops its lattice and the halves of its children that lay in it
@@ -228,7 +243,7 @@ impl Dag {
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = None;
         }
-        for child in self.children(id) {
+        for &child in self.children(id).iter() {
             self.rebuild_child(child)?;
         }
         Ok(())
@@ -254,11 +269,23 @@ impl Dag {
         let present = side_parents.map(|p| refined.iter().any(|r| r.id == p));
         let expected = side_parents.map(|p| parents.contains(&p) && self.refiner.info(p).is_some());
         let (grid, _) = self.refiner.partial_child_grid(child, &refined)?;
-        let class = self.nodes.get(&child).and_then(|n| n.class);
+        let (class, children) = match self.nodes.get(&child) {
+            Some(n) => (n.class, n.children.clone()),
+            None => (
+                None,
+                self.refiner
+                    .info(child)
+                    .map(|i| i.children)
+                    .unwrap_or_default()
+                    .into(),
+            ),
+        };
         self.nodes.insert(
             child,
             Node {
                 id: child,
+                corners,
+                children,
                 z_range: z_range(&grid, self.refiner.n(), present),
                 grid: Arc::new(grid),
                 present,
@@ -268,6 +295,15 @@ impl Dag {
             },
         );
         Ok(())
+    }
+
+    /// Halves in the cut (without listing them).
+    pub fn cut_len(&self) -> usize {
+        self.nodes
+            .values()
+            .filter(|n| n.refined.is_none())
+            .map(|n| n.present.iter().filter(|p| **p).count())
+            .sum()
     }
 
     /// The cut: every present half of every unrefined diamond, in a stable order.

@@ -152,53 +152,57 @@ struct Projector<'a> {
     frustum: Frustum,
     world: PlanarWorld,
     config: RefineConfig,
+    /// Pixels per metre at 1 m.
+    px_at_1m: f64,
+    /// Metres per id unit over `N` (grid spacing per unit of side length).
+    spacing_per_n: f64,
+    /// Pixels below which a surface change is invisible (flat regions).
+    flat_px: f64,
 }
 
 impl Projector<'_> {
     fn appearance(&self, dag: &Dag, id: PlanarId) -> Appearance {
-        let n = dag.refiner().n() as f64;
-        let invisible = Appearance {
-            error_px: 0.0,
-            visible: false,
-            flat: true,
+        let Some(node) = dag.node(id) else {
+            return Appearance {
+                error_px: 0.0,
+                visible: false,
+                flat: true,
+            };
         };
-        let (Some(node), Ok(c)) = (dag.node(id), dag.refiner().domain().corners(id)) else {
-            return invisible;
-        };
-        let bound_m = node.class.map_or(0.0, |k| {
-            class_bound(k) as f64 * self.world.value_scale_m.abs()
-        });
-        let (z0, z1) = node.z_range;
-        let lo = self
-            .world
-            .point([0, 0], z0)
-            .z
-            .min(self.world.point([0, 0], z1).z)
-            - bound_m;
-        let hi = self
-            .world
-            .point([0, 0], z0)
-            .z
-            .max(self.world.point([0, 0], z1).z)
-            + bound_m;
-        let xs = c.iter().map(|p| p[0] as f64 * self.world.spacing_m);
-        let ys = c.iter().map(|p| p[1] as f64 * self.world.spacing_m);
+        let c = node.corners;
+        let w = &self.world;
+        let bound_m = node
+            .class
+            .map_or(0.0, |k| class_bound(k) as f64 * w.value_scale_m.abs());
+        let (za, zb) = (
+            w.value_offset_m + f64::from(node.z_range.0) * w.value_scale_m,
+            w.value_offset_m + f64::from(node.z_range.1) * w.value_scale_m,
+        );
+        let (mut x0, mut x1, mut y0, mut y1) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
+        for p in &c {
+            x0 = x0.min(p[0]);
+            x1 = x1.max(p[0]);
+            y0 = y0.min(p[1]);
+            y1 = y1.max(p[1]);
+        }
         let bbox = Aabb {
             min: DVec3::new(
-                xs.clone().fold(f64::MAX, f64::min),
-                ys.clone().fold(f64::MAX, f64::min),
-                lo,
+                x0 as f64 * w.spacing_m,
+                y0 as f64 * w.spacing_m,
+                za.min(zb) - bound_m,
             ),
-            max: DVec3::new(xs.fold(f64::MIN, f64::max), ys.fold(f64::MIN, f64::max), hi),
+            max: DVec3::new(
+                x1 as f64 * w.spacing_m,
+                y1 as f64 * w.spacing_m,
+                za.max(zb) + bound_m,
+            ),
         };
         let edge_m = {
             let d = [(c[1][0] - c[0][0]) as f64, (c[1][1] - c[0][1]) as f64];
-            (d[0] * d[0] + d[1] * d[1]).sqrt() / n * self.world.spacing_m
+            (d[0] * d[0] + d[1] * d[1]).sqrt() * self.spacing_per_n
         };
-        let px_per_m = self.view.px_per_m(bbox.distance(self.view.eye));
-        let flat = node.class.is_some_and(|_| {
-            bound_m * px_per_m < self.config.flat_fraction * self.view.tolerance_px
-        });
+        let px_per_m = self.px_at_1m / bbox.distance(self.view.eye).max(View::NEAR_M);
+        let flat = node.class.is_some() && bound_m * px_per_m < self.flat_px;
         Appearance {
             error_px: edge_m * px_per_m,
             visible: self.frustum.intersects(&bbox),
@@ -247,6 +251,9 @@ impl Refinement {
             frustum: view.frustum(),
             world,
             config: self.config,
+            px_at_1m: view.px_per_m(1.0),
+            spacing_per_n: world.spacing_m / dag.refiner().n() as f64,
+            flat_px: self.config.flat_fraction * view.tolerance_px,
         };
         let mut stats = FrameStats::default();
 
@@ -280,7 +287,7 @@ impl Refinement {
             // complete or not: an incomplete one gets its other parent refined first when
             // it comes up.
             for refined in newly {
-                for child in dag.children(refined) {
+                for &child in dag.children(refined).iter() {
                     if dag.node(child).is_some_and(|n| n.refined.is_none())
                         && dag.refiner().info(child).is_some()
                     {
@@ -343,7 +350,7 @@ impl Refinement {
 
         stats.pending = waiting;
         stats.dag_nodes = dag.len();
-        stats.cut_halves = dag.cut().len();
+        stats.cut_halves = dag.cut_len();
         stats.converged = !stats.out_of_time && waiting == 0;
         stats.elapsed = clock.now().saturating_sub(start);
         Ok(stats)
