@@ -424,3 +424,65 @@ fn the_dag_follows_a_naive_model_under_random_operations() {
         assert!(dag.check_cut().ok(), "step {step}: {:?}", dag.check_cut());
     }
 }
+
+#[test]
+fn extreme_views_stay_finite_and_sane() {
+    let (enc, mut dag, mut source) = setup(0);
+    let clock = SystemClock(std::time::Instant::now());
+    let mut refinement = Refinement::default();
+    let ground = {
+        // 1 m above the highest point under the camera's start.
+        let max_m = enc.value_offset_m + 1200.0;
+        DVec3::new(31_000.0, 23_000.0, max_m + 1.0)
+    };
+    let views = [
+        // 1 m above the ground, looking at the horizon.
+        View {
+            eye: ground,
+            target: ground + DVec3::new(1000.0, 0.0, 0.0),
+            up: DVec3::Z,
+            fov_y_rad: 60f64.to_radians(),
+            viewport_px: [1920, 1080],
+            tolerance_px: 1.0,
+        },
+        // 100,000 km away, looking down.
+        View {
+            eye: DVec3::new(31_000.0, 23_000.0, 1e8),
+            target: DVec3::new(31_000.0, 23_000.0, 0.0),
+            up: DVec3::Y,
+            fov_y_rad: 60f64.to_radians(),
+            viewport_px: [1920, 1080],
+            tolerance_px: 1.0,
+        },
+        // A needle field of view and a one-pixel viewport.
+        View {
+            eye: ground + DVec3::new(0.0, 0.0, 5_000.0),
+            target: ground,
+            up: DVec3::Y,
+            fov_y_rad: 1e-6,
+            viewport_px: [1, 1],
+            tolerance_px: 0.01,
+        },
+    ];
+    for (k, view) in views.iter().enumerate() {
+        let stats = refinement
+            .update(
+                &mut dag,
+                view,
+                world(&enc),
+                &mut source,
+                &clock,
+                Duration::from_secs(20),
+            )
+            .unwrap();
+        assert!(stats.max_error_px.is_finite(), "view {k}: {stats:?}");
+        assert!(stats.converged, "view {k}: {stats:?}");
+        assert!(dag.check_cut().ok(), "view {k}");
+        assert!(dag.nodes().all(|n| n.z_range.0 <= n.z_range.1));
+        match k {
+            0 => assert!(stats.cut_halves > 100, "near the ground: {stats:?}"),
+            1 => assert!(stats.cut_halves < 10, "from 100,000 km: {stats:?}"),
+            _ => {}
+        }
+    }
+}
