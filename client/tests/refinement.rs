@@ -135,6 +135,24 @@ fn setup(delay: usize) -> (Arc<Encoded>, Dag, LocalSource) {
     (enc, dag, source)
 }
 
+/// The DAG after one frame with all the time it needs and every detail at hand.
+fn converged_in_one_frame(view: &View) -> (Arc<Encoded>, Dag) {
+    let (enc, mut dag, mut source) = setup(0);
+    let clock = SystemClock(std::time::Instant::now());
+    let stats = Refinement::default()
+        .update(
+            &mut dag,
+            view,
+            world(&enc),
+            &mut source,
+            &clock,
+            Duration::from_secs(10),
+        )
+        .unwrap();
+    assert!(stats.converged, "{stats:?}");
+    (enc, dag)
+}
+
 fn cut_set(dag: &Dag) -> BTreeSet<(i64, i64, Half)> {
     dag.cut()
         .into_iter()
@@ -212,19 +230,7 @@ fn a_converged_cut_meets_the_tolerance_where_visible() {
 #[test]
 fn the_budget_is_respected_and_every_budget_converges_to_the_same_cut() {
     let view = flight(10)[3];
-    // One frame with all the time it needs.
-    let (enc, mut reference, mut source) = setup(0);
-    let clock = SystemClock(std::time::Instant::now());
-    Refinement::default()
-        .update(
-            &mut reference,
-            &view,
-            world(&enc),
-            &mut source,
-            &clock,
-            Duration::from_secs(10),
-        )
-        .unwrap();
+    let (enc, reference) = converged_in_one_frame(&view);
     // Frames of 5 fake milliseconds, the clock advancing 1 ms per reading.
     for step_ms in [1u64, 3] {
         let (_, mut dag, mut source) = setup(0);
@@ -259,18 +265,8 @@ fn the_budget_is_respected_and_every_budget_converges_to_the_same_cut() {
 #[test]
 fn late_details_only_delay_refinement() {
     let view = flight(10)[7];
-    let (enc, mut reference, mut source) = setup(0);
+    let (enc, reference) = converged_in_one_frame(&view);
     let clock = SystemClock(std::time::Instant::now());
-    Refinement::default()
-        .update(
-            &mut reference,
-            &view,
-            world(&enc),
-            &mut source,
-            &clock,
-            Duration::from_secs(10),
-        )
-        .unwrap();
     let (_, mut dag, mut slow) = setup(2);
     let mut frames = 0;
     loop {
