@@ -13,6 +13,34 @@ use std::sync::Arc;
 use quincunx_codec::diamond::{PlanarDomain, PlanarId};
 use quincunx_codec::incremental::{Details, PlanarRefiner, RefineError, Refined};
 
+/// A fast hasher for diamond ids (two `i64`s; FxHash's multiply-rotate mixing). Ids are
+/// not attacker-chosen here: they come from the repository's own hierarchy.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct IdHasher(u64);
+
+impl std::hash::Hasher for IdHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+
+    fn write_i64(&mut self, v: i64) {
+        self.write_u64(v as u64);
+    }
+}
+
+/// A map keyed by diamond id with [`IdHasher`].
+pub type IdMap<V> = HashMap<PlanarId, V, std::hash::BuildHasherDefault<IdHasher>>;
+
 /// Why the DAG refused an operation.
 #[derive(Debug, thiserror::Error)]
 pub enum DagError {
@@ -81,6 +109,9 @@ pub struct Node {
     pub corners: [[i64; 2]; 4],
     /// Its children inside the raster (empty for the finest diamonds).
     pub children: Arc<[PlanarId]>,
+    /// Changes whenever its grid or halves change (a DAG-wide counter), so cached
+    /// judgements about it can tell they are stale.
+    pub generation: u64,
 }
 
 impl Node {
@@ -103,7 +134,8 @@ impl Node {
 pub struct Dag {
     refiner: Arc<PlanarRefiner>,
     domain: PlanarDomain,
-    nodes: HashMap<PlanarId, Node>,
+    nodes: IdMap<Node>,
+    generations: u64,
 }
 
 impl Dag {
@@ -121,6 +153,7 @@ impl Dag {
                 .unwrap_or_default()
                 .into(),
             z_range: z_range(grid, n, [true, true]),
+            generation: 0,
             grid: Arc::new(grid.to_vec()),
             present: [true, true],
             expected: [true, true],
@@ -129,8 +162,9 @@ impl Dag {
         };
         Dag {
             domain,
-            nodes: HashMap::from([(root, node)]),
+            nodes: IdMap::from_iter([(root, node)]),
             refiner,
+            generations: 1,
         }
     }
 
@@ -178,7 +212,7 @@ impl Dag {
         self.nodes
             .get(&id)
             .is_some_and(|n| n.complete() && n.refined.is_none())
-            && self.refiner.info(id).is_some()
+            && self.refiner.is_refinable(id)
     }
 
     /// Whether `id` can be coarsened now: refined, and none of its children refined.
@@ -267,7 +301,7 @@ impl Dag {
             return Ok(());
         }
         let present = side_parents.map(|p| refined.iter().any(|r| r.id == p));
-        let expected = side_parents.map(|p| parents.contains(&p) && self.refiner.info(p).is_some());
+        let expected = side_parents.map(|p| parents.contains(&p) && self.refiner.is_refinable(p));
         let (grid, _) = self.refiner.partial_child_grid(child, &refined)?;
         let (class, children) = match self.nodes.get(&child) {
             Some(n) => (n.class, n.children.clone()),
@@ -280,10 +314,12 @@ impl Dag {
                     .into(),
             ),
         };
+        self.generations += 1;
         self.nodes.insert(
             child,
             Node {
                 id: child,
+                generation: self.generations,
                 corners,
                 children,
                 z_range: z_range(&grid, self.refiner.n(), present),

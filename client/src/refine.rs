@@ -144,6 +144,9 @@ pub struct Appearance {
     pub visible: bool,
     /// The side information says refining cannot change the picture.
     pub flat: bool,
+    /// How much closer the camera can come before the diamond could want refining
+    /// (metres; 0 when it already would if visible).
+    pub margin_m: f64,
 }
 
 /// Projects diamonds for one view.
@@ -167,6 +170,7 @@ impl Projector<'_> {
                 error_px: 0.0,
                 visible: false,
                 flat: true,
+                margin_m: f64::INFINITY,
             };
         };
         let c = node.corners;
@@ -201,12 +205,20 @@ impl Projector<'_> {
             let d = [(c[1][0] - c[0][0]) as f64, (c[1][1] - c[0][1]) as f64];
             (d[0] * d[0] + d[1] * d[1]).sqrt() * self.spacing_per_n
         };
-        let px_per_m = self.px_at_1m / bbox.distance(self.view.eye).max(View::NEAR_M);
+        let distance_m = bbox.distance(self.view.eye).max(View::NEAR_M);
+        let px_per_m = self.px_at_1m / distance_m;
         let flat = node.class.is_some() && bound_m * px_per_m < self.flat_px;
+        // Refining needs error > tolerance and (with a known class) no flatness: both
+        // only grow as the camera comes closer.
+        let mut trigger_m = edge_m * self.px_at_1m / self.view.tolerance_px;
+        if node.class.is_some() {
+            trigger_m = trigger_m.min(bound_m * self.px_at_1m / self.flat_px);
+        }
         Appearance {
             error_px: edge_m * px_per_m,
             visible: self.frustum.intersects(&bbox),
             flat,
+            margin_m: (distance_m - trigger_m).max(0.0),
         }
     }
 
@@ -220,10 +232,45 @@ impl Projector<'_> {
 }
 
 /// Refinement state kept across frames.
+///
+/// Deferred evaluation (after ROAM's deferred priority recomputation): an unrefined
+/// diamond that does not want refining stays that way until the camera has travelled
+/// far enough to bring it within the distance where its projected error (and its side
+/// information bound) could exceed the tolerance. Such diamonds are not re-evaluated
+/// before then, unless the diamond itself changed or the projection did (field of view,
+/// viewport, tolerance, world mapping). Visibility does not matter for them: a diamond
+/// that does not want refining when visible does not when hidden either.
 #[derive(Clone, Debug, Default)]
 pub struct Refinement {
     /// Tuning.
     pub config: RefineConfig,
+    /// Camera travel so far (metres) and the last eye position.
+    travel_m: f64,
+    last_eye: Option<DVec3>,
+    /// What the deferrals were computed under.
+    projection: Option<(f64, [u32; 2], f64, [f64; 3])>,
+    /// Per diamond: the travel at which to look again, and its generation then.
+    deferred: crate::dag::IdMap<(f64, u64)>,
+}
+
+impl Refinement {
+    /// Accumulates camera travel; forgets every deferral when the projection changed.
+    fn track_camera(&mut self, view: &View, world: PlanarWorld) {
+        let projection = (
+            view.fov_y_rad,
+            view.viewport_px,
+            view.tolerance_px,
+            [world.spacing_m, world.value_scale_m, world.value_offset_m],
+        );
+        if self.projection != Some(projection) {
+            self.projection = Some(projection);
+            self.deferred.clear();
+        }
+        if let Some(last) = self.last_eye {
+            self.travel_m += (view.eye - last).length();
+        }
+        self.last_eye = Some(view.eye);
+    }
 }
 
 enum Outcome {
@@ -257,15 +304,32 @@ impl Refinement {
         };
         let mut stats = FrameStats::default();
 
+        self.track_camera(view, world);
         // Split queue: the cut's diamonds that want refining, most urgent first.
-        let mut splits: BinaryHeap<Key> = dag
-            .nodes()
-            .filter(|n| n.refined.is_none() && dag.refiner().info(n.id).is_some())
-            .filter_map(|n| {
-                let a = projector.appearance(dag, n.id);
-                projector.wants_split(&a).then_some(Key(a.error_px, n.id))
-            })
-            .collect();
+        let travel = self.travel_m;
+        let mut splits = BinaryHeap::new();
+        for n in dag.nodes() {
+            if n.refined.is_some() || !dag.refiner().is_refinable(n.id) {
+                continue;
+            }
+            if self
+                .deferred
+                .get(&n.id)
+                .is_some_and(|&(at, generation)| generation == n.generation && travel < at)
+            {
+                continue;
+            }
+            let a = projector.appearance(dag, n.id);
+            if projector.wants_split(&a) {
+                splits.push(Key(a.error_px, n.id));
+            } else if a.margin_m > 0.0 {
+                self.deferred
+                    .insert(n.id, (travel + a.margin_m, n.generation));
+            }
+        }
+        if self.deferred.len() > 4 * dag.len() + 1024 {
+            self.deferred.retain(|id, _| dag.node(*id).is_some());
+        }
         let mut waiting = 0;
         let mut worked = true;
         while let Some(Key(error, id)) = splits.pop() {
@@ -289,7 +353,7 @@ impl Refinement {
             for refined in newly {
                 for &child in dag.children(refined).iter() {
                     if dag.node(child).is_some_and(|n| n.refined.is_none())
-                        && dag.refiner().info(child).is_some()
+                        && dag.refiner().is_refinable(child)
                     {
                         let a = projector.appearance(dag, child);
                         if projector.wants_split(&a) {
@@ -312,39 +376,42 @@ impl Refinement {
         // Merge queue: refined diamonds with unrefined children that are now too fine or
         // off-screen, least urgent first.
         if !stats.out_of_time {
-            let mut merges: Vec<Key> = dag
+            // Only refined diamonds whose children are unrefined can merge; coarsening
+            // one may free its parents, which join the queue.
+            let mut merges: BinaryHeap<std::cmp::Reverse<Key>> = dag
                 .nodes()
                 .filter(|n| n.refined.is_some())
                 .filter_map(|n| {
                     let a = projector.appearance(dag, n.id);
-                    projector.allows_merge(&a).then_some(Key(a.error_px, n.id))
+                    (projector.allows_merge(&a) && dag.is_coarsenable(n.id))
+                        .then_some(std::cmp::Reverse(Key(a.error_px, n.id)))
                 })
                 .collect();
-            merges.sort();
-            let mut progress = true;
-            while progress && !stats.out_of_time {
-                progress = false;
-                for key in &merges {
-                    let id = key.1;
-                    if !dag.is_coarsenable(id) {
-                        continue;
-                    }
-                    let children_calm = dag.children(id).iter().all(|&c| {
-                        dag.node(c)
-                            .is_none_or(|_| !projector.wants_split(&projector.appearance(dag, c)))
-                    });
-                    if !children_calm {
-                        continue;
-                    }
-                    if clock.now() >= deadline {
-                        stats.out_of_time = true;
-                        break;
-                    }
-                    dag.coarsen(id)?;
-                    stats.coarsened += 1;
-                    progress = true;
+            while let Some(std::cmp::Reverse(Key(_, id))) = merges.pop() {
+                if !dag.is_coarsenable(id) {
+                    continue;
                 }
-                merges.retain(|k| dag.node(k.1).is_some_and(|n| n.refined.is_some()));
+                let children_calm = dag.children(id).iter().all(|&c| {
+                    dag.node(c)
+                        .is_none_or(|_| !projector.wants_split(&projector.appearance(dag, c)))
+                });
+                if !children_calm {
+                    continue;
+                }
+                if clock.now() >= deadline {
+                    stats.out_of_time = true;
+                    break;
+                }
+                dag.coarsen(id)?;
+                stats.coarsened += 1;
+                for parent in dag.parents(id) {
+                    if dag.is_coarsenable(parent) {
+                        let a = projector.appearance(dag, parent);
+                        if projector.allows_merge(&a) {
+                            merges.push(std::cmp::Reverse(Key(a.error_px, parent)));
+                        }
+                    }
+                }
             }
         }
 
@@ -369,7 +436,7 @@ impl Refinement {
         projector: &Projector<'_>,
         newly: &mut Vec<PlanarId>,
     ) -> Result<Outcome, DagError> {
-        if depth > 128 || dag.refiner().info(id).is_none() {
+        if depth > 128 || !dag.refiner().is_refinable(id) {
             return Ok(Outcome::Impossible);
         }
         if dag.node(id).is_some_and(|n| n.refined.is_some()) {
@@ -377,7 +444,7 @@ impl Refinement {
         }
         let mut pending = false;
         for parent in dag.parents(id) {
-            if dag.refiner().info(parent).is_none() {
+            if !dag.refiner().is_refinable(parent) {
                 continue; // outside the raster: that half never exists
             }
             if dag.node(parent).is_none_or(|n| n.refined.is_none()) {

@@ -231,6 +231,11 @@ impl PlanarRefiner {
         })
     }
 
+    /// Whether `id` carries details here (can be refined): cheaper than [`Self::info`].
+    pub fn is_refinable(&self, id: PlanarId) -> bool {
+        self.slots.contains_key(&id)
+    }
+
     /// Whether any point of diamond `id` lies inside the raster.
     fn meets_raster(&self, id: PlanarId) -> bool {
         let Ok(c) = self.geometry.domain().corners(id) else {
