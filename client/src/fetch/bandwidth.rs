@@ -113,8 +113,9 @@ impl Bandwidth {
     /// `GAIN x rate x (RTT + frame) / answer size`, never below `initial` nor above `max`.
     /// `cap_bit_s` limits the rate used.
     pub fn window(&self, initial: usize, max: usize, cap_bit_s: Option<f64>) -> usize {
+        let lo = initial.min(max).max(1);
         let (Some(rate), Some(rtt)) = (self.rate_bytes_s, self.rtt) else {
-            return initial.min(max).max(1);
+            return lo;
         };
         let rate = match cap_bit_s {
             Some(cap) => rate.min(cap / 8.0),
@@ -124,7 +125,7 @@ impl Bandwidth {
         let size = self.mean_bytes().max(MIN_ANSWER_BYTES);
         let blobs = GAIN * rate * horizon.as_secs_f64() / size;
         let blobs = if blobs.is_finite() { blobs.ceil() } else { 0.0 };
-        (blobs as usize).clamp(initial.max(1), max.max(1))
+        (blobs as usize).clamp(lo, max.max(1))
     }
 }
 
@@ -139,10 +140,11 @@ pub struct Cap {
 }
 
 impl Cap {
-    /// A full bucket for `cap_bit_s`, holding 100 ms worth (at least one 16 KiB answer).
+    /// A full bucket for `cap_bit_s`, holding 100 ms worth (at least one packet). The
+    /// bucket may go into debt by one request, so any answer size gets through.
     pub fn new(cap_bit_s: f64, now: Instant) -> Self {
         let rate_bytes_s = (cap_bit_s / 8.0).max(1.0);
-        let burst_bytes = (rate_bytes_s * 0.1).max(16_384.0);
+        let burst_bytes = (rate_bytes_s * 0.1).max(1500.0);
         Cap {
             rate_bytes_s,
             burst_bytes,
@@ -224,12 +226,12 @@ mod tests {
     #[test]
     fn the_cap_bucket_holds_requests_back_until_refilled() {
         let t0 = Instant::now();
-        let mut c = Cap::new(8.0 * 100_000.0, t0); // 100 kB/s, 16 384 B burst
-        assert!(c.try_take(t0, 10_000.0));
+        let mut c = Cap::new(8.0 * 100_000.0, t0); // 100 kB/s, 10 kB burst
+        assert!(c.try_take(t0, 6_000.0));
         assert!(c.try_take(t0, 10_000.0));
         assert!(!c.try_take(t0, 10_000.0));
         let ready = c.ready_at().unwrap();
-        assert!(ready > t0 && ready < t0 + Duration::from_millis(40));
+        assert!(ready > t0 && ready < t0 + Duration::from_millis(70));
         assert!(c.try_take(ready, 10_000.0));
         c.correct(10_000.0, 0.0);
         assert!(c.try_take(ready, 1.0));

@@ -1,5 +1,6 @@
 //! The network thread and its handle, [`Fetcher`].
 
+use std::collections::HashMap;
 use std::sync::mpsc as std_mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -95,6 +96,7 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
             results: results_tx.clone(),
             sched: Scheduler::new(),
             bandwidth: Bandwidth::new(),
+            charged: HashMap::new(),
             driver,
             stats: FetchStats::default(),
         };
@@ -198,6 +200,8 @@ struct Worker<T> {
     sched: Scheduler,
     bandwidth: Bandwidth,
     cap: Option<Cap>,
+    /// Bytes taken from the cap's bucket per request in flight, settled on completion.
+    charged: HashMap<Key, f64>,
     driver: Driver,
     /// The thread's own counters, published to `shared.stats` after each event.
     stats: FetchStats,
@@ -288,13 +292,17 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
         };
         let expected = self.bandwidth.mean_bytes().max(1.0);
         for key in keys {
-            if let Some(cap) = &mut self.cap
-                && !cap.try_take(now, expected)
-            {
-                break;
+            if let Some(cap) = &mut self.cap {
+                if !cap.try_take(now, expected) {
+                    break;
+                }
+                self.charged.insert(key, expected);
             }
             let path = self.config.remote.blob_path(key);
             if !self.driver.send(Request { key, path }) {
+                if let (Some(cap), Some(charged)) = (&mut self.cap, self.charged.remove(&key)) {
+                    cap.correct(charged, 0.0);
+                }
                 break;
             }
             tracing::trace!(?key, "request");
@@ -316,6 +324,13 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
             return;
         };
         let key = done.key;
+        if let (Some(cap), Some(charged)) = (&mut self.cap, self.charged.remove(&key)) {
+            let actual = match &done.result {
+                Ok((_, body)) => body.len() as f64,
+                Err(_) => 0.0,
+            };
+            cap.correct(charged, actual);
+        }
         // Report to the frame loop what it asked for (not prefetches it no longer wants).
         let report = issued_as == Class::Want || self.sched.class(key) == Some(Class::Want);
         let error = match done.result {
@@ -336,10 +351,6 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
         let len = body.len();
         self.stats.responses += 1;
         self.stats.bytes_fetched += len as u64;
-        let expected = self.bandwidth.mean_bytes().max(1.0);
-        if let Some(cap) = &mut self.cap {
-            cap.correct(expected, len as f64);
-        }
         self.bandwidth.on_answer(len, Some(latency));
         self.sched.succeeded(key);
         self.sched.unwant(key);

@@ -98,7 +98,14 @@ async fn read_body(
             "response body over {max_body} bytes"
         )));
     }
-    let body = resp.bytes().await.map_err(|e| classify(&e, timeout))?;
+    // A body that ends early (truncated) is a connection failure, whatever reqwest calls it.
+    let body = resp
+        .bytes()
+        .await
+        .map_err(|e| match classify(&e, timeout) {
+            FetchError::Protocol(msg) => FetchError::Connection(msg),
+            other => other,
+        })?;
     if body.len() > max_body {
         return Err(FetchError::Protocol(format!(
             "response body over {max_body} bytes"
