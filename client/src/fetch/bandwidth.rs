@@ -84,13 +84,11 @@ impl Bandwidth {
             None => size,
         });
         if let Some(l) = latency {
-            // Down at once, up slowly: the least recent latency tracks the path's RTT
-            // without the queueing delay, yet follows a route change.
-            self.rtt = Some(match self.rtt {
-                Some(old) if l < old => l,
-                Some(old) => old + (l - old).mul_f64(0.02),
-                None => l,
-            });
+            // The least latency ever seen: the path's RTT without queueing delay. Letting
+            // it creep up would feed back (a fuller window queues more, which raises the
+            // latency, which widens the window); a path that really got longer leaves the
+            // link under-used rather than bloated.
+            self.rtt = Some(self.rtt.map_or(l, |old| old.min(l)));
         }
     }
 
@@ -215,12 +213,14 @@ mod tests {
     }
 
     #[test]
-    fn the_rtt_follows_the_least_latency() {
+    fn the_rtt_is_the_least_latency_and_queueing_does_not_widen_the_window() {
         let mut b = Bandwidth::new();
         b.on_answer(0, Some(Duration::from_millis(200)));
         b.on_answer(0, Some(Duration::from_millis(100)));
-        b.on_answer(0, Some(Duration::from_millis(1100)));
-        assert_eq!(b.rtt(), Some(Duration::from_millis(120)));
+        for _ in 0..1000 {
+            b.on_answer(0, Some(Duration::from_millis(1100)));
+        }
+        assert_eq!(b.rtt(), Some(Duration::from_millis(100)));
     }
 
     #[test]

@@ -249,6 +249,9 @@ pub fn config(base: &str, repo: &str, transport: Transport) -> FetchConfig {
     c
 }
 
+/// Final answers by key.
+pub type Answers = HashMap<Key, Fetched<Bytes>>;
+
 /// A frame loop: submits the still-unanswered wants every 5 ms and collects results until
 /// every key has a final answer (Data or Leaf; with `retry_failed`, Failed keys are wanted
 /// again) or `limit` passes. Returns the final answers and every Failed seen.
@@ -257,9 +260,9 @@ pub fn drive(
     wants: &[(Key, f32)],
     limit: Duration,
     retry_failed: bool,
-) -> (HashMap<Key, Fetched<Bytes>>, Vec<(Key, String)>) {
+) -> (Answers, Vec<(Key, String)>) {
     let start = Instant::now();
-    let mut answers: HashMap<Key, Fetched<Bytes>> = HashMap::new();
+    let mut answers: Answers = HashMap::new();
     let mut failures = Vec::new();
     while start.elapsed() < limit {
         let open: Vec<(Key, f32)> = wants
