@@ -4,7 +4,7 @@
 //! ```text
 //! cargo run --release -p quincunx-client --example link_throughput -- \
 //!     --repo korea=/tmp/korea4097 [--blobs 3000] [--kbit-s 4000] [--rtt-ms 100] \
-//!     [--connections 2] [--depth 16] [--max-in-flight 64] [--transports pipelined,plain,h2]
+//!     [--connections 2] [--depth 64] [--max-in-flight 256] [--transports pipelined,plain,h2]
 //! ```
 //!
 //! It starts a quincunx server on the repository, puts an emulated link (`fetch::link`) in
@@ -13,7 +13,8 @@
 //! still-open wants every 16 ms like a frame loop. Per transport: payload `bytes`,
 //! `seconds` from the first submit to the last answer, payload `mbit_s`, and
 //! `link_utilisation` = every byte the link carried downstream (status lines, headers and
-//! HTTP/2 framing included) / (seconds x link rate).
+//! HTTP/2 framing included) / (seconds x link rate). The `steady_` figures are the same
+//! between the moments 10% and 90% of the blobs had arrived (no ramp-up, no tail).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::collections::HashSet;
@@ -47,8 +48,8 @@ fn parse_args() -> Result<Args, String> {
         kbit_s: 4000.0,
         rtt: Duration::from_millis(100),
         connections: 2,
-        depth: 16,
-        max_in_flight: 64,
+        depth: 64,
+        max_in_flight: 256,
         transports: Transport::ALL.to_vec(),
     };
     let mut it = std::env::args().skip(1);
@@ -92,9 +93,16 @@ fn blob_keys(path: &PathBuf, n: usize) -> Vec<Key> {
     for entry in repo.blobs().take(n) {
         let (key, _) = entry.expect("read repository");
         let centre = if meta.domain == "sphere" {
-            SphereDomain::new(meta.m).unwrap().id_from_key(&key).unwrap().c
+            SphereDomain::new(meta.m)
+                .unwrap()
+                .id_from_key(&key)
+                .unwrap()
+                .c
         } else {
-            let id = PlanarDomain::new(meta.m).unwrap().id_from_key(&key).unwrap();
+            let id = PlanarDomain::new(meta.m)
+                .unwrap()
+                .id_from_key(&key)
+                .unwrap();
             [id.x, id.y, 0]
         };
         keys.push(centre);
@@ -126,7 +134,9 @@ fn main() {
         workers: 1,
         ..Default::default()
     };
-    let server = runtime.block_on(Server::bind(config)).expect("start server");
+    let server = runtime
+        .block_on(Server::bind(config))
+        .expect("start server");
     let server_addr = server.local_addr().unwrap();
     runtime.spawn(server.run(std::future::pending()));
 
@@ -135,7 +145,8 @@ fn main() {
     for &transport in &args.transports {
         let link = LinkProxy::start(server_addr, args.kbit_s, args.rtt).expect("link");
         let base = format!("http://{}", link.local_addr());
-        let (remote, _) = Remote::open(&base, &args.name, Duration::from_secs(30)).expect("metadata");
+        let (remote, _) =
+            Remote::open(&base, &args.name, Duration::from_secs(30)).expect("metadata");
         let metadata_bytes = link.bytes_down();
         let mut c = FetchConfig::new(remote);
         c.transport = transport;
@@ -155,8 +166,16 @@ fn main() {
         let mut failed = 0u64;
         let start = Instant::now();
         let mut last = start;
+        // (time, link bytes down, payload bytes, answered) after each frame.
+        let mut trace: Vec<(Instant, u64, u64, usize)> = Vec::new();
         while !open.is_empty() && start.elapsed() < Duration::from_secs(600) {
-            fetcher.submit(wants.iter().filter(|(k, _)| open.contains(k)).copied().collect());
+            fetcher.submit(
+                wants
+                    .iter()
+                    .filter(|(k, _)| open.contains(k))
+                    .copied()
+                    .collect(),
+            );
             std::thread::sleep(Duration::from_millis(16));
             for (k, r) in fetcher.poll() {
                 if matches!(r, Fetched::Failed(_)) {
@@ -165,13 +184,32 @@ fn main() {
                     last = Instant::now();
                 }
             }
+            trace.push((
+                Instant::now(),
+                link.bytes_down(),
+                fetcher.stats().bytes_fetched,
+                n - open.len(),
+            ));
         }
+        // Steady state: between 10% and 90% of the blobs answered (no ramp-up, no tail).
+        let at = |fraction: f64| {
+            trace
+                .iter()
+                .find(|t| t.3 as f64 >= fraction * n as f64)
+                .copied()
+                .unwrap_or((last, 0, 0, 0))
+        };
+        let (t10, l10, p10, _) = at(0.1);
+        let (t90, l90, p90, _) = at(0.9);
+        let steady_s = (t90 - t10).as_secs_f64().max(1e-9);
+        let steady_mbit_s = (p90 - p10) as f64 * 8.0 / steady_s / 1e6;
+        let steady_utilisation = (l90 - l10) as f64 * 8.0 / steady_s / (args.kbit_s * 1000.0);
         let seconds = (last - start).as_secs_f64();
         let stats = fetcher.stats();
         drop(fetcher);
         let link_bytes = link.bytes_down() - metadata_bytes;
         let mbit_s = stats.bytes_fetched as f64 * 8.0 / seconds / 1e6;
-        mbit.insert(transport, mbit_s);
+        mbit.insert(transport, (mbit_s, steady_mbit_s));
         results.insert(
             transport.name().into(),
             serde_json::json!({
@@ -185,16 +223,25 @@ fn main() {
                 "seconds": (seconds * 1000.0).round() / 1000.0,
                 "mbit_s": (mbit_s * 1000.0).round() / 1000.0,
                 "link_utilisation": ((link_bytes as f64 * 8.0 / seconds / (args.kbit_s * 1000.0)) * 1000.0).round() / 1000.0,
+                "steady_mbit_s": (steady_mbit_s * 1000.0).round() / 1000.0,
+                "steady_link_utilisation": (steady_utilisation * 1000.0).round() / 1000.0,
                 "mean_blob_bytes": stats.mean_blob_bytes.round(),
                 "final_window": stats.window,
                 "estimated_bandwidth_mbit_s": (stats.bandwidth_bit_s / 1e4).round() / 100.0,
             }),
         );
-        eprintln!("{}: {:.3} Mbit/s in {seconds:.2} s", transport.name(), mbit_s);
+        eprintln!(
+            "{}: {:.3} Mbit/s in {seconds:.2} s",
+            transport.name(),
+            mbit_s
+        );
     }
-    let ratio = |t: Transport| {
+    let ratio = |t: Transport, steady: bool| {
+        let pick = |v: &(f64, f64)| if steady { v.1 } else { v.0 };
         match (mbit.get(&t), mbit.get(&Transport::Plain)) {
-            (Some(a), Some(b)) if *b > 0.0 => serde_json::json!((a / b * 100.0).round() / 100.0),
+            (Some(a), Some(b)) if pick(b) > 0.0 => {
+                serde_json::json!((pick(a) / pick(b) * 100.0).round() / 100.0)
+            }
             _ => serde_json::Value::Null,
         }
     };
@@ -207,8 +254,10 @@ fn main() {
         "pipeline_depth": args.depth,
         "max_in_flight": args.max_in_flight,
         "transports": results,
-        "ratio_pipelined_plain": ratio(Transport::Pipelined),
-        "ratio_h2_plain": ratio(Transport::H2),
+        "ratio_pipelined_plain": ratio(Transport::Pipelined, false),
+        "ratio_h2_plain": ratio(Transport::H2, false),
+        "steady_ratio_pipelined_plain": ratio(Transport::Pipelined, true),
+        "steady_ratio_h2_plain": ratio(Transport::H2, true),
     });
     println!("{out}");
 }
