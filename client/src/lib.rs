@@ -7,14 +7,20 @@
 //!   details) and coarsen (free memory).
 //! - [`refine`]: time-budgeted dual-queue refinement (ROAM-style split and merge queues)
 //!   that ends every frame with a consistent, crack-free cut.
+//! - [`fetch`]: the data access layer: a network thread that takes the frame loop's
+//!   wanted diamond keys with priorities, requests their blobs over a selectable
+//!   transport (pipelined HTTP/1.1, plain HTTP/1.1 or HTTP/2), decodes them off the main
+//!   thread and hands back results through channels, with a decoded-value cache and a
+//!   set of known leaves. `fetch` never sees the DAG: keys, priorities and results only.
 //!
 //! Invariants: time is passed in (`now`, `budget`), so refinement is deterministic under
 //! test; every frame ends with a cut that covers the raster exactly once and whose
 //! neighbouring patches agree bit for bit on shared edges.
 //!
-//! This version covers planar repositories; planets, the network thread, the session
-//! and headless flights come next (see issue 5).
+//! Not yet: the `Session` tying `fetch` to `refine` (a `DetailSource` over the fetcher),
+//! planets, headless flights (`quincunx fly`) and rendering (see issue 5).
 
 pub mod dag;
+pub mod fetch;
 pub mod refine;
 pub mod view;

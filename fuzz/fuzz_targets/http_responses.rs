@@ -1,10 +1,10 @@
-//! Responses are untrusted: the pipelined HTTP/1.1 client (`quincunx loadtest`, and later
-//! the streaming client) must split any byte stream into responses or return `Err`, never
+//! Responses are untrusted: the pipelined HTTP/1.1 client (`quincunx_client::fetch`, also
+//! used by `quincunx loadtest`) must split any byte stream into responses or return `Err`, never
 //! panic, never buffer past its limits. The first byte picks how the stream is chunked.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use quincunx_repo_tools::loadtest::http1::{Limits, ResponseDecoder};
+use quincunx_client::fetch::http1::{Limits, ResponseDecoder};
 
 fuzz_target!(|data: &[u8]| {
     let Some((&chunk, stream)) = data.split_first() else {

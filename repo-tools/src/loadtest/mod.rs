@@ -15,7 +15,6 @@
 //! thousands of clients.
 
 pub mod flight;
-pub mod http1;
 pub mod latency;
 
 use std::collections::BTreeMap;
@@ -31,8 +30,8 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use flight::{FlightPlan, Rng, Stream};
-use http1::{Connection, Endpoint, GetTemplate, Http1Error, Limits};
 use latency::Histogram;
+use quincunx_client::fetch::http1::{self, Connection, Endpoint, GetTemplate, Http1Error, Limits};
 
 /// Options of `quincunx loadtest`.
 #[derive(Args, Debug, Clone)]

@@ -1,5 +1,8 @@
-//! A minimal pipelined HTTP/1.1 client: one persistent TCP connection, GET requests written
-//! in batches, responses read back in order.
+//! A minimal pipelined HTTP/1.1 client: persistent TCP connections, GET requests written
+//! in batches, responses read back in order. Used by the [`Transport::Pipelined`]
+//! transport of the fetch layer and by `quincunx loadtest`.
+//!
+//! [`Transport::Pipelined`]: super::Transport::Pipelined
 //!
 //! Responses are framed strictly: a status line and headers parsed by `httparse`, a body of
 //! exactly `Content-Length` bytes (none for 204 and 304). Chunked bodies, informational
@@ -408,6 +411,35 @@ impl Connection {
             0 => Ok(()),
             _ => Err(Http1Error::Malformed(httparse::Error::Status)),
         }
+    }
+}
+
+/// Fetches one resource on a fresh connection, blocking (std sockets, usable inside or
+/// outside an async runtime): status and body. `timeout` bounds the connect and each read
+/// and write.
+pub fn get_blocking(
+    endpoint: &Endpoint,
+    path: &str,
+    timeout: std::time::Duration,
+) -> Result<(u16, Vec<u8>), Http1Error> {
+    use std::io::{Read, Write};
+    let mut stream = std::net::TcpStream::connect_timeout(&endpoint.addr, timeout)?;
+    stream.set_read_timeout(Some(timeout))?;
+    stream.set_write_timeout(Some(timeout))?;
+    let mut req = Vec::new();
+    write_get(&mut req, &endpoint.host, path.as_bytes());
+    stream.write_all(&req)?;
+    let mut decoder = ResponseDecoder::new(Limits::default());
+    loop {
+        if let Some(resp) = decoder.decode()? {
+            return Ok((resp.status, resp.body.to_vec()));
+        }
+        let spare = decoder.spare()?;
+        let n = stream.read(spare)?;
+        if n == 0 {
+            return Err(Http1Error::Closed);
+        }
+        decoder.filled(n);
     }
 }
 

@@ -1,0 +1,246 @@
+//! Pipelined HTTP/1.1 over K persistent connections, each a task on the fetch runtime.
+//!
+//! A connection writes every request as soon as it gets it (several in one write when they
+//! come together) and matches responses to requests in order. When the connection fails
+//! (refused, reset, closed, timed out, or a response that does not parse), every request
+//! still outstanding on it completes with that error, so the scheduler re-issues them; the
+//! connection reconnects when its next request arrives.
+
+use std::collections::VecDeque;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use bytes::Bytes;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio::sync::mpsc::{UnboundedReceiver, UnboundedSender, unbounded_channel};
+use tokio::time::Instant;
+
+use super::{Completion, Request};
+use crate::fetch::http1::{Limits, ResponseDecoder, write_get};
+use crate::fetch::{FetchConfig, FetchError};
+
+struct Settings {
+    addr: SocketAddr,
+    host: String,
+    limits: Limits,
+    timeout: Duration,
+}
+
+struct Conn {
+    tx: UnboundedSender<Request>,
+    in_flight: usize,
+}
+
+/// The connections and how many requests each has outstanding.
+pub(crate) struct Pipelined {
+    conns: Vec<Conn>,
+    depth: usize,
+}
+
+impl Pipelined {
+    /// Spawns `config.connections` connection tasks (they connect on their first request).
+    pub fn new(config: &FetchConfig, done: UnboundedSender<Completion>) -> Self {
+        let settings = Arc::new(Settings {
+            addr: config.remote.endpoint.addr,
+            host: config.remote.endpoint.host.clone(),
+            limits: config.limits,
+            timeout: config.request_timeout,
+        });
+        let conns = (0..config.connections.max(1))
+            .map(|slot| {
+                let (tx, rx) = unbounded_channel();
+                tokio::spawn(run_connection(
+                    slot,
+                    Arc::clone(&settings),
+                    rx,
+                    done.clone(),
+                ));
+                Conn { tx, in_flight: 0 }
+            })
+            .collect();
+        Pipelined {
+            conns,
+            depth: config.pipeline_depth.max(1),
+        }
+    }
+
+    pub fn free_slots(&self) -> usize {
+        self.conns
+            .iter()
+            .map(|c| self.depth.saturating_sub(c.in_flight))
+            .sum()
+    }
+
+    /// Sends on the least loaded connection with room.
+    pub fn send(&mut self, request: Request) -> bool {
+        let depth = self.depth;
+        let Some(conn) = self
+            .conns
+            .iter_mut()
+            .filter(|c| c.in_flight < depth)
+            .min_by_key(|c| c.in_flight)
+        else {
+            return false;
+        };
+        if conn.tx.send(request).is_err() {
+            return false;
+        }
+        conn.in_flight += 1;
+        true
+    }
+
+    pub fn finished(&mut self, slot: usize) {
+        if let Some(c) = self.conns.get_mut(slot) {
+            c.in_flight = c.in_flight.saturating_sub(1);
+        }
+    }
+}
+
+/// One connection's life: wait for a request, connect, exchange until failure, fail what
+/// is outstanding, repeat. Ends when the driver is dropped.
+async fn run_connection(
+    slot: usize,
+    settings: Arc<Settings>,
+    mut rx: UnboundedReceiver<Request>,
+    done: UnboundedSender<Completion>,
+) {
+    let mut pending: VecDeque<Request> = VecDeque::new();
+    let mut out = Vec::new();
+    loop {
+        if pending.is_empty() {
+            match rx.recv().await {
+                Some(r) => pending.push_back(r),
+                None => return,
+            }
+        }
+        while let Ok(r) = rx.try_recv() {
+            pending.push_back(r);
+        }
+        let error = match session(slot, &settings, &mut rx, &done, &mut pending, &mut out).await {
+            Ok(()) => return,
+            Err(e) => e,
+        };
+        if !pending.is_empty() {
+            tracing::debug!(slot, %error, outstanding = pending.len(), "connection failed");
+        }
+        for r in pending.drain(..) {
+            let _ = done.send(Completion {
+                key: r.key,
+                slot,
+                result: Err(error.clone()),
+            });
+        }
+    }
+}
+
+enum Event {
+    Request(Option<Request>),
+    Read(Result<usize, FetchError>),
+    Timeout,
+}
+
+fn conn_err(e: std::io::Error) -> FetchError {
+    FetchError::Connection(e.to_string())
+}
+
+/// Reads what is available into the decoder.
+async fn read_some(
+    rd: &mut OwnedReadHalf,
+    decoder: &mut ResponseDecoder,
+) -> Result<usize, FetchError> {
+    let spare = decoder
+        .spare()
+        .map_err(|e| FetchError::Protocol(e.to_string()))?;
+    let n = rd.read(spare).await.map_err(conn_err)?;
+    decoder.filled(n);
+    Ok(n)
+}
+
+async fn write_all(
+    wr: &mut OwnedWriteHalf,
+    bytes: &[u8],
+    timeout: Duration,
+) -> Result<(), FetchError> {
+    match tokio::time::timeout(timeout, wr.write_all(bytes)).await {
+        Ok(r) => r.map_err(conn_err),
+        Err(_) => Err(FetchError::Timeout(timeout)),
+    }
+}
+
+/// One TCP connection: `Ok(())` when the request channel closed, else why it failed.
+async fn session(
+    slot: usize,
+    s: &Settings,
+    rx: &mut UnboundedReceiver<Request>,
+    done: &UnboundedSender<Completion>,
+    pending: &mut VecDeque<Request>,
+    out: &mut Vec<u8>,
+) -> Result<(), FetchError> {
+    let stream = match tokio::time::timeout(s.timeout, TcpStream::connect(s.addr)).await {
+        Err(_) => return Err(FetchError::Timeout(s.timeout)),
+        Ok(Err(e)) => return Err(conn_err(e)),
+        Ok(Ok(stream)) => stream,
+    };
+    stream.set_nodelay(true).map_err(conn_err)?;
+    let (mut rd, mut wr) = stream.into_split();
+    let mut decoder = ResponseDecoder::new(s.limits);
+    out.clear();
+    for r in pending.iter() {
+        write_get(out, &s.host, r.path.as_bytes());
+    }
+    write_all(&mut wr, out, s.timeout).await?;
+    // A connection with requests outstanding must make progress within the timeout.
+    let mut deadline = Instant::now() + s.timeout;
+    loop {
+        let event = tokio::select! {
+            r = rx.recv() => Event::Request(r),
+            n = read_some(&mut rd, &mut decoder) => Event::Read(n),
+            () = tokio::time::sleep_until(deadline), if !pending.is_empty() => Event::Timeout,
+        };
+        match event {
+            Event::Request(None) => return Ok(()),
+            Event::Request(Some(first)) => {
+                if pending.is_empty() {
+                    deadline = Instant::now() + s.timeout;
+                }
+                out.clear();
+                write_get(out, &s.host, first.path.as_bytes());
+                pending.push_back(first);
+                while let Ok(r) = rx.try_recv() {
+                    write_get(out, &s.host, r.path.as_bytes());
+                    pending.push_back(r);
+                }
+                write_all(&mut wr, out, s.timeout).await?;
+            }
+            Event::Read(n) => {
+                if n? == 0 {
+                    return Err(FetchError::Connection("closed by the server".into()));
+                }
+                deadline = Instant::now() + s.timeout;
+                while let Some(resp) = decoder
+                    .decode()
+                    .map_err(|e| FetchError::Protocol(e.to_string()))?
+                {
+                    let Some(req) = pending.pop_front() else {
+                        return Err(FetchError::Protocol("response to no request".into()));
+                    };
+                    let close = resp.close;
+                    let _ = done.send(Completion {
+                        key: req.key,
+                        slot,
+                        result: Ok((resp.status, Bytes::copy_from_slice(resp.body))),
+                    });
+                    if close {
+                        return Err(FetchError::Connection(
+                            "the server closed the connection".into(),
+                        ));
+                    }
+                }
+            }
+            Event::Timeout => return Err(FetchError::Timeout(s.timeout)),
+        }
+    }
+}

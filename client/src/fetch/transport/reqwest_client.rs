@@ -1,0 +1,133 @@
+//! Plain HTTP/1.1 (one request at a time per connection) and HTTP/2 (one connection, many
+//! streams) through reqwest, for comparison with the pipelined transport.
+
+use std::time::Duration;
+
+use bytes::Bytes;
+use tokio::sync::mpsc::UnboundedSender;
+
+use super::{Completion, Request};
+use crate::fetch::{FetchConfig, FetchError, Transport};
+
+/// A reqwest client and how many requests it may have outstanding.
+pub(crate) struct ReqwestDriver {
+    client: reqwest::Client,
+    host: String,
+    slots: usize,
+    in_flight: usize,
+    max_body_bytes: usize,
+    timeout: Duration,
+    done: UnboundedSender<Completion>,
+}
+
+impl ReqwestDriver {
+    pub fn new(
+        config: &FetchConfig,
+        done: UnboundedSender<Completion>,
+    ) -> Result<Self, FetchError> {
+        let builder = reqwest::Client::builder()
+            .no_proxy()
+            .tcp_nodelay(true)
+            .connect_timeout(config.request_timeout)
+            .timeout(config.request_timeout);
+        let (builder, slots) = match config.transport {
+            // At most `connections` requests outstanding, so at most that many connections.
+            Transport::Plain => (
+                builder
+                    .http1_only()
+                    .pool_max_idle_per_host(config.connections.max(1)),
+                config.connections.max(1),
+            ),
+            _ => (builder.http2_prior_knowledge(), config.max_in_flight.max(1)),
+        };
+        let client = builder
+            .build()
+            .map_err(|e| FetchError::Thread(format!("HTTP client: {e}")))?;
+        Ok(ReqwestDriver {
+            client,
+            host: config.remote.endpoint.host.clone(),
+            slots,
+            in_flight: 0,
+            max_body_bytes: config.limits.max_body_bytes,
+            timeout: config.request_timeout,
+            done,
+        })
+    }
+
+    pub fn free_slots(&self) -> usize {
+        self.slots.saturating_sub(self.in_flight)
+    }
+
+    pub fn send(&mut self, request: Request) -> bool {
+        if self.in_flight >= self.slots {
+            return false;
+        }
+        self.in_flight += 1;
+        let url = format!("http://{}{}", self.host, request.path);
+        let get = self.client.get(url).send();
+        let done = self.done.clone();
+        let max_body = self.max_body_bytes;
+        let timeout = self.timeout;
+        tokio::spawn(async move {
+            let result = match get.await {
+                Ok(resp) => read_body(resp, max_body, timeout).await,
+                Err(e) => Err(classify(&e, timeout)),
+            };
+            let _ = done.send(Completion {
+                key: request.key,
+                slot: 0,
+                result,
+            });
+        });
+        true
+    }
+
+    pub fn finished(&mut self) {
+        self.in_flight = self.in_flight.saturating_sub(1);
+    }
+}
+
+async fn read_body(
+    resp: reqwest::Response,
+    max_body: usize,
+    timeout: Duration,
+) -> Result<(u16, Bytes), FetchError> {
+    let status = resp.status().as_u16();
+    if resp.content_length().is_some_and(|n| n > max_body as u64) {
+        return Err(FetchError::Protocol(format!(
+            "response body over {max_body} bytes"
+        )));
+    }
+    // A body that ends early (truncated) is a connection failure, whatever reqwest calls it.
+    let body = resp
+        .bytes()
+        .await
+        .map_err(|e| match classify(&e, timeout) {
+            FetchError::Protocol(msg) => FetchError::Connection(msg),
+            other => other,
+        })?;
+    if body.len() > max_body {
+        return Err(FetchError::Protocol(format!(
+            "response body over {max_body} bytes"
+        )));
+    }
+    Ok((status, body))
+}
+
+/// Maps a reqwest error to our classes, with its causes in the message.
+fn classify(e: &reqwest::Error, timeout: Duration) -> FetchError {
+    let mut msg = e.to_string();
+    let mut source = std::error::Error::source(e);
+    while let Some(s) = source {
+        msg.push_str(": ");
+        msg.push_str(&s.to_string());
+        source = s.source();
+    }
+    if e.is_timeout() {
+        FetchError::Timeout(timeout)
+    } else if e.is_connect() || e.is_body() || e.is_request() {
+        FetchError::Connection(msg)
+    } else {
+        FetchError::Protocol(msg)
+    }
+}
