@@ -613,19 +613,30 @@ fn demo_builds_and_verifies_the_bundled_samples_once() {
     let dir = tempfile::tempdir().unwrap();
     let repos = dir.path().join("demo");
     for round in 0..2 {
-        let out = run(bin().arg("demo").arg("--dir").arg(&repos));
+        // `--smoke`: serve on a free port, request the example URLs, stop.
+        let out = run(bin().arg("demo").arg("--dir").arg(&repos).args([
+            "--addr",
+            "127.0.0.1:0",
+            "--smoke",
+        ]));
         let stdout = String::from_utf8_lossy(&out.stdout);
         assert!(
             out.status.success(),
             "{}",
             String::from_utf8_lossy(&out.stderr)
         );
+        // Built and verified the first time only.
         assert_eq!(
             stdout.matches("0 errors, content hash ok").count(),
-            2,
+            if round == 0 { 2 } else { 0 },
             "{stdout}"
         );
         assert_eq!(stdout.contains("building"), round == 0, "{stdout}");
+        assert!(
+            stdout.contains("serving the sample repositories on http://127.0.0.1:"),
+            "{stdout}"
+        );
+        assert!(stdout.contains("smoke check passed"), "{stdout}");
     }
     assert!(repos.join("korea").exists() && repos.join("earth").exists());
     for (name, w, h) in [("earth", 64, 32), ("korea", 64, 64)] {
