@@ -135,20 +135,38 @@ fn setup(delay: usize) -> (Arc<Encoded>, Dag, LocalSource) {
     (enc, dag, source)
 }
 
+/// One frame with all the time it needs (refinement is deterministic: the budget only
+/// matters where a test says so).
+fn unlimited_frame(
+    refinement: &mut Refinement,
+    dag: &mut Dag,
+    view: &View,
+    enc: &Encoded,
+    source: &mut LocalSource,
+) -> FrameStats {
+    let clock = SystemClock(std::time::Instant::now());
+    refinement
+        .update(
+            dag,
+            view,
+            world(enc),
+            source,
+            &clock,
+            Duration::from_secs(20),
+        )
+        .unwrap()
+}
+
 /// The DAG after one frame with all the time it needs and every detail at hand.
 fn converged_in_one_frame(view: &View) -> (Arc<Encoded>, Dag) {
     let (enc, mut dag, mut source) = setup(0);
-    let clock = SystemClock(std::time::Instant::now());
-    let stats = Refinement::default()
-        .update(
-            &mut dag,
-            view,
-            world(&enc),
-            &mut source,
-            &clock,
-            Duration::from_secs(10),
-        )
-        .unwrap();
+    let stats = unlimited_frame(
+        &mut Refinement::default(),
+        &mut dag,
+        view,
+        &enc,
+        &mut source,
+    );
     assert!(stats.converged, "{stats:?}");
     (enc, dag)
 }
@@ -164,19 +182,9 @@ fn cut_set(dag: &Dag) -> BTreeSet<(i64, i64, Half)> {
 fn every_frame_of_a_flight_ends_crack_free_and_covering_the_raster_once() {
     let (enc, mut dag, mut source) = setup(0);
     let mut refinement = Refinement::default();
-    let clock = SystemClock(std::time::Instant::now());
     let mut max_halves = 0;
     for (k, view) in flight(24).iter().enumerate() {
-        let stats = refinement
-            .update(
-                &mut dag,
-                view,
-                world(&enc),
-                &mut source,
-                &clock,
-                Duration::from_secs(10),
-            )
-            .unwrap();
+        let stats = unlimited_frame(&mut refinement, &mut dag, view, &enc, &mut source);
         let check = dag.check_cut();
         assert!(check.ok(), "frame {k}: {check:?}");
         assert!(check.shared_vertices > 0);
@@ -193,17 +201,13 @@ fn every_frame_of_a_flight_ends_crack_free_and_covering_the_raster_once() {
 fn a_converged_cut_meets_the_tolerance_where_visible() {
     let (enc, mut dag, mut source) = setup(0);
     let view = flight(10)[5];
-    let clock = SystemClock(std::time::Instant::now());
-    let stats = Refinement::default()
-        .update(
-            &mut dag,
-            &view,
-            world(&enc),
-            &mut source,
-            &clock,
-            Duration::from_secs(10),
-        )
-        .unwrap();
+    let stats = unlimited_frame(
+        &mut Refinement::default(),
+        &mut dag,
+        &view,
+        &enc,
+        &mut source,
+    );
     assert!(stats.converged && stats.max_error_px == 0.0, "{stats:?}");
     assert!(stats.refined > 20, "{stats:?}");
     // Tightening the tolerance refines further.
@@ -211,16 +215,13 @@ fn a_converged_cut_meets_the_tolerance_where_visible() {
         tolerance_px: 1.0,
         ..view
     };
-    let more = Refinement::default()
-        .update(
-            &mut dag,
-            &finer,
-            world(&enc),
-            &mut source,
-            &clock,
-            Duration::from_secs(10),
-        )
-        .unwrap();
+    let more = unlimited_frame(
+        &mut Refinement::default(),
+        &mut dag,
+        &finer,
+        &enc,
+        &mut source,
+    );
     assert!(
         more.refined > 0 && more.cut_halves > stats.cut_halves,
         "{more:?}"
@@ -266,20 +267,10 @@ fn the_budget_is_respected_and_every_budget_converges_to_the_same_cut() {
 fn late_details_only_delay_refinement() {
     let view = flight(10)[7];
     let (enc, reference) = converged_in_one_frame(&view);
-    let clock = SystemClock(std::time::Instant::now());
     let (_, mut dag, mut slow) = setup(2);
     let mut frames = 0;
     loop {
-        let stats = Refinement::default()
-            .update(
-                &mut dag,
-                &view,
-                world(&enc),
-                &mut slow,
-                &clock,
-                Duration::from_secs(10),
-            )
-            .unwrap();
+        let stats = unlimited_frame(&mut Refinement::default(), &mut dag, &view, &enc, &mut slow);
         frames += 1;
         assert!(dag.check_cut().ok());
         if stats.converged {
@@ -295,19 +286,9 @@ fn late_details_only_delay_refinement() {
 #[test]
 fn moving_away_coarsens_and_frees_memory() {
     let (enc, mut dag, mut source) = setup(0);
-    let clock = SystemClock(std::time::Instant::now());
     let mut refinement = Refinement::default();
     let near = flight(10)[5];
-    refinement
-        .update(
-            &mut dag,
-            &near,
-            world(&enc),
-            &mut source,
-            &clock,
-            Duration::from_secs(10),
-        )
-        .unwrap();
+    unlimited_frame(&mut refinement, &mut dag, &near, &enc, &mut source);
     let (nodes_near, bytes_near) = (dag.len(), dag.memory_bytes());
     let far = View {
         eye: DVec3::new(30_000.0, 20_000.0, 3_000_000.0),
@@ -315,16 +296,7 @@ fn moving_away_coarsens_and_frees_memory() {
         up: DVec3::Y,
         ..near
     };
-    let stats = refinement
-        .update(
-            &mut dag,
-            &far,
-            world(&enc),
-            &mut source,
-            &clock,
-            Duration::from_secs(10),
-        )
-        .unwrap();
+    let stats = unlimited_frame(&mut refinement, &mut dag, &far, &enc, &mut source);
     assert!(stats.coarsened > 0 && stats.converged, "{stats:?}");
     assert!(dag.len() < nodes_near && dag.memory_bytes() < bytes_near);
     assert!(dag.check_cut().ok());
@@ -424,7 +396,6 @@ fn the_dag_follows_a_naive_model_under_random_operations() {
 #[test]
 fn extreme_views_stay_finite_and_sane() {
     let (enc, mut dag, mut source) = setup(0);
-    let clock = SystemClock(std::time::Instant::now());
     let mut refinement = Refinement::default();
     let ground = {
         // 1 m above the highest point under the camera's start.
@@ -461,16 +432,7 @@ fn extreme_views_stay_finite_and_sane() {
         },
     ];
     for (k, view) in views.iter().enumerate() {
-        let stats = refinement
-            .update(
-                &mut dag,
-                view,
-                world(&enc),
-                &mut source,
-                &clock,
-                Duration::from_secs(20),
-            )
-            .unwrap();
+        let stats = unlimited_frame(&mut refinement, &mut dag, view, &enc, &mut source);
         assert!(stats.max_error_px.is_finite(), "view {k}: {stats:?}");
         assert!(stats.converged, "view {k}: {stats:?}");
         assert!(dag.check_cut().ok(), "view {k}");
