@@ -1,121 +1,31 @@
 //! Test fixtures: small repositories of synthetic blobs (the server never decodes, so any
 //! bytes do), a server on a loopback port, and a strict little HTTP/1.1 response reader.
-#![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
+#![allow(dead_code, unused_imports, clippy::unwrap_used, clippy::expect_used)]
 
-use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::path::Path;
 use std::time::Duration;
 
-use quincunx_diamond::{PlanarDomain, PlanarId, SphereDomain, SphereId};
+use quincunx_diamond::PlanarId;
 use quincunx_server::{AppState, RepoConfig, Server, ServerConfig};
-use quincunx_store::{Attribute, Metadata, NodataPolicy, RepositoryBuilder};
 
-/// Planar fixture: m = 6, blobs on levels 0..PLANAR_LEVELS except [`PLANAR_LEAF`].
-pub const PLANAR_M: u32 = 6;
-/// Levels of the planar fixture.
-pub const PLANAR_LEVELS: u32 = 4;
+pub use quincunx_testkit::{
+    PLANAR_LEVELS, PLANAR_M, SPHERE_M, blob_for, planar_centres, sphere_centres,
+};
+
 /// A level-2 diamond of the planar fixture that has no blob (a leaf).
-pub const PLANAR_LEAF: PlanarId = PlanarId { x: 16, y: 16 };
-/// Sphere fixture: m = 3, blobs on levels 0..2.
-pub const SPHERE_M: u32 = 3;
-
-/// The bytes stored for a centre: distinct per diamond, 1..2000 bytes.
-pub fn blob_for(c: [i64; 3]) -> Vec<u8> {
-    let seed = (c[0] * 31 + c[1] * 1009 + c[2] * 7919).unsigned_abs();
-    let len = 1 + (seed % 1999) as usize;
-    (0..len).map(|i| (seed as usize + i * 7) as u8).collect()
-}
-
-fn metadata(domain: &str, m: u32, levels: u32) -> Metadata {
-    Metadata {
-        format_version: 0,
-        complete: false,
-        content_hash: String::new(),
-        domain: domain.into(),
-        m,
-        n: 32,
-        levels,
-        attribute: Attribute {
-            kind: "elevation".into(),
-            units: "m".into(),
-        },
-        extent: [1 << m, 1 << m],
-        nodata: NodataPolicy {
-            source_count: 0,
-            handling: "none".into(),
-        },
-        georef: None,
-        radius_m: (domain == "sphere").then_some(6_371_000.0),
-        channels: vec![],
-        build: serde_json::json!({"fixture": true}),
-        level_stats: vec![],
-        coverage: None,
-    }
-}
-
-/// Every planar diamond above `levels`, by centre.
-pub fn planar_centres(m: u32, levels: u32) -> BTreeMap<[i64; 3], u32> {
-    let d = PlanarDomain::new(m).unwrap();
-    let mut out = BTreeMap::new();
-    let mut frontier = vec![d.root()];
-    while let Some(id) = frontier.pop() {
-        let level = d.level(id).unwrap();
-        if level >= levels || out.insert([id.x, id.y, 0], level).is_some() {
-            continue;
-        }
-        frontier.extend(d.children(id).unwrap());
-    }
-    out
-}
-
-/// Every sphere diamond above `levels`, by centre.
-pub fn sphere_centres(m: u32, levels: u32) -> BTreeMap<[i64; 3], u32> {
-    let d = SphereDomain::new(m).unwrap();
-    let mut out = BTreeMap::new();
-    let mut frontier: Vec<SphereId> = d.roots().to_vec();
-    while let Some(id) = frontier.pop() {
-        let level = d.level(id).unwrap();
-        if level >= levels || out.insert(id.c, level).is_some() {
-            continue;
-        }
-        frontier.extend(d.children(id).unwrap());
-    }
-    out
-}
+pub const PLANAR_LEAF: PlanarId = PlanarId {
+    x: quincunx_testkit::PLANAR_LEAF[0],
+    y: quincunx_testkit::PLANAR_LEAF[1],
+};
 
 /// Builds the planar (`plain`) and sphere (`globe`) fixtures under `dir`.
 pub fn build_fixtures(dir: &Path) -> Vec<RepoConfig> {
-    let planar = dir.join("plain");
-    let d = PlanarDomain::new(PLANAR_M).unwrap();
-    let mut b = RepositoryBuilder::create(&planar).unwrap();
-    for (c, level) in planar_centres(PLANAR_M, PLANAR_LEVELS) {
-        let id = PlanarId { x: c[0], y: c[1] };
-        if id != PLANAR_LEAF {
-            b.put(level, &d.key(id).unwrap(), &blob_for(c)).unwrap();
-        }
-    }
-    b.publish(metadata("planar", PLANAR_M, PLANAR_LEVELS), false)
-        .unwrap();
-    let sphere = dir.join("globe");
-    let d = SphereDomain::new(SPHERE_M).unwrap();
-    let mut b = RepositoryBuilder::create(&sphere).unwrap();
-    for (c, level) in sphere_centres(SPHERE_M, 2) {
-        b.put(level, &d.key(SphereId { c }).unwrap(), &blob_for(c))
-            .unwrap();
-    }
-    b.publish(metadata("sphere", SPHERE_M, 2), false).unwrap();
-    vec![
-        RepoConfig {
-            name: "plain".into(),
-            path: planar,
-        },
-        RepoConfig {
-            name: "globe".into(),
-            path: sphere,
-        },
-    ]
+    quincunx_testkit::build_fixtures(dir)
+        .into_iter()
+        .map(|(name, path)| RepoConfig { name, path })
+        .collect()
 }
 
 /// The planar fixture's blob URL prefix.
