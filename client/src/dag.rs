@@ -13,33 +13,7 @@ use std::sync::Arc;
 use quincunx_codec::diamond::{PlanarDomain, PlanarId};
 use quincunx_codec::incremental::{Details, PlanarRefiner, RefineError, Refined};
 
-/// A fast hasher for diamond ids (two `i64`s; FxHash's multiply-rotate mixing). Ids are
-/// not attacker-chosen here: they come from the repository's own hierarchy.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct IdHasher(u64);
-
-impl std::hash::Hasher for IdHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.write_u64(u64::from(b));
-        }
-    }
-
-    fn write_u64(&mut self, v: u64) {
-        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-    }
-
-    fn write_i64(&mut self, v: i64) {
-        self.write_u64(v as u64);
-    }
-}
-
-/// A map keyed by diamond id with [`IdHasher`].
-pub type IdMap<V> = HashMap<PlanarId, V, std::hash::BuildHasherDefault<IdHasher>>;
+pub use quincunx_codec::diamond::{IdHasher, IdMap};
 
 /// Why the DAG refused an operation.
 #[derive(Debug, thiserror::Error)]

@@ -17,10 +17,16 @@
 //! test; every frame ends with a cut that covers the raster exactly once and whose
 //! neighbouring patches agree bit for bit on shared edges.
 //!
-//! Not yet: the `Session` tying `fetch` to `refine` (a `DetailSource` over the fetcher),
-//! planets, headless flights (`quincunx fly`) and rendering (see issue 5).
+//! - [`session`]: a served repository streamed frame by frame: `fetch` feeding `refine`,
+//!   with prefetch along the predicted camera.
+//! - [`flight`]: camera paths (built-in and from files) and a headless real-time runner
+//!   that measures a session along one (what `quincunx fly` and the fly load test run).
+//!
+//! Not yet: planets (the sphere incremental decoder), colour layers, and rendering.
 
 pub mod dag;
 pub mod fetch;
+pub mod flight;
 pub mod refine;
+pub mod session;
 pub mod view;

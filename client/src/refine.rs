@@ -50,6 +50,14 @@ pub trait DetailSource {
     /// The details of `id` if they are here; otherwise records that they are wanted with
     /// this priority (higher first) and returns [`Availability::Pending`].
     fn details(&mut self, id: PlanarId, priority: f64) -> Availability;
+
+    /// Records that `id` is wanted with this priority without using its details: called
+    /// for the split queue's diamonds a frame had no time left for, so the data access
+    /// layer keeps requesting them. The default asks [`DetailSource::details`] and drops
+    /// the answer.
+    fn want(&mut self, id: PlanarId, priority: f64) {
+        let _ = self.details(id, priority);
+    }
 }
 
 /// A monotonic clock, passed in so refinement is testable deterministically.
@@ -109,8 +117,11 @@ pub struct FrameStats {
     /// The budget ran out before both queues were empty.
     pub out_of_time: bool,
     /// Nothing left to do for this view: every visible diamond meets the tolerance (or is
-    /// as fine as the repository) and nothing waits for data.
+    /// as fine as the repository), nothing waits for data and nothing is left to coarsen.
     pub converged: bool,
+    /// Full quality: every visible diamond meets the tolerance (or is as fine as the
+    /// repository) and nothing waits for data; coarsening may still be going on.
+    pub full_quality: bool,
     /// Time used.
     pub elapsed: Duration,
 }
@@ -254,6 +265,14 @@ pub struct Refinement {
 }
 
 impl Refinement {
+    /// Refinement with `config` and nothing deferred yet.
+    pub fn with_config(config: RefineConfig) -> Refinement {
+        Refinement {
+            config,
+            ..Refinement::default()
+        }
+    }
+
     /// Accumulates camera travel; forgets every deferral when the projection changed.
     fn track_camera(&mut self, view: &View, world: PlanarWorld) {
         let projection = (
@@ -270,6 +289,38 @@ impl Refinement {
             self.travel_m += (view.eye - last).length();
         }
         self.last_eye = Some(view.eye);
+    }
+}
+
+impl Refinement {
+    fn projector<'a>(&self, dag: &Dag, view: &'a View, world: PlanarWorld) -> Projector<'a> {
+        Projector {
+            view,
+            frustum: view.frustum(),
+            world,
+            config: self.config,
+            px_at_1m: view.px_per_m(1.0),
+            spacing_per_n: world.spacing_m / dag.refiner().n() as f64,
+            flat_px: self.config.flat_fraction * view.tolerance_px,
+        }
+    }
+
+    /// The unrefined diamonds of the DAG that `view` would want refined, with their
+    /// projected errors: for prefetching along a predicted camera. Changes nothing.
+    pub fn wanted_splits(
+        &self,
+        dag: &Dag,
+        view: &View,
+        world: PlanarWorld,
+    ) -> Vec<(PlanarId, f64)> {
+        let projector = self.projector(dag, view, world);
+        dag.nodes()
+            .filter(|n| n.refined.is_none() && dag.refiner().is_refinable(n.id))
+            .filter_map(|n| {
+                let a = projector.appearance(dag, n.id);
+                projector.wants_split(&a).then_some((n.id, a.error_px))
+            })
+            .collect()
     }
 }
 
@@ -293,15 +344,7 @@ impl Refinement {
     ) -> Result<FrameStats, DagError> {
         let start = clock.now();
         let deadline = start + budget;
-        let projector = Projector {
-            view,
-            frustum: view.frustum(),
-            world,
-            config: self.config,
-            px_at_1m: view.px_per_m(1.0),
-            spacing_per_n: world.spacing_m / dag.refiner().n() as f64,
-            flat_px: self.config.flat_fraction * view.tolerance_px,
-        };
+        let projector = self.projector(dag, view, world);
         let mut stats = FrameStats::default();
 
         self.track_camera(view, world);
@@ -337,6 +380,13 @@ impl Refinement {
             if worked && clock.now() >= deadline {
                 stats.out_of_time = true;
                 stats.max_error_px = stats.max_error_px.max(error);
+                // What there was no time for is still wanted: keep its data coming.
+                source.want(id, error);
+                for Key(error, id) in splits.drain() {
+                    if dag.node(id).is_some_and(|n| n.refined.is_none()) {
+                        source.want(id, error);
+                    }
+                }
                 break;
             }
             let refined_before = stats.refined;
@@ -373,6 +423,7 @@ impl Refinement {
             worked = stats.refined > refined_before;
         }
 
+        let splits_done = !stats.out_of_time;
         // Merge queue: refined diamonds with unrefined children that are now too fine or
         // off-screen, least urgent first.
         if !stats.out_of_time {
@@ -419,6 +470,7 @@ impl Refinement {
         stats.dag_nodes = dag.len();
         stats.cut_halves = dag.cut_len();
         stats.converged = !stats.out_of_time && waiting == 0;
+        stats.full_quality = splits_done && waiting == 0;
         stats.elapsed = clock.now().saturating_sub(start);
         Ok(stats)
     }
@@ -448,10 +500,12 @@ impl Refinement {
                 continue; // outside the raster: that half never exists
             }
             if dag.node(parent).is_none_or(|n| n.refined.is_none()) {
+                // A parent comes first: it is coarser, so its error is larger (about
+                // sqrt(2) per level).
                 match self.refine_with_parents(
                     dag,
                     parent,
-                    priority,
+                    priority * std::f64::consts::SQRT_2,
                     source,
                     stats,
                     depth + 1,

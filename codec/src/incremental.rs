@@ -17,8 +17,6 @@
 //! [`RasterGeometry`]: memory is proportional to the repository's diamonds (about 60
 //! bytes each plus masks at the raster border).
 
-use std::collections::HashMap;
-
 use crate::blob::{self, DecodeError};
 use crate::coverage::Coverage;
 use crate::diamond::{IdError, PlanarDomain, PlanarId};
@@ -116,7 +114,7 @@ pub struct DiamondInfo<'a> {
 #[derive(Debug)]
 pub struct PlanarRefiner {
     geometry: RasterGeometry,
-    slots: HashMap<PlanarId, (usize, usize)>,
+    slots: crate::diamond::IdMap<(usize, usize)>,
     steps: Vec<u32>,
     model: CodecModel,
     root: Vec<i32>,

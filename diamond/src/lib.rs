@@ -23,6 +23,34 @@ pub mod sphere;
 pub use planar::{PlanarDomain, PlanarId};
 pub use sphere::{SphereDomain, SphereId};
 
+/// A fast hasher for diamond ids (two `i64`s; FxHash's multiply-rotate mixing). Ids are
+/// not attacker-chosen here: they come from the repository's own hierarchy.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct IdHasher(u64);
+
+impl std::hash::Hasher for IdHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(u64::from(b));
+        }
+    }
+
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+
+    fn write_i64(&mut self, v: i64) {
+        self.write_u64(v as u64);
+    }
+}
+
+/// A map keyed by planar diamond id with [`IdHasher`].
+pub type IdMap<V> = std::collections::HashMap<PlanarId, V, std::hash::BuildHasherDefault<IdHasher>>;
+
 /// Deepest domain exponent: a planar domain is `[0, 2^m]^2`, a sphere the cube `[-2^m, 2^m]^3`.
 ///
 /// With `m <= 48` the deepest planar level is `2 m - 1 = 95` and the deepest sphere level

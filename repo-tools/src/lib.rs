@@ -21,6 +21,7 @@ macro_rules! outln {
 pub mod build;
 pub mod demo;
 pub mod export;
+pub mod fly;
 pub mod info;
 pub mod input;
 pub mod layout;

@@ -7,7 +7,9 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use quincunx_repo_tools::{build, demo, export, info, loadtest, outln, preview, query, verify};
+use quincunx_repo_tools::{
+    build, demo, export, fly, info, loadtest, outln, preview, query, verify,
+};
 
 /// Streams compressed multiresolution terrain: repository tools.
 #[derive(Parser, Debug)]
@@ -39,6 +41,9 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Fly a camera path with a headless streaming client against a server, in real
+    /// time (optionally through an emulated link), and measure it.
+    Fly(fly::FlyArgs),
     /// Check and decode every blob; with `--source`, reconstruct at full resolution and
     /// measure the error against the source.
     Verify(verify::VerifyArgs),
@@ -115,6 +120,7 @@ fn main() -> ExitCode {
         Command::Export { repo, dir, name } => export::run(&repo, &dir, name.as_deref()),
         Command::Query { repo, at, json } => query::run(&repo, &at, json),
         Command::Loadtest(args) => loadtest::run(&args),
+        Command::Fly(args) => fly::run(&args),
         Command::Preview {
             repo,
             output,

@@ -1,12 +1,14 @@
 //! Bandwidth estimation and the request allowance. Pure: time is passed in.
 //!
-//! The delivered rate is measured over *busy* time only (while at least one request is
-//! outstanding), so an idle client does not read as a slow link. The number of requests
-//! kept outstanding is what can arrive within one RTT plus one frame at the estimated rate,
-//! times a small gain that lets the estimate grow when the link is not yet full (each
-//! round trip the window can roughly double, as in TCP slow start, until the link's queue
-//! starts to add latency). Everything beyond that waits in the client's queue, where
-//! priorities can still change.
+//! The delivered rates (body bytes, and answers) are measured over *busy* time only (while
+//! at least one request is outstanding), so an idle client does not read as a slow link.
+//! The number of requests kept outstanding is the number of answers that arrive within one
+//! RTT plus one frame at the estimated answer rate, times a small gain that lets the
+//! estimate grow when the link is not yet full (each round trip the window can roughly
+//! double, as in TCP slow start, until the link's queue starts to add latency). Counting
+//! answers rather than body bytes keeps the window right when most answers are empty
+//! leaves, which cost a round of headers but carry no body. Everything beyond the window
+//! waits in the client's queue, where priorities can still change.
 
 use std::time::{Duration, Instant};
 
@@ -20,7 +22,8 @@ const SIZE_ALPHA: f64 = 0.05;
 const FRAME_ALPHA: f64 = 0.2;
 /// Headroom over the bandwidth-delay product.
 const GAIN: f64 = 2.0;
-/// Least size assumed per answer (leaves are empty but still cost a round of headers).
+/// Least size assumed per answer under a bandwidth cap (leaves are empty but still cost a
+/// round of headers).
 const MIN_ANSWER_BYTES: f64 = 256.0;
 /// Longest frame interval taken into account (a stalled frame loop is not a frame).
 const MAX_FRAME: Duration = Duration::from_millis(250);
@@ -29,13 +32,22 @@ const MAX_FRAME: Duration = Duration::from_millis(250);
 #[derive(Clone, Debug, Default)]
 pub struct Bandwidth {
     rate_bytes_s: Option<f64>,
+    rate_answers_s: Option<f64>,
     mean_bytes: Option<f64>,
     rtt: Option<Duration>,
     frame: Option<Duration>,
     last_submit: Option<Instant>,
     last_advance: Option<Instant>,
     sample_bytes: u64,
+    sample_answers: u64,
     sample_busy: Duration,
+}
+
+fn ewma(old: Option<f64>, new: f64, alpha: f64) -> f64 {
+    match old {
+        Some(old) => old + alpha * (new - old),
+        None => new,
+    }
 }
 
 impl Bandwidth {
@@ -54,12 +66,13 @@ impl Bandwidth {
         }
         self.last_advance = Some(now);
         if self.sample_busy >= SAMPLE {
-            let rate = self.sample_bytes as f64 / self.sample_busy.as_secs_f64();
-            self.rate_bytes_s = Some(match self.rate_bytes_s {
-                Some(old) => old + RATE_ALPHA * (rate - old),
-                None => rate,
-            });
+            let busy = self.sample_busy.as_secs_f64();
+            let rate = self.sample_bytes as f64 / busy;
+            self.rate_bytes_s = Some(ewma(self.rate_bytes_s, rate, RATE_ALPHA));
+            let answers = self.sample_answers as f64 / busy;
+            self.rate_answers_s = Some(ewma(self.rate_answers_s, answers, RATE_ALPHA));
             self.sample_bytes = 0;
+            self.sample_answers = 0;
             self.sample_busy = Duration::ZERO;
         }
     }
@@ -78,11 +91,8 @@ impl Bandwidth {
     /// An answer of `body_bytes` arrived `latency` after its request was written.
     pub fn on_answer(&mut self, body_bytes: usize, latency: Option<Duration>) {
         self.sample_bytes += body_bytes as u64;
-        let size = body_bytes as f64;
-        self.mean_bytes = Some(match self.mean_bytes {
-            Some(old) => old + SIZE_ALPHA * (size - old),
-            None => size,
-        });
+        self.sample_answers += 1;
+        self.mean_bytes = Some(ewma(self.mean_bytes, body_bytes as f64, SIZE_ALPHA));
         if let Some(l) = latency {
             // The least latency ever seen: the path's RTT without queueing delay. Letting
             // it creep up would feed back (a fuller window queues more, which raises the
@@ -107,21 +117,25 @@ impl Bandwidth {
         self.mean_bytes.unwrap_or(0.0)
     }
 
+    /// Estimated answers per second (0 before the first estimate).
+    pub fn answers_per_s(&self) -> f64 {
+        self.rate_answers_s.unwrap_or(0.0)
+    }
+
     /// How many requests may be outstanding: `initial` until there is an estimate, then
-    /// `GAIN x rate x (RTT + frame) / answer size`, never below `initial` nor above `max`.
-    /// `cap_bit_s` limits the rate used.
+    /// `GAIN x answer rate x (RTT + frame)`, never below `initial` nor above `max`.
+    /// `cap_bit_s` limits the answer rate used to `cap / answer size`.
     pub fn window(&self, initial: usize, max: usize, cap_bit_s: Option<f64>) -> usize {
         let lo = initial.min(max).max(1);
-        let (Some(rate), Some(rtt)) = (self.rate_bytes_s, self.rtt) else {
+        let (Some(rate), Some(rtt)) = (self.rate_answers_s, self.rtt) else {
             return lo;
         };
         let rate = match cap_bit_s {
-            Some(cap) => rate.min(cap / 8.0),
+            Some(cap) => rate.min(cap / 8.0 / self.mean_bytes().max(MIN_ANSWER_BYTES)),
             None => rate,
         };
         let horizon = rtt + self.frame.unwrap_or(Duration::ZERO);
-        let size = self.mean_bytes().max(MIN_ANSWER_BYTES);
-        let blobs = GAIN * rate * horizon.as_secs_f64() / size;
+        let blobs = GAIN * rate * horizon.as_secs_f64();
         let blobs = if blobs.is_finite() { blobs.ceil() } else { 0.0 };
         (blobs as usize).clamp(lo, max.max(1))
     }
@@ -210,6 +224,29 @@ mod tests {
         b.on_submit(t);
         b.on_submit(t + Duration::from_millis(16));
         assert_eq!(b.window(8, 64, None), 58);
+    }
+
+    #[test]
+    fn empty_answers_still_open_the_window() {
+        // 1,000 empty leaves per second at 100 ms: the window follows the answer rate,
+        // not the (zero) body rate.
+        let t0 = Instant::now();
+        let mut b = Bandwidth::new();
+        let mut t = t0;
+        b.advance(t, 0);
+        for _ in 0..200 {
+            t += Duration::from_millis(1);
+            b.on_answer(0, Some(Duration::from_millis(100)));
+            b.advance(t, 100);
+        }
+        assert_eq!(b.rate_bit_s(), 0.0);
+        assert!(
+            (b.answers_per_s() - 1000.0).abs() < 1.0,
+            "{}",
+            b.answers_per_s()
+        );
+        // 2 x 1000/s x 0.1 s = 200.
+        assert_eq!(b.window(8, 256, None), 200);
     }
 
     #[test]

@@ -1,0 +1,527 @@
+//! Camera paths and a headless, real-time runner that measures a [`Session`] along one.
+//!
+//! A [`Flight`] is a list of legs. Each leg moves the camera linearly from one pose to
+//! another (or holds it) for a duration. A leg that starts with a *jump* is timed: the
+//! runner records how long the session takes to reach full quality after it (every
+//! visible diamond within the tolerance, nothing waiting for data), and may end the leg
+//! early once the view has been at full quality for a while.
+//!
+//! Built-in flights are generated from the repository's world box:
+//! - `approach`: from high above the whole raster down to a low, oblique view, with the
+//!   altitude falling exponentially over 12 s;
+//! - `low-flight`: 30 s at 150 m/s, 300 m above the highest point, looking ahead and 20°
+//!   down;
+//! - `jump`: 6 low views at seeded random places and headings, jumping between them.
+//!
+//! Flights from a file are JSON:
+//! `{"legs": [{"duration_s": 5, "from": {"eye": [x, y, z], "target": [x, y, z]},
+//! "to": {...}, "jump": true, "settle_s": 0.5}]}` (world metres; `to` absent = hold;
+//! `settle_s`: end a jump leg that long after full quality).
+
+use std::time::{Duration, Instant};
+
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+use crate::session::{Session, SessionError};
+use crate::view::{Aabb, View};
+
+/// Why a flight could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum FlightError {
+    /// Not a built-in flight name.
+    #[error("unknown flight {0:?} (approach, low-flight, jump, or a JSON file)")]
+    Unknown(String),
+    /// The flight file is not valid.
+    #[error("flight file: {0}")]
+    File(String),
+}
+
+/// A camera position and a point it looks at (world metres).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    /// Eye.
+    pub eye: [f64; 3],
+    /// Looked-at point.
+    pub target: [f64; 3],
+}
+
+impl Pose {
+    fn lerp(&self, to: &Pose, s: f64) -> Pose {
+        let l = |a: [f64; 3], b: [f64; 3]| {
+            (DVec3::from_array(a) + (DVec3::from_array(b) - DVec3::from_array(a)) * s).to_array()
+        };
+        Pose {
+            eye: l(self.eye, to.eye),
+            target: l(self.target, to.target),
+        }
+    }
+}
+
+/// One leg of a flight.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Leg {
+    /// Longest duration, seconds.
+    pub duration_s: f64,
+    /// Pose at the start.
+    pub from: Pose,
+    /// Pose at the end (`None`: hold `from`).
+    #[serde(default)]
+    pub to: Option<Pose>,
+    /// The leg starts with a jump: time to full quality is measured.
+    #[serde(default)]
+    pub jump: bool,
+    /// End the leg this long after it reached full quality (jump legs).
+    #[serde(default)]
+    pub settle_s: Option<f64>,
+}
+
+/// A camera path.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Flight {
+    /// Name (built-in name or file name).
+    #[serde(default)]
+    pub name: String,
+    /// The legs, in order.
+    pub legs: Vec<Leg>,
+}
+
+/// Built-in flight names.
+pub const BUILTIN: [&str; 3] = ["approach", "low-flight", "jump"];
+
+/// Altitude of the low views above the highest point of the raster (metres).
+pub const LOW_ALTITUDE_M: f64 = 300.0;
+
+impl Flight {
+    /// A built-in flight over the world box `bounds`; `seed` places the jumps.
+    pub fn builtin(name: &str, bounds: Aabb, seed: u64) -> Result<Flight, FlightError> {
+        let size = (bounds.max - bounds.min).truncate();
+        let centre = (bounds.min + bounds.max) / 2.0;
+        let ground = bounds.max.z;
+        let at = |fx: f64, fy: f64| bounds.min.truncate() + size * glam::DVec2::new(fx, fy);
+        // A low, oblique view at `p` heading `heading` (radians): 20° down.
+        let low = |p: glam::DVec2, heading: f64| {
+            let eye = p.extend(ground + LOW_ALTITUDE_M);
+            let dir = DVec3::new(heading.cos(), heading.sin(), -(20f64.to_radians().tan()));
+            Pose {
+                eye: eye.to_array(),
+                target: (eye + dir * 1_000.0).to_array(),
+            }
+        };
+        let legs = match name {
+            "approach" => {
+                let span = size.max_element().max(1.0);
+                let (high, lowest) = (2.0 * span, LOW_ALTITUDE_M);
+                let steps = 24;
+                let pose = |k: usize| {
+                    let s = k as f64 / steps as f64;
+                    let alt = high * (lowest / high).powf(s);
+                    // Looking down at the centre from the south, steeply at first.
+                    let eye = centre.truncate() - glam::DVec2::new(0.0, 0.3 * alt + 1_000.0 * s);
+                    Pose {
+                        eye: eye.extend(ground + alt).to_array(),
+                        target: centre.truncate().extend(ground).to_array(),
+                    }
+                };
+                (0..steps)
+                    .map(|k| Leg {
+                        duration_s: 12.0 / steps as f64,
+                        from: pose(k),
+                        to: Some(pose(k + 1)),
+                        jump: false,
+                        settle_s: None,
+                    })
+                    .chain(std::iter::once(Leg {
+                        duration_s: 3.0,
+                        from: pose(steps),
+                        to: None,
+                        jump: false,
+                        settle_s: None,
+                    }))
+                    .collect()
+            }
+            "low-flight" => {
+                let (a, b) = (at(0.25, 0.3), at(0.75, 0.7));
+                let heading = (b - a).y.atan2((b - a).x);
+                let dir = (b - a).normalize_or_zero();
+                let len = (150.0 * 30.0f64).min((b - a).length());
+                vec![Leg {
+                    duration_s: len / 150.0,
+                    from: low(a, heading),
+                    to: Some(low(a + dir * len, heading)),
+                    jump: false,
+                    settle_s: None,
+                }]
+            }
+            "jump" => {
+                let mut rng = SplitMix(seed);
+                (0..6)
+                    .map(|_| Leg {
+                        duration_s: 10.0,
+                        from: low(
+                            at(0.1 + 0.8 * rng.unit(), 0.1 + 0.8 * rng.unit()),
+                            rng.unit() * std::f64::consts::TAU,
+                        ),
+                        to: None,
+                        jump: true,
+                        settle_s: Some(0.5),
+                    })
+                    .collect()
+            }
+            other => return Err(FlightError::Unknown(other.to_string())),
+        };
+        Ok(Flight {
+            name: name.to_string(),
+            legs,
+        })
+    }
+
+    /// A flight from its JSON text.
+    pub fn from_json(name: &str, text: &str) -> Result<Flight, FlightError> {
+        let mut f: Flight =
+            serde_json::from_str(text).map_err(|e| FlightError::File(e.to_string()))?;
+        if f.legs.is_empty() {
+            return Err(FlightError::File("no legs".into()));
+        }
+        for (i, leg) in f.legs.iter().enumerate() {
+            let finite = |p: &Pose| p.eye.iter().chain(&p.target).all(|v| v.is_finite());
+            let ok = leg.duration_s.is_finite()
+                && leg.duration_s > 0.0
+                && finite(&leg.from)
+                && leg.to.as_ref().is_none_or(finite)
+                && leg.settle_s.is_none_or(|s| s.is_finite() && s >= 0.0);
+            if !ok {
+                return Err(FlightError::File(format!(
+                    "leg {i}: durations must be positive and coordinates finite"
+                )));
+            }
+        }
+        if f.name.is_empty() {
+            f.name = name.to_string();
+        }
+        Ok(f)
+    }
+
+    /// Longest total duration, seconds.
+    pub fn duration_s(&self) -> f64 {
+        self.legs.iter().map(|l| l.duration_s).sum()
+    }
+}
+
+/// A tiny deterministic generator (SplitMix64) for jump places.
+struct SplitMix(u64);
+
+impl SplitMix {
+    fn unit(&mut self) -> f64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// How a flight is run.
+#[derive(Clone, Copy, Debug)]
+pub struct FlyOptions {
+    /// Frames per second the loop aims at (it never runs ahead of real time).
+    pub fps: f64,
+    /// Refinement budget per frame.
+    pub frame_budget: Duration,
+    /// Viewport, pixels.
+    pub viewport_px: [u32; 2],
+    /// Vertical field of view, radians.
+    pub fov_y_rad: f64,
+    /// Screen-space tolerance, pixels.
+    pub tolerance_px: f64,
+    /// Check the cut for cracks and coverage every this many frames (0 = never).
+    pub check_every: usize,
+}
+
+impl Default for FlyOptions {
+    fn default() -> Self {
+        FlyOptions {
+            fps: 60.0,
+            frame_budget: Duration::from_millis(4),
+            viewport_px: [1920, 1080],
+            fov_y_rad: 60f64.to_radians(),
+            tolerance_px: 1.0,
+            check_every: 1,
+        }
+    }
+}
+
+/// One frame of a flight.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct FrameRecord {
+    /// Seconds since the flight started.
+    pub t_s: f64,
+    /// Leg index.
+    pub leg: usize,
+    /// `Session::update` time, milliseconds.
+    pub update_ms: f64,
+    /// Refinement time within it, milliseconds.
+    pub refine_ms: f64,
+    /// Halves in the cut.
+    pub cut_halves: usize,
+    /// Diamonds in the DAG.
+    pub dag_nodes: usize,
+    /// Refined and coarsened this frame.
+    pub refined: usize,
+    /// Coarsened this frame.
+    pub coarsened: usize,
+    /// Diamonds waiting for data.
+    pub pending: usize,
+    /// Keys submitted as wanted.
+    pub wanted: usize,
+    /// Keys submitted as prefetch.
+    pub prefetched: usize,
+    /// Largest projected error of a visible diamond still wanting refinement.
+    pub max_error_px: f64,
+    /// Full quality (see `FrameStats::full_quality`).
+    pub full_quality: bool,
+    /// Cracks found (when checked).
+    pub cracks: usize,
+    /// Coverage errors (uncovered + overlapping probes) found (when checked).
+    pub coverage_errors: usize,
+    /// Body bytes fetched so far.
+    pub bytes_fetched: u64,
+    /// Requests outstanding, and how many the bandwidth estimate allows.
+    pub in_flight: usize,
+    /// Allowed outstanding.
+    pub window: usize,
+    /// Estimated delivered rate, bit/s.
+    pub bandwidth_bit_s: f64,
+}
+
+/// Time to full quality after one jump.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct JumpResult {
+    /// Leg index.
+    pub leg: usize,
+    /// Seconds from the jump to the first frame at full quality; `None` if the leg
+    /// ended first.
+    pub time_to_full_quality_s: Option<f64>,
+    /// Body bytes fetched during the leg until then (or the leg's end).
+    pub bytes_fetched: u64,
+}
+
+/// What a flight measured. Field names are those of `quincunx fly --json`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct FlightReport {
+    /// Flight name.
+    pub flight: String,
+    /// Transport used.
+    pub transport: String,
+    /// Tolerance, pixels.
+    pub tolerance_px: f64,
+    /// Frames run.
+    pub frames: usize,
+    /// Seconds flown.
+    pub seconds: f64,
+    /// Per jump leg.
+    pub jumps: Vec<JumpResult>,
+    /// Median and largest time to full quality over the jumps that reached it.
+    pub time_to_full_quality_s_p50: Option<f64>,
+    /// Largest.
+    pub time_to_full_quality_s_max: Option<f64>,
+    /// Jumps that never reached full quality within their leg.
+    pub jumps_unfinished: usize,
+    /// Body bytes fetched (prefetch included).
+    pub bytes_fetched: u64,
+    /// Body bytes of the distinct blobs refinement used (the data the views needed).
+    pub bytes_in_final_cuts: u64,
+    /// `bytes_fetched / bytes_in_final_cuts`.
+    pub fetch_waste: f64,
+    /// Requests written (retries included).
+    pub requests: u64,
+    /// Answers that were empty (diamonds without a blob).
+    pub leaves: u64,
+    /// Fetch failures reported to the session.
+    pub failures: u64,
+    /// Errors counted by the network thread (each failed attempt).
+    pub fetch_errors: u64,
+    /// Halves in the cut per frame: median and largest.
+    pub diamonds_per_frame_p50: usize,
+    /// Largest.
+    pub diamonds_per_frame_max: usize,
+    /// Refinement time per frame, milliseconds.
+    pub refine_ms_p50: f64,
+    /// 99th percentile.
+    pub refine_ms_p99: f64,
+    /// Whole `update` time per frame (polling and submitting included), median.
+    pub update_ms_p50: f64,
+    /// 99th percentile.
+    pub update_ms_p99: f64,
+    /// Frames whose cut was checked.
+    pub frames_checked: usize,
+    /// Cracks over all checked frames (must be 0).
+    pub cracks: usize,
+    /// Uncovered or doubly covered probes over all checked frames (must be 0).
+    pub coverage_errors: usize,
+    /// Largest DAG memory, bytes.
+    pub dag_bytes_max: usize,
+}
+
+/// Percentile of a sorted slice (nearest rank).
+pub fn percentile(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// Flies `flight` with `session` in real time, calling `on_frame` after every frame.
+pub fn fly(
+    session: &mut Session,
+    flight: &Flight,
+    opts: &FlyOptions,
+    mut on_frame: impl FnMut(&FrameRecord),
+) -> Result<FlightReport, SessionError> {
+    let start = Instant::now();
+    let period = Duration::from_secs_f64(1.0 / opts.fps.max(1.0));
+    let mut report = FlightReport {
+        flight: flight.name.clone(),
+        transport: String::new(),
+        tolerance_px: opts.tolerance_px,
+        ..FlightReport::default()
+    };
+    let (mut refine_ms, mut update_ms, mut halves) = (Vec::new(), Vec::new(), Vec::new());
+    let mut frame_no = 0usize;
+    for (li, leg) in flight.legs.iter().enumerate() {
+        let leg_start = start.elapsed();
+        let bytes_at_start = session.fetch_stats().bytes_fetched;
+        let mut full_at: Option<Duration> = None;
+        let mut jump = leg.jump.then_some(JumpResult {
+            leg: li,
+            time_to_full_quality_s: None,
+            bytes_fetched: 0,
+        });
+        loop {
+            let now = start.elapsed();
+            let t_leg = now.saturating_sub(leg_start).as_secs_f64();
+            if t_leg >= leg.duration_s {
+                break;
+            }
+            let pose = match &leg.to {
+                Some(to) => leg.from.lerp(to, t_leg / leg.duration_s),
+                None => leg.from,
+            };
+            let view = View {
+                eye: DVec3::from_array(pose.eye),
+                target: DVec3::from_array(pose.target),
+                up: DVec3::Z,
+                fov_y_rad: opts.fov_y_rad,
+                viewport_px: opts.viewport_px,
+                tolerance_px: opts.tolerance_px,
+            };
+            let frame = session.update(&view, now, opts.frame_budget)?;
+            let fetch = session.fetch_stats();
+            let mut rec = FrameRecord {
+                t_s: now.as_secs_f64(),
+                leg: li,
+                update_ms: frame.elapsed.as_secs_f64() * 1e3,
+                refine_ms: frame.refine.elapsed.as_secs_f64() * 1e3,
+                cut_halves: frame.refine.cut_halves,
+                dag_nodes: frame.refine.dag_nodes,
+                refined: frame.refine.refined,
+                coarsened: frame.refine.coarsened,
+                pending: frame.refine.pending,
+                wanted: frame.wanted,
+                prefetched: frame.prefetched,
+                max_error_px: frame.refine.max_error_px,
+                full_quality: frame.refine.full_quality,
+                cracks: 0,
+                coverage_errors: 0,
+                bytes_fetched: fetch.bytes_fetched,
+                in_flight: fetch.in_flight,
+                window: fetch.window,
+                bandwidth_bit_s: fetch.bandwidth_bit_s,
+            };
+            if opts.check_every > 0 && frame_no.is_multiple_of(opts.check_every) {
+                let check = session.dag().check_cut();
+                rec.cracks = check.cracks;
+                rec.coverage_errors = check.uncovered + check.overlaps;
+                report.frames_checked += 1;
+                report.cracks += check.cracks;
+                report.coverage_errors += rec.coverage_errors;
+            }
+            if frame_no.is_multiple_of(16) {
+                // A pass over the DAG: sampled.
+                report.dag_bytes_max = report.dag_bytes_max.max(session.dag().memory_bytes());
+            }
+            refine_ms.push(rec.refine_ms);
+            update_ms.push(rec.update_ms);
+            halves.push(rec.cut_halves as f64);
+            frame_no += 1;
+            on_frame(&rec);
+            if rec.full_quality {
+                let at = *full_at.get_or_insert(now);
+                if let Some(j) = jump.as_mut()
+                    && j.time_to_full_quality_s.is_none()
+                {
+                    j.time_to_full_quality_s = Some(t_leg);
+                    j.bytes_fetched = fetch.bytes_fetched - bytes_at_start;
+                }
+                if leg
+                    .settle_s
+                    .is_some_and(|s| now.saturating_sub(at).as_secs_f64() >= s)
+                {
+                    break;
+                }
+            } else {
+                full_at = None;
+            }
+            // The next frame: no earlier than one period after this one started.
+            let next = now + period;
+            let after = start.elapsed();
+            if next > after {
+                std::thread::sleep(next - after);
+            }
+        }
+        if let Some(mut j) = jump {
+            if j.time_to_full_quality_s.is_none() {
+                j.bytes_fetched = session.fetch_stats().bytes_fetched - bytes_at_start;
+                report.jumps_unfinished += 1;
+            }
+            report.jumps.push(j);
+        }
+    }
+    let fetch = session.fetch_stats();
+    report.frames = frame_no;
+    report.seconds = start.elapsed().as_secs_f64();
+    report.bytes_fetched = fetch.bytes_fetched;
+    report.bytes_in_final_cuts = session.bytes_used();
+    report.fetch_waste = if report.bytes_in_final_cuts > 0 {
+        report.bytes_fetched as f64 / report.bytes_in_final_cuts as f64
+    } else {
+        0.0
+    };
+    report.requests = fetch.requests;
+    report.leaves = fetch.leaves;
+    report.failures = session.failures();
+    report.fetch_errors = fetch.errors.total();
+    let mut ttfq: Vec<f64> = report
+        .jumps
+        .iter()
+        .filter_map(|j| j.time_to_full_quality_s)
+        .collect();
+    ttfq.sort_by(f64::total_cmp);
+    report.time_to_full_quality_s_p50 = (!ttfq.is_empty()).then(|| percentile(&ttfq, 0.5));
+    report.time_to_full_quality_s_max = ttfq.last().copied();
+    for v in [&mut refine_ms, &mut update_ms, &mut halves] {
+        v.sort_by(f64::total_cmp);
+    }
+    report.refine_ms_p50 = percentile(&refine_ms, 0.5);
+    report.refine_ms_p99 = percentile(&refine_ms, 0.99);
+    report.update_ms_p50 = percentile(&update_ms, 0.5);
+    report.update_ms_p99 = percentile(&update_ms, 0.99);
+    report.diamonds_per_frame_p50 = percentile(&halves, 0.5) as usize;
+    report.diamonds_per_frame_max = halves.last().copied().unwrap_or(0.0) as usize;
+    report.transport = session_transport(session);
+    Ok(report)
+}
+
+fn session_transport(session: &Session) -> String {
+    session.config().transport.name().to_string()
+}

@@ -1,0 +1,648 @@
+//! A streaming session: one served planar elevation repository, its DAG, refinement and
+//! data access layer, driven one frame at a time.
+//!
+//! ```no_run
+//! use std::time::{Duration, Instant};
+//! use glam::DVec3;
+//! use quincunx_client::session::{Session, SessionConfig};
+//! use quincunx_client::view::View;
+//!
+//! let mut session = Session::open("http://127.0.0.1:8080", "korea", SessionConfig::default())?;
+//! let start = Instant::now();
+//! let b = session.bounds();
+//! let view = View {
+//!     eye: DVec3::new(b.min.x, b.min.y, b.max.z + 2_000.0),
+//!     target: (b.min + b.max) / 2.0,
+//!     up: DVec3::Z,
+//!     fov_y_rad: 60f64.to_radians(),
+//!     viewport_px: [1920, 1080],
+//!     tolerance_px: 1.0,
+//! };
+//! loop {
+//!     let frame = session.update(&view, start.elapsed(), Duration::from_millis(4))?;
+//!     // Draw `session.dag().cut()` here.
+//!     if frame.refine.converged {
+//!         break;
+//!     }
+//!     std::thread::sleep(Duration::from_millis(16));
+//! }
+//! # Ok::<(), quincunx_client::session::SessionError>(())
+//! ```
+//!
+//! Each [`Session::update`]:
+//! 1. takes what the network thread delivered since the last frame;
+//! 2. runs [`Refinement::update`] within the budget. Details come from what arrived or
+//!    from the fetcher's decoded cache; everything else the frame wanted is collected
+//!    with its priority (projected error; parents above their children);
+//! 3. submits those wants (which replace the previous frame's) and, a few times a
+//!    second, prefetch keys for the camera predicted [`SessionConfig::prefetch_ahead`]
+//!    ahead; the network thread requests prefetch keys only when every wanted key is in
+//!    flight and the bandwidth allows more.
+//!
+//! The frame never waits for the network: a diamond whose details have not arrived stays
+//! unrefined and the cut stays consistent (crack-free) whatever arrives when.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use glam::DVec3;
+use quincunx_codec::coverage::Coverage;
+use quincunx_codec::diamond::{PlanarDomain, PlanarId};
+use quincunx_codec::entropy::CodecModel;
+use quincunx_codec::incremental::{Details, PlanarRefiner};
+use quincunx_store::Metadata;
+
+use crate::dag::{Dag, DagError};
+use crate::fetch::{
+    Decode, FetchConfig, FetchError, FetchStats, Fetched, Fetcher, Key, Remote, Transport, Weigh,
+    lock,
+};
+use crate::refine::{
+    Availability, DetailSource, FrameStats, RefineConfig, Refinement, SystemClock,
+};
+use crate::view::{Aabb, PlanarWorld, View};
+
+/// Mean Earth radius (metres), for sample spacings of latitude/longitude grids.
+pub const EARTH_RADIUS_M: f64 = 6_371_008.8;
+
+/// Why a session could not start or continue.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    /// Fetching the metadata or starting the network thread failed.
+    #[error(transparent)]
+    Fetch(#[from] FetchError),
+    /// The repository's metadata is unusable for this client.
+    #[error("repository {name:?}: {reason}")]
+    Metadata {
+        /// Repository name.
+        name: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The repository is of a kind this client does not stream yet.
+    #[error("repository {name:?}: {reason}")]
+    Unsupported {
+        /// Repository name.
+        name: String,
+        /// What is missing.
+        reason: String,
+    },
+    /// The DAG refused an operation (a bug, or details inconsistent with the metadata).
+    #[error(transparent)]
+    Dag(#[from] DagError),
+}
+
+/// Settings of a [`Session`]. `Default` gives pipelined HTTP/1.1, 2 connections, a
+/// 64 MiB decoded cache and prefetch half a second ahead.
+#[derive(Clone, Debug)]
+pub struct SessionConfig {
+    /// How blobs travel.
+    pub transport: Transport,
+    /// Persistent connections (pipelined and plain).
+    pub connections: usize,
+    /// Optional cap on the blob request rate, bit/s.
+    pub bandwidth_cap_bit_s: Option<f64>,
+    /// Byte budget of the decoded-details cache.
+    pub cache_bytes: usize,
+    /// Refinement tuning.
+    pub refine: RefineConfig,
+    /// How far ahead the camera is predicted for prefetching; zero disables prefetch.
+    pub prefetch_ahead: Duration,
+    /// How often the predicted camera is evaluated (it costs a pass over the DAG).
+    pub prefetch_every: Duration,
+    /// Most prefetch keys submitted at once.
+    pub prefetch_max: usize,
+    /// Levels below each wanted diamond whose blobs are requested ahead (as prefetch)
+    /// while the wanted diamond's projected error says they will be wanted too (about
+    /// `error / sqrt(2)^depth` above the tolerance). This hides the round trip per level
+    /// a view would otherwise pay on its way down; 0 disables it.
+    pub lookahead_levels: usize,
+    /// Metres between samples; `None` derives it from the metadata's georeference
+    /// (latitude/longitude grids on a sphere of [`EARTH_RADIUS_M`]; projected grids in
+    /// their units) and falls back to 1 m.
+    pub spacing_m: Option<f64>,
+    /// Timeout of the metadata request and of each blob request.
+    pub timeout: Duration,
+}
+
+impl Default for SessionConfig {
+    fn default() -> Self {
+        SessionConfig {
+            transport: Transport::Pipelined,
+            connections: 2,
+            bandwidth_cap_bit_s: None,
+            cache_bytes: 64 << 20,
+            refine: RefineConfig::default(),
+            prefetch_ahead: Duration::from_millis(500),
+            prefetch_every: Duration::from_millis(100),
+            prefetch_max: 1024,
+            lookahead_levels: 2,
+            spacing_m: None,
+            timeout: Duration::from_secs(10),
+        }
+    }
+}
+
+/// What one [`Session::update`] did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SessionFrame {
+    /// The refinement's statistics.
+    pub refine: FrameStats,
+    /// Keys wanted and not here (submitted to the network thread).
+    pub wanted: usize,
+    /// Prefetch keys submitted this frame.
+    pub prefetched: usize,
+    /// Keys whose fetch failed since the last frame (they are asked for again).
+    pub failed: usize,
+    /// The whole update, including polling and submitting.
+    pub elapsed: Duration,
+}
+
+impl Weigh for Details {
+    fn weight_bytes(&self) -> usize {
+        std::mem::size_of::<Self>()
+            + self.h.capacity() * std::mem::size_of::<i32>()
+            + self.child_classes.capacity() * std::mem::size_of::<(PlanarId, u8)>()
+    }
+}
+
+/// A planar elevation repository streamed from a server.
+pub struct Session {
+    name: String,
+    remote: Remote,
+    meta: Metadata,
+    world: PlanarWorld,
+    refiner: Arc<PlanarRefiner>,
+    dag: Dag,
+    refinement: Refinement,
+    fetcher: Fetcher<Details>,
+    config: SessionConfig,
+    /// Body bytes of each fetched blob (written on the network thread).
+    blob_bytes: Arc<Mutex<HashMap<Key, u32>>>,
+    /// Delivered since the last frame.
+    arrived: HashMap<Key, Option<Arc<Details>>>,
+    /// Diamonds refined with a blob at least once (for waste accounting).
+    used: HashSet<Key>,
+    /// Diamonds known to have no blob without asking: a diamond without a blob has no
+    /// descendant with one (docs/blob-format.md), so the children of a leaf are leaves.
+    inferred_leaves: HashSet<Key>,
+    /// Camera motion for prediction: last time and eye, smoothed velocity (m/s).
+    last_eye: Option<(Duration, DVec3)>,
+    velocity: DVec3,
+    last_prefetch: Option<Duration>,
+    failures: u64,
+}
+
+impl Session {
+    /// Opens repository `name` served at `base_url` (`http://host[:port][/prefix]`):
+    /// fetches its metadata once and starts the network thread.
+    pub fn open(
+        base_url: &str,
+        name: &str,
+        config: SessionConfig,
+    ) -> Result<Session, SessionError> {
+        let (remote, meta) = Remote::open(base_url, name, config.timeout)?;
+        Session::with_metadata(remote, meta, config)
+    }
+
+    /// Starts a session on a repository whose metadata is already known.
+    pub fn with_metadata(
+        remote: Remote,
+        meta: Metadata,
+        config: SessionConfig,
+    ) -> Result<Session, SessionError> {
+        let name = remote.name.clone();
+        let refiner = Arc::new(planar_refiner(&name, &meta)?);
+        let world = planar_world(&meta, config.spacing_m);
+        let blob_bytes: Arc<Mutex<HashMap<Key, u32>>> = Arc::default();
+        let decode: Decode<Details> = {
+            let refiner = Arc::clone(&refiner);
+            let sizes = Arc::clone(&blob_bytes);
+            Arc::new(move |key: Key, bytes| {
+                let id = PlanarId {
+                    x: key[0],
+                    y: key[1],
+                };
+                lock(&sizes).insert(key, u32::try_from(bytes.len()).unwrap_or(u32::MAX));
+                refiner.decode(id, &bytes).map_err(|e| e.to_string())
+            })
+        };
+        let mut fetch = FetchConfig::new(remote.clone());
+        fetch.transport = config.transport;
+        fetch.connections = config.connections.max(1);
+        fetch.bandwidth_cap_bit_s = config.bandwidth_cap_bit_s;
+        fetch.cache_bytes = config.cache_bytes;
+        fetch.request_timeout = config.timeout;
+        let fetcher = Fetcher::spawn(fetch, decode)?;
+        Ok(Session {
+            name,
+            remote,
+            meta,
+            world,
+            dag: Dag::new(Arc::clone(&refiner)),
+            refiner,
+            refinement: Refinement::with_config(config.refine),
+            fetcher,
+            config,
+            blob_bytes,
+            arrived: HashMap::new(),
+            used: HashSet::new(),
+            inferred_leaves: HashSet::new(),
+            last_eye: None,
+            velocity: DVec3::ZERO,
+            last_prefetch: None,
+            failures: 0,
+        })
+    }
+
+    /// The settings it was opened with.
+    pub fn config(&self) -> &SessionConfig {
+        &self.config
+    }
+
+    /// Repository name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Where the blobs come from.
+    pub fn remote(&self) -> &Remote {
+        &self.remote
+    }
+
+    /// The repository's metadata.
+    pub fn metadata(&self) -> &Metadata {
+        &self.meta
+    }
+
+    /// How ids and integer samples map to world metres.
+    pub fn world(&self) -> PlanarWorld {
+        self.world
+    }
+
+    /// The DAG: the current cut ([`Dag::cut`]) is what a renderer draws.
+    pub fn dag(&self) -> &Dag {
+        &self.dag
+    }
+
+    /// The world box of the raster: its extent times the root grid's height range.
+    pub fn bounds(&self) -> Aabb {
+        let (w, h) = self.dag.refiner().raster_size();
+        let (z0, z1) = self
+            .dag
+            .node(self.dag.refiner().root().0)
+            .map_or((0, 0), |n| n.z_range);
+        let a = self.world.point([0, 0], z0);
+        let b = self.world.point([w as i64 - 1, h as i64 - 1], z1);
+        Aabb {
+            min: a.min(b),
+            max: a.max(b),
+        }
+    }
+
+    /// The network thread's counters.
+    pub fn fetch_stats(&self) -> FetchStats {
+        self.fetcher.stats()
+    }
+
+    /// Fetch failures reported so far (each is asked for again while wanted).
+    pub fn failures(&self) -> u64 {
+        self.failures
+    }
+
+    /// Body bytes of the distinct blobs that refinement has used so far (each counted
+    /// once, however often it was refined): the data the views needed.
+    pub fn bytes_used(&self) -> u64 {
+        let sizes = lock(&self.blob_bytes);
+        self.used
+            .iter()
+            .map(|k| u64::from(sizes.get(k).copied().unwrap_or(0)))
+            .sum()
+    }
+
+    /// Runs one frame for `view` at time `now` (any monotonic origin, used for camera
+    /// prediction): refines and coarsens within `budget` and keeps the network busy.
+    pub fn update(
+        &mut self,
+        view: &View,
+        now: Duration,
+        budget: Duration,
+    ) -> Result<SessionFrame, SessionError> {
+        let started = std::time::Instant::now();
+        let mut frame = SessionFrame::default();
+        for (key, fetched) in self.fetcher.poll() {
+            match fetched {
+                Fetched::Data(d) => {
+                    self.arrived.insert(key, Some(d));
+                }
+                Fetched::Leaf => {
+                    self.arrived.insert(key, None);
+                }
+                Fetched::Failed(e) => {
+                    tracing::debug!(?key, error = %e, "fetch failed");
+                    frame.failed += 1;
+                    self.failures += 1;
+                }
+            }
+        }
+        let clock = SystemClock(started);
+        let mut source = FetchSource {
+            fetcher: &self.fetcher,
+            domain: self.dag.refiner().domain(),
+            arrived: &mut self.arrived,
+            used: &mut self.used,
+            inferred_leaves: &mut self.inferred_leaves,
+            wants: HashMap::new(),
+        };
+        frame.refine =
+            self.refinement
+                .update(&mut self.dag, view, self.world, &mut source, &clock, budget)?;
+        let wants: Vec<(Key, f32)> = source
+            .wants
+            .into_iter()
+            .map(|(k, p)| (k, p as f32))
+            .collect();
+        frame.wanted = wants.len();
+        self.arrived.clear();
+
+        let mut prefetch = self.lookahead(&wants, view.tolerance_px);
+        prefetch.extend(self.prefetch(view, now, &wants));
+        prefetch.sort_by(|a, b| b.1.total_cmp(&a.1));
+        prefetch.dedup_by_key(|(k, _)| *k);
+        prefetch.truncate(self.config.prefetch_max);
+        frame.prefetched = prefetch.len();
+        self.fetcher.submit_with_prefetch(wants, prefetch);
+        frame.elapsed = started.elapsed();
+        Ok(frame)
+    }
+
+    /// The descendants of wanted diamonds that will be wanted once these arrive, while
+    /// their projected error (about the parent's over `sqrt(2)` per level) exceeds the
+    /// tolerance.
+    fn lookahead(&self, wants: &[(Key, f32)], tolerance_px: f64) -> Vec<(Key, f32)> {
+        let levels = self.config.lookahead_levels;
+        if levels == 0 {
+            return Vec::new();
+        }
+        let wanted: HashSet<Key> = wants.iter().map(|&(k, _)| k).collect();
+        let mut out: HashMap<Key, f32> = HashMap::new();
+        let domain = self.refiner.domain();
+        let mut frontier: Vec<(PlanarId, f64)> = wants
+            .iter()
+            .map(|&([x, y, _], p)| (PlanarId { x, y }, f64::from(p)))
+            .collect();
+        for _ in 0..levels {
+            let mut next = Vec::new();
+            for (id, p) in frontier {
+                let child_error = p / std::f64::consts::SQRT_2;
+                if child_error <= tolerance_px {
+                    continue;
+                }
+                for c in domain.children(id).unwrap_or_default() {
+                    let key = [c.x, c.y, 0];
+                    if !self.refiner.is_refinable(c)
+                        || wanted.contains(&key)
+                        || self.inferred_leaves.contains(&key)
+                    {
+                        continue;
+                    }
+                    let e = out.entry(key).or_insert(0.0);
+                    if child_error as f32 > *e {
+                        *e = child_error as f32;
+                        next.push((c, child_error));
+                    }
+                }
+            }
+            frontier = next;
+        }
+        out.into_iter().collect()
+    }
+
+    /// Tracks the camera and, when due, lists what the predicted view wants that the
+    /// current one does not.
+    fn prefetch(&mut self, view: &View, now: Duration, wants: &[(Key, f32)]) -> Vec<(Key, f32)> {
+        if let Some((then, eye)) = self.last_eye {
+            let dt = now.saturating_sub(then).as_secs_f64();
+            if dt > 0.0 {
+                let v = (view.eye - eye) / dt;
+                // A jump (far faster than the camera was moving) is not motion: predict
+                // nothing until the camera moves again.
+                let speed = self.velocity.length();
+                self.velocity =
+                    if (v.length() > 8.0 * speed + 1_000.0) && speed > 0.0 || !v.is_finite() {
+                        DVec3::ZERO
+                    } else if speed == 0.0 {
+                        v
+                    } else {
+                        self.velocity * 0.7 + v * 0.3
+                    };
+            }
+        }
+        self.last_eye = Some((now, view.eye));
+        let ahead = self.config.prefetch_ahead.as_secs_f64();
+        let due = self
+            .last_prefetch
+            .is_none_or(|t| now.saturating_sub(t) >= self.config.prefetch_every);
+        if ahead <= 0.0 || !due || self.velocity.length_squared() == 0.0 {
+            return Vec::new();
+        }
+        self.last_prefetch = Some(now);
+        let shift = self.velocity * ahead;
+        let predicted = View {
+            eye: view.eye + shift,
+            target: view.target + shift,
+            ..*view
+        };
+        let wanted: HashSet<Key> = wants.iter().map(|&(k, _)| k).collect();
+        let keys: Vec<(Key, f32)> = self
+            .refinement
+            .wanted_splits(&self.dag, &predicted, self.world)
+            .into_iter()
+            .map(|(id, e)| ([id.x, id.y, 0], e as f32))
+            .filter(|(k, _)| !wanted.contains(k))
+            .collect();
+        keys
+    }
+}
+
+/// Details for the refinement from what arrived, the fetcher's caches, or the network.
+struct FetchSource<'a> {
+    fetcher: &'a Fetcher<Details>,
+    domain: PlanarDomain,
+    arrived: &'a mut HashMap<Key, Option<Arc<Details>>>,
+    used: &'a mut HashSet<Key>,
+    inferred_leaves: &'a mut HashSet<Key>,
+    wants: HashMap<Key, f64>,
+}
+
+impl FetchSource<'_> {
+    fn is_leaf(&self, key: Key) -> bool {
+        self.inferred_leaves.contains(&key) || self.fetcher.is_leaf(key)
+    }
+
+    fn lookup(&mut self, id: PlanarId) -> Option<Option<Arc<Details>>> {
+        let key = [id.x, id.y, 0];
+        if let Some(d) = self.arrived.get(&key) {
+            return Some(d.clone());
+        }
+        if self.is_leaf(key) {
+            return Some(None);
+        }
+        if let Some(d) = self.fetcher.cached(key) {
+            return Some(Some(d));
+        }
+        let parents = self.domain.parents(id).unwrap_or_default();
+        if parents.iter().any(|p| self.is_leaf([p.x, p.y, 0])) {
+            self.inferred_leaves.insert(key);
+            return Some(None);
+        }
+        None
+    }
+
+    fn record(&mut self, key: Key, priority: f64) {
+        let p = self.wants.entry(key).or_insert(priority);
+        *p = p.max(priority);
+    }
+}
+
+impl DetailSource for FetchSource<'_> {
+    fn details(&mut self, id: PlanarId, priority: f64) -> Availability {
+        let key = [id.x, id.y, 0];
+        match self.lookup(id) {
+            Some(d) => {
+                if d.is_some() {
+                    self.used.insert(key);
+                }
+                Availability::Ready(d)
+            }
+            None => {
+                self.record(key, priority);
+                Availability::Pending
+            }
+        }
+    }
+
+    fn want(&mut self, id: PlanarId, priority: f64) {
+        if self.lookup(id).is_none() {
+            self.record([id.x, id.y, 0], priority);
+        }
+    }
+}
+
+fn metadata_error(name: &str, reason: impl Into<String>) -> SessionError {
+    SessionError::Metadata {
+        name: name.to_string(),
+        reason: reason.into(),
+    }
+}
+
+/// The incremental decoder of a planar single-channel repository from its metadata.
+pub fn planar_refiner(name: &str, meta: &Metadata) -> Result<PlanarRefiner, SessionError> {
+    if meta.domain != "planar" {
+        return Err(SessionError::Unsupported {
+            name: name.to_string(),
+            reason: format!(
+                "domain {:?}: this client streams planar repositories only (planets need the sphere incremental decoder)",
+                meta.domain
+            ),
+        });
+    }
+    if !meta.complete {
+        return Err(metadata_error(name, "the build did not complete"));
+    }
+    let [coding] = meta.channels.as_slice() else {
+        return Err(SessionError::Unsupported {
+            name: name.to_string(),
+            reason: format!(
+                "{} channels ({}): only single-channel (elevation) repositories stream so far",
+                meta.channels.len(),
+                meta.attribute.kind
+            ),
+        });
+    };
+    let [root] = coding.roots.as_slice() else {
+        return Err(metadata_error(
+            name,
+            "a planar repository has one root grid",
+        ));
+    };
+    let dim = |v: u64| usize::try_from(v).map_err(|_| metadata_error(name, "extent too large"));
+    let model = CodecModel::from_bytes(&coding.model)
+        .map_err(|e| metadata_error(name, format!("entropy model: {e}")))?;
+    let coverage = meta
+        .coverage
+        .as_deref()
+        .map(Coverage::from_bytes)
+        .transpose()
+        .map_err(|e| metadata_error(name, format!("coverage: {e}")))?;
+    let refiner = PlanarRefiner::new(
+        dim(meta.extent[0])?,
+        dim(meta.extent[1])?,
+        meta.n as usize,
+        coverage.as_ref(),
+        coding.steps.clone(),
+        model,
+        root.clone(),
+    )
+    .map_err(|e| metadata_error(name, e.to_string()))?;
+    if refiner.detail_levels() != meta.levels as usize || refiner.domain().m() != meta.m {
+        return Err(metadata_error(
+            name,
+            format!(
+                "levels {} and m {} disagree with the extent and N (levels {}, m {})",
+                meta.levels,
+                meta.m,
+                refiner.detail_levels(),
+                refiner.domain().m()
+            ),
+        ));
+    }
+    Ok(refiner)
+}
+
+/// The world mapping of a planar repository: spacing from the georeference (or
+/// `spacing_m`), values from its channel coding.
+pub fn planar_world(meta: &Metadata, spacing_m: Option<f64>) -> PlanarWorld {
+    let (value_scale_m, value_offset_m) = meta
+        .channels
+        .first()
+        .map_or((1.0, 0.0), |c| (c.value_scale, c.value_offset));
+    PlanarWorld {
+        spacing_m: spacing_m
+            .filter(|s| s.is_finite() && *s > 0.0)
+            .or_else(|| georef_spacing_m(meta))
+            .unwrap_or(1.0),
+        value_scale_m,
+        value_offset_m,
+    }
+}
+
+/// Metres between rows from a georeference `{crs, west, east, north, south,
+/// registration}`: degrees on the Earth for geographic grids, the grid's units otherwise.
+fn georef_spacing_m(meta: &Metadata) -> Option<f64> {
+    let g = meta.georef.as_ref()?;
+    let num = |k: &str| g.get(k).and_then(serde_json::Value::as_f64);
+    let (west, east, north, south) = (num("west")?, num("east")?, num("north")?, num("south")?);
+    let rows = meta.extent[1] as f64;
+    let node = g
+        .get("registration")
+        .and_then(serde_json::Value::as_str)
+        .is_some_and(|r| r.eq_ignore_ascii_case("node"));
+    let intervals = if node { rows - 1.0 } else { rows };
+    let crs = g
+        .get("crs")
+        .and_then(serde_json::Value::as_str)
+        .unwrap_or("");
+    let geographic = crs.contains("4326")
+        || (crs.is_empty() || crs.to_ascii_lowercase().contains("lat"))
+            && [west, east].iter().all(|v| v.abs() <= 360.0)
+            && [north, south].iter().all(|v| v.abs() <= 90.0);
+    let per_row = (north - south).abs() / intervals.max(1.0);
+    let spacing = if geographic {
+        per_row.to_radians() * EARTH_RADIUS_M
+    } else {
+        per_row
+    };
+    (spacing.is_finite() && spacing > 0.0).then_some(spacing)
+}

@@ -1,0 +1,253 @@
+//! `quincunx fly`: a headless client session flying a camera path against a server, in
+//! real time, optionally through an emulated narrow link; per-frame stats and a summary.
+
+use std::path::Path;
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use quincunx_client::fetch::Transport;
+use quincunx_client::fetch::http1::Endpoint;
+use quincunx_client::fetch::link::LinkProxy;
+use quincunx_client::flight::{self, Flight, FlightReport, FlyOptions};
+use quincunx_client::session::{Session, SessionConfig};
+
+/// `quincunx fly` options.
+#[derive(Args, Debug, Clone)]
+pub struct FlyArgs {
+    /// Server base URL, e.g. `http://127.0.0.1:8080`.
+    #[arg(long)]
+    pub url: String,
+    /// Elevation repository name.
+    #[arg(long)]
+    pub repo: String,
+    /// Colour repository name (not streamed yet: refused with an error).
+    #[arg(long)]
+    pub color: Option<String>,
+    /// `approach`, `low-flight`, `jump`, or a JSON flight file (see `docs/streaming.md`).
+    #[arg(long, default_value = "jump")]
+    pub path: String,
+    /// Screen-space tolerance, pixels.
+    #[arg(long, default_value_t = 1.0)]
+    pub tolerance_px: f64,
+    /// `pipelined`, `plain` or `h2`.
+    #[arg(long, default_value = "pipelined")]
+    pub transport: Transport,
+    /// Emulated link `KBIT_S,RTT_MS` (an in-process throttling proxy in front of the
+    /// server), e.g. `4000,100`.
+    #[arg(long, value_parser = parse_link)]
+    pub link: Option<(f64, f64)>,
+    /// Persistent connections (pipelined and plain).
+    #[arg(long, default_value_t = 2)]
+    pub connections: usize,
+    /// Refinement budget per frame, milliseconds.
+    #[arg(long, default_value_t = 4.0)]
+    pub frame_budget_ms: f64,
+    /// Frames per second.
+    #[arg(long, default_value_t = 60.0)]
+    pub fps: f64,
+    /// Viewport `WIDTHxHEIGHT`.
+    #[arg(long, default_value = "1920x1080", value_parser = parse_viewport)]
+    pub viewport: [u32; 2],
+    /// Prefetch horizon in seconds (0 disables prefetch).
+    #[arg(long, default_value_t = 0.5)]
+    pub prefetch_s: f64,
+    /// Metres between samples (default: from the georeference).
+    #[arg(long)]
+    pub spacing_m: Option<f64>,
+    /// Seed of the `jump` places.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Check the cut for cracks every this many frames (0 = never).
+    #[arg(long, default_value_t = 1)]
+    pub check_every: usize,
+    /// One JSON object (the summary) on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+    /// Per-frame JSON lines on stderr.
+    #[arg(long)]
+    pub frames: bool,
+}
+
+fn parse_link(s: &str) -> Result<(f64, f64), String> {
+    let (a, b) = s
+        .split_once(',')
+        .ok_or_else(|| format!("{s:?} is not KBIT_S,RTT_MS"))?;
+    let parse = |t: &str| -> Result<f64, String> {
+        let v: f64 = t.trim().parse().map_err(|e| format!("{t:?}: {e}"))?;
+        if v.is_finite() && v >= 0.0 {
+            Ok(v)
+        } else {
+            Err(format!("{t:?} must be a non-negative number"))
+        }
+    };
+    let (kbit, rtt) = (parse(a)?, parse(b)?);
+    if kbit <= 0.0 {
+        return Err("the link rate must be positive".into());
+    }
+    Ok((kbit, rtt))
+}
+
+fn parse_viewport(s: &str) -> Result<[u32; 2], String> {
+    let (w, h) = s
+        .split_once('x')
+        .ok_or_else(|| format!("{s:?} is not WIDTHxHEIGHT"))?;
+    let p = |t: &str| match t.parse::<u32>() {
+        Ok(v) if (1..=16_384).contains(&v) => Ok(v),
+        _ => Err(format!("{t:?} is not a size in 1..=16384")),
+    };
+    Ok([p(w)?, p(h)?])
+}
+
+/// The session settings `args` ask for.
+pub fn session_config(args: &FlyArgs) -> SessionConfig {
+    SessionConfig {
+        transport: args.transport,
+        connections: args.connections,
+        prefetch_ahead: Duration::from_secs_f64(args.prefetch_s.max(0.0)),
+        spacing_m: args.spacing_m,
+        ..SessionConfig::default()
+    }
+}
+
+/// The run options `args` ask for.
+pub fn fly_options(args: &FlyArgs) -> FlyOptions {
+    FlyOptions {
+        fps: args.fps,
+        frame_budget: Duration::from_secs_f64(args.frame_budget_ms.max(0.0) / 1e3),
+        viewport_px: args.viewport,
+        tolerance_px: args.tolerance_px,
+        check_every: args.check_every,
+        ..FlyOptions::default()
+    }
+}
+
+/// A built-in flight or one read from a file, over the session's world.
+pub fn load_flight(path: &str, session: &Session, seed: u64) -> Result<Flight> {
+    if flight::BUILTIN.contains(&path) {
+        return Ok(Flight::builtin(path, session.bounds(), seed)?);
+    }
+    let p = Path::new(path);
+    if !p.exists() {
+        bail!(
+            "no flight {path:?}: built-in flights are {} (or give a JSON file)",
+            flight::BUILTIN.join(", ")
+        );
+    }
+    let text = std::fs::read_to_string(p).with_context(|| format!("reading {path}"))?;
+    Ok(Flight::from_json(path, &text)?)
+}
+
+/// An emulated link in front of the server named by `url`, and the URL to use instead.
+pub fn start_link(url: &str, link: (f64, f64)) -> Result<(LinkProxy, String)> {
+    let endpoint = Endpoint::from_url(url).with_context(|| format!("server URL {url:?}"))?;
+    let proxy = LinkProxy::start(endpoint.addr, link.0, Duration::from_secs_f64(link.1 / 1e3))
+        .context("starting the emulated link")?;
+    let url = format!("http://{}{}", proxy.local_addr(), endpoint.prefix);
+    Ok((proxy, url))
+}
+
+/// Runs `quincunx fly`.
+pub fn run(args: &FlyArgs) -> Result<()> {
+    if let Some(c) = &args.color {
+        bail!(
+            "--color {c}: colour layers are not streamed yet (elevation only; see docs/streaming.md)"
+        );
+    }
+    if !(args.tolerance_px.is_finite() && args.tolerance_px > 0.0) {
+        bail!("--tolerance-px must be positive");
+    }
+    let link = args.link.map(|l| start_link(&args.url, l)).transpose()?;
+    let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
+    let mut session = Session::open(url, &args.repo, session_config(args))
+        .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
+    let flight = load_flight(&args.path, &session, args.seed)?;
+    let opts = fly_options(args);
+    let per_frame = args.frames;
+    let report = flight::fly(&mut session, &flight, &opts, |f| {
+        if per_frame && let Ok(line) = serde_json::to_string(f) {
+            eprintln!("{line}");
+        }
+    })?;
+    let link_bytes = link.as_ref().map(|(p, _)| p.bytes_down());
+    print_report(&report, args, link_bytes)
+}
+
+fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) -> Result<()> {
+    if args.json {
+        let mut v = serde_json::to_value(r)?;
+        if let Some(obj) = v.as_object_mut() {
+            obj.insert("repo".into(), args.repo.clone().into());
+            obj.insert(
+                "link".into(),
+                args.link.map_or(
+                    serde_json::Value::Null,
+                    |(k, rtt)| serde_json::json!({"kbit_s": k, "rtt_ms": rtt}),
+                ),
+            );
+            obj.insert("link_bytes_down".into(), link_bytes_down.into());
+            // The field the issue names: the jump legs' times, in order.
+            obj.insert(
+                "time_to_full_quality_s".into(),
+                r.jumps
+                    .iter()
+                    .map(|j| j.time_to_full_quality_s)
+                    .collect::<Vec<_>>()
+                    .into(),
+            );
+            obj.insert(
+                "diamonds_per_frame".into(),
+                serde_json::json!({"p50": r.diamonds_per_frame_p50, "max": r.diamonds_per_frame_max}),
+            );
+        }
+        outln!("{}", serde_json::to_string(&v)?);
+    } else {
+        outln!(
+            "flight {} over {} ({}), {:.1} s, {} frames",
+            r.flight,
+            args.repo,
+            r.transport,
+            r.seconds,
+            r.frames
+        );
+        for j in &r.jumps {
+            match j.time_to_full_quality_s {
+                Some(t) => outln!(
+                    "  jump {}: full quality after {t:.3} s ({} bytes)",
+                    j.leg,
+                    j.bytes_fetched
+                ),
+                None => outln!("  jump {}: not at full quality when the leg ended", j.leg),
+            }
+        }
+        outln!(
+            "fetched {} bytes, used {} bytes (waste {:.3}), {} requests, {} failures",
+            r.bytes_fetched,
+            r.bytes_in_final_cuts,
+            r.fetch_waste,
+            r.requests,
+            r.failures
+        );
+        outln!(
+            "diamonds per frame p50 {} max {}; refine ms p50 {:.3} p99 {:.3}",
+            r.diamonds_per_frame_p50,
+            r.diamonds_per_frame_max,
+            r.refine_ms_p50,
+            r.refine_ms_p99
+        );
+        outln!(
+            "cracks {} and coverage errors {} over {} checked frames",
+            r.cracks,
+            r.coverage_errors,
+            r.frames_checked
+        );
+    }
+    if r.cracks > 0 || r.coverage_errors > 0 {
+        bail!(
+            "the cut was inconsistent: {} cracks, {} coverage errors",
+            r.cracks,
+            r.coverage_errors
+        );
+    }
+    Ok(())
+}
