@@ -525,3 +525,77 @@ pub fn fly(
 fn session_transport(session: &Session) -> String {
     session.config().transport.name().to_string()
 }
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    fn bounds() -> Aabb {
+        Aabb {
+            min: DVec3::new(0.0, 0.0, -10.0),
+            max: DVec3::new(100_000.0, 50_000.0, 2_000.0),
+        }
+    }
+
+    #[test]
+    fn builtin_flights_stay_over_the_raster_and_above_its_highest_point() {
+        for name in BUILTIN {
+            let f = Flight::builtin(name, bounds(), 5).unwrap();
+            assert!(!f.legs.is_empty() && f.duration_s() > 0.0, "{name}");
+            for leg in &f.legs {
+                for p in std::iter::once(&leg.from).chain(leg.to.as_ref()) {
+                    assert!(p.eye[2] >= 2_000.0 + LOW_ALTITUDE_M - 1e-6, "{name}: {p:?}");
+                    assert!((-1e4..=1.1e5).contains(&p.eye[0]), "{name}: {p:?}");
+                    assert!(p.eye != p.target, "{name}");
+                }
+            }
+        }
+        let jump = Flight::builtin("jump", bounds(), 5).unwrap();
+        assert!(jump.legs.iter().all(|l| l.jump && l.to.is_none()));
+        // Seeded: the same places for the same seed, others for another.
+        assert_eq!(jump, Flight::builtin("jump", bounds(), 5).unwrap());
+        assert_ne!(jump, Flight::builtin("jump", bounds(), 6).unwrap());
+        assert!(matches!(
+            Flight::builtin("orbit", bounds(), 0),
+            Err(FlightError::Unknown(_))
+        ));
+    }
+
+    #[test]
+    fn flight_files_are_checked() {
+        let ok =
+            r#"{"legs": [{"duration_s": 2, "from": {"eye": [0, 0, 10], "target": [1, 1, 0]}}]}"#;
+        let f = Flight::from_json("f.json", ok).unwrap();
+        assert_eq!(
+            (f.name.as_str(), f.legs.len(), f.duration_s()),
+            ("f.json", 1, 2.0)
+        );
+        for bad in [
+            "",
+            "{}",
+            r#"{"legs": []}"#,
+            r#"{"legs": [{"duration_s": 0, "from": {"eye": [0, 0, 10], "target": [1, 1, 0]}}]}"#,
+            r#"{"legs": [{"duration_s": 1, "from": {"eye": [0, 0, 1e999], "target": [1, 1, 0]}}]}"#,
+            r#"{"legs": [{"duration_s": 1, "from": {"eye": [0, 0], "target": [1, 1, 0]}}]}"#,
+            r#"{"legs": [{"duration_s": 1, "settle_s": -1, "from": {"eye": [0, 0, 1], "target": [1, 1, 0]}}]}"#,
+        ] {
+            assert!(Flight::from_json("x", bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn poses_interpolate_linearly() {
+        let a = Pose {
+            eye: [0.0, 0.0, 100.0],
+            target: [10.0, 0.0, 0.0],
+        };
+        let b = Pose {
+            eye: [100.0, 0.0, 300.0],
+            target: [110.0, 0.0, 0.0],
+        };
+        let m = a.lerp(&b, 0.5);
+        assert_eq!(m.eye, [50.0, 0.0, 200.0]);
+        assert_eq!(m.target, [60.0, 0.0, 0.0]);
+    }
+}

@@ -551,6 +551,9 @@ pub fn planar_refiner(name: &str, meta: &Metadata) -> Result<PlanarRefiner, Sess
     if !meta.complete {
         return Err(metadata_error(name, "the build did not complete"));
     }
+    if meta.channels.is_empty() {
+        return Err(metadata_error(name, "no channels"));
+    }
     let [coding] = meta.channels.as_slice() else {
         return Err(SessionError::Unsupported {
             name: name.to_string(),

@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{Response, get, metric, try_get, workspace_root};
+use common::{Response, copy_dir, get, metric, try_get, workspace_root};
 use quincunx_repo_tools::build::{self, BuildArgs};
 use quincunx_server::{RepoConfig, Server, ServerConfig};
 
@@ -221,19 +221,6 @@ fn find_nginx() -> Option<PathBuf> {
 }
 
 /// Copies a directory tree (files and directories only: what a repository holds).
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), &target).unwrap();
-        }
-    }
-}
-
 /// The URL version (`hash16`) of a repository and `count` of its blobs spread over the
 /// key space: (URL path, bytes).
 fn sample_blobs(repo: &Path, count: usize) -> (String, Vec<(String, Vec<u8>)>) {

@@ -1,0 +1,400 @@
+//! Streaming sessions end to end: a repository built from the bundled DEM, served by a
+//! real server over loopback, streamed by `quincunx_client::session::Session`.
+//!
+//! - a jump flight: every frame's cut is crack-free and covers the raster once, every jump
+//!   reaches full quality, and the final cut is bit-identical to refining with the
+//!   repository read locally;
+//! - a server killed mid-flight and restarted: no panic, every frame consistent, and the
+//!   same final cut once it is back;
+//! - `quincunx fly` with a flight file, and its errors;
+//! - repositories the client cannot stream are refused with clear errors.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use common::workspace_root;
+use glam::DVec3;
+use quincunx_client::dag::{Dag, Half};
+use quincunx_client::fetch::link::LinkProxy;
+use quincunx_client::flight::{self, Flight, FlyOptions};
+use quincunx_client::refine::{Availability, DetailSource, Refinement, SystemClock};
+use quincunx_client::session::{Session, SessionConfig, SessionError, planar_refiner};
+use quincunx_client::view::View;
+use quincunx_codec::diamond::PlanarId;
+use quincunx_codec::incremental::PlanarRefiner;
+use quincunx_repo_tools::build::{self, BuildArgs};
+use quincunx_repo_tools::fly::{self, FlyArgs};
+use quincunx_server::{RepoConfig, Server, ServerConfig};
+use quincunx_store::Repository;
+
+const REPO: &str = "korea";
+
+/// Builds the bundled 1025 x 1025 SRTM crop at 2 m RMS into `dir/built/korea`, and a
+/// copy the test reads locally (sled locks a repository per open).
+fn build_korea(dir: &Path) -> (PathBuf, PathBuf) {
+    let built = dir.join("built").join(REPO);
+    build::run(&BuildArgs {
+        input: workspace_root().join("data/korea_srtm3_1025.json"),
+        output: built.clone(),
+        colour: false,
+        planet: false,
+        radius_m: None,
+        body: "earth".into(),
+        face_side: None,
+        sparse: false,
+        diamond_size: None,
+        lossless: false,
+        rms_m: Some(2.0),
+        max_error_m: None,
+        threads: None,
+        memory_budget_mb: None,
+        overwrite: true,
+        json: false,
+        stall_after_blobs: None,
+    })
+    .unwrap();
+    let local = dir.join("local").join(REPO);
+    common::copy_dir(&built, &local);
+    (built, local)
+}
+
+/// A server on its own single-worker runtime: dropping it kills it abruptly.
+struct Served {
+    addr: SocketAddr,
+    runtime: Option<tokio::runtime::Runtime>,
+}
+
+impl Served {
+    fn start(addr: SocketAddr, repos: Vec<RepoConfig>) -> Served {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .enable_all()
+            .build()
+            .unwrap();
+        let config = ServerConfig {
+            addr,
+            repos,
+            workers: 1,
+            ..Default::default()
+        };
+        // A restarted server may find the old repository lock still held for a moment.
+        let deadline = Instant::now() + Duration::from_secs(10);
+        let server = loop {
+            match runtime.block_on(Server::bind(config.clone())) {
+                Ok(s) => break s,
+                Err(e) if Instant::now() < deadline => {
+                    eprintln!("bind: {e}; retrying");
+                    std::thread::sleep(Duration::from_millis(100));
+                }
+                Err(e) => panic!("{e}"),
+            }
+        };
+        let addr = server.local_addr().unwrap();
+        runtime.spawn(server.run(std::future::pending()));
+        Served {
+            addr,
+            runtime: Some(runtime),
+        }
+    }
+
+    fn korea(addr: SocketAddr, path: &Path) -> Served {
+        Served::start(
+            addr,
+            vec![RepoConfig {
+                name: REPO.into(),
+                path: path.to_path_buf(),
+            }],
+        )
+    }
+
+    fn kill(mut self) {
+        if let Some(rt) = self.runtime.take() {
+            rt.shutdown_timeout(Duration::from_secs(5));
+        }
+    }
+}
+
+/// Details read and decoded straight from a local copy of the repository.
+struct Local {
+    repo: Repository,
+    refiner: Arc<PlanarRefiner>,
+}
+
+impl DetailSource for Local {
+    fn details(&mut self, id: PlanarId, _priority: f64) -> Availability {
+        let info = self.refiner.info(id).expect("refinable");
+        let blob = self.repo.get(info.key).unwrap();
+        Availability::Ready(blob.map(|b| Arc::new(self.refiner.decode(id, &b).unwrap())))
+    }
+}
+
+/// The converged cut for `view` with every blob at hand: (id, half, grid) sorted.
+fn reference_cut(local: &Path, view: &View, world: quincunx_client::view::PlanarWorld) -> Cut {
+    let repo = Repository::open(local).unwrap();
+    let refiner = Arc::new(planar_refiner(REPO, repo.metadata()).unwrap());
+    let mut dag = Dag::new(Arc::clone(&refiner));
+    let mut source = Local { repo, refiner };
+    let mut refinement = Refinement::default();
+    let clock = SystemClock(Instant::now());
+    for _ in 0..100 {
+        let s = refinement
+            .update(
+                &mut dag,
+                view,
+                world,
+                &mut source,
+                &clock,
+                Duration::from_secs(60),
+            )
+            .unwrap();
+        if s.converged {
+            return cut_of(&dag);
+        }
+    }
+    panic!("the local refinement did not converge");
+}
+
+type Cut = Vec<(PlanarId, Half, Vec<i32>)>;
+
+fn cut_of(dag: &Dag) -> Cut {
+    dag.cut()
+        .into_iter()
+        .map(|(id, h)| (id, h, dag.node(id).unwrap().grid.to_vec()))
+        .collect()
+}
+
+fn view_of(pose: &flight::Pose) -> View {
+    View {
+        eye: DVec3::from_array(pose.eye),
+        target: DVec3::from_array(pose.target),
+        up: DVec3::Z,
+        fov_y_rad: 60f64.to_radians(),
+        viewport_px: [1920, 1080],
+        tolerance_px: 1.0,
+    }
+}
+
+/// Runs frames for `view` until the session has converged (or panics after `limit`),
+/// checking the cut after every frame.
+fn converge(session: &mut Session, view: &View, start: Instant, limit: Duration) {
+    let t0 = Instant::now();
+    loop {
+        let f = session
+            .update(view, start.elapsed(), Duration::from_millis(8))
+            .unwrap();
+        let check = session.dag().check_cut();
+        assert!(check.ok(), "{check:?}");
+        if f.refine.converged && f.wanted == 0 {
+            return;
+        }
+        assert!(t0.elapsed() < limit, "not converged: {f:?}");
+        std::thread::sleep(Duration::from_millis(5));
+    }
+}
+
+#[test]
+fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
+    let dir = tempfile::tempdir().unwrap();
+    let (built, local) = build_korea(dir.path());
+    let server = Served::korea("127.0.0.1:0".parse().unwrap(), &built);
+    let mut session = Session::open(
+        &format!("http://{}", server.addr),
+        REPO,
+        SessionConfig::default(),
+    )
+    .unwrap();
+    let flight = Flight::builtin("jump", session.bounds(), 7).unwrap();
+    let opts = FlyOptions {
+        check_every: 1,
+        ..FlyOptions::default()
+    };
+    let mut frames = 0;
+    let report = flight::fly(&mut session, &flight, &opts, |f| {
+        frames += 1;
+        assert_eq!((f.cracks, f.coverage_errors), (0, 0), "{f:?}");
+    })
+    .unwrap();
+    assert_eq!(report.frames, frames);
+    assert_eq!(report.frames_checked, frames);
+    assert_eq!((report.cracks, report.coverage_errors), (0, 0));
+    assert_eq!(report.jumps.len(), 6);
+    assert_eq!(report.jumps_unfinished, 0, "{report:?}");
+    assert_eq!(report.failures, 0);
+    // Everything refinement used was fetched, once.
+    assert!(report.bytes_in_final_cuts > 0);
+    assert!(
+        report.bytes_fetched >= report.bytes_in_final_cuts,
+        "{report:?}"
+    );
+    assert!(
+        report.leaves > 0,
+        "a 2 m RMS repository has leaves: {report:?}"
+    );
+
+    // The last view, converged: the same cut, bit for bit, as refining locally.
+    let last = view_of(&flight.legs.last().unwrap().from);
+    converge(&mut session, &last, Instant::now(), Duration::from_secs(30));
+    let streamed = cut_of(session.dag());
+    let world = session.world();
+    drop(session);
+    server.kill();
+    let expected = reference_cut(&local, &last, world);
+    assert!(expected.len() > 100, "{}", expected.len());
+    assert_eq!(streamed.len(), expected.len());
+    assert!(
+        streamed == expected,
+        "the streamed cut differs from the local one"
+    );
+}
+
+#[test]
+fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let (built, local) = build_korea(dir.path());
+    let server = Served::korea("127.0.0.1:0".parse().unwrap(), &built);
+    let addr = server.addr;
+    // A slow link, so the kill lands while data is still coming.
+    let link = LinkProxy::start(addr, 1_000.0, Duration::from_millis(40)).unwrap();
+    let config = SessionConfig {
+        timeout: Duration::from_secs(2),
+        ..SessionConfig::default()
+    };
+    let mut session =
+        Session::open(&format!("http://{}", link.local_addr()), REPO, config).unwrap();
+    let flight = Flight::builtin("jump", session.bounds(), 3).unwrap();
+    let view = view_of(&flight.legs[0].from);
+    let start = Instant::now();
+    let frame = |session: &mut Session| {
+        let f = session
+            .update(&view, start.elapsed(), Duration::from_millis(8))
+            .unwrap();
+        let check = session.dag().check_cut();
+        assert!(check.ok(), "{check:?}");
+        std::thread::sleep(Duration::from_millis(10));
+        f
+    };
+    // Until some, not all, data has arrived.
+    let t0 = Instant::now();
+    loop {
+        let f = frame(&mut session);
+        if session.fetch_stats().responses >= 40 {
+            assert!(!f.refine.converged, "converged before the kill: {f:?}");
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(30), "no data: {f:?}");
+    }
+    server.kill();
+    let down = Instant::now();
+    while down.elapsed() < Duration::from_millis(1500) {
+        frame(&mut session);
+    }
+    let stats = session.fetch_stats();
+    assert!(
+        stats.errors.total() > 0 || session.failures() > 0,
+        "the outage went unnoticed: {stats:?}"
+    );
+    let restarted = Served::korea(addr, &built);
+    converge(&mut session, &view, start, Duration::from_secs(90));
+    let streamed = cut_of(session.dag());
+    let world = session.world();
+    drop(session);
+    restarted.kill();
+    assert!(streamed == reference_cut(&local, &view, world));
+}
+
+fn fly_args(url: &str, path: &str) -> FlyArgs {
+    FlyArgs {
+        url: url.into(),
+        repo: REPO.into(),
+        color: None,
+        path: path.into(),
+        tolerance_px: 2.0,
+        transport: quincunx_client::fetch::Transport::Pipelined,
+        link: None,
+        connections: 2,
+        frame_budget_ms: 8.0,
+        fps: 60.0,
+        viewport: [1280, 720],
+        prefetch_s: 0.5,
+        spacing_m: None,
+        seed: 1,
+        check_every: 1,
+        json: true,
+        frames: false,
+    }
+}
+
+#[test]
+fn quincunx_fly_runs_a_flight_file_and_refuses_what_it_cannot_do() {
+    let dir = tempfile::tempdir().unwrap();
+    let (built, _local) = build_korea(dir.path());
+    let server = Served::korea("127.0.0.1:0".parse().unwrap(), &built);
+    let url = format!("http://{}", server.addr);
+
+    // A two-leg flight file over the raster (about 94 km across): a move, then a jump.
+    let file = dir.path().join("flight.json");
+    std::fs::write(
+        &file,
+        r#"{"legs": [
+            {"duration_s": 1.0, "from": {"eye": [20000, 20000, 4000], "target": [30000, 30000, 0]},
+             "to": {"eye": [30000, 25000, 3000], "target": [40000, 35000, 0]}},
+            {"duration_s": 5.0, "from": {"eye": [70000, 70000, 3000], "target": [60000, 60000, 0]},
+             "jump": true, "settle_s": 0.2}
+        ]}"#,
+    )
+    .unwrap();
+    fly::run(&fly_args(&url, file.to_str().unwrap())).unwrap();
+    // Through an emulated link too.
+    let mut linked = fly_args(&url, file.to_str().unwrap());
+    linked.link = Some((20_000.0, 10.0));
+    fly::run(&linked).unwrap();
+
+    let err = |args: FlyArgs| format!("{:#}", fly::run(&args).unwrap_err());
+    assert!(err(fly_args(&url, "nowhere")).contains("built-in flights are approach"));
+    let bad = dir.path().join("bad.json");
+    std::fs::write(
+        &bad,
+        r#"{"legs": [{"duration_s": -1, "from": {"eye": [0,0,0], "target": [1,1,1]}}]}"#,
+    )
+    .unwrap();
+    assert!(err(fly_args(&url, bad.to_str().unwrap())).contains("durations must be positive"));
+    std::fs::write(&bad, "{").unwrap();
+    assert!(err(fly_args(&url, bad.to_str().unwrap())).contains("flight file"));
+    let mut colour = fly_args(&url, "jump");
+    colour.color = Some("imagery".into());
+    assert!(err(colour).contains("colour layers are not streamed yet"));
+    let mut missing = fly_args(&url, "jump");
+    missing.repo = "nope".into();
+    assert!(err(missing).contains("404"));
+    assert!(err(fly_args("http://127.0.0.1:1", "jump")).contains("opening korea"));
+    server.kill();
+}
+
+#[test]
+fn repositories_the_client_cannot_stream_are_refused_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let repos = quincunx_testkit::build_fixtures(dir.path())
+        .into_iter()
+        .map(|(name, path)| RepoConfig { name, path })
+        .collect();
+    let server = Served::start("127.0.0.1:0".parse().unwrap(), repos);
+    let url = format!("http://{}", server.addr);
+    // A planet: the sphere incremental decoder does not exist yet.
+    match Session::open(&url, "globe", SessionConfig::default()) {
+        Err(SessionError::Unsupported { reason, .. }) => {
+            assert!(reason.contains("planar repositories only"), "{reason}")
+        }
+        other => panic!("{:?}", other.err()),
+    }
+    // Synthetic metadata without a real codec model.
+    match Session::open(&url, "plain", SessionConfig::default()) {
+        Err(SessionError::Metadata { reason, .. }) => assert!(!reason.is_empty()),
+        other => panic!("{:?}", other.err()),
+    }
+    server.kill();
+}
