@@ -273,3 +273,54 @@ fn an_unreachable_server_or_impossible_options_fail_cleanly() {
         assert!(stderr.contains(needle), "{args:?}: {stderr}");
     }
 }
+
+#[test]
+fn fly_mode_runs_real_sessions_against_a_static_export() {
+    let dir = tempfile::tempdir().unwrap();
+    let www = exported_korea(dir.path());
+    let (_rt, url, served) = start_server(www, false);
+    let report = loadtest(
+        &url,
+        &[
+            "--mode",
+            "fly",
+            "--clients",
+            "2",
+            "--path",
+            "jump",
+            "--tolerance-px",
+            "2",
+            "--check-every",
+            "1",
+        ],
+    );
+    assert_eq!(report["mode"], "fly");
+    assert_eq!(report["clients"], 2);
+    assert_eq!(report["clients_failed"], 0, "{report}");
+    assert_eq!(report["jumps"], 12, "{report}");
+    assert_eq!(report["jumps_unfinished"], 0, "{report}");
+    assert_eq!(report["cracks"], 0);
+    assert_eq!(report["coverage_errors"], 0);
+    assert_eq!(report["frames_checked"], report["frames"]);
+    // The clients' accounting is the server's: every blob request and body byte.
+    assert_eq!(
+        report["requests"].as_u64().unwrap(),
+        served.requests.load(Ordering::Relaxed),
+        "{report}"
+    );
+    assert_eq!(
+        report["bytes_fetched"].as_u64().unwrap(),
+        served.body_bytes.load(Ordering::Relaxed)
+    );
+    assert!(
+        served.empty.load(Ordering::Relaxed) > 0,
+        "no leaves requested"
+    );
+
+    // Only built-in flights.
+    let out = run(bin().args([
+        "loadtest", "--url", &url, "--repo", "korea", "--mode", "fly", "--path", "x.json",
+    ]));
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("built-in flights"));
+}

@@ -10,12 +10,18 @@
 //! `--idle` instead opens N connections, makes one request on each and holds them idle, to
 //! measure what idle connections cost the server.
 //!
+//! `--mode fly` runs N real client sessions instead ([`sessions`]): each has its own
+//! network thread, DAG and time-budgeted refinement and flies a built-in flight in real
+//! time, so the load is what real clients would make (requests only for what their views
+//! need, when their bandwidth allows).
+//!
 //! Streams are shared between clients through a pool of `--flights` distinct flights
 //! (client `i` flies flight `i mod flights`), which bounds memory and start-up time for
 //! thousands of clients.
 
 pub mod flight;
 pub mod latency;
+pub mod sessions;
 
 use std::collections::BTreeMap;
 use std::io::IsTerminal as _;
@@ -42,9 +48,23 @@ pub struct LoadtestArgs {
     /// Repository name (as in `/repos/<name>/...`).
     #[arg(long)]
     pub repo: String,
-    /// Concurrent clients, one persistent connection each.
-    #[arg(long, default_value_t = 64)]
+    /// `requests` (replayed request streams, the default) or `fly` (real client
+    /// sessions flying a built-in flight).
+    #[arg(long, default_value = "requests", value_parser = ["requests", "fly"])]
+    pub mode: String,
+    /// Concurrent clients, one persistent connection each (`--clients` is the same).
+    #[arg(long, visible_alias = "clients", default_value_t = 64)]
     pub connections: usize,
+    /// `--mode fly`: the built-in flight (`approach`, `low-flight`, `jump`; default
+    /// `jump`), seeded per client.
+    #[arg(long)]
+    pub path: Option<String>,
+    /// `--mode fly`: screen-space tolerance, pixels.
+    #[arg(long, default_value_t = 1.0)]
+    pub tolerance_px: f64,
+    /// `--mode fly`: check each client's cut for cracks every this many frames (0 never).
+    #[arg(long, default_value_t = 10)]
+    pub check_every: usize,
     /// How long to run, in seconds (with `--requests`, whichever ends first).
     #[arg(long, default_value_t = 10.0)]
     pub duration_s: f64,
@@ -135,6 +155,9 @@ pub struct Report {
 /// Runs `quincunx loadtest`.
 pub fn run(args: &LoadtestArgs) -> Result<()> {
     check_args(args)?;
+    if args.mode == "fly" {
+        return sessions::run(args);
+    }
     let fd_limit = rlimit::increase_nofile_limit(u64::MAX)
         .context("raising the open file limit (RLIMIT_NOFILE)")?;
     let needed = args.connections as u64 + SPARE_FDS;
