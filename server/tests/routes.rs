@@ -315,6 +315,14 @@ async fn cors_allows_any_origin_by_default_and_answers_preflights() {
             .unwrap()
             .contains("etag")
     );
+    // Without an Origin (not a CORS request), the exposure list is left off.
+    let plain = send(&f.state, Request::get(&uri).body(Body::empty()).unwrap()).await;
+    assert_eq!(plain.headers[header::ACCESS_CONTROL_ALLOW_ORIGIN], "*");
+    assert!(
+        !plain
+            .headers
+            .contains_key(header::ACCESS_CONTROL_EXPOSE_HEADERS)
+    );
     let preflight = Request::options(&uri)
         .header(header::ORIGIN, "https://viewer.example")
         .header(header::ACCESS_CONTROL_REQUEST_METHOD, "GET")

@@ -91,24 +91,124 @@ pub fn scatter_to_child(
 ) -> usize {
     let w = n + 1;
     let two_n = 2 * n as i64;
+    let last = n as i64;
     let mut count = 0;
+    // Along a row, p and q are affine in j with slopes in {-1, 0, 1}: the entries that
+    // land on the parent's lattice form one interval of j, every or every other entry.
+    let range = |base: i64, slope: i64| -> (i64, i64) {
+        match slope {
+            0 if (0..=two_n).contains(&base) => (0, last),
+            0 => (1, 0),
+            1 => (-base, two_n - base),
+            _ => (base - two_n, base),
+        }
+    };
     for i in 0..=n {
-        for j in 0..=n {
-            let (p, q) = map.map(i, j);
-            if !(0..=two_n).contains(&p) || !(0..=two_n).contains(&q) || (p - q) % 2 != 0 {
+        let (a, b) = map.map(i, 0);
+        let (pa, pb) = range(a, map.dpj);
+        let (qa, qb) = range(b, map.dqj);
+        let mut lo = pa.max(qa).max(0);
+        let hi = pb.min(qb).min(last);
+        let step = if (map.dpj - map.dqj) % 2 == 0 {
+            if (a - b) % 2 != 0 {
                 continue;
             }
+            1
+        } else {
+            // p - q changes parity with j: start where it is even.
+            if (a - b + lo).rem_euclid(2) != 0 {
+                lo += 1;
+            }
+            2
+        };
+        let mut j = lo;
+        while j <= hi {
+            let (p, q) = (a + j * map.dpj, b + j * map.dqj);
             let value = if p % 2 == 0 {
                 v[(p / 2) as usize * w + (q / 2) as usize]
             } else {
                 c[(p / 2) as usize * n + (q / 2) as usize]
             };
-            child_v[i * w + j] = value;
+            let at = i * w + j as usize;
+            child_v[at] = value;
             if let Some(wr) = written.as_deref_mut() {
-                wr[i * w + j] = true;
+                wr[at] = true;
             }
             count += 1;
+            j += step;
         }
     }
     count
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    /// The definition: every child entry whose image is on the parent's lattice.
+    fn naive(map: &GridMap, n: usize, v: &[i32], c: &[i32], out: &mut [i32], wr: &mut [bool]) {
+        let (w, two_n) = (n + 1, 2 * n as i64);
+        for i in 0..=n {
+            for j in 0..=n {
+                let (p, q) = map.map(i, j);
+                if !(0..=two_n).contains(&p) || !(0..=two_n).contains(&q) || (p - q) % 2 != 0 {
+                    continue;
+                }
+                out[i * w + j] = if p % 2 == 0 {
+                    v[(p / 2) as usize * w + (q / 2) as usize]
+                } else {
+                    c[(p / 2) as usize * n + (q / 2) as usize]
+                };
+                wr[i * w + j] = true;
+            }
+        }
+    }
+
+    #[test]
+    fn the_row_intervals_scatter_exactly_what_the_definition_does() {
+        let n = 8usize;
+        let w = n + 1;
+        let v: Vec<i32> = (0..(w * w) as i32).collect();
+        let c: Vec<i32> = (0..(n * n) as i32).map(|x| 1000 + x).collect();
+        let slopes = [-1i64, 0, 1];
+        let mut maps = 0;
+        for dpi in slopes {
+            for dqi in slopes {
+                for dpj in slopes {
+                    for dqj in slopes {
+                        for p0 in [
+                            -2 * n as i64,
+                            -3,
+                            0,
+                            1,
+                            n as i64,
+                            2 * n as i64,
+                            3 * n as i64,
+                        ] {
+                            for q0 in [-1i64, 0, 2, n as i64 + 1, 2 * n as i64] {
+                                let map = GridMap {
+                                    p0,
+                                    q0,
+                                    dpi,
+                                    dqi,
+                                    dpj,
+                                    dqj,
+                                };
+                                let (mut a, mut wa) = (vec![-1; w * w], vec![false; w * w]);
+                                let (mut b, mut wb) = (vec![-1; w * w], vec![false; w * w]);
+                                naive(&map, n, &v, &c, &mut a, &mut wa);
+                                let count =
+                                    scatter_to_child(&map, n, &v, &c, &mut b, Some(&mut wb));
+                                assert_eq!((a, wa.clone()), (b, wb), "{map:?}");
+                                assert_eq!(count, wa.iter().filter(|&&x| x).count());
+                                maps += 1;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        assert_eq!(maps, 81 * 35);
+    }
 }

@@ -125,10 +125,17 @@ fn cors(state: &AppState, origin: Option<&HeaderValue>, headers: &mut HeaderMap)
             _ => return,
         }
     }
-    headers.insert(
-        header::ACCESS_CONTROL_EXPOSE_HEADERS,
-        HeaderValue::from_static("etag, content-length"),
-    );
+    // Only a cross-origin request (one with an Origin) needs the ETag exposed to scripts;
+    // leaving it off the rest keeps the heads of tiny blob answers short (a client fetching
+    // thousands of them pays for every header byte on a narrow link). A shared cache may
+    // hand the short answer to a browser: that browser's scripts then cannot read the
+    // ETag, which versioned, immutable blob URLs do not need.
+    if origin.is_some() {
+        headers.insert(
+            header::ACCESS_CONTROL_EXPOSE_HEADERS,
+            HeaderValue::from_static("etag, content-length"),
+        );
+    }
 }
 
 /// Whether `If-None-Match` in `headers` matches `etag` (weak comparison, RFC 9110 13.1.2).
