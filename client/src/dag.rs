@@ -110,6 +110,8 @@ pub struct Dag {
     domain: PlanarDomain,
     nodes: IdMap<Node>,
     generations: u64,
+    /// Diamonds holding a refined lattice.
+    refined: usize,
 }
 
 impl Dag {
@@ -139,6 +141,7 @@ impl Dag {
             nodes: IdMap::from_iter([(root, node)]),
             refiner,
             generations: 1,
+            refined: 0,
         }
     }
 
@@ -167,18 +170,26 @@ impl Dag {
         self.nodes.is_empty()
     }
 
-    /// Bytes of grids and lattices held.
+    /// Bytes of grids, lattices and nodes held (constant time: every grid is `(N+1)^2`
+    /// values and every lattice `(N+1)^2 + N^2`).
     pub fn memory_bytes(&self) -> usize {
-        self.nodes
-            .values()
-            .map(|n| {
-                4 * n.grid.len()
-                    + n.refined
-                        .as_ref()
-                        .map_or(0, |r| 4 * (r.vertices.len() + r.cells.len()))
-                    + std::mem::size_of::<Node>()
-            })
-            .sum()
+        self.nodes.len() * Self::node_bytes(self.refiner.n())
+            + self.refined * Self::lattice_bytes(self.refiner.n())
+    }
+
+    /// Bytes one node holds (its grid and the node itself).
+    pub fn node_bytes(n: usize) -> usize {
+        4 * (n + 1) * (n + 1) + std::mem::size_of::<Node>()
+    }
+
+    /// Bytes one refined lattice adds.
+    pub fn lattice_bytes(n: usize) -> usize {
+        4 * ((n + 1) * (n + 1) + n * n)
+    }
+
+    /// Diamonds holding a refined lattice.
+    pub fn refined_len(&self) -> usize {
+        self.refined
     }
 
     /// Whether `id` can be refined now: present, complete, unrefined and carrying details.
@@ -231,6 +242,7 @@ impl Dag {
         let classes: HashMap<PlanarId, u8> = refined.child_classes.iter().copied().collect();
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = Some(refined);
+            self.refined += 1;
         }
         let children = self.children(id);
         for &child in children.iter() {
@@ -250,6 +262,7 @@ impl Dag {
         }
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = None;
+            self.refined -= 1;
         }
         for &child in self.children(id).iter() {
             self.rebuild_child(child)?;

@@ -87,6 +87,11 @@ pub struct RefineConfig {
     /// Skip refining where the side information bounds the change of the surface below
     /// this fraction of the tolerance (flat regions).
     pub flat_fraction: f64,
+    /// Memory budget of the DAG ([`Dag::memory_bytes`]): no refinement that would exceed
+    /// it, and while it is exceeded (a smaller budget, or a view that needs more),
+    /// coarsening of what matters least: off-screen diamonds first, then the smallest
+    /// projected errors. `None`: only the view bounds memory.
+    pub max_dag_bytes: Option<usize>,
 }
 
 impl Default for RefineConfig {
@@ -94,6 +99,7 @@ impl Default for RefineConfig {
         RefineConfig {
             hysteresis: 1.0,
             flat_fraction: 0.1,
+            max_dag_bytes: None,
         }
     }
 }
@@ -111,6 +117,11 @@ pub struct FrameStats {
     pub dag_nodes: usize,
     /// Halves in the cut after the frame.
     pub cut_halves: usize,
+    /// DAG memory after the frame ([`Dag::memory_bytes`]).
+    pub dag_bytes: usize,
+    /// The memory budget held refinement back or forced coarsening this frame: the frame
+    /// is then not at full quality (`converged` may still say nothing more can be done).
+    pub over_budget: bool,
     /// Largest projected error of a visible cut diamond that still wants refining (0 when
     /// the cut meets the tolerance).
     pub max_error_px: f64,
@@ -466,13 +477,70 @@ impl Refinement {
             }
         }
 
+        if let Some(max) = self.config.max_dag_bytes
+            && dag.memory_bytes() > max
+            && !stats.out_of_time
+        {
+            stats.over_budget = true;
+            self.evict(dag, &projector, max, clock, deadline, &mut stats)?;
+        }
+
         stats.pending = waiting;
+        stats.dag_bytes = dag.memory_bytes();
         stats.dag_nodes = dag.len();
         stats.cut_halves = dag.cut_len();
         stats.converged = !stats.out_of_time && waiting == 0;
-        stats.full_quality = splits_done && waiting == 0;
+        stats.full_quality = splits_done && waiting == 0 && !stats.over_budget;
         stats.elapsed = clock.now().saturating_sub(start);
         Ok(stats)
+    }
+
+    /// Coarsens until the DAG fits `max` bytes: off-screen diamonds first, then the
+    /// smallest projected errors.
+    fn evict(
+        &mut self,
+        dag: &mut Dag,
+        projector: &Projector<'_>,
+        max: usize,
+        clock: &dyn Clock,
+        deadline: Duration,
+        stats: &mut FrameStats,
+    ) -> Result<(), DagError> {
+        let rank = |dag: &Dag, id: PlanarId| {
+            let a = projector.appearance(dag, id);
+            // Off-screen diamonds rank below every visible one.
+            let e = if a.visible {
+                a.error_px
+            } else {
+                -1.0 / (1.0 + a.error_px)
+            };
+            std::cmp::Reverse(Key(e, id))
+        };
+        let mut queue: BinaryHeap<std::cmp::Reverse<Key>> = dag
+            .nodes()
+            .filter(|n| n.refined.is_some() && dag.is_coarsenable(n.id))
+            .map(|n| rank(dag, n.id))
+            .collect();
+        while dag.memory_bytes() > max {
+            let Some(std::cmp::Reverse(Key(_, id))) = queue.pop() else {
+                break;
+            };
+            if !dag.is_coarsenable(id) {
+                continue;
+            }
+            if clock.now() >= deadline {
+                stats.out_of_time = true;
+                break;
+            }
+            dag.coarsen(id)?;
+            stats.coarsened += 1;
+            for parent in dag.parents(id) {
+                if dag.is_coarsenable(parent) {
+                    queue.push(rank(dag, parent));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Refines `id`, refining its missing parents first.
@@ -529,6 +597,15 @@ impl Refinement {
         // cut does not depend on the order in which its parents arrived.
         if depth == 0 && !projector.wants_split(&projector.appearance(dag, id)) {
             return Ok(Outcome::Impossible);
+        }
+        if let Some(max) = self.config.max_dag_bytes {
+            // A refinement adds a lattice and up to four children's nodes.
+            let n = dag.refiner().n();
+            if dag.memory_bytes() + Dag::lattice_bytes(n) + 4 * Dag::node_bytes(n) > max {
+                stats.over_budget = true;
+                stats.max_error_px = stats.max_error_px.max(priority);
+                return Ok(Outcome::Impossible);
+            }
         }
         match source.details(id, priority) {
             Availability::Ready(details) => {

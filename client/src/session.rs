@@ -53,7 +53,7 @@ use quincunx_codec::entropy::CodecModel;
 use quincunx_codec::incremental::{Details, PlanarRefiner};
 use quincunx_store::Metadata;
 
-use crate::dag::{Dag, DagError};
+use crate::dag::{Dag, DagError, Half};
 use crate::fetch::{
     Decode, FetchConfig, FetchError, FetchStats, Fetched, Fetcher, Key, Remote, Transport, Weigh,
     lock,
@@ -101,6 +101,10 @@ pub struct SessionConfig {
     pub transport: Transport,
     /// Persistent connections (pipelined and plain).
     pub connections: usize,
+    /// Requests outstanding per pipelined connection.
+    pub pipeline_depth: usize,
+    /// Requests outstanding in total, whatever the bandwidth estimate allows.
+    pub max_in_flight: usize,
     /// Optional cap on the blob request rate, bit/s.
     pub bandwidth_cap_bit_s: Option<f64>,
     /// Byte budget of the decoded-details cache.
@@ -131,6 +135,8 @@ impl Default for SessionConfig {
         SessionConfig {
             transport: Transport::Pipelined,
             connections: 2,
+            pipeline_depth: 128,
+            max_in_flight: 256,
             bandwidth_cap_bit_s: None,
             cache_bytes: 64 << 20,
             refine: RefineConfig::default(),
@@ -157,6 +163,37 @@ pub struct SessionFrame {
     pub failed: usize,
     /// The whole update, including polling and submitting.
     pub elapsed: Duration,
+}
+
+/// One drawable triangle of the cut: a present half of an unrefined diamond.
+#[derive(Clone, Debug)]
+pub struct Patch {
+    /// The diamond.
+    pub id: PlanarId,
+    /// Which half.
+    pub half: Half,
+    /// The diamond's frame `[E1, P1, E2, P2]` (id units): grid vertex `(i, j)` is at
+    /// `E1 + (i (P1 - E1) + j (P2 - E1)) / N`.
+    pub corners: [[i64; 2]; 4],
+    /// The diamond's `(N+1)^2` vertex grid (integer samples; metres through the world
+    /// mapping). Shared, not copied.
+    pub grid: Arc<Vec<i32>>,
+    /// Changes whenever the grid or the halves change: a renderer re-uploads a patch
+    /// only when `(id, half, generation)` is new to it.
+    pub generation: u64,
+}
+
+/// What a renderer reads after a frame: the cut as patches, with the mapping to metres.
+/// Neighbouring patches agree bit for bit on shared edges, so drawing them as they are
+/// gives a surface without cracks or T-junctions.
+#[derive(Clone, Debug)]
+pub struct Snapshot {
+    /// Diamond size `N` (each grid is `(N+1)^2`).
+    pub n: usize,
+    /// Ids and integer samples to metres.
+    pub world: PlanarWorld,
+    /// The cut, in a stable order.
+    pub patches: Vec<Patch>,
 }
 
 impl Weigh for Details {
@@ -231,6 +268,8 @@ impl Session {
         let mut fetch = FetchConfig::new(remote.clone());
         fetch.transport = config.transport;
         fetch.connections = config.connections.max(1);
+        fetch.pipeline_depth = config.pipeline_depth.max(1);
+        fetch.max_in_flight = config.max_in_flight.max(1);
         fetch.bandwidth_cap_bit_s = config.bandwidth_cap_bit_s;
         fetch.cache_bytes = config.cache_bytes;
         fetch.request_timeout = config.timeout;
@@ -284,6 +323,30 @@ impl Session {
     /// The DAG: the current cut ([`Dag::cut`]) is what a renderer draws.
     pub fn dag(&self) -> &Dag {
         &self.dag
+    }
+
+    /// The current cut for a renderer.
+    pub fn snapshot(&self) -> Snapshot {
+        let patches = self
+            .dag
+            .cut()
+            .into_iter()
+            .filter_map(|(id, half)| {
+                let node = self.dag.node(id)?;
+                Some(Patch {
+                    id,
+                    half,
+                    corners: node.corners,
+                    grid: Arc::clone(&node.grid),
+                    generation: node.generation,
+                })
+            })
+            .collect();
+        Snapshot {
+            n: self.refiner.n(),
+            world: self.world,
+            patches,
+        }
     }
 
     /// The world box of the raster: its extent times the root grid's height range.

@@ -13,7 +13,7 @@ use std::time::Duration;
 use glam::DVec3;
 use quincunx_client::dag::{Dag, Half};
 use quincunx_client::refine::{
-    Availability, Clock, DetailSource, FrameStats, Refinement, SystemClock,
+    Availability, Clock, DetailSource, FrameStats, RefineConfig, Refinement, SystemClock,
 };
 use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
@@ -443,4 +443,67 @@ fn extreme_views_stay_finite_and_sane() {
             _ => {}
         }
     }
+}
+
+#[test]
+fn a_memory_budget_is_never_exceeded_and_shrinking_it_evicts_at_once() {
+    // What the demanding view of the flight needs without a budget.
+    let (enc, mut dag, mut source) = setup(0);
+    let views = flight(30);
+    let mut free = Refinement::default();
+    let mut need = 0;
+    for v in &views {
+        unlimited_frame(&mut free, &mut dag, v, &enc, &mut source);
+        need = need.max(dag.memory_bytes());
+    }
+    let free_cut = cut_set(&dag);
+
+    // Half of it: every frame stays within, crack-free, and says it is held back.
+    let (enc, mut dag, mut source) = setup(0);
+    let budget = need / 2;
+    let mut limited = Refinement::with_config(RefineConfig {
+        max_dag_bytes: Some(budget),
+        ..RefineConfig::default()
+    });
+    let mut held_back = 0;
+    for v in &views {
+        let s = unlimited_frame(&mut limited, &mut dag, v, &enc, &mut source);
+        assert!(
+            dag.memory_bytes() <= budget,
+            "{} > {budget}",
+            dag.memory_bytes()
+        );
+        assert_eq!(s.dag_bytes, dag.memory_bytes());
+        assert!(dag.check_cut().ok());
+        if s.over_budget {
+            held_back += 1;
+            assert!(!s.full_quality && s.max_error_px > 0.0, "{s:?}");
+        }
+    }
+    assert!(held_back > 0);
+
+    // A quarter, at the same view: evicted within one frame.
+    limited.config.max_dag_bytes = Some(need / 4);
+    let s = unlimited_frame(
+        &mut limited,
+        &mut dag,
+        views.last().unwrap(),
+        &enc,
+        &mut source,
+    );
+    assert!(s.over_budget && s.coarsened > 0, "{s:?}");
+    assert!(dag.memory_bytes() <= need / 4);
+    assert!(dag.check_cut().ok());
+
+    // Enough for everything: the same cut as without a budget.
+    limited.config.max_dag_bytes = Some(2 * need);
+    let s = unlimited_frame(
+        &mut limited,
+        &mut dag,
+        views.last().unwrap(),
+        &enc,
+        &mut source,
+    );
+    assert!(s.full_quality && !s.over_budget, "{s:?}");
+    assert_eq!(cut_set(&dag), free_cut);
 }

@@ -52,6 +52,9 @@ pub struct FlyArgs {
     /// Prefetch horizon in seconds (0 disables prefetch).
     #[arg(long, default_value_t = 0.5)]
     pub prefetch_s: f64,
+    /// Memory budget of the client's DAG in MiB (default: only the view bounds it).
+    #[arg(long)]
+    pub dag_budget_mb: Option<f64>,
     /// Metres between samples (default: from the georeference).
     #[arg(long)]
     pub spacing_m: Option<f64>,
@@ -106,6 +109,12 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
         connections: args.connections,
         prefetch_ahead: Duration::from_secs_f64(args.prefetch_s.max(0.0)),
         spacing_m: args.spacing_m,
+        refine: quincunx_client::refine::RefineConfig {
+            max_dag_bytes: args
+                .dag_budget_mb
+                .map(|mb| (mb.max(0.0) * 1_048_576.0) as usize),
+            ..Default::default()
+        },
         ..SessionConfig::default()
     }
 }

@@ -240,6 +240,16 @@ fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
     let last = view_of(&flight.legs.last().unwrap().from);
     converge(&mut session, &last, Instant::now(), Duration::from_secs(30));
     let streamed = cut_of(session.dag());
+    // The renderer's snapshot is that cut.
+    let snapshot = session.snapshot();
+    assert_eq!(snapshot.patches.len(), streamed.len());
+    for (p, (id, half, grid)) in snapshot.patches.iter().zip(&streamed) {
+        assert_eq!(
+            (&p.id, &p.half, p.grid.as_slice()),
+            (id, half, grid.as_slice())
+        );
+        assert_eq!(p.grid.len(), (snapshot.n + 1) * (snapshot.n + 1));
+    }
     let world = session.world();
     drop(session);
     server.kill();
@@ -321,6 +331,7 @@ fn fly_args(url: &str, path: &str) -> FlyArgs {
         fps: 60.0,
         viewport: [1280, 720],
         prefetch_s: 0.5,
+        dag_budget_mb: None,
         spacing_m: None,
         seed: 1,
         check_every: 1,
