@@ -335,6 +335,26 @@ impl Refinement {
     }
 }
 
+/// Coarsens `id` unless the deadline has passed (then `None`, and the frame is out of
+/// time); returns its parents that became coarsenable.
+fn coarsen_in_time(
+    dag: &mut Dag,
+    id: PlanarId,
+    clock: &dyn Clock,
+    deadline: Duration,
+    stats: &mut FrameStats,
+) -> Result<Option<Vec<PlanarId>>, DagError> {
+    if clock.now() >= deadline {
+        stats.out_of_time = true;
+        return Ok(None);
+    }
+    dag.coarsen(id)?;
+    stats.coarsened += 1;
+    let mut parents = dag.parents(id);
+    parents.retain(|&p| dag.is_coarsenable(p));
+    Ok(Some(parents))
+}
+
 enum Outcome {
     Done,
     Pending,
@@ -460,18 +480,13 @@ impl Refinement {
                 if !children_calm {
                     continue;
                 }
-                if clock.now() >= deadline {
-                    stats.out_of_time = true;
+                let Some(freed) = coarsen_in_time(dag, id, clock, deadline, &mut stats)? else {
                     break;
-                }
-                dag.coarsen(id)?;
-                stats.coarsened += 1;
-                for parent in dag.parents(id) {
-                    if dag.is_coarsenable(parent) {
-                        let a = projector.appearance(dag, parent);
-                        if projector.allows_merge(&a) {
-                            merges.push(std::cmp::Reverse(Key(a.error_px, parent)));
-                        }
+                };
+                for parent in freed {
+                    let a = projector.appearance(dag, parent);
+                    if projector.allows_merge(&a) {
+                        merges.push(std::cmp::Reverse(Key(a.error_px, parent)));
                     }
                 }
             }
@@ -528,16 +543,11 @@ impl Refinement {
             if !dag.is_coarsenable(id) {
                 continue;
             }
-            if clock.now() >= deadline {
-                stats.out_of_time = true;
+            let Some(freed) = coarsen_in_time(dag, id, clock, deadline, stats)? else {
                 break;
-            }
-            dag.coarsen(id)?;
-            stats.coarsened += 1;
-            for parent in dag.parents(id) {
-                if dag.is_coarsenable(parent) {
-                    queue.push(rank(dag, parent));
-                }
+            };
+            for parent in freed {
+                queue.push(rank(dag, parent));
             }
         }
         Ok(())

@@ -15,7 +15,6 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::{Response, copy_dir, get, metric, try_get, workspace_root};
-use quincunx_repo_tools::build::{self, BuildArgs};
 use quincunx_server::{RepoConfig, Server, ServerConfig};
 
 const REPO: &str = "korea";
@@ -35,26 +34,7 @@ fn nginx_caches_blobs_across_two_replicas_and_survives_losing_one() {
     // One build, one copy per replica (sled locks a repository directory per open), and a
     // third copy this test reads the expected blobs from.
     let built = root.join("built").join(REPO);
-    build::run(&BuildArgs {
-        input: workspace_root().join("data/korea_srtm3_1025.json"),
-        output: built.clone(),
-        colour: false,
-        planet: false,
-        radius_m: None,
-        body: "earth".into(),
-        face_side: None,
-        sparse: false,
-        diamond_size: None,
-        lossless: false,
-        rms_m: Some(2.0),
-        max_error_m: None,
-        threads: None,
-        memory_budget_mb: None,
-        overwrite: true,
-        json: false,
-        stall_after_blobs: None,
-    })
-    .unwrap();
+    common::build_bundled_korea(&built);
     for copy in ["repos-a", "repos-b", "expected"] {
         copy_dir(&built, &root.join(copy).join(REPO));
     }

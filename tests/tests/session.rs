@@ -17,7 +17,6 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use common::workspace_root;
 use glam::DVec3;
 use quincunx_client::dag::{Dag, Half};
 use quincunx_client::fetch::link::LinkProxy;
@@ -27,7 +26,6 @@ use quincunx_client::session::{Session, SessionConfig, SessionError, planar_refi
 use quincunx_client::view::View;
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::incremental::PlanarRefiner;
-use quincunx_repo_tools::build::{self, BuildArgs};
 use quincunx_repo_tools::fly::{self, FlyArgs};
 use quincunx_server::{RepoConfig, Server, ServerConfig};
 use quincunx_store::Repository;
@@ -38,26 +36,7 @@ const REPO: &str = "korea";
 /// copy the test reads locally (sled locks a repository per open).
 fn build_korea(dir: &Path) -> (PathBuf, PathBuf) {
     let built = dir.join("built").join(REPO);
-    build::run(&BuildArgs {
-        input: workspace_root().join("data/korea_srtm3_1025.json"),
-        output: built.clone(),
-        colour: false,
-        planet: false,
-        radius_m: None,
-        body: "earth".into(),
-        face_side: None,
-        sparse: false,
-        diamond_size: None,
-        lossless: false,
-        rms_m: Some(2.0),
-        max_error_m: None,
-        threads: None,
-        memory_budget_mb: None,
-        overwrite: true,
-        json: false,
-        stall_after_blobs: None,
-    })
-    .unwrap();
+    common::build_bundled_korea(&built);
     let local = dir.join("local").join(REPO);
     common::copy_dir(&built, &local);
     (built, local)
