@@ -201,6 +201,7 @@ impl Weigh for Details {
         std::mem::size_of::<Self>()
             + self.h.capacity() * std::mem::size_of::<i32>()
             + self.child_classes.capacity() * std::mem::size_of::<(PlanarId, u8)>()
+            + self.empty_children.capacity() * std::mem::size_of::<PlanarId>()
     }
 }
 
@@ -222,7 +223,8 @@ pub struct Session {
     /// Diamonds refined with a blob at least once (for waste accounting).
     used: HashSet<Key>,
     /// Diamonds known to have no blob without asking: a diamond without a blob has no
-    /// descendant with one (docs/blob-format.md), so the children of a leaf are leaves.
+    /// descendant with one (docs/blob-format.md), so the children of a leaf are leaves;
+    /// and a blob flags its owned children that have none.
     inferred_leaves: HashSet<Key>,
     /// Camera motion for prediction: last time and eye, smoothed velocity (m/s).
     last_eye: Option<(Duration, DVec3)>,
@@ -574,8 +576,11 @@ impl DetailSource for FetchSource<'_> {
         let key = [id.x, id.y, 0];
         match self.lookup(id) {
             Some(d) => {
-                if d.is_some() {
+                if let Some(details) = &d {
                     self.used.insert(key);
+                    // Its blob says which of its children have none.
+                    self.inferred_leaves
+                        .extend(details.empty_children.iter().map(|c| [c.x, c.y, 0]));
                 }
                 Availability::Ready(d)
             }

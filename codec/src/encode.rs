@@ -625,6 +625,17 @@ pub(crate) fn measure(
     m
 }
 
+/// The side information entry of a child: its class, flagged [`entropy::NO_DATA`] when
+/// neither it nor any descendant has a blob.
+pub(crate) fn side_entry(gamma: u64, has_data: bool) -> u8 {
+    let class = entropy::gamma_class(gamma);
+    if has_data || class == 0 {
+        class
+    } else {
+        class | entropy::NO_DATA
+    }
+}
+
 /// A diamond's side information from its own measure and its children's results:
 /// `(gamma, has_data, (min, max))` where gamma bounds how far the finer surfaces below it
 /// depart from its own grid, `has_data` says whether it or any descendant has a nonzero
@@ -960,7 +971,7 @@ fn encode_layout<G: Layout>(
     let classes_of = |l: usize, i: usize| -> Vec<u8> {
         geom.owned(slot(l, i))
             .iter()
-            .map(|&k| entropy::gamma_class(gamma[l + 1][k]))
+            .map(|&k| side_entry(gamma[l + 1][k], has_data[l + 1][k]))
             .collect()
     };
     // Train the model (on a subsample of the large levels, see `trains_on`), then code.

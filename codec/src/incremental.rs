@@ -91,6 +91,9 @@ pub struct Details {
     pub h: Vec<i32>,
     /// Side information per owned child (see [`Refined::child_classes`]).
     pub child_classes: Vec<(PlanarId, u8)>,
+    /// Owned children that have no blob, nor any descendant (their blobs need not be
+    /// asked for: they are empty).
+    pub empty_children: Vec<PlanarId>,
 }
 
 /// What a client needs to know about a diamond besides its grid.
@@ -261,16 +264,22 @@ impl PlanarRefiner {
         } else {
             &[]
         };
-        let child_classes = slot
-            .owned
-            .iter()
-            .zip(classes)
-            .filter_map(|(&k, class)| next.get(k).map(|c| (c.id, class)))
-            .collect();
+        let mut child_classes = Vec::with_capacity(classes.len());
+        let mut empty_children = Vec::new();
+        for (&k, entry) in slot.owned.iter().zip(classes) {
+            if let Some(c) = next.get(k) {
+                let (class, no_data) = crate::entropy::split_side(entry);
+                child_classes.push((c.id, class));
+                if no_data {
+                    empty_children.push(c.id);
+                }
+            }
+        }
         Ok(Details {
             id,
             h,
             child_classes,
+            empty_children,
         })
     }
 

@@ -428,7 +428,7 @@ impl Side {
         geom.level(l)[i]
             .owned
             .iter()
-            .map(|&k| entropy::gamma_class(self.gamma[l + 1][k]))
+            .map(|&k| crate::encode::side_entry(self.gamma[l + 1][k], self.has_data[l + 1][k]))
             .collect()
     }
 }

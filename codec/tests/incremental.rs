@@ -204,3 +204,63 @@ fn side_information_names_the_owned_children() {
         );
     }
 }
+
+/// The no-data flags are exact where they are given: a flagged child has no blob and
+/// neither has any descendant; an unflagged child with a nonzero class has a blob itself
+/// or below. Every child without data below and with a nonzero class is flagged.
+#[test]
+fn no_data_flags_name_exactly_the_empty_subtrees() {
+    let enc = korea(RateMode::RmsM(9.0), 32);
+    let r = PlanarRefiner::from_encoded(&enc).unwrap();
+    // Whether a diamond or any descendant has a blob, bottom-up over the levels.
+    let levels = r.detail_levels();
+    let mut data: HashMap<PlanarId, bool> = HashMap::new();
+    for l in (0..levels).rev() {
+        for (i, blob) in enc.blobs[l].iter().enumerate() {
+            let id = level_ids(&r, l)[i];
+            let below = r
+                .info(id)
+                .unwrap()
+                .children
+                .iter()
+                .any(|c| data.get(c).copied().unwrap_or(false));
+            data.insert(id, blob.is_some() || below);
+        }
+    }
+    let (mut flagged, mut unflagged) = (0, 0);
+    for l in 0..levels {
+        for (i, blob) in enc.blobs[l].iter().enumerate() {
+            let Some(blob) = blob else { continue };
+            let id = level_ids(&r, l)[i];
+            let d = r.decode(id, blob).unwrap();
+            for &(child, class) in &d.child_classes {
+                let empty = d.empty_children.contains(&child);
+                assert!(!(empty && class == 0), "class 0 carries no flag");
+                if class > 0 {
+                    assert_eq!(empty, !data[&child], "{child:?}");
+                    if empty {
+                        flagged += 1;
+                    } else {
+                        unflagged += 1;
+                    }
+                }
+            }
+        }
+    }
+    assert!(flagged > 10 && unflagged > 10, "{flagged} {unflagged}");
+}
+
+/// The ids of a level, in the encoder's order.
+fn level_ids(r: &PlanarRefiner, level: usize) -> Vec<PlanarId> {
+    let mut ids = vec![r.root().0];
+    for _ in 0..level {
+        let mut next: Vec<PlanarId> = ids
+            .iter()
+            .flat_map(|&id| r.info(id).unwrap().children)
+            .collect();
+        next.sort_by_key(|id| r.info(*id).unwrap().index);
+        next.dedup();
+        ids = next;
+    }
+    ids
+}

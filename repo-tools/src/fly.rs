@@ -52,6 +52,9 @@ pub struct FlyArgs {
     /// Prefetch horizon in seconds (0 disables prefetch).
     #[arg(long, default_value_t = 0.5)]
     pub prefetch_s: f64,
+    /// Levels below each wanted diamond requested ahead (see `SessionConfig`).
+    #[arg(long, default_value_t = 2)]
+    pub lookahead_levels: usize,
     /// Memory budget of the client's DAG in MiB (default: only the view bounds it).
     #[arg(long)]
     pub dag_budget_mb: Option<f64>,
@@ -109,6 +112,7 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
         connections: args.connections,
         prefetch_ahead: Duration::from_secs_f64(args.prefetch_s.max(0.0)),
         spacing_m: args.spacing_m,
+        lookahead_levels: args.lookahead_levels,
         refine: quincunx_client::refine::RefineConfig {
             max_dag_bytes: args
                 .dag_budget_mb

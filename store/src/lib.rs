@@ -30,8 +30,9 @@ use sha2::{Digest, Sha256};
 
 pub mod page;
 
-/// Version of the repository layout (metadata record + page trees).
-pub const FORMAT_VERSION: u32 = 2;
+/// Version of the repository layout (metadata record + page trees) and of the blobs in
+/// it: 3 holds version-2 blobs (the no-data flags); format-2 repositories held version 1.
+pub const FORMAT_VERSION: u32 = 3;
 
 const METADATA_KEY: &[u8] = b"metadata";
 

@@ -311,6 +311,7 @@ fn fly_args(url: &str, path: &str) -> FlyArgs {
         viewport: [1280, 720],
         prefetch_s: 0.5,
         dag_budget_mb: None,
+        lookahead_levels: 2,
         spacing_m: None,
         seed: 1,
         check_every: 1,

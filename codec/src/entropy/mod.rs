@@ -233,10 +233,24 @@ pub fn class_bound(k: u8) -> u64 {
     }
 }
 
-/// Writes side information classes (one per owned child).
+/// Flag on a side information entry: the child and all its descendants have no details
+/// (no blob). Only carried with a nonzero class: a class-0 child is never refined.
+pub const NO_DATA: u8 = 0x80;
+
+/// The class (0..=63) and the [`NO_DATA`] flag of a side information entry.
+pub fn split_side(entry: u8) -> (u8, bool) {
+    (
+        (entry & !NO_DATA).min(63),
+        entry & NO_DATA != 0 && entry & !NO_DATA != 0,
+    )
+}
+
+/// Writes side information entries (one per owned child): a class, and for a nonzero
+/// class the [`NO_DATA`] flag as one bypass bit.
 pub fn write_gammas<S: BitSink>(s: &mut S, g: usize, classes: &[u8]) {
-    for &c in classes {
-        let c = c.min(63) as u32;
+    for &entry in classes {
+        let (c, no_data) = split_side(entry);
+        let c = u32::from(c);
         s.bit(ctx(g, GAMMA_ZERO), c > 0);
         if c > 0 {
             let hi = (c - 1) >> 2;
@@ -247,6 +261,7 @@ pub fn write_gammas<S: BitSink>(s: &mut S, g: usize, classes: &[u8]) {
                 s.bit(ctx(g, GAMMA_UNARY + hi as usize), false);
             }
             s.bypass((c - 1) & 3, 2);
+            s.bypass(u32::from(no_data), 1);
         }
     }
 }
@@ -263,7 +278,12 @@ pub fn read_gammas(d: &mut ModelDecoder<'_>, g: usize, count: usize) -> Vec<u8> 
                 hi += 1;
             }
             let lo = d.dec.bypass(2);
-            (1 + (hi << 2) + lo).min(63) as u8
+            let class = (1 + (hi << 2) + lo).min(63) as u8;
+            if d.dec.bypass(1) == 1 {
+                class | NO_DATA
+            } else {
+                class
+            }
         })
         .collect()
 }
@@ -609,11 +629,12 @@ mod tests {
 
     fn round_trip(n: usize, q: &[i32], valid: Option<&[bool]>, model: &CodecModel) -> usize {
         let mut e = ModelEncoder::new(model);
-        write_gammas(&mut e, 2, &[0, 5, 63]);
+        write_gammas(&mut e, 2, &[0, 5, 63, 7 | NO_DATA, NO_DATA]);
         write_matrix(&mut e, 2, n, q, valid);
         let bytes = e.finish();
         let mut d = ModelDecoder::new(model, &bytes);
-        assert_eq!(read_gammas(&mut d, 2, 3), vec![0, 5, 63]);
+        // The flag travels with nonzero classes; class 0 never carries it.
+        assert_eq!(read_gammas(&mut d, 2, 5), vec![0, 5, 63, 7 | NO_DATA, 0]);
         let mut out = vec![7; n * n];
         read_matrix(&mut d, 2, n, &mut out, valid).unwrap();
         assert_eq!(out, q);
