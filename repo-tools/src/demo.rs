@@ -143,22 +143,77 @@ fn serve(args: &DemoArgs) -> Result<()> {
         outln!(
             "  quincunx loadtest --url http://{addr} --repo korea --connections 64 --duration-s 10"
         );
-        if !args.smoke {
-            outln!("press Ctrl-C to stop");
-            server.run(quincunx_server::shutdown_signal()).await;
-            return Ok(());
-        }
+        let smoke = args.smoke;
         let (done_tx, done_rx) = tokio::sync::oneshot::channel::<()>();
-        let serving = tokio::spawn(server.run(async {
-            let _ = done_rx.await;
+        let serving = tokio::spawn(server.run(async move {
+            if smoke {
+                let _ = done_rx.await;
+            } else {
+                quincunx_server::shutdown_signal().await;
+            }
         }));
-        let checked = tokio::task::spawn_blocking(move || smoke_check(addr, &examples))
-            .await
-            .context("smoke check panicked")?;
-        let _ = done_tx.send(());
+        let checked = async {
+            if smoke {
+                let examples = examples.clone();
+                tokio::task::spawn_blocking(move || smoke_check(addr, &examples))
+                    .await
+                    .context("smoke check panicked")??;
+            }
+            tokio::task::spawn_blocking(move || demo_flight(addr))
+                .await
+                .context("the streaming client panicked")?
+        }
+        .await;
+        if smoke {
+            let _ = done_tx.send(());
+        } else {
+            if let Err(e) = &checked {
+                outln!("streaming client failed: {e:#}");
+            }
+            outln!("press Ctrl-C to stop");
+        }
         serving.await.context("server task failed")?;
-        checked
+        if smoke { checked } else { Ok(()) }
     })
+}
+
+/// A streaming client session against the demo server, through an emulated 4 Mbit/s,
+/// 100 ms link: the first three views of the `jump` flight, every frame's cut checked.
+fn demo_flight(addr: std::net::SocketAddr) -> Result<()> {
+    use quincunx_client::flight::{self, Flight, FlyOptions};
+    use quincunx_client::session::{Session, SessionConfig};
+    let (link, url) = crate::fly::start_link(&format!("http://{addr}"), (4_000.0, 100.0))?;
+    let mut session = Session::open(&url, "korea", SessionConfig::default())?;
+    let mut f = Flight::builtin("jump", session.bounds(), 1)?;
+    f.legs.truncate(3);
+    outln!(
+        "\nstreaming client: {} low views of korea at 1920x1080, 1 px tolerance, through an \
+         emulated 4 Mbit/s, 100 ms link",
+        f.legs.len()
+    );
+    let r = flight::fly(&mut session, &f, &FlyOptions::default(), |_| {})?;
+    for j in &r.jumps {
+        match j.time_to_full_quality_s {
+            Some(t) => outln!("  view {}: full quality after {t:.2} s", j.leg),
+            None => outln!("  view {}: not at full quality within its leg", j.leg),
+        }
+    }
+    outln!(
+        "  {} frames, {} cut halves (median), refinement {:.2} ms per frame (median), \
+         {} blob bytes ({} on the link), {} cracks",
+        r.frames,
+        r.diamonds_per_frame_p50,
+        r.refine_ms_p50,
+        r.bytes_fetched,
+        link.bytes_down(),
+        r.cracks + r.coverage_errors
+    );
+    outln!("  quincunx fly --url http://{addr} --repo korea --path jump --link 4000,100 --json");
+    anyhow::ensure!(
+        r.cracks == 0 && r.coverage_errors == 0 && r.jumps_unfinished == 0,
+        "the streamed cut was inconsistent or incomplete: {r:?}"
+    );
+    Ok(())
 }
 
 /// URL paths worth trying, with the status each must answer: the listing, metadata, the
