@@ -35,9 +35,9 @@ for _ in $(seq 100); do
     (exec 3<>/dev/tcp/127.0.0.1/18190) 2>/dev/null && break
     sleep 0.1
 done
-fly() { # repo, path, link, transport
+fly() { # repo, path, link, transport[, tolerance]
     "$bin/quincunx" fly --url http://127.0.0.1:18190 --repo "$1" --path "$2" --link "$3" \
-        --transport "$4" --tolerance-px 1 --check-every 10 --json \
+        --transport "$4" --tolerance-px "${5:-1}" --check-every 10 --json \
         | python3 -c "import json,sys; d=json.load(sys.stdin); d['transport']='$4'; print(json.dumps(d))"
 }
 if [ "$quick" = 1 ]; then
@@ -53,4 +53,10 @@ for repo in korea_rms9 korea_max2; do
     done
     fly "$repo" low-flight 4000,100 pipelined
     fly "$repo" approach 4000,100 pipelined
+    # The speed/accuracy trade: coarser tolerances.
+    for link in 4000,100 300,100; do
+        for tolerance in 2 4; do
+            fly "$repo" jump "$link" pipelined "$tolerance"
+        done
+    done
 done
