@@ -6,11 +6,13 @@
 //! visible diamond within the tolerance, nothing waiting for data), and may end the leg
 //! early once the view has been at full quality for a while.
 //!
-//! Built-in flights are generated from the repository's world box:
+//! Built-in flights are generated from the repository's world box
+//! ([`Session::bounds`], after [`Session::warm_up`]: the heights are a conservative
+//! bound on the raster's):
 //! - `approach`: from high above the whole raster down to a low, oblique view, with the
 //!   altitude falling exponentially over 12 s;
-//! - `low-flight`: 30 s at 150 m/s, 300 m above the highest point, looking ahead and 20°
-//!   down;
+//! - `low-flight`: 30 s at 150 m/s, 300 m above the bound on the highest point, looking
+//!   ahead and 20° down;
 //! - `jump`: 6 low views at seeded random places and headings, jumping between them.
 //!
 //! Flights from a file are JSON:
@@ -35,6 +37,9 @@ pub enum FlightError {
     /// The flight file is not valid.
     #[error("flight file: {0}")]
     File(String),
+    /// The session failed while warming up.
+    #[error(transparent)]
+    Session(#[from] SessionError),
 }
 
 /// A camera position and a point it looks at (world metres).
@@ -174,6 +179,23 @@ impl Flight {
             name: name.to_string(),
             legs,
         })
+    }
+
+    /// A built-in flight over what `session` streams. Warms the session up first (the
+    /// root refined, so its height bounds are conservative and low views stay above the
+    /// highest point), for at most 10 s.
+    pub fn builtin_for(
+        name: &str,
+        session: &mut Session,
+        seed: u64,
+    ) -> Result<Flight, FlightError> {
+        if !BUILTIN.contains(&name) {
+            return Err(FlightError::Unknown(name.to_string()));
+        }
+        if !session.warm_up(Duration::from_secs(10))? {
+            tracing::warn!("the root did not arrive within 10 s: heights bounded by its grid only");
+        }
+        Flight::builtin(name, session.bounds(), seed)
     }
 
     /// A flight from its JSON text.

@@ -49,7 +49,7 @@ use std::time::Duration;
 use glam::DVec3;
 use quincunx_codec::coverage::Coverage;
 use quincunx_codec::diamond::{PlanarDomain, PlanarId};
-use quincunx_codec::entropy::CodecModel;
+use quincunx_codec::entropy::{CodecModel, class_bound};
 use quincunx_codec::incremental::{Details, PlanarRefiner};
 use quincunx_store::Metadata;
 
@@ -351,19 +351,68 @@ impl Session {
         }
     }
 
-    /// The world box of the raster: its extent times the root grid's height range.
+    /// The world box of the raster: its extent times a bound on its heights.
+    ///
+    /// The heights are bounded over the cut: each unrefined diamond's grid range, widened
+    /// by the bound its parent's blob carries for its whole subtree. That bound is
+    /// conservative once every cut diamond's bound is known, which is the case as soon as
+    /// the root is refined ([`Session::warm_up`]); before that it is the root grid's range
+    /// only, and real peaks may rise above it.
     pub fn bounds(&self) -> Aabb {
         let (w, h) = self.dag.refiner().raster_size();
-        let (z0, z1) = self
-            .dag
-            .node(self.dag.refiner().root().0)
-            .map_or((0, 0), |n| n.z_range);
-        let a = self.world.point([0, 0], z0);
-        let b = self.world.point([w as i64 - 1, h as i64 - 1], z1);
-        Aabb {
-            min: a.min(b),
-            max: a.max(b),
+        let scale = self.world.value_scale_m.abs();
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for n in self.dag.nodes().filter(|n| n.refined.is_none()) {
+            let bound = n.class.map_or(0.0, |k| class_bound(k) as f64 * scale);
+            let (a, b) = (
+                self.world.point([0, 0], n.z_range.0).z,
+                self.world.point([0, 0], n.z_range.1).z,
+            );
+            lo = lo.min(a.min(b) - bound);
+            hi = hi.max(a.max(b) + bound);
         }
+        if !(lo.is_finite() && hi.is_finite()) {
+            (lo, hi) = (0.0, 0.0);
+        }
+        let a = self.world.point([0, 0], 0);
+        let b = self.world.point([w as i64 - 1, h as i64 - 1], 0);
+        Aabb {
+            min: DVec3::new(a.x.min(b.x), a.y.min(b.y), lo),
+            max: DVec3::new(a.x.max(b.x), a.y.max(b.y), hi),
+        }
+    }
+
+    /// Runs frames of an overview (the whole raster from as high as it is wide, 1 px)
+    /// until it is at full quality or `timeout` passes; returns whether the root got
+    /// refined, which makes [`Session::bounds`] conservative. The finer the overview's
+    /// cut, the tighter the bounds.
+    pub fn warm_up(&mut self, timeout: Duration) -> Result<bool, SessionError> {
+        let root = self.refiner.root().0;
+        let start = std::time::Instant::now();
+        let b = self.bounds();
+        let centre = (b.min + b.max) / 2.0;
+        let span = (b.max - b.min).truncate().length().max(1.0);
+        // The whole raster in view, from as high as its size: the root's grid cells are
+        // many pixels wide there, so it wants refining.
+        let view = View {
+            eye: centre + DVec3::new(0.0, 0.0, span),
+            target: centre,
+            up: DVec3::Y,
+            fov_y_rad: 60f64.to_radians(),
+            viewport_px: [1920, 1080],
+            tolerance_px: 1.0,
+        };
+        let mut root_refined = false;
+        while start.elapsed() < timeout {
+            let f = self.update(&view, start.elapsed(), Duration::from_millis(4))?;
+            root_refined = self.dag.node(root).is_some_and(|n| n.refined.is_some());
+            // At full quality for the overview, the bounds are also as tight as its cut.
+            if root_refined && f.refine.full_quality {
+                break;
+            }
+            std::thread::sleep(Duration::from_millis(2));
+        }
+        Ok(root_refined)
     }
 
     /// The network thread's counters.

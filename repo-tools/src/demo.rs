@@ -184,7 +184,7 @@ fn demo_flight(addr: std::net::SocketAddr) -> Result<()> {
     use quincunx_client::session::{Session, SessionConfig};
     let (link, url) = crate::fly::start_link(&format!("http://{addr}"), (4_000.0, 100.0))?;
     let mut session = Session::open(&url, "korea", SessionConfig::default())?;
-    let mut f = Flight::builtin("jump", session.bounds(), 1)?;
+    let mut f = Flight::builtin_for("jump", &mut session, 1)?;
     f.legs.truncate(3);
     outln!(
         "\nstreaming client: {} low views of korea at 1920x1080, 1 px tolerance, through an \

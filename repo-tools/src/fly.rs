@@ -136,9 +136,9 @@ pub fn fly_options(args: &FlyArgs) -> FlyOptions {
 }
 
 /// A built-in flight or one read from a file, over the session's world.
-pub fn load_flight(path: &str, session: &Session, seed: u64) -> Result<Flight> {
+pub fn load_flight(path: &str, session: &mut Session, seed: u64) -> Result<Flight> {
     if flight::BUILTIN.contains(&path) {
-        return Ok(Flight::builtin(path, session.bounds(), seed)?);
+        return Ok(Flight::builtin_for(path, session, seed)?);
     }
     let p = Path::new(path);
     if !p.exists() {
@@ -174,7 +174,7 @@ pub fn run(args: &FlyArgs) -> Result<()> {
     let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
     let mut session = Session::open(url, &args.repo, session_config(args))
         .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
-    let flight = load_flight(&args.path, &session, args.seed)?;
+    let flight = load_flight(&args.path, &mut session, args.seed)?;
     let opts = fly_options(args);
     let per_frame = args.frames;
     let report = flight::fly(&mut session, &flight, &opts, |f| {

@@ -187,7 +187,7 @@ fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
         SessionConfig::default(),
     )
     .unwrap();
-    let flight = Flight::builtin("jump", session.bounds(), 7).unwrap();
+    let flight = Flight::builtin_for("jump", &mut session, 7).unwrap();
     let opts = FlyOptions {
         check_every: 1,
         ..FlyOptions::default()
@@ -255,7 +255,7 @@ fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
     };
     let mut session =
         Session::open(&format!("http://{}", link.local_addr()), REPO, config).unwrap();
-    let flight = Flight::builtin("jump", session.bounds(), 3).unwrap();
+    let flight = Flight::builtin_for("jump", &mut session, 3).unwrap();
     let view = view_of(&flight.legs[0].from);
     let start = Instant::now();
     let frame = |session: &mut Session| {

@@ -92,7 +92,7 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
                         };
                         let mut session = Session::open(&args.url, &args.repo, config)
                             .with_context(|| format!("client {i}: opening {}", args.repo))?;
-                        let f = Flight::builtin(&path, session.bounds(), args.seed + i as u64)?;
+                        let f = Flight::builtin_for(&path, &mut session, args.seed + i as u64)?;
                         Ok(flight::fly(&mut session, &f, &opts, |_| {})?)
                     })
             })
