@@ -77,6 +77,32 @@ pub struct BuildArgs {
     pub stall_after_blobs: Option<u64>,
 }
 
+impl BuildArgs {
+    /// The command line's defaults for `input` -> `output`: an elevation repository,
+    /// lossless unless a rate is set, not overwriting, text output.
+    pub fn new(input: impl Into<PathBuf>, output: impl Into<PathBuf>) -> BuildArgs {
+        BuildArgs {
+            input: input.into(),
+            output: output.into(),
+            colour: false,
+            planet: false,
+            radius_m: None,
+            body: "earth".into(),
+            sparse: false,
+            face_side: None,
+            diamond_size: None,
+            lossless: false,
+            rms_m: None,
+            max_error_m: None,
+            threads: None,
+            memory_budget_mb: None,
+            overwrite: false,
+            json: false,
+            stall_after_blobs: None,
+        }
+    }
+}
+
 /// The `--json` summary.
 #[derive(Serialize, Debug)]
 pub struct BuildSummary {

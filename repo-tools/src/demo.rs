@@ -72,23 +72,11 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         }
         outln!("building {} from {} ...", repo.display(), source.display());
         build::run(&BuildArgs {
-            input: source.clone(),
-            output: repo.clone(),
-            colour: false,
             planet: s.planet,
-            radius_m: None,
-            body: "earth".into(),
-            face_side: None,
-            sparse: false,
-            diamond_size: None,
-            lossless: false,
             rms_m: s.rms_m,
             max_error_m: s.max_error_m,
-            threads: None,
-            memory_budget_mb: None,
             overwrite: true,
-            json: false,
-            stall_after_blobs: None,
+            ..BuildArgs::new(source.clone(), repo.clone())
         })?;
         outln!("verifying {} against {} ...", s.name, s.source);
         verify::run(&VerifyArgs {

@@ -161,24 +161,11 @@ pub fn copy_dir(from: &Path, to: &Path) {
 /// Builds the bundled 1025 x 1025 SRTM crop at 2 m RMS into `output` (what the end-to-end
 /// tests serve).
 pub fn build_bundled_korea(output: &Path) {
-    quincunx_repo_tools::build::run(&quincunx_repo_tools::build::BuildArgs {
-        input: workspace_root().join("data/korea_srtm3_1025.json"),
-        output: output.to_path_buf(),
-        colour: false,
-        planet: false,
-        radius_m: None,
-        body: "earth".into(),
-        face_side: None,
-        sparse: false,
-        diamond_size: None,
-        lossless: false,
+    use quincunx_repo_tools::build::{self, BuildArgs};
+    build::run(&BuildArgs {
         rms_m: Some(2.0),
-        max_error_m: None,
-        threads: None,
-        memory_budget_mb: None,
         overwrite: true,
-        json: false,
-        stall_after_blobs: None,
+        ..BuildArgs::new(workspace_root().join("data/korea_srtm3_1025.json"), output)
     })
     .unwrap();
 }
