@@ -226,9 +226,8 @@ pub struct Session {
     /// descendant with one (docs/blob-format.md), so the children of a leaf are leaves;
     /// and a blob flags its owned children that have none.
     inferred_leaves: HashSet<Key>,
-    /// Camera motion for prediction: last time and eye, smoothed velocity (m/s).
-    last_eye: Option<(Duration, DVec3)>,
-    velocity: DVec3,
+    /// Camera motion, for prediction.
+    camera: CameraTrack,
     last_prefetch: Option<Duration>,
     failures: u64,
 }
@@ -290,8 +289,7 @@ impl Session {
             arrived: HashMap::new(),
             used: HashSet::new(),
             inferred_leaves: HashSet::new(),
-            last_eye: None,
-            velocity: DVec3::ZERO,
+            camera: CameraTrack::default(),
             last_prefetch: None,
             failures: 0,
         })
@@ -536,33 +534,17 @@ impl Session {
     /// Tracks the camera and, when due, lists what the predicted view wants that the
     /// current one does not.
     fn prefetch(&mut self, view: &View, now: Duration, wants: &[(Key, f32)]) -> Vec<(Key, f32)> {
-        if let Some((then, eye)) = self.last_eye {
-            let dt = now.saturating_sub(then).as_secs_f64();
-            if dt > 0.0 {
-                let v = (view.eye - eye) / dt;
-                // A jump (far faster than the camera was moving) is not motion: predict
-                // nothing until the camera moves again.
-                let speed = self.velocity.length();
-                self.velocity =
-                    if (v.length() > 8.0 * speed + 1_000.0) && speed > 0.0 || !v.is_finite() {
-                        DVec3::ZERO
-                    } else if speed == 0.0 {
-                        v
-                    } else {
-                        self.velocity * 0.7 + v * 0.3
-                    };
-            }
-        }
-        self.last_eye = Some((now, view.eye));
+        self.camera.observe(now, view.eye);
         let ahead = self.config.prefetch_ahead.as_secs_f64();
         let due = self
             .last_prefetch
             .is_none_or(|t| now.saturating_sub(t) >= self.config.prefetch_every);
-        if ahead <= 0.0 || !due || self.velocity.length_squared() == 0.0 {
+        let velocity = self.camera.velocity();
+        if ahead <= 0.0 || !due || velocity.length_squared() == 0.0 {
             return Vec::new();
         }
         self.last_prefetch = Some(now);
-        let shift = self.velocity * ahead;
+        let shift = velocity * ahead;
         let predicted = View {
             eye: view.eye + shift,
             target: view.target + shift,
@@ -577,6 +559,49 @@ impl Session {
             .filter(|(k, _)| !wanted.contains(k))
             .collect();
         keys
+    }
+}
+
+/// The camera's smoothed velocity, for prediction. A jump is not motion: a frame that
+/// moves the eye ten times farther than the frame before it (and over 100 m) resets the
+/// velocity to zero, and so does time running backwards (a new time origin).
+#[derive(Clone, Copy, Debug, Default)]
+struct CameraTrack {
+    last: Option<(Duration, DVec3)>,
+    /// Distance moved by the last frame (metres).
+    last_step_m: f64,
+    velocity: DVec3,
+}
+
+impl CameraTrack {
+    fn observe(&mut self, now: Duration, eye: DVec3) {
+        let Some((then, last_eye)) = self.last.replace((now, eye)) else {
+            return;
+        };
+        if now < then || !eye.is_finite() {
+            self.velocity = DVec3::ZERO;
+            self.last_step_m = 0.0;
+            return;
+        }
+        let dt = (now - then).as_secs_f64();
+        if dt <= 0.0 {
+            return;
+        }
+        let step = (eye - last_eye).length();
+        let jump = step > 10.0 * self.last_step_m + 100.0;
+        self.last_step_m = step;
+        let v = (eye - last_eye) / dt;
+        self.velocity = if jump {
+            DVec3::ZERO
+        } else if self.velocity == DVec3::ZERO {
+            v
+        } else {
+            self.velocity * 0.7 + v * 0.3
+        };
+    }
+
+    fn velocity(&self) -> DVec3 {
+        self.velocity
     }
 }
 
@@ -765,4 +790,47 @@ fn georef_spacing_m(meta: &Metadata) -> Option<f64> {
         per_row
     };
     (spacing.is_finite() && spacing > 0.0).then_some(spacing)
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    fn ms(v: u64) -> Duration {
+        Duration::from_millis(v)
+    }
+
+    #[test]
+    fn steady_motion_is_predicted_and_jumps_are_not() {
+        let mut c = CameraTrack::default();
+        // 150 m/s along x at 50 frames/s.
+        for k in 0..20u64 {
+            c.observe(ms(20 * k), DVec3::new(3.0 * k as f64, 0.0, 500.0));
+        }
+        assert!((c.velocity() - DVec3::new(150.0, 0.0, 0.0)).length() < 1e-6);
+        // A jump of 50 km: no prediction from it, nor on the frame that holds still.
+        c.observe(ms(400), DVec3::new(50_000.0, 0.0, 500.0));
+        assert_eq!(c.velocity(), DVec3::ZERO);
+        c.observe(ms(420), DVec3::new(50_000.0, 0.0, 500.0));
+        assert_eq!(c.velocity(), DVec3::ZERO);
+        // Moving again from rest is motion.
+        c.observe(ms(440), DVec3::new(50_003.0, 0.0, 500.0));
+        assert!((c.velocity() - DVec3::new(150.0, 0.0, 0.0)).length() < 1e-6);
+        // A new time origin forgets the motion.
+        c.observe(ms(10), DVec3::new(50_006.0, 0.0, 500.0));
+        assert_eq!(c.velocity(), DVec3::ZERO);
+    }
+
+    #[test]
+    fn a_fast_but_smooth_descent_is_motion() {
+        // The approach flight's first frames: kilometres per frame, each like the last.
+        let mut c = CameraTrack::default();
+        let mut z = 700_000.0;
+        for k in 0..10u64 {
+            c.observe(ms(16 * k), DVec3::new(0.0, 0.0, z));
+            z -= 1_700.0;
+        }
+        assert!(c.velocity().z < -50_000.0, "{:?}", c.velocity());
+    }
 }
