@@ -46,10 +46,15 @@ impl std::hash::Hasher for IdHasher {
     fn write_i64(&mut self, v: i64) {
         self.write_u64(v as u64);
     }
+
+    fn write_usize(&mut self, v: usize) {
+        self.write_u64(v as u64);
+    }
 }
 
-/// A map keyed by planar diamond id with [`IdHasher`].
-pub type IdMap<V> = std::collections::HashMap<PlanarId, V, std::hash::BuildHasherDefault<IdHasher>>;
+/// A map keyed by diamond id (planar unless `K` says otherwise) with [`IdHasher`].
+pub type IdMap<V, K = PlanarId> =
+    std::collections::HashMap<K, V, std::hash::BuildHasherDefault<IdHasher>>;
 
 /// Deepest domain exponent: a planar domain is `[0, 2^m]^2`, a sphere the cube `[-2^m, 2^m]^3`.
 ///

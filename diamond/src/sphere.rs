@@ -135,6 +135,28 @@ pub fn chart_of(face: u8, p: [i64; 3], s: i64) -> [i64; 2] {
     [p[ax.b] + s, p[ax.c] + s]
 }
 
+/// Chart coordinates on `face` (half side `s`) of a point `p` on the cube surface that lies
+/// on `face` or on `across`, a face adjacent to it: points on `across` are unfolded across
+/// the edge the two faces share (the inverse of the folding that maps unfolded charts onto
+/// the cube). `None` when `p` is on neither face or the faces are not adjacent.
+pub fn unfold(face: u8, across: Option<u8>, p: [i64; 3], s: i64) -> Option<[i64; 2]> {
+    let ax = axes(face);
+    if p[ax.a] == ax.s * s {
+        return Some(chart_of(face, p, s));
+    }
+    let g = across.filter(|&g| g < 6)?;
+    let gx = axes(g);
+    if gx.a == ax.a || p[gx.a] != gx.s * s {
+        return None;
+    }
+    // Distance from the shared edge, measured on `g`; unfolded it continues past the edge.
+    let d = s - ax.s * p[ax.a];
+    let mut q = p;
+    q[gx.a] = gx.s * (s + d);
+    q[ax.a] = ax.s * s;
+    Some(chart_of(face, q, s))
+}
+
 /// Maps a point of the unfolded chart of `face` (half side `s`) back onto the cube surface.
 /// A coordinate outside `[0, 2s]` is carried across that edge onto the adjacent face; at
 /// most one coordinate may be out of range, and by at most `2s`.
@@ -314,6 +336,14 @@ impl SphereDomain {
         let id = SphereId::new(fold(face, uv, s)?);
         self.check(id)?;
         Ok(id)
+    }
+
+    /// The frame corners `[E1, P1, E2, P2]` in the unfolded chart of the canonical face,
+    /// with that face and (edge diamonds) the other face; every point of the diamond
+    /// unfolds into this chart with [`unfold`].
+    pub fn chart_frame(&self, id: SphereId) -> Result<(u8, Option<u8>, [[i64; 2]; 4]), IdError> {
+        let info = self.info(id)?;
+        Ok((info.face, info.other, self.chart_corners(&info)))
     }
 
     /// Corners in the unfolded chart of the canonical face, frame order.
@@ -737,6 +767,36 @@ mod tests {
                     assert_eq!(s - ax.s * p[ax.a], beyond);
                 }
             }
+        }
+    }
+
+    #[test]
+    fn unfold_inverts_fold_across_each_edge() {
+        let s = 8;
+        for face in 0..6u8 {
+            let ax = axes(face);
+            for u in -2 * s..=4 * s {
+                for v in -2 * s..=4 * s {
+                    let Ok(p) = fold(face, [u, v], s) else {
+                        continue;
+                    };
+                    let across = if (0..=2 * s).contains(&u) && (0..=2 * s).contains(&v) {
+                        None
+                    } else {
+                        let (axis, x) = if (0..=2 * s).contains(&u) {
+                            (ax.c, v)
+                        } else {
+                            (ax.b, u)
+                        };
+                        Some(2 * axis as u8 + u8::from(x < s))
+                    };
+                    assert_eq!(unfold(face, across, p, s), Some([u, v]), "{face} {u} {v}");
+                }
+            }
+            // A point on the opposite face is on neither.
+            let mut far = [0; 3];
+            far[ax.a] = -ax.s * s;
+            assert_eq!(unfold(face, None, far, s), None);
         }
     }
 

@@ -1,0 +1,276 @@
+//! Incremental decoding of planets: [`SphereRefiner`].
+//!
+//! The same three steps as the planar refiner (decode, synthesise, assemble children's
+//! grids from their parents' lattices). Assembly works in the unfolded chart of the
+//! parent's canonical face: every point of a parent's square unfolds into it
+//! ([`crate::diamond::sphere::unfold`]), so the child's half inside that parent maps onto
+//! the parent's lattice by the same affine map as in the plane, also across cube edges.
+
+use super::{
+    Details, DiamondInfo, RefineError, Refined, Refiner, check_lattice, decode_details, id_text,
+    synthesize_one,
+};
+use crate::coverage::Coverage;
+use crate::diamond::sphere::unfold;
+use crate::diamond::{IdMap, SphereDomain, SphereId};
+use crate::encode::{Encoded, EncodedDomain};
+use crate::entropy::CodecModel;
+use crate::lifting;
+use crate::sphere_raster::SphereGeometry;
+
+/// Refines planet diamonds one at a time for a repository's parameters.
+#[derive(Debug)]
+pub struct SphereRefiner {
+    geometry: SphereGeometry,
+    slots: IdMap<(usize, usize), SphereId>,
+    steps: Vec<u32>,
+    model: CodecModel,
+    roots: Vec<Vec<i32>>,
+}
+
+impl SphereRefiner {
+    /// The refiner for a planet of `face_side` samples per face side coded with `N x N`
+    /// diamonds, the quantiser steps, entropy model, the six face roots' vertex grids (face
+    /// order) and (sparse repositories) coverage.
+    pub fn new(
+        face_side: usize,
+        n: usize,
+        coverage: Option<&Coverage>,
+        steps: Vec<u32>,
+        model: CodecModel,
+        roots: Vec<Vec<i32>>,
+    ) -> Result<SphereRefiner, RefineError> {
+        let geometry = match coverage {
+            Some(c) => SphereGeometry::with_coverage(face_side, n, c)?,
+            None => SphereGeometry::new(face_side, n)?,
+        };
+        let side = (n + 1) * (n + 1);
+        if roots.len() != 6 {
+            return Err(RefineError::WrongLength {
+                expected: 6,
+                got: roots.len(),
+            });
+        }
+        if let Some(r) = roots.iter().find(|r| r.len() != side) {
+            return Err(RefineError::WrongLength {
+                expected: side,
+                got: r.len(),
+            });
+        }
+        let slots = (0..geometry.detail_levels())
+            .flat_map(|level| {
+                geometry
+                    .level(level)
+                    .iter()
+                    .enumerate()
+                    .map(move |(index, s)| (s.id, (level, index)))
+            })
+            .collect();
+        Ok(SphereRefiner {
+            geometry,
+            slots,
+            steps,
+            model,
+            roots,
+        })
+    }
+
+    /// The refiner of an in-memory planet encoding.
+    pub fn from_encoded(enc: &Encoded) -> Result<SphereRefiner, RefineError> {
+        let EncodedDomain::Sphere { face_side } = enc.domain else {
+            return Err(RefineError::WrongDomain);
+        };
+        SphereRefiner::new(
+            face_side,
+            enc.n,
+            enc.coverage.as_ref(),
+            enc.steps.clone(),
+            enc.model.clone(),
+            enc.roots.clone(),
+        )
+    }
+
+    /// The id space.
+    pub fn domain(&self) -> SphereDomain {
+        self.geometry.domain()
+    }
+
+    /// The placement of the planet's samples (cube raster).
+    pub fn geometry(&self) -> &SphereGeometry {
+        &self.geometry
+    }
+
+    fn slot_of(&self, id: SphereId) -> Result<(usize, usize), RefineError> {
+        self.slots
+            .get(&id)
+            .copied()
+            .ok_or_else(|| RefineError::NotRefinable(id_text(id)))
+    }
+
+    /// The vertex grid of `child`, cut from its refined parents' lattices (pass both:
+    /// every diamond of a planet below the face roots has two). Invalid vertices are 0.
+    pub fn child_grid(
+        &self,
+        child: SphereId,
+        parents: &[&Refined<SphereId>],
+    ) -> Result<Vec<i32>, RefineError> {
+        let n = self.geometry.n();
+        let (grid, written) = self.partial_child_grid(child, parents)?;
+        let mask = self.info(child).and_then(|info| info.mask);
+        let missing = (0..=n)
+            .flat_map(|i| (0..=n).map(move |j| (i, j)))
+            .filter(|&(i, j)| !written[i * (n + 1) + j] && mask.is_none_or(|m| m.vertex(i, j)))
+            .count();
+        if missing > 0 {
+            return Err(RefineError::MissingParent {
+                child: id_text(child),
+                missing,
+            });
+        }
+        Ok(grid)
+    }
+}
+
+impl Refiner for SphereRefiner {
+    type Id = SphereId;
+
+    fn n(&self) -> usize {
+        self.geometry.n()
+    }
+
+    fn detail_levels(&self) -> usize {
+        self.geometry.detail_levels()
+    }
+
+    fn roots(&self) -> Vec<(SphereId, &[i32])> {
+        self.geometry
+            .domain()
+            .roots()
+            .into_iter()
+            .zip(&self.roots)
+            .map(|(id, g)| (id, g.as_slice()))
+            .collect()
+    }
+
+    fn info(&self, id: SphereId) -> Option<DiamondInfo<'_, SphereId>> {
+        let &(level, index) = self.slots.get(&id)?;
+        let s = &self.geometry.level(level)[index];
+        let children = if self.geometry.detail_levels() > level + 1 {
+            s.children
+                .iter()
+                .map(|&k| self.geometry.level(level + 1)[k].id)
+                .collect()
+        } else {
+            // Children of the finest detail level are full-resolution leaves.
+            self.geometry.domain().children(id).unwrap_or_default()
+        };
+        Some(DiamondInfo {
+            level,
+            index,
+            key: &s.key,
+            mask: s.mask.as_ref(),
+            children,
+        })
+    }
+
+    fn is_refinable(&self, id: SphereId) -> bool {
+        self.slots.contains_key(&id)
+    }
+
+    fn parents(&self, id: SphereId) -> Vec<SphereId> {
+        self.geometry.domain().parents(id).unwrap_or_default()
+    }
+
+    fn side_parents(&self, id: SphereId) -> [SphereId; 2] {
+        let c = self.corners(id);
+        [SphereId::new(c[1]), SphereId::new(c[3])]
+    }
+
+    fn corners(&self, id: SphereId) -> [[i64; 3]; 4] {
+        self.geometry.domain().corners(id).unwrap_or_default()
+    }
+
+    fn decode(&self, id: SphereId, blob: &[u8]) -> Result<Details<SphereId>, RefineError> {
+        let (level, index) = self.slot_of(id)?;
+        let slot = &self.geometry.level(level)[index];
+        let ctx = self.geometry.blob_context(level, index);
+        let step = self.steps.get(level).copied().unwrap_or(256);
+        let next: &[_] = if level + 1 < self.geometry.detail_levels() {
+            self.geometry.level(level + 1)
+        } else {
+            &[]
+        };
+        decode_details(id, blob, &ctx, &self.model, step, &slot.owned, |k| {
+            next.get(k).map(|c| c.id)
+        })
+    }
+
+    fn synthesize(
+        &self,
+        id: SphereId,
+        grid: &[i32],
+        details: Option<&Details<SphereId>>,
+    ) -> Result<Refined<SphereId>, RefineError> {
+        let (level, index) = self.slot_of(id)?;
+        if details.is_some_and(|d| d.id != id) {
+            return Err(RefineError::NotRefinable(id_text(id)));
+        }
+        let slot = &self.geometry.level(level)[index];
+        synthesize_one(self.n(), id, grid, details, slot.mask.as_ref())
+    }
+
+    fn partial_child_grid(
+        &self,
+        child: SphereId,
+        parents: &[&Refined<SphereId>],
+    ) -> Result<(Vec<i32>, Vec<bool>), RefineError> {
+        let n = self.n();
+        let domain = self.geometry.domain();
+        let s = domain.size();
+        let frame = domain.corners(child)?;
+        let true_parents = domain.parents(child)?;
+        let mut grid = vec![0; (n + 1) * (n + 1)];
+        let mut written = vec![false; (n + 1) * (n + 1)];
+        for parent in parents {
+            let not_a_parent = || RefineError::NotAParent {
+                child: id_text(child),
+                parent: id_text(parent.id),
+            };
+            if !true_parents.contains(&parent.id) {
+                return Err(not_a_parent());
+            }
+            check_lattice(parent, n)?;
+            // The child's half inside this parent, in the parent's chart: E1, E2 and the
+            // parent's centre (P1 or P2 of the child's frame); the fourth corner completes
+            // the square.
+            let (face, other, parent_frame) = domain.chart_frame(parent.id)?;
+            let chart = |p: [i64; 3]| unfold(face, other, p, s).ok_or_else(not_a_parent);
+            let (e1, e2, centre) = (chart(frame[0])?, chart(frame[2])?, chart(parent.id.c)?);
+            let opposite = [e1[0] + e2[0] - centre[0], e1[1] + e2[1] - centre[1]];
+            let child_frame = if parent.id.c == frame[1] {
+                [e1, centre, e2, opposite]
+            } else {
+                [e1, opposite, e2, centre]
+            };
+            let map =
+                lifting::child_half(&parent_frame, &child_frame, n).ok_or_else(not_a_parent)?;
+            lifting::scatter_to_child(
+                &map,
+                n,
+                &parent.vertices,
+                &parent.cells,
+                &mut grid,
+                Some(&mut written),
+            );
+        }
+        Ok((grid, written))
+    }
+
+    fn key_of(id: SphereId) -> [i64; 3] {
+        id.c
+    }
+
+    fn id_of(key: [i64; 3]) -> SphereId {
+        SphereId::new(key)
+    }
+}
