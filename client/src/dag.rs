@@ -10,8 +10,10 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use quincunx_codec::diamond::{PlanarDomain, PlanarId};
+use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::incremental::{Details, PlanarRefiner, RefineError, Refined};
+
+use crate::domain::Domain;
 
 pub use quincunx_codec::diamond::{IdHasher, IdMap};
 
@@ -20,11 +22,11 @@ pub use quincunx_codec::diamond::{IdHasher, IdMap};
 pub enum DagError {
     /// Not in the DAG, not complete (a parent is unrefined), already refined, or finer
     /// than the repository.
-    #[error("{0:?} cannot be refined now")]
-    NotRefinable(PlanarId),
+    #[error("{0} cannot be refined now")]
+    NotRefinable(String),
     /// Not refined, or a child is refined.
-    #[error("{0:?} cannot be coarsened now")]
-    NotCoarsenable(PlanarId),
+    #[error("{0} cannot be coarsened now")]
+    NotCoarsenable(String),
     /// Synthesis failed (bad details).
     #[error(transparent)]
     Refine(#[from] RefineError),
@@ -62,9 +64,9 @@ impl Half {
 
 /// A diamond in the DAG.
 #[derive(Clone, Debug)]
-pub struct Node {
+pub struct Node<I = PlanarId> {
     /// The diamond.
-    pub id: PlanarId,
+    pub id: I,
     /// Its `(N+1)^2` vertex grid; entries of absent halves are 0.
     pub grid: Arc<Vec<i32>>,
     /// Which halves are present (index by [`Half`]).
@@ -73,22 +75,23 @@ pub struct Node {
     /// lies outside the raster never arrives).
     pub expected: [bool; 2],
     /// Its refined lattice, while it is refined.
-    pub refined: Option<Refined>,
+    pub refined: Option<Refined<I>>,
     /// The side-information class its first parent's blob carries for it: a bound on how
     /// far its finer surface departs from its grid (`None` until known).
     pub class: Option<u8>,
     /// Smallest and largest grid value over its present halves.
     pub z_range: (i32, i32),
-    /// Its frame corners `[E1, P1, E2, P2]` (id units).
-    pub corners: [[i64; 2]; 4],
-    /// Its children inside the raster (empty for the finest diamonds).
-    pub children: Arc<[PlanarId]>,
+    /// Its frame corners `[E1, P1, E2, P2]` (id units; planar `z = 0`, planets: points
+    /// on the cube surface).
+    pub corners: [[i64; 3]; 4],
+    /// Its children inside the data (empty for the finest diamonds).
+    pub children: Arc<[I]>,
     /// Changes whenever its grid or halves change (a DAG-wide counter), so cached
     /// judgements about it can tell they are stale.
     pub generation: u64,
 }
 
-impl Node {
+impl<I> Node<I> {
     /// Whether every half that exists is present.
     pub fn complete(&self) -> bool {
         self.present
@@ -103,42 +106,45 @@ impl Node {
     }
 }
 
-/// The DAG of one planar repository.
+/// The DAG of one repository (planar unless `R` says otherwise).
 #[derive(Debug)]
-pub struct Dag {
-    refiner: Arc<PlanarRefiner>,
-    domain: PlanarDomain,
-    nodes: IdMap<Node>,
+pub struct Dag<R: Domain = PlanarRefiner> {
+    refiner: Arc<R>,
+    nodes: IdMap<Node<R::Id>, R::Id>,
     generations: u64,
     /// Diamonds holding a refined lattice.
     refined: usize,
 }
 
-impl Dag {
-    /// A DAG holding the root diamond (complete, from the repository's root grid).
-    pub fn new(refiner: Arc<PlanarRefiner>) -> Dag {
-        let domain = refiner.domain();
-        let (root, grid) = refiner.root();
+impl<R: Domain> Dag<R> {
+    /// A DAG holding the roots (complete, from the repository's root grids).
+    pub fn new(refiner: Arc<R>) -> Dag<R> {
         let n = refiner.n();
-        let node = Node {
-            id: root,
-            corners: domain.corners(root).unwrap_or_default(),
-            children: refiner
-                .info(root)
-                .map(|i| i.children)
-                .unwrap_or_default()
-                .into(),
-            z_range: z_range(grid, n, [true, true]),
-            generation: 0,
-            grid: Arc::new(grid.to_vec()),
-            present: [true, true],
-            expected: [true, true],
-            refined: None,
-            class: None,
-        };
+        let nodes = refiner
+            .roots()
+            .into_iter()
+            .map(|(root, grid)| {
+                let node = Node {
+                    id: root,
+                    corners: refiner.corners(root),
+                    children: refiner
+                        .info(root)
+                        .map(|i| i.children)
+                        .unwrap_or_default()
+                        .into(),
+                    z_range: z_range(grid, n, [true, true]),
+                    generation: 0,
+                    grid: Arc::new(grid.to_vec()),
+                    present: [true, true],
+                    expected: [true, true],
+                    refined: None,
+                    class: None,
+                };
+                (root, node)
+            })
+            .collect();
         Dag {
-            domain,
-            nodes: IdMap::from_iter([(root, node)]),
+            nodes,
             refiner,
             generations: 1,
             refined: 0,
@@ -146,17 +152,17 @@ impl Dag {
     }
 
     /// The incremental decoder this DAG refines with.
-    pub fn refiner(&self) -> &PlanarRefiner {
+    pub fn refiner(&self) -> &R {
         &self.refiner
     }
 
     /// A diamond, if it is in the DAG.
-    pub fn node(&self, id: PlanarId) -> Option<&Node> {
+    pub fn node(&self, id: R::Id) -> Option<&Node<R::Id>> {
         self.nodes.get(&id)
     }
 
     /// Every diamond in the DAG.
-    pub fn nodes(&self) -> impl Iterator<Item = &Node> {
+    pub fn nodes(&self) -> impl Iterator<Item = &Node<R::Id>> {
         self.nodes.values()
     }
 
@@ -165,7 +171,7 @@ impl Dag {
         self.nodes.len()
     }
 
-    /// Whether only nothing is held (never: the root stays).
+    /// Whether nothing is held (never: the roots stay).
     pub fn is_empty(&self) -> bool {
         self.nodes.is_empty()
     }
@@ -179,7 +185,7 @@ impl Dag {
 
     /// Bytes one node holds (its grid and the node itself).
     pub fn node_bytes(n: usize) -> usize {
-        4 * (n + 1) * (n + 1) + std::mem::size_of::<Node>()
+        4 * (n + 1) * (n + 1) + std::mem::size_of::<Node<R::Id>>()
     }
 
     /// Bytes one refined lattice adds.
@@ -193,7 +199,7 @@ impl Dag {
     }
 
     /// Whether `id` can be refined now: present, complete, unrefined and carrying details.
-    pub fn is_refinable(&self, id: PlanarId) -> bool {
+    pub fn is_refinable(&self, id: R::Id) -> bool {
         self.nodes
             .get(&id)
             .is_some_and(|n| n.complete() && n.refined.is_none())
@@ -201,7 +207,7 @@ impl Dag {
     }
 
     /// Whether `id` can be coarsened now: refined, and none of its children refined.
-    pub fn is_coarsenable(&self, id: PlanarId) -> bool {
+    pub fn is_coarsenable(&self, id: R::Id) -> bool {
         self.nodes.get(&id).is_some_and(|n| n.refined.is_some())
             && self
                 .children(id)
@@ -209,8 +215,8 @@ impl Dag {
                 .all(|c| self.nodes.get(c).is_none_or(|n| n.refined.is_none()))
     }
 
-    /// The children of `id` that the repository holds (inside the raster).
-    pub fn children(&self, id: PlanarId) -> Arc<[PlanarId]> {
+    /// The children of `id` that the repository holds (inside the data).
+    pub fn children(&self, id: R::Id) -> Arc<[R::Id]> {
         match self.nodes.get(&id) {
             Some(node) => node.children.clone(),
             None => self
@@ -222,24 +228,25 @@ impl Dag {
         }
     }
 
-    /// The parents of `id` (one for border half diamonds, none for the root).
-    pub fn parents(&self, id: PlanarId) -> Vec<PlanarId> {
-        self.domain.parents(id).unwrap_or_default()
+    /// The parents of `id` (one for planar border half diamonds, none for roots).
+    pub fn parents(&self, id: R::Id) -> Vec<R::Id> {
+        self.refiner.parents(id)
     }
 
     /// Refines `id` with its decoded details (`None`: no blob): synthesises its lattice
     /// and gives each child the half that lies in it. Returns the children.
     pub fn refine(
         &mut self,
-        id: PlanarId,
-        details: Option<&Details>,
-    ) -> Result<Vec<PlanarId>, DagError> {
+        id: R::Id,
+        details: Option<&Details<R::Id>>,
+    ) -> Result<Vec<R::Id>, DagError> {
+        let not_refinable = || DagError::NotRefinable(format!("{id:?}"));
         if !self.is_refinable(id) {
-            return Err(DagError::NotRefinable(id));
+            return Err(not_refinable());
         }
-        let node = self.nodes.get(&id).ok_or(DagError::NotRefinable(id))?;
+        let node = self.nodes.get(&id).ok_or_else(not_refinable)?;
         let refined = self.refiner.synthesize(id, &node.grid, details)?;
-        let classes: HashMap<PlanarId, u8> = refined.child_classes.iter().copied().collect();
+        let classes: HashMap<R::Id, u8> = refined.child_classes.iter().copied().collect();
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = Some(refined);
             self.refined += 1;
@@ -256,9 +263,9 @@ impl Dag {
 
     /// Coarsens `id`: drops its lattice and the halves of its children that lay in it
     /// (children left with no half leave the DAG).
-    pub fn coarsen(&mut self, id: PlanarId) -> Result<(), DagError> {
+    pub fn coarsen(&mut self, id: R::Id) -> Result<(), DagError> {
         if !self.is_coarsenable(id) {
-            return Err(DagError::NotCoarsenable(id));
+            return Err(DagError::NotCoarsenable(format!("{id:?}")));
         }
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = None;
@@ -271,15 +278,11 @@ impl Dag {
     }
 
     /// Recomputes a child's grid and halves from its currently refined parents.
-    fn rebuild_child(&mut self, child: PlanarId) -> Result<(), DagError> {
-        let corners = self.domain.corners(child).map_err(RefineError::from)?;
-        let at = |k: usize| PlanarId {
-            x: corners[k][0],
-            y: corners[k][1],
-        };
-        let side_parents = [at(1), at(3)];
+    fn rebuild_child(&mut self, child: R::Id) -> Result<(), DagError> {
+        let corners = self.refiner.corners(child);
+        let side_parents = self.refiner.side_parents(child);
         let parents = self.parents(child);
-        let refined: Vec<&Refined> = parents
+        let refined: Vec<&Refined<R::Id>> = parents
             .iter()
             .filter_map(|p| self.nodes.get(p).and_then(|n| n.refined.as_ref()))
             .collect();
@@ -330,8 +333,8 @@ impl Dag {
     }
 
     /// The cut: every present half of every unrefined diamond, in a stable order.
-    pub fn cut(&self) -> Vec<(PlanarId, Half)> {
-        let mut out: Vec<(PlanarId, Half)> = self
+    pub fn cut(&self) -> Vec<(R::Id, Half)> {
+        let mut out: Vec<(R::Id, Half)> = self
             .nodes
             .values()
             .filter(|n| n.refined.is_none())
@@ -342,29 +345,26 @@ impl Dag {
                     .map(move |h| (n.id, h))
             })
             .collect();
-        out.sort_by_key(|(id, h)| (id.x, id.y, *h));
+        out.sort_unstable();
         out
     }
 
     /// Checks the cut: neighbouring halves agree bit for bit on every shared valid vertex,
-    /// and every point of the raster lies in exactly one half (probed on a lattice of
-    /// points that avoids all diamond edges).
+    /// and every probe point of the domain ([`Domain::probes`]) lies in exactly one half.
     pub fn check_cut(&self) -> CutCheck {
         let n = self.refiner.n();
-        let mut values: HashMap<[i64; 2], i32> = HashMap::new();
+        let mut values: HashMap<[i64; 3], i32> = HashMap::new();
         let mut check = CutCheck::default();
         let cut = self.cut();
-        let mut triangles: Vec<[[f64; 2]; 3]> = Vec::with_capacity(cut.len());
+        let mut triangles: HashMap<u8, Vec<[[f64; 2]; 3]>> = HashMap::new();
         for &(id, half) in &cut {
             check.halves += 1;
-            let (Some(node), Ok(c)) = (self.nodes.get(&id), self.domain.corners(id)) else {
+            let Some(node) = self.nodes.get(&id) else {
                 continue;
             };
-            let apex = match half {
-                Half::Lower => c[1],
-                Half::Upper => c[3],
-            };
-            triangles.push([c[0], apex, c[2]].map(|p| [p[0] as f64, p[1] as f64]));
+            if let Some((chart, t)) = self.refiner.half_triangle(id, half) {
+                triangles.entry(chart).or_default().push(t);
+            }
             let mask = self.refiner.info(id).and_then(|i| i.mask);
             for i in 0..=n {
                 for j in 0..=n {
@@ -372,14 +372,9 @@ impl Dag {
                     if !on_edge || !half.contains(i, j) || mask.is_some_and(|m| !m.vertex(i, j)) {
                         continue;
                     }
-                    let (ii, jj) = (i as i64, j as i64);
-                    // Position in id units times N (exact).
-                    let pos = [0, 1].map(|k| {
-                        c[0][k] * n as i64 + ii * (c[1][k] - c[0][k]) + jj * (c[3][k] - c[0][k])
-                    });
-                    if !self.inside_raster(pos, n) {
+                    let Some(pos) = self.refiner.vertex_point(id, i, j) else {
                         continue;
-                    }
+                    };
                     let v = node.grid[i * (n + 1) + j];
                     match values.insert(pos, v) {
                         Some(old) if old != v => check.cracks += 1,
@@ -389,32 +384,17 @@ impl Dag {
                 }
             }
         }
-        // Probe points: irrational offsets keep them off every diamond edge.
-        let (w, h) = self.refiner.raster_size();
-        let (w, h) = ((w - 1) as f64, (h - 1) as f64);
-        let steps = 41;
-        for a in 0..steps {
-            for b in 0..steps {
-                let p = [
-                    w * (a as f64 + 0.5 + 0.1 * std::f64::consts::SQRT_2) / (steps as f64 + 0.5),
-                    h * (b as f64 + 0.5 + 0.1 * std::f64::consts::E) / (steps as f64 + 0.5),
-                ];
-                let hits = triangles.iter().filter(|t| in_triangle(p, t)).count();
-                match hits {
-                    0 => check.uncovered += 1,
-                    1 => check.probes += 1,
-                    _ => check.overlaps += 1,
-                }
+        for (chart, p) in self.refiner.probes() {
+            let hits = triangles
+                .get(&chart)
+                .map_or(0, |ts| ts.iter().filter(|t| in_triangle(p, t)).count());
+            match hits {
+                0 => check.uncovered += 1,
+                1 => check.probes += 1,
+                _ => check.overlaps += 1,
             }
         }
         check
-    }
-
-    /// Whether a position (id units times `n`) is a raster sample.
-    fn inside_raster(&self, pos: [i64; 2], n: usize) -> bool {
-        let (w, h) = self.refiner.raster_size();
-        let n = n as i64;
-        (0..=(w as i64 - 1) * n).contains(&pos[0]) && (0..=(h as i64 - 1) * n).contains(&pos[1])
     }
 }
 

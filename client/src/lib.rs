@@ -22,9 +22,13 @@
 //! - [`flight`]: camera paths (built-in and from files) and a headless real-time runner
 //!   that measures a session along one (what `quincunx fly` and the fly load test run).
 //!
-//! Not yet: planets (the sphere incremental decoder), colour layers, and rendering.
+//! - [`domain`]: what differs between planar repositories and planets (world boxes,
+//!   exact vertex positions, coverage probes); everything above is generic over it.
+//!
+//! Not yet: colour layers and rendering.
 
 pub mod dag;
+pub mod domain;
 pub mod fetch;
 pub mod flight;
 pub mod refine;

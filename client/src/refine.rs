@@ -32,30 +32,31 @@ use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::entropy::class_bound;
 use quincunx_codec::incremental::Details;
 
-use crate::dag::{Dag, DagError};
-use crate::view::{Aabb, Frustum, PlanarWorld, View};
+use crate::dag::{Dag, DagError, IdMap};
+use crate::domain::{Domain, World};
+use crate::view::{Frustum, View};
 
 /// Whether a diamond's details are here.
 #[derive(Clone, Debug)]
-pub enum Availability {
+pub enum Availability<I = PlanarId> {
     /// Arrived: decoded details, or `None` for a diamond without a blob (zero details).
-    Ready(Option<Arc<Details>>),
+    Ready(Option<Arc<Details<I>>>),
     /// Requested (or queued) and not here yet.
     Pending,
 }
 
 /// Where details come from: the data access layer (network thread, caches) or, in tests
 /// and local apps, a repository in memory.
-pub trait DetailSource {
+pub trait DetailSource<I = PlanarId> {
     /// The details of `id` if they are here; otherwise records that they are wanted with
     /// this priority (higher first) and returns [`Availability::Pending`].
-    fn details(&mut self, id: PlanarId, priority: f64) -> Availability;
+    fn details(&mut self, id: I, priority: f64) -> Availability<I>;
 
     /// Records that `id` is wanted with this priority without using its details: called
     /// for the split queue's diamonds a frame had no time left for, so the data access
     /// layer keeps requesting them. The default asks [`DetailSource::details`] and drops
     /// the answer.
-    fn want(&mut self, id: PlanarId, priority: f64) {
+    fn want(&mut self, id: I, priority: f64) {
         let _ = self.details(id, priority);
     }
 }
@@ -139,21 +140,21 @@ pub struct FrameStats {
 
 /// An `f64` ordered for the heaps (NaN never occurs: errors are finite by construction).
 #[derive(Clone, Copy, Debug, PartialEq)]
-struct Key(f64, PlanarId);
+struct Key<I>(f64, I);
 
-impl Eq for Key {}
+impl<I: PartialEq> Eq for Key<I> {}
 
-impl PartialOrd for Key {
+impl<I: Ord> PartialOrd for Key<I> {
     fn partial_cmp(&self, other: &Self) -> Option<Ordering> {
         Some(self.cmp(other))
     }
 }
 
-impl Ord for Key {
+impl<I: Ord> Ord for Key<I> {
     fn cmp(&self, other: &Self) -> Ordering {
         self.0
             .total_cmp(&other.0)
-            .then_with(|| (self.1.x, self.1.y).cmp(&(other.1.x, other.1.y)))
+            .then_with(|| self.1.cmp(&other.1))
     }
 }
 
@@ -172,21 +173,19 @@ pub struct Appearance {
 }
 
 /// Projects diamonds for one view.
-struct Projector<'a> {
+struct Projector<'a, W> {
     view: &'a View,
     frustum: Frustum,
-    world: PlanarWorld,
+    world: W,
     config: RefineConfig,
     /// Pixels per metre at 1 m.
     px_at_1m: f64,
-    /// Metres per id unit over `N` (grid spacing per unit of side length).
-    spacing_per_n: f64,
     /// Pixels below which a surface change is invisible (flat regions).
     flat_px: f64,
 }
 
-impl Projector<'_> {
-    fn appearance(&self, dag: &Dag, id: PlanarId) -> Appearance {
+impl<W: World> Projector<'_, W> {
+    fn appearance<R: Domain<World = W>>(&self, dag: &Dag<R>, id: R::Id) -> Appearance {
         let Some(node) = dag.node(id) else {
             return Appearance {
                 error_px: 0.0,
@@ -195,38 +194,17 @@ impl Projector<'_> {
                 margin_m: f64::INFINITY,
             };
         };
-        let c = node.corners;
         let w = &self.world;
         let bound_m = node
             .class
-            .map_or(0.0, |k| class_bound(k) as f64 * w.value_scale_m.abs());
-        let (za, zb) = (
-            w.value_offset_m + f64::from(node.z_range.0) * w.value_scale_m,
-            w.value_offset_m + f64::from(node.z_range.1) * w.value_scale_m,
+            .map_or(0.0, |k| class_bound(k) as f64 * w.value_scale_m().abs());
+        let (za, zb) = (w.height_m(node.z_range.0), w.height_m(node.z_range.1));
+        let (bbox, edge_m) = dag.refiner().footprint(
+            w,
+            id,
+            &node.corners,
+            (za.min(zb) - bound_m, za.max(zb) + bound_m),
         );
-        let (mut x0, mut x1, mut y0, mut y1) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
-        for p in &c {
-            x0 = x0.min(p[0]);
-            x1 = x1.max(p[0]);
-            y0 = y0.min(p[1]);
-            y1 = y1.max(p[1]);
-        }
-        let bbox = Aabb {
-            min: DVec3::new(
-                x0 as f64 * w.spacing_m,
-                y0 as f64 * w.spacing_m,
-                za.min(zb) - bound_m,
-            ),
-            max: DVec3::new(
-                x1 as f64 * w.spacing_m,
-                y1 as f64 * w.spacing_m,
-                za.max(zb) + bound_m,
-            ),
-        };
-        let edge_m = {
-            let d = [(c[1][0] - c[0][0]) as f64, (c[1][1] - c[0][1]) as f64];
-            (d[0] * d[0] + d[1] * d[1]).sqrt() * self.spacing_per_n
-        };
         let distance_m = bbox.distance(self.view.eye).max(View::NEAR_M);
         let px_per_m = self.px_at_1m / distance_m;
         let flat = node.class.is_some() && bound_m * px_per_m < self.flat_px;
@@ -262,22 +240,34 @@ impl Projector<'_> {
 /// before then, unless the diamond itself changed or the projection did (field of view,
 /// viewport, tolerance, world mapping). Visibility does not matter for them: a diamond
 /// that does not want refining when visible does not when hidden either.
-#[derive(Clone, Debug, Default)]
-pub struct Refinement {
+#[derive(Clone, Debug)]
+pub struct Refinement<I = PlanarId> {
     /// Tuning.
     pub config: RefineConfig,
     /// Camera travel so far (metres) and the last eye position.
     travel_m: f64,
     last_eye: Option<DVec3>,
     /// What the deferrals were computed under.
-    projection: Option<(f64, [u32; 2], f64, [f64; 3])>,
+    projection: Option<(f64, [u32; 2], f64, [f64; 4])>,
     /// Per diamond: the travel at which to look again, and its generation then.
-    deferred: crate::dag::IdMap<(f64, u64)>,
+    deferred: IdMap<(f64, u64), I>,
 }
 
-impl Refinement {
+impl<I> Default for Refinement<I> {
+    fn default() -> Self {
+        Refinement {
+            config: RefineConfig::default(),
+            travel_m: 0.0,
+            last_eye: None,
+            projection: None,
+            deferred: IdMap::default(),
+        }
+    }
+}
+
+impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
     /// Refinement with `config` and nothing deferred yet.
-    pub fn with_config(config: RefineConfig) -> Refinement {
+    pub fn with_config(config: RefineConfig) -> Refinement<I> {
         Refinement {
             config,
             ..Refinement::default()
@@ -285,12 +275,12 @@ impl Refinement {
     }
 
     /// Accumulates camera travel; forgets every deferral when the projection changed.
-    fn track_camera(&mut self, view: &View, world: PlanarWorld) {
+    fn track_camera(&mut self, view: &View, world: &impl World) {
         let projection = (
             view.fov_y_rad,
             view.viewport_px,
             view.tolerance_px,
-            [world.spacing_m, world.value_scale_m, world.value_offset_m],
+            world.fingerprint(),
         );
         if self.projection != Some(projection) {
             self.projection = Some(projection);
@@ -303,28 +293,27 @@ impl Refinement {
     }
 }
 
-impl Refinement {
-    fn projector<'a>(&self, dag: &Dag, view: &'a View, world: PlanarWorld) -> Projector<'a> {
+impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
+    fn projector<'a, W: World>(&self, view: &'a View, world: W) -> Projector<'a, W> {
         Projector {
             view,
             frustum: view.frustum(),
             world,
             config: self.config,
             px_at_1m: view.px_per_m(1.0),
-            spacing_per_n: world.spacing_m / dag.refiner().n() as f64,
             flat_px: self.config.flat_fraction * view.tolerance_px,
         }
     }
 
     /// The unrefined diamonds of the DAG that `view` would want refined, with their
     /// projected errors: for prefetching along a predicted camera. Changes nothing.
-    pub fn wanted_splits(
+    pub fn wanted_splits<R: Domain<Id = I>>(
         &self,
-        dag: &Dag,
+        dag: &Dag<R>,
         view: &View,
-        world: PlanarWorld,
-    ) -> Vec<(PlanarId, f64)> {
-        let projector = self.projector(dag, view, world);
+        world: R::World,
+    ) -> Vec<(I, f64)> {
+        let projector = self.projector(view, world);
         dag.nodes()
             .filter(|n| n.refined.is_none() && dag.refiner().is_refinable(n.id))
             .filter_map(|n| {
@@ -337,13 +326,13 @@ impl Refinement {
 
 /// Coarsens `id` unless the deadline has passed (then `None`, and the frame is out of
 /// time); returns its parents that became coarsenable.
-fn coarsen_in_time(
-    dag: &mut Dag,
-    id: PlanarId,
+fn coarsen_in_time<R: Domain>(
+    dag: &mut Dag<R>,
+    id: R::Id,
     clock: &dyn Clock,
     deadline: Duration,
     stats: &mut FrameStats,
-) -> Result<Option<Vec<PlanarId>>, DagError> {
+) -> Result<Option<Vec<R::Id>>, DagError> {
     if clock.now() >= deadline {
         stats.out_of_time = true;
         return Ok(None);
@@ -361,24 +350,24 @@ enum Outcome {
     Impossible,
 }
 
-impl Refinement {
+impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
     /// Runs one frame: splits and merges until both queues are empty or `budget` is
     /// spent (checked between operations against `clock`).
-    pub fn update(
+    pub fn update<R: Domain<Id = I>>(
         &mut self,
-        dag: &mut Dag,
+        dag: &mut Dag<R>,
         view: &View,
-        world: PlanarWorld,
-        source: &mut dyn DetailSource,
+        world: R::World,
+        source: &mut dyn DetailSource<I>,
         clock: &dyn Clock,
         budget: Duration,
     ) -> Result<FrameStats, DagError> {
         let start = clock.now();
         let deadline = start + budget;
-        let projector = self.projector(dag, view, world);
+        let projector = self.projector(view, world);
         let mut stats = FrameStats::default();
 
-        self.track_camera(view, world);
+        self.track_camera(view, &world);
         // Split queue: the cut's diamonds that want refining, most urgent first.
         let travel = self.travel_m;
         let mut splits = BinaryHeap::new();
@@ -460,7 +449,7 @@ impl Refinement {
         if !stats.out_of_time {
             // Only refined diamonds whose children are unrefined can merge; coarsening
             // one may free its parents, which join the queue.
-            let mut merges: BinaryHeap<std::cmp::Reverse<Key>> = dag
+            let mut merges: BinaryHeap<std::cmp::Reverse<Key<I>>> = dag
                 .nodes()
                 .filter(|n| n.refined.is_some())
                 .filter_map(|n| {
@@ -512,16 +501,16 @@ impl Refinement {
 
     /// Coarsens until the DAG fits `max` bytes: off-screen diamonds first, then the
     /// smallest projected errors.
-    fn evict(
+    fn evict<R: Domain<Id = I>>(
         &mut self,
-        dag: &mut Dag,
-        projector: &Projector<'_>,
+        dag: &mut Dag<R>,
+        projector: &Projector<'_, R::World>,
         max: usize,
         clock: &dyn Clock,
         deadline: Duration,
         stats: &mut FrameStats,
     ) -> Result<(), DagError> {
-        let rank = |dag: &Dag, id: PlanarId| {
+        let rank = |dag: &Dag<R>, id: I| {
             let a = projector.appearance(dag, id);
             // Off-screen diamonds rank below every visible one.
             let e = if a.visible {
@@ -531,7 +520,7 @@ impl Refinement {
             };
             std::cmp::Reverse(Key(e, id))
         };
-        let mut queue: BinaryHeap<std::cmp::Reverse<Key>> = dag
+        let mut queue: BinaryHeap<std::cmp::Reverse<Key<I>>> = dag
             .nodes()
             .filter(|n| n.refined.is_some() && dag.is_coarsenable(n.id))
             .map(|n| rank(dag, n.id))
@@ -555,16 +544,16 @@ impl Refinement {
 
     /// Refines `id`, refining its missing parents first.
     #[allow(clippy::too_many_arguments)]
-    fn refine_with_parents(
+    fn refine_with_parents<R: Domain<Id = I>>(
         &mut self,
-        dag: &mut Dag,
-        id: PlanarId,
+        dag: &mut Dag<R>,
+        id: I,
         priority: f64,
-        source: &mut dyn DetailSource,
+        source: &mut dyn DetailSource<I>,
         stats: &mut FrameStats,
         depth: usize,
-        projector: &Projector<'_>,
-        newly: &mut Vec<PlanarId>,
+        projector: &Projector<'_, R::World>,
+        newly: &mut Vec<I>,
     ) -> Result<Outcome, DagError> {
         if depth > 128 || !dag.refiner().is_refinable(id) {
             return Ok(Outcome::Impossible);
@@ -611,7 +600,7 @@ impl Refinement {
         if let Some(max) = self.config.max_dag_bytes {
             // A refinement adds a lattice and up to four children's nodes.
             let n = dag.refiner().n();
-            if dag.memory_bytes() + Dag::lattice_bytes(n) + 4 * Dag::node_bytes(n) > max {
+            if dag.memory_bytes() + Dag::<R>::lattice_bytes(n) + 4 * Dag::<R>::node_bytes(n) > max {
                 stats.over_budget = true;
                 stats.max_error_px = stats.max_error_px.max(priority);
                 return Ok(Outcome::Impossible);

@@ -1,5 +1,7 @@
-//! A streaming session: one served planar elevation repository, its DAG, refinement and
-//! data access layer, driven one frame at a time.
+//! A streaming session: one served elevation repository (planar or planet), its DAG,
+//! refinement and data access layer, driven one frame at a time. [`Session`] is planar by
+//! default; [`PlanetSession`] streams planets (the world is then centred on the planet).
+//! [`quincunx_store::Metadata::domain`] says which one a repository needs.
 //!
 //! ```no_run
 //! use std::time::{Duration, Instant};
@@ -48,12 +50,13 @@ use std::time::Duration;
 
 use glam::DVec3;
 use quincunx_codec::coverage::Coverage;
-use quincunx_codec::diamond::{PlanarDomain, PlanarId};
+use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::entropy::{CodecModel, class_bound};
-use quincunx_codec::incremental::{Details, PlanarRefiner};
-use quincunx_store::Metadata;
+use quincunx_codec::incremental::{Details, PlanarRefiner, Refiner, SphereRefiner};
+use quincunx_store::{ChannelCoding, Metadata};
 
 use crate::dag::{Dag, DagError, Half};
+use crate::domain::{Domain, World};
 use crate::fetch::{
     Decode, FetchConfig, FetchError, FetchStats, Fetched, Fetcher, Key, Remote, Transport, Weigh,
     lock,
@@ -61,7 +64,7 @@ use crate::fetch::{
 use crate::refine::{
     Availability, DetailSource, FrameStats, RefineConfig, Refinement, SystemClock,
 };
-use crate::view::{Aabb, PlanarWorld, View};
+use crate::view::{Aabb, PlanarWorld, SphereWorld, View};
 
 /// Mean Earth radius (metres), for sample spacings of latitude/longitude grids.
 pub const EARTH_RADIUS_M: f64 = 6_371_008.8;
@@ -167,14 +170,15 @@ pub struct SessionFrame {
 
 /// One drawable triangle of the cut: a present half of an unrefined diamond.
 #[derive(Clone, Debug)]
-pub struct Patch {
+pub struct Patch<I = PlanarId> {
     /// The diamond.
-    pub id: PlanarId,
+    pub id: I,
     /// Which half.
     pub half: Half,
-    /// The diamond's frame `[E1, P1, E2, P2]` (id units): grid vertex `(i, j)` is at
-    /// `E1 + (i (P1 - E1) + j (P2 - E1)) / N`.
-    pub corners: [[i64; 2]; 4],
+    /// The diamond's frame `[E1, P1, E2, P2]` (id units; planar `z = 0`): on the plane,
+    /// grid vertex `(i, j)` is at `E1 + (i (P1 - E1) + j (P2 - E1)) / N`; on a planet
+    /// [`Domain::vertex_world`] places vertices (halves fold across cube edges).
+    pub corners: [[i64; 3]; 4],
     /// The diamond's `(N+1)^2` vertex grid (integer samples; metres through the world
     /// mapping). Shared, not copied.
     pub grid: Arc<Vec<i32>>,
@@ -187,39 +191,42 @@ pub struct Patch {
 /// Neighbouring patches agree bit for bit on shared edges, so drawing them as they are
 /// gives a surface without cracks or T-junctions.
 #[derive(Clone, Debug)]
-pub struct Snapshot {
+pub struct Snapshot<I = PlanarId, W = PlanarWorld> {
     /// Diamond size `N` (each grid is `(N+1)^2`).
     pub n: usize,
     /// Ids and integer samples to metres.
-    pub world: PlanarWorld,
+    pub world: W,
     /// The cut, in a stable order.
-    pub patches: Vec<Patch>,
+    pub patches: Vec<Patch<I>>,
 }
 
-impl Weigh for Details {
+impl<I: Send + Sync + 'static> Weigh for Details<I> {
     fn weight_bytes(&self) -> usize {
         std::mem::size_of::<Self>()
             + self.h.capacity() * std::mem::size_of::<i32>()
-            + self.child_classes.capacity() * std::mem::size_of::<(PlanarId, u8)>()
-            + self.empty_children.capacity() * std::mem::size_of::<PlanarId>()
+            + self.child_classes.capacity() * std::mem::size_of::<(I, u8)>()
+            + self.empty_children.capacity() * std::mem::size_of::<I>()
     }
 }
 
-/// A planar elevation repository streamed from a server.
-pub struct Session {
+/// A planet streamed from a server.
+pub type PlanetSession = Session<SphereRefiner>;
+
+/// An elevation repository streamed from a server (planar unless `R` says otherwise).
+pub struct Session<R: Domain = PlanarRefiner> {
     name: String,
     remote: Remote,
     meta: Metadata,
-    world: PlanarWorld,
-    refiner: Arc<PlanarRefiner>,
-    dag: Dag,
-    refinement: Refinement,
-    fetcher: Fetcher<Details>,
+    world: R::World,
+    refiner: Arc<R>,
+    dag: Dag<R>,
+    refinement: Refinement<R::Id>,
+    fetcher: Fetcher<Details<R::Id>>,
     config: SessionConfig,
     /// Body bytes of each fetched blob (written on the network thread).
     blob_bytes: Arc<Mutex<HashMap<Key, u32>>>,
     /// Delivered since the last frame.
-    arrived: HashMap<Key, Option<Arc<Details>>>,
+    arrived: HashMap<Key, Option<Arc<Details<R::Id>>>>,
     /// Diamonds refined with a blob at least once (for waste accounting).
     used: HashSet<Key>,
     /// Diamonds known to have no blob without asking: a diamond without a blob has no
@@ -232,14 +239,14 @@ pub struct Session {
     failures: u64,
 }
 
-impl Session {
+impl<R: Domain> Session<R> {
     /// Opens repository `name` served at `base_url` (`http://host[:port][/prefix]`):
     /// fetches its metadata once and starts the network thread.
     pub fn open(
         base_url: &str,
         name: &str,
         config: SessionConfig,
-    ) -> Result<Session, SessionError> {
+    ) -> Result<Session<R>, SessionError> {
         let (remote, meta) = Remote::open(base_url, name, config.timeout)?;
         Session::with_metadata(remote, meta, config)
     }
@@ -249,19 +256,16 @@ impl Session {
         remote: Remote,
         meta: Metadata,
         config: SessionConfig,
-    ) -> Result<Session, SessionError> {
+    ) -> Result<Session<R>, SessionError> {
         let name = remote.name.clone();
-        let refiner = Arc::new(planar_refiner(&name, &meta)?);
-        let world = planar_world(&meta, config.spacing_m);
+        let (refiner, world) = R::from_metadata(&name, &meta, config.spacing_m)?;
+        let refiner = Arc::new(refiner);
         let blob_bytes: Arc<Mutex<HashMap<Key, u32>>> = Arc::default();
-        let decode: Decode<Details> = {
+        let decode: Decode<Details<R::Id>> = {
             let refiner = Arc::clone(&refiner);
             let sizes = Arc::clone(&blob_bytes);
             Arc::new(move |key: Key, bytes| {
-                let id = PlanarId {
-                    x: key[0],
-                    y: key[1],
-                };
+                let id = R::id_of(key);
                 lock(&sizes).insert(key, u32::try_from(bytes.len()).unwrap_or(u32::MAX));
                 refiner.decode(id, &bytes).map_err(|e| e.to_string())
             })
@@ -316,17 +320,17 @@ impl Session {
     }
 
     /// How ids and integer samples map to world metres.
-    pub fn world(&self) -> PlanarWorld {
+    pub fn world(&self) -> R::World {
         self.world
     }
 
     /// The DAG: the current cut ([`Dag::cut`]) is what a renderer draws.
-    pub fn dag(&self) -> &Dag {
+    pub fn dag(&self) -> &Dag<R> {
         &self.dag
     }
 
     /// The current cut for a renderer.
-    pub fn snapshot(&self) -> Snapshot {
+    pub fn snapshot(&self) -> Snapshot<R::Id, R::World> {
         let patches = self
             .dag
             .cut()
@@ -349,61 +353,50 @@ impl Session {
         }
     }
 
-    /// The world box of the raster: its extent times a bound on its heights.
-    ///
-    /// The heights are bounded over the cut: each unrefined diamond's grid range, widened
-    /// by the bound its parent's blob carries for its whole subtree. That bound is
-    /// conservative once every cut diamond's bound is known, which is the case as soon as
-    /// the root is refined ([`Session::warm_up`]); before that it is the root grid's range
-    /// only, and real peaks may rise above it.
-    pub fn bounds(&self) -> Aabb {
-        let (w, h) = self.dag.refiner().raster_size();
-        let scale = self.world.value_scale_m.abs();
+    /// A conservative range of the surface's heights (metres): over the cut, each
+    /// unrefined diamond's grid range widened by the bound its parent's blob carries for
+    /// its whole subtree. Conservative once every cut diamond's bound is known, which is
+    /// the case as soon as the roots are refined ([`Session::warm_up`]); before that it is
+    /// the root grids' range only, and real peaks may rise above it.
+    pub fn height_range(&self) -> (f64, f64) {
+        self.height_range_where(|_| true)
+    }
+
+    /// [`Session::height_range`] over the cut diamonds `keep` accepts.
+    fn height_range_where(&self, keep: impl Fn(&crate::dag::Node<R::Id>) -> bool) -> (f64, f64) {
+        let scale = self.world.value_scale_m().abs();
         let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-        for n in self.dag.nodes().filter(|n| n.refined.is_none()) {
+        for n in self.dag.nodes().filter(|n| n.refined.is_none() && keep(n)) {
             let bound = n.class.map_or(0.0, |k| class_bound(k) as f64 * scale);
             let (a, b) = (
-                self.world.point([0, 0], n.z_range.0).z,
-                self.world.point([0, 0], n.z_range.1).z,
+                self.world.height_m(n.z_range.0),
+                self.world.height_m(n.z_range.1),
             );
             lo = lo.min(a.min(b) - bound);
             hi = hi.max(a.max(b) + bound);
         }
-        if !(lo.is_finite() && hi.is_finite()) {
-            (lo, hi) = (0.0, 0.0);
-        }
-        let a = self.world.point([0, 0], 0);
-        let b = self.world.point([w as i64 - 1, h as i64 - 1], 0);
-        Aabb {
-            min: DVec3::new(a.x.min(b.x), a.y.min(b.y), lo),
-            max: DVec3::new(a.x.max(b.x), a.y.max(b.y), hi),
+        if lo.is_finite() && hi.is_finite() {
+            (lo, hi)
+        } else {
+            (0.0, 0.0)
         }
     }
 
-    /// Runs frames of an overview (the whole raster from as high as it is wide, 1 px)
-    /// until it is at full quality or `timeout` passes; returns whether the root got
-    /// refined, which makes [`Session::bounds`] conservative. The finer the overview's
-    /// cut, the tighter the bounds.
+    /// Runs frames of an overview (the whole raster from as high as it is wide, or the
+    /// planet from three radii away; 1 px) until it is at full quality or `timeout`
+    /// passes; returns whether a root got refined, which makes the height bounds
+    /// ([`Session::height_range`]) conservative. The finer the overview's cut, the
+    /// tighter the bounds.
     pub fn warm_up(&mut self, timeout: Duration) -> Result<bool, SessionError> {
-        let root = self.refiner.root().0;
+        let roots: Vec<R::Id> = self.refiner.roots().iter().map(|r| r.0).collect();
         let start = std::time::Instant::now();
-        let b = self.bounds();
-        let centre = (b.min + b.max) / 2.0;
-        let span = (b.max - b.min).truncate().length().max(1.0);
-        // The whole raster in view, from as high as its size: the root's grid cells are
-        // many pixels wide there, so it wants refining.
-        let view = View {
-            eye: centre + DVec3::new(0.0, 0.0, span),
-            target: centre,
-            up: DVec3::Y,
-            fov_y_rad: 60f64.to_radians(),
-            viewport_px: [1920, 1080],
-            tolerance_px: 1.0,
-        };
+        let view = self.refiner.overview(&self.world, self.height_range());
         let mut root_refined = false;
         while start.elapsed() < timeout {
             let f = self.update(&view, start.elapsed(), Duration::from_millis(4))?;
-            root_refined = self.dag.node(root).is_some_and(|n| n.refined.is_some());
+            root_refined = roots
+                .iter()
+                .any(|&r| self.dag.node(r).is_some_and(|n| n.refined.is_some()));
             // At full quality for the overview, the bounds are also as tight as its cut.
             if root_refined && f.refine.full_quality {
                 break;
@@ -461,7 +454,7 @@ impl Session {
         let clock = SystemClock(started);
         let mut source = FetchSource {
             fetcher: &self.fetcher,
-            domain: self.dag.refiner().domain(),
+            refiner: &*self.refiner,
             arrived: &mut self.arrived,
             used: &mut self.used,
             inferred_leaves: &mut self.inferred_leaves,
@@ -499,10 +492,9 @@ impl Session {
         }
         let wanted: HashSet<Key> = wants.iter().map(|&(k, _)| k).collect();
         let mut out: HashMap<Key, f32> = HashMap::new();
-        let domain = self.refiner.domain();
-        let mut frontier: Vec<(PlanarId, f64)> = wants
+        let mut frontier: Vec<(R::Id, f64)> = wants
             .iter()
-            .map(|&([x, y, _], p)| (PlanarId { x, y }, f64::from(p)))
+            .map(|&(k, p)| (R::id_of(k), f64::from(p)))
             .collect();
         for _ in 0..levels {
             let mut next = Vec::new();
@@ -511,8 +503,8 @@ impl Session {
                 if child_error <= tolerance_px {
                     continue;
                 }
-                for c in domain.children(id).unwrap_or_default() {
-                    let key = [c.x, c.y, 0];
+                for &c in self.dag.children(id).iter() {
+                    let key = R::key_of(c);
                     if !self.refiner.is_refinable(c)
                         || wanted.contains(&key)
                         || self.inferred_leaves.contains(&key)
@@ -555,10 +547,41 @@ impl Session {
             .refinement
             .wanted_splits(&self.dag, &predicted, self.world)
             .into_iter()
-            .map(|(id, e)| ([id.x, id.y, 0], e as f32))
+            .map(|(id, e)| (R::key_of(id), e as f32))
             .filter(|(k, _)| !wanted.contains(k))
             .collect();
         keys
+    }
+}
+
+impl Session<PlanarRefiner> {
+    /// The world box of the raster: its extent times [`Session::height_range`].
+    pub fn bounds(&self) -> Aabb {
+        let (w, h) = self.dag.refiner().raster_size();
+        let (lo, hi) = self.height_range();
+        let a = self.world.point([0, 0], 0);
+        let b = self.world.point([w as i64 - 1, h as i64 - 1], 0);
+        Aabb {
+            min: DVec3::new(a.x.min(b.x), a.y.min(b.y), lo),
+            max: DVec3::new(a.x.max(b.x), a.y.max(b.y), hi),
+        }
+    }
+}
+
+impl Session<SphereRefiner> {
+    /// A conservative bound on the surface height (metres) around `direction` (from
+    /// the planet's centre): the height range of the cut diamonds whose caps hold it.
+    pub fn height_range_near(&self, direction: DVec3) -> (f64, f64) {
+        let dir = direction.normalize_or_zero();
+        let world = self.world;
+        let refiner = &*self.refiner;
+        self.height_range_where(|n| {
+            let (bbox, _) = refiner.footprint(&world, n.id, &n.corners, (0.0, 0.0));
+            // The cap's box at radius R holds the direction's point when it is in it.
+            let p = dir * world.radius_m;
+            let slack = (bbox.max - bbox.min).length() * 1e-9 + 1.0;
+            (p - bbox.min).min_element() >= -slack && (bbox.max - p).min_element() >= -slack
+        })
     }
 }
 
@@ -606,22 +629,22 @@ impl CameraTrack {
 }
 
 /// Details for the refinement from what arrived, the fetcher's caches, or the network.
-struct FetchSource<'a> {
-    fetcher: &'a Fetcher<Details>,
-    domain: PlanarDomain,
-    arrived: &'a mut HashMap<Key, Option<Arc<Details>>>,
+struct FetchSource<'a, R: Domain> {
+    fetcher: &'a Fetcher<Details<R::Id>>,
+    refiner: &'a R,
+    arrived: &'a mut HashMap<Key, Option<Arc<Details<R::Id>>>>,
     used: &'a mut HashSet<Key>,
     inferred_leaves: &'a mut HashSet<Key>,
     wants: HashMap<Key, f64>,
 }
 
-impl FetchSource<'_> {
+impl<R: Domain> FetchSource<'_, R> {
     fn is_leaf(&self, key: Key) -> bool {
         self.inferred_leaves.contains(&key) || self.fetcher.is_leaf(key)
     }
 
-    fn lookup(&mut self, id: PlanarId) -> Option<Option<Arc<Details>>> {
-        let key = [id.x, id.y, 0];
+    fn lookup(&mut self, id: R::Id) -> Option<Option<Arc<Details<R::Id>>>> {
+        let key = R::key_of(id);
         if let Some(d) = self.arrived.get(&key) {
             return Some(d.clone());
         }
@@ -631,8 +654,8 @@ impl FetchSource<'_> {
         if let Some(d) = self.fetcher.cached(key) {
             return Some(Some(d));
         }
-        let parents = self.domain.parents(id).unwrap_or_default();
-        if parents.iter().any(|p| self.is_leaf([p.x, p.y, 0])) {
+        let parents = self.refiner.parents(id);
+        if parents.iter().any(|&p| self.is_leaf(R::key_of(p))) {
             self.inferred_leaves.insert(key);
             return Some(None);
         }
@@ -645,16 +668,16 @@ impl FetchSource<'_> {
     }
 }
 
-impl DetailSource for FetchSource<'_> {
-    fn details(&mut self, id: PlanarId, priority: f64) -> Availability {
-        let key = [id.x, id.y, 0];
+impl<R: Domain> DetailSource<R::Id> for FetchSource<'_, R> {
+    fn details(&mut self, id: R::Id, priority: f64) -> Availability<R::Id> {
+        let key = R::key_of(id);
         match self.lookup(id) {
             Some(d) => {
                 if let Some(details) = &d {
                     self.used.insert(key);
                     // Its blob says which of its children have none.
                     self.inferred_leaves
-                        .extend(details.empty_children.iter().map(|c| [c.x, c.y, 0]));
+                        .extend(details.empty_children.iter().map(|&c| R::key_of(c)));
                 }
                 Availability::Ready(d)
             }
@@ -665,9 +688,9 @@ impl DetailSource for FetchSource<'_> {
         }
     }
 
-    fn want(&mut self, id: PlanarId, priority: f64) {
+    fn want(&mut self, id: R::Id, priority: f64) {
         if self.lookup(id).is_none() {
-            self.record([id.x, id.y, 0], priority);
+            self.record(R::key_of(id), priority);
         }
     }
 }
@@ -679,14 +702,24 @@ fn metadata_error(name: &str, reason: impl Into<String>) -> SessionError {
     }
 }
 
-/// The incremental decoder of a planar single-channel repository from its metadata.
-pub fn planar_refiner(name: &str, meta: &Metadata) -> Result<PlanarRefiner, SessionError> {
-    if meta.domain != "planar" {
+/// The coding of a single-channel repository of `domain`, its entropy model and
+/// coverage, after the checks every session needs.
+fn single_channel<'m>(
+    name: &str,
+    meta: &'m Metadata,
+    domain: &str,
+) -> Result<(&'m ChannelCoding, CodecModel, Option<Coverage>), SessionError> {
+    if meta.domain != domain {
         return Err(SessionError::Unsupported {
             name: name.to_string(),
             reason: format!(
-                "domain {:?}: this client streams planar repositories only (planets need the sphere incremental decoder)",
-                meta.domain
+                "domain {:?}: open it with the {} session",
+                meta.domain,
+                if meta.domain == "sphere" {
+                    "planet"
+                } else {
+                    "planar"
+                }
             ),
         });
     }
@@ -706,13 +739,6 @@ pub fn planar_refiner(name: &str, meta: &Metadata) -> Result<PlanarRefiner, Sess
             ),
         });
     };
-    let [root] = coding.roots.as_slice() else {
-        return Err(metadata_error(
-            name,
-            "a planar repository has one root grid",
-        ));
-    };
-    let dim = |v: u64| usize::try_from(v).map_err(|_| metadata_error(name, "extent too large"));
     let model = CodecModel::from_bytes(&coding.model)
         .map_err(|e| metadata_error(name, format!("entropy model: {e}")))?;
     let coverage = meta
@@ -721,9 +747,39 @@ pub fn planar_refiner(name: &str, meta: &Metadata) -> Result<PlanarRefiner, Sess
         .map(Coverage::from_bytes)
         .transpose()
         .map_err(|e| metadata_error(name, format!("coverage: {e}")))?;
+    Ok((coding, model, coverage))
+}
+
+fn dim(name: &str, v: u64) -> Result<usize, SessionError> {
+    usize::try_from(v).map_err(|_| metadata_error(name, "extent too large"))
+}
+
+/// Checks that the metadata's levels and `m` are what the geometry says.
+fn check_levels(name: &str, meta: &Metadata, levels: usize, m: u32) -> Result<(), SessionError> {
+    if levels != meta.levels as usize || m != meta.m {
+        return Err(metadata_error(
+            name,
+            format!(
+                "levels {} and m {} disagree with the extent and N (levels {levels}, m {m})",
+                meta.levels, meta.m,
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The incremental decoder of a planar single-channel repository from its metadata.
+pub fn planar_refiner(name: &str, meta: &Metadata) -> Result<PlanarRefiner, SessionError> {
+    let (coding, model, coverage) = single_channel(name, meta, "planar")?;
+    let [root] = coding.roots.as_slice() else {
+        return Err(metadata_error(
+            name,
+            "a planar repository has one root grid",
+        ));
+    };
     let refiner = PlanarRefiner::new(
-        dim(meta.extent[0])?,
-        dim(meta.extent[1])?,
+        dim(name, meta.extent[0])?,
+        dim(name, meta.extent[1])?,
         meta.n as usize,
         coverage.as_ref(),
         coding.steps.clone(),
@@ -731,19 +787,52 @@ pub fn planar_refiner(name: &str, meta: &Metadata) -> Result<PlanarRefiner, Sess
         root.clone(),
     )
     .map_err(|e| metadata_error(name, e.to_string()))?;
-    if refiner.detail_levels() != meta.levels as usize || refiner.domain().m() != meta.m {
+    check_levels(name, meta, refiner.detail_levels(), refiner.domain().m())?;
+    Ok(refiner)
+}
+
+/// The incremental decoder of a single-channel planet from its metadata.
+pub fn sphere_refiner(name: &str, meta: &Metadata) -> Result<SphereRefiner, SessionError> {
+    let (coding, model, coverage) = single_channel(name, meta, "sphere")?;
+    if coding.roots.len() != 6 {
         return Err(metadata_error(
             name,
-            format!(
-                "levels {} and m {} disagree with the extent and N (levels {}, m {})",
-                meta.levels,
-                meta.m,
-                refiner.detail_levels(),
-                refiner.domain().m()
-            ),
+            format!("a planet has 6 root grids, not {}", coding.roots.len()),
         ));
     }
+    let refiner = SphereRefiner::new(
+        dim(name, meta.extent[0])?,
+        meta.n as usize,
+        coverage.as_ref(),
+        coding.steps.clone(),
+        model,
+        coding.roots.clone(),
+    )
+    .map_err(|e| metadata_error(name, e.to_string()))?;
+    check_levels(name, meta, refiner.detail_levels(), refiner.domain().m())?;
     Ok(refiner)
+}
+
+/// The world mapping of a planet: its radius (metadata; required) and channel coding.
+pub fn sphere_world(
+    name: &str,
+    meta: &Metadata,
+    half_side: i64,
+) -> Result<SphereWorld, SessionError> {
+    let radius_m = meta
+        .radius_m
+        .filter(|r| r.is_finite() && *r > 0.0)
+        .ok_or_else(|| metadata_error(name, "a planet needs a positive radius"))?;
+    let (value_scale_m, value_offset_m) = meta
+        .channels
+        .first()
+        .map_or((1.0, 0.0), |c| (c.value_scale, c.value_offset));
+    Ok(SphereWorld {
+        radius_m,
+        half_side: half_side as f64,
+        value_scale_m,
+        value_offset_m,
+    })
 }
 
 /// The world mapping of a planar repository: spacing from the georeference (or

@@ -113,6 +113,22 @@ impl PlanarWorld {
     }
 }
 
+/// Where a planet's ids and integer samples are in the world: the cube (id units, half
+/// side `half_side`) mapped onto the sphere of `radius_m` centred at the origin by the
+/// equal-angle map ([`quincunx_codec::diamond::sphere::cube_to_unit_sphere`]), heights
+/// along the radius.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SphereWorld {
+    /// Radius of height 0 (metres).
+    pub radius_m: f64,
+    /// Half side of the cube in id units (`2^m`).
+    pub half_side: f64,
+    /// Metres per integer sample value.
+    pub value_scale_m: f64,
+    /// Metres at integer 0.
+    pub value_offset_m: f64,
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {

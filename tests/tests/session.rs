@@ -22,7 +22,9 @@ use quincunx_client::dag::{Dag, Half};
 use quincunx_client::fetch::link::LinkProxy;
 use quincunx_client::flight::{self, Flight, FlyOptions};
 use quincunx_client::refine::{Availability, DetailSource, Refinement, SystemClock};
-use quincunx_client::session::{Session, SessionConfig, SessionError, planar_refiner};
+use quincunx_client::session::{
+    PlanetSession, Session, SessionConfig, SessionError, planar_refiner,
+};
 use quincunx_client::view::View;
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::incremental::PlanarRefiner;
@@ -375,15 +377,32 @@ fn repositories_the_client_cannot_stream_are_refused_clearly() {
         .collect();
     let server = Served::start("127.0.0.1:0".parse().unwrap(), repos);
     let url = format!("http://{}", server.addr);
-    // A planet: the sphere incremental decoder does not exist yet.
-    match Session::open(&url, "globe", SessionConfig::default()) {
+    // A planet is not planar, and a planar repository is no planet.
+    match Session::<PlanarRefiner>::open(&url, "globe", SessionConfig::default()) {
         Err(SessionError::Unsupported { reason, .. }) => {
-            assert!(reason.contains("planar repositories only"), "{reason}")
+            assert!(
+                reason.contains("open it with the planet session"),
+                "{reason}"
+            )
         }
         other => panic!("{:?}", other.err()),
     }
+    match PlanetSession::open(&url, "plain", SessionConfig::default()) {
+        Err(SessionError::Unsupported { reason, .. }) => {
+            assert!(
+                reason.contains("open it with the planar session"),
+                "{reason}"
+            )
+        }
+        other => panic!("{:?}", other.err()),
+    }
+    // The fixture planet has no channels.
+    match PlanetSession::open(&url, "globe", SessionConfig::default()) {
+        Err(SessionError::Metadata { reason, .. }) => assert!(reason.contains("no channels")),
+        other => panic!("{:?}", other.err()),
+    }
     // Synthetic metadata without a real codec model.
-    match Session::open(&url, "plain", SessionConfig::default()) {
+    match Session::<PlanarRefiner>::open(&url, "plain", SessionConfig::default()) {
         Err(SessionError::Metadata { reason, .. }) => assert!(!reason.is_empty()),
         other => panic!("{:?}", other.err()),
     }

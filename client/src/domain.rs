@@ -1,0 +1,334 @@
+//! What the client needs of a domain besides incremental decoding: where its diamonds are
+//! in the world (bounding boxes and grid spacing for projected errors), exact vertex
+//! positions (crack checks) and a way to check that a cut covers the domain once.
+//!
+//! Implemented for planar repositories ([`PlanarRefiner`], flat world in metres) and
+//! planets ([`SphereRefiner`], the cube mapped onto a sphere of the repository's radius,
+//! centred at the origin).
+
+use glam::DVec3;
+use quincunx_codec::diamond::sphere::{axes, chart_of, cube_to_unit_sphere};
+use quincunx_codec::diamond::{PlanarId, SphereId};
+use quincunx_codec::incremental::{PlanarRefiner, Refiner, SphereRefiner};
+use quincunx_store::Metadata;
+
+use crate::dag::Half;
+use crate::session::{SessionError, planar_refiner, planar_world, sphere_refiner, sphere_world};
+use crate::view::{Aabb, PlanarWorld, SphereWorld, View};
+
+/// A world mapping: ids and integer samples to metres.
+pub trait World: Copy + std::fmt::Debug + PartialEq + Send + Sync + 'static {
+    /// Metres per integer sample value.
+    fn value_scale_m(&self) -> f64;
+    /// Height (metres) of integer value `v`.
+    fn height_m(&self, v: i32) -> f64;
+    /// Everything projected errors depend on, to tell when cached judgements are stale.
+    fn fingerprint(&self) -> [f64; 4];
+}
+
+impl World for PlanarWorld {
+    fn value_scale_m(&self) -> f64 {
+        self.value_scale_m
+    }
+
+    fn height_m(&self, v: i32) -> f64 {
+        self.value_offset_m + f64::from(v) * self.value_scale_m
+    }
+
+    fn fingerprint(&self) -> [f64; 4] {
+        [self.spacing_m, self.value_scale_m, self.value_offset_m, 0.0]
+    }
+}
+
+impl World for SphereWorld {
+    fn value_scale_m(&self) -> f64 {
+        self.value_scale_m
+    }
+
+    fn height_m(&self, v: i32) -> f64 {
+        self.value_offset_m + f64::from(v) * self.value_scale_m
+    }
+
+    fn fingerprint(&self) -> [f64; 4] {
+        [
+            self.radius_m,
+            self.half_side,
+            self.value_scale_m,
+            self.value_offset_m,
+        ]
+    }
+}
+
+/// A domain the client streams: its refiner plus geometry in the world.
+pub trait Domain: Refiner + Sized {
+    /// Its world mapping.
+    type World: World;
+
+    /// `"planar"` or `"sphere"` (the repository metadata's domain).
+    const KIND: &'static str;
+
+    /// The refiner and world mapping of a repository (`spacing_m` overrides a planar
+    /// repository's sample spacing).
+    fn from_metadata(
+        name: &str,
+        meta: &Metadata,
+        spacing_m: Option<f64>,
+    ) -> Result<(Self, Self::World), SessionError>;
+
+    /// A conservative world box of a diamond whose surface lies within `z` (metres, low
+    /// and high), and its grid spacing (metres between neighbouring grid vertices).
+    fn footprint(
+        &self,
+        world: &Self::World,
+        id: Self::Id,
+        corners: &[[i64; 3]; 4],
+        z: (f64, f64),
+    ) -> (Aabb, f64);
+
+    /// World position of grid vertex `(i, j)` of `id` with integer value `v`.
+    fn vertex_world(
+        &self,
+        world: &Self::World,
+        id: Self::Id,
+        i: usize,
+        j: usize,
+        v: i32,
+    ) -> Option<DVec3>;
+
+    /// Exact position of grid vertex `(i, j)` of `id` (a common integer unit for all
+    /// diamonds), `None` outside the data: vertices with equal positions are one point.
+    fn vertex_point(&self, id: Self::Id, i: usize, j: usize) -> Option<[i64; 3]>;
+
+    /// The triangle of a half in a 2D chart: `(chart, corners)`. Charts are the plane
+    /// (one) or the cube faces (every half of a planet lies on one face).
+    fn half_triangle(&self, id: Self::Id, half: Half) -> Option<(u8, [[f64; 2]; 3])>;
+
+    /// Probe points `(chart, point)` spread over the domain, off every diamond edge: a
+    /// cut covers the domain once when each lies in exactly one half.
+    fn probes(&self) -> Vec<(u8, [f64; 2])>;
+
+    /// A view of the whole domain (the raster from as high as it is wide; a planet from
+    /// three radii away), 1920x1080 at 1 px, whose surface lies within `heights`.
+    fn overview(&self, world: &Self::World, heights: (f64, f64)) -> View;
+}
+
+/// The overview camera: 60 degrees, full HD, 1 px.
+fn overview_view(eye: DVec3, target: DVec3, up: DVec3) -> View {
+    View {
+        eye,
+        target,
+        up,
+        fov_y_rad: 60f64.to_radians(),
+        viewport_px: [1920, 1080],
+        tolerance_px: 1.0,
+    }
+}
+
+/// Probe coordinates along one chart axis of `extent`: irrational offsets keep them off
+/// every diamond edge.
+fn probe_axis(extent: f64, steps: usize, offset: f64) -> impl Iterator<Item = f64> {
+    (0..steps).map(move |a| extent * (a as f64 + 0.5 + 0.1 * offset) / (steps as f64 + 0.5))
+}
+
+impl Domain for PlanarRefiner {
+    type World = PlanarWorld;
+    const KIND: &'static str = "planar";
+
+    fn from_metadata(
+        name: &str,
+        meta: &Metadata,
+        spacing_m: Option<f64>,
+    ) -> Result<(Self, PlanarWorld), SessionError> {
+        Ok((planar_refiner(name, meta)?, planar_world(meta, spacing_m)))
+    }
+
+    fn footprint(
+        &self,
+        world: &PlanarWorld,
+        _id: PlanarId,
+        c: &[[i64; 3]; 4],
+        z: (f64, f64),
+    ) -> (Aabb, f64) {
+        let (mut x0, mut x1, mut y0, mut y1) = (i64::MAX, i64::MIN, i64::MAX, i64::MIN);
+        for p in c {
+            x0 = x0.min(p[0]);
+            x1 = x1.max(p[0]);
+            y0 = y0.min(p[1]);
+            y1 = y1.max(p[1]);
+        }
+        let s = world.spacing_m;
+        let bbox = Aabb {
+            min: DVec3::new(x0 as f64 * s, y0 as f64 * s, z.0),
+            max: DVec3::new(x1 as f64 * s, y1 as f64 * s, z.1),
+        };
+        let d = [(c[1][0] - c[0][0]) as f64, (c[1][1] - c[0][1]) as f64];
+        let spacing = (d[0] * d[0] + d[1] * d[1]).sqrt() * s / self.n() as f64;
+        (bbox, spacing)
+    }
+
+    fn vertex_world(
+        &self,
+        world: &PlanarWorld,
+        id: PlanarId,
+        i: usize,
+        j: usize,
+        v: i32,
+    ) -> Option<DVec3> {
+        let n = self.n() as f64;
+        let c = Refiner::corners(self, id);
+        let at = |k: usize| {
+            (c[0][k] as f64 * n
+                + i as f64 * (c[1][k] - c[0][k]) as f64
+                + j as f64 * (c[3][k] - c[0][k]) as f64)
+                / n
+                * world.spacing_m
+        };
+        (i <= self.n() && j <= self.n()).then(|| DVec3::new(at(0), at(1), world.height_m(v)))
+    }
+
+    fn vertex_point(&self, id: PlanarId, i: usize, j: usize) -> Option<[i64; 3]> {
+        let n = self.n() as i64;
+        let c = Refiner::corners(self, id);
+        let (ii, jj) = (i as i64, j as i64);
+        // Id units times N (exact).
+        let pos = [0, 1].map(|k| c[0][k] * n + ii * (c[1][k] - c[0][k]) + jj * (c[3][k] - c[0][k]));
+        let (w, h) = self.raster_size();
+        let inside = (0..=(w as i64 - 1) * n).contains(&pos[0])
+            && (0..=(h as i64 - 1) * n).contains(&pos[1]);
+        inside.then_some([pos[0], pos[1], 0])
+    }
+
+    fn half_triangle(&self, id: PlanarId, half: Half) -> Option<(u8, [[f64; 2]; 3])> {
+        let c = self.domain().corners(id).ok()?;
+        let apex = match half {
+            Half::Lower => c[1],
+            Half::Upper => c[3],
+        };
+        Some((0, [c[0], apex, c[2]].map(|p| [p[0] as f64, p[1] as f64])))
+    }
+
+    fn probes(&self) -> Vec<(u8, [f64; 2])> {
+        let (w, h) = self.raster_size();
+        let (w, h) = ((w - 1) as f64, (h - 1) as f64);
+        probe_axis(w, 41, std::f64::consts::SQRT_2)
+            .flat_map(|x| probe_axis(h, 41, std::f64::consts::E).map(move |y| (0, [x, y])))
+            .collect()
+    }
+
+    fn overview(&self, world: &PlanarWorld, heights: (f64, f64)) -> View {
+        let (w, h) = self.raster_size();
+        let a = world.point([0, 0], 0);
+        let b = world.point([w as i64 - 1, h as i64 - 1], 0);
+        let mut centre = (a + b) / 2.0;
+        centre.z = (heights.0 + heights.1) / 2.0;
+        let span = (b - a).truncate().length().max(1.0);
+        // The root's grid cells are many pixels wide from there, so it wants refining.
+        overview_view(centre + DVec3::new(0.0, 0.0, span), centre, DVec3::Y)
+    }
+}
+
+impl SphereWorld {
+    /// Unit direction of a cube point (id units).
+    pub fn direction(&self, p: [i64; 3]) -> DVec3 {
+        DVec3::from_array(cube_to_unit_sphere(p.map(|x| x as f64)))
+    }
+
+    /// World position of a cube point (id units) at integer height `v`.
+    pub fn point(&self, p: [i64; 3], v: i32) -> DVec3 {
+        self.direction(p) * (self.radius_m + self.height_m(v))
+    }
+}
+
+impl Domain for SphereRefiner {
+    type World = SphereWorld;
+    const KIND: &'static str = "sphere";
+
+    fn from_metadata(
+        name: &str,
+        meta: &Metadata,
+        _spacing_m: Option<f64>,
+    ) -> Result<(Self, SphereWorld), SessionError> {
+        let refiner = sphere_refiner(name, meta)?;
+        let world = sphere_world(name, meta, refiner.domain().size())?;
+        Ok((refiner, world))
+    }
+
+    /// The diamond lies in the spherical cap around its centre's direction whose angle
+    /// reaches its corners (with a margin for edges that are not great circles): the box
+    /// bounds that cap between the lowest and highest radius, axis by axis.
+    fn footprint(
+        &self,
+        world: &SphereWorld,
+        id: SphereId,
+        c: &[[i64; 3]; 4],
+        z: (f64, f64),
+    ) -> (Aabb, f64) {
+        let centre = world.direction(id.c);
+        let dirs = c.map(|p| world.direction(p));
+        let angle = |a: DVec3, b: DVec3| a.dot(b).clamp(-1.0, 1.0).acos();
+        let cap = dirs.iter().map(|&d| angle(centre, d)).fold(0.0, f64::max) * 1.05 + 1e-9;
+        let (r0, r1) = (
+            (world.radius_m + z.0).max(0.0),
+            (world.radius_m + z.1).max(0.0),
+        );
+        let mut min = DVec3::ZERO;
+        let mut max = DVec3::ZERO;
+        for k in 0..3 {
+            let theta = centre[k].clamp(-1.0, 1.0).acos();
+            let hi = (theta - cap).max(0.0).cos();
+            let lo = (theta + cap).min(std::f64::consts::PI).cos();
+            let products = [r0 * lo, r0 * hi, r1 * lo, r1 * hi];
+            min[k] = products.iter().copied().fold(f64::INFINITY, f64::min);
+            max[k] = products.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        }
+        let spacing = (dirs[1] - dirs[0]).length() * world.radius_m / self.n() as f64;
+        (Aabb { min, max }, spacing)
+    }
+
+    fn vertex_world(
+        &self,
+        world: &SphereWorld,
+        id: SphereId,
+        i: usize,
+        j: usize,
+        v: i32,
+    ) -> Option<DVec3> {
+        let p = self.domain().vertex_position(id, self.n(), i, j).ok()?;
+        Some(world.point(p, v))
+    }
+
+    fn vertex_point(&self, id: SphereId, i: usize, j: usize) -> Option<[i64; 3]> {
+        self.domain().vertex_position(id, self.n(), i, j).ok()
+    }
+
+    fn half_triangle(&self, id: SphereId, half: Half) -> Option<(u8, [[f64; 2]; 3])> {
+        let c = self.domain().corners(id).ok()?;
+        let apex = match half {
+            Half::Lower => c[1],
+            Half::Upper => c[3],
+        };
+        let s = self.domain().size();
+        let points = [c[0], apex, c[2]];
+        let face = (0..6u8).find(|&f| {
+            let ax = axes(f);
+            points.iter().all(|p| p[ax.a] == ax.s * s)
+        })?;
+        Some((face, points.map(|p| chart_of(face, p, s).map(|x| x as f64))))
+    }
+
+    fn probes(&self) -> Vec<(u8, [f64; 2])> {
+        let side = 2.0 * self.domain().size() as f64;
+        (0..6u8)
+            .flat_map(|f| {
+                probe_axis(side, 17, std::f64::consts::SQRT_2).flat_map(move |u| {
+                    probe_axis(side, 17, std::f64::consts::E).map(move |v| (f, [u, v]))
+                })
+            })
+            .collect()
+    }
+
+    fn overview(&self, world: &SphereWorld, _heights: (f64, f64)) -> View {
+        let eye = DVec3::ONE.normalize() * 3.0 * world.radius_m;
+        overview_view(eye, DVec3::ZERO, DVec3::Z)
+    }
+}
