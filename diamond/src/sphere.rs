@@ -185,6 +185,10 @@ fn fold(face: u8, uv: [i64; 2], s: i64) -> Result<[i64; 3], IdError> {
     Ok(p)
 }
 
+/// A diamond's canonical face, its other face (edge diamonds) and its frame corners in
+/// the canonical face's unfolded chart ([`SphereDomain::chart_frame`]).
+pub type ChartFrame = (u8, Option<u8>, [[i64; 2]; 4]);
+
 /// Level, exponent and canonical chart of a checked id.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 struct Info {
@@ -341,7 +345,7 @@ impl SphereDomain {
     /// The frame corners `[E1, P1, E2, P2]` in the unfolded chart of the canonical face,
     /// with that face and (edge diamonds) the other face; every point of the diamond
     /// unfolds into this chart with [`unfold`].
-    pub fn chart_frame(&self, id: SphereId) -> Result<(u8, Option<u8>, [[i64; 2]; 4]), IdError> {
+    pub fn chart_frame(&self, id: SphereId) -> Result<ChartFrame, IdError> {
         let info = self.info(id)?;
         Ok((info.face, info.other, self.chart_corners(&info)))
     }
