@@ -24,6 +24,9 @@ pub trait World: Copy + std::fmt::Debug + PartialEq + Send + Sync + 'static {
     fn height_m(&self, v: i32) -> f64;
     /// Everything projected errors depend on, to tell when cached judgements are stale.
     fn fingerprint(&self) -> [f64; 4];
+    /// The up direction of a camera at `eye` (`+z` on the plane, away from a planet's
+    /// centre).
+    fn up(&self, eye: DVec3) -> DVec3;
 }
 
 impl World for PlanarWorld {
@@ -37,6 +40,10 @@ impl World for PlanarWorld {
 
     fn fingerprint(&self) -> [f64; 4] {
         [self.spacing_m, self.value_scale_m, self.value_offset_m, 0.0]
+    }
+
+    fn up(&self, _eye: DVec3) -> DVec3 {
+        DVec3::Z
     }
 }
 
@@ -56,6 +63,11 @@ impl World for SphereWorld {
             self.value_scale_m,
             self.value_offset_m,
         ]
+    }
+
+    fn up(&self, eye: DVec3) -> DVec3 {
+        let up = eye.normalize_or_zero();
+        if up == DVec3::ZERO { DVec3::Z } else { up }
     }
 }
 
@@ -239,6 +251,44 @@ impl SphereWorld {
     }
 }
 
+/// The world box and grid spacing of a planet diamond (see [`Domain::footprint`]).
+///
+/// The diamond lies in the spherical cap around its centre's direction whose angle
+/// reaches its corners (with a margin for edges that are not great circles): the box
+/// bounds that cap between the lowest and highest radius, axis by axis. Angles come from
+/// `atan2(|a x b|, a . b)`, accurate for the tiny diamonds of the deepest levels too.
+pub fn sphere_footprint(
+    world: &SphereWorld,
+    n: usize,
+    id: SphereId,
+    c: &[[i64; 3]; 4],
+    z: (f64, f64),
+) -> (Aabb, f64) {
+    let centre = world.direction(id.c);
+    let dirs = c.map(|p| world.direction(p));
+    let angle = |a: DVec3, b: DVec3| a.cross(b).length().atan2(a.dot(b));
+    let cap = dirs.iter().map(|&d| angle(centre, d)).fold(0.0, f64::max) * 1.05 + 1e-12;
+    let (r0, r1) = (
+        (world.radius_m + z.0).max(0.0),
+        (world.radius_m + z.1).max(0.0),
+    );
+    let mut min = DVec3::ZERO;
+    let mut max = DVec3::ZERO;
+    for k in 0..3 {
+        // The angle between the centre and axis k.
+        let mut axis = DVec3::ZERO;
+        axis[k] = 1.0;
+        let theta = angle(centre, axis);
+        let hi = (theta - cap).max(0.0).cos();
+        let lo = (theta + cap).min(std::f64::consts::PI).cos();
+        let products = [r0 * lo, r0 * hi, r1 * lo, r1 * hi];
+        min[k] = products.iter().copied().fold(f64::INFINITY, f64::min);
+        max[k] = products.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    }
+    let spacing = (dirs[1] - dirs[0]).length() * world.radius_m / n as f64;
+    (Aabb { min, max }, spacing)
+}
+
 impl Domain for SphereRefiner {
     type World = SphereWorld;
     const KIND: &'static str = "sphere";
@@ -253,9 +303,6 @@ impl Domain for SphereRefiner {
         Ok((refiner, world))
     }
 
-    /// The diamond lies in the spherical cap around its centre's direction whose angle
-    /// reaches its corners (with a margin for edges that are not great circles): the box
-    /// bounds that cap between the lowest and highest radius, axis by axis.
     fn footprint(
         &self,
         world: &SphereWorld,
@@ -263,26 +310,7 @@ impl Domain for SphereRefiner {
         c: &[[i64; 3]; 4],
         z: (f64, f64),
     ) -> (Aabb, f64) {
-        let centre = world.direction(id.c);
-        let dirs = c.map(|p| world.direction(p));
-        let angle = |a: DVec3, b: DVec3| a.dot(b).clamp(-1.0, 1.0).acos();
-        let cap = dirs.iter().map(|&d| angle(centre, d)).fold(0.0, f64::max) * 1.05 + 1e-9;
-        let (r0, r1) = (
-            (world.radius_m + z.0).max(0.0),
-            (world.radius_m + z.1).max(0.0),
-        );
-        let mut min = DVec3::ZERO;
-        let mut max = DVec3::ZERO;
-        for k in 0..3 {
-            let theta = centre[k].clamp(-1.0, 1.0).acos();
-            let hi = (theta - cap).max(0.0).cos();
-            let lo = (theta + cap).min(std::f64::consts::PI).cos();
-            let products = [r0 * lo, r0 * hi, r1 * lo, r1 * hi];
-            min[k] = products.iter().copied().fold(f64::INFINITY, f64::min);
-            max[k] = products.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        }
-        let spacing = (dirs[1] - dirs[0]).length() * world.radius_m / self.n() as f64;
-        (Aabb { min, max }, spacing)
+        sphere_footprint(world, self.n(), id, c, z)
     }
 
     fn vertex_world(
@@ -330,5 +358,91 @@ impl Domain for SphereRefiner {
     fn overview(&self, world: &SphereWorld, _heights: (f64, f64)) -> View {
         let eye = DVec3::ONE.normalize() * 3.0 * world.radius_m;
         overview_view(eye, DVec3::ZERO, DVec3::Z)
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+    use quincunx_codec::diamond::{MAX_M, SphereDomain};
+
+    fn contains(b: &Aabb, p: DVec3) -> bool {
+        let slack = 1e-6 * p.length().max(1.0);
+        (p - b.min).min_element() >= -slack && (b.max - p).min_element() >= -slack
+    }
+
+    /// From the face roots to the deepest level of the largest domain, through cube
+    /// corners, cube edges and the poles: boxes are finite and hold the diamond's
+    /// vertices at both height extremes, and grid spacings halve every two levels.
+    #[test]
+    fn planet_boxes_are_finite_and_conservative_down_to_the_deepest_level() {
+        let d = SphereDomain::new(MAX_M).unwrap();
+        let world = SphereWorld {
+            radius_m: 6_371_000.0,
+            half_side: d.size() as f64,
+            value_scale_m: 1.0,
+            value_offset_m: 0.0,
+        };
+        let n = 32;
+        let z = (-11_000.0, 9_000.0);
+        let mut seed = 11u64;
+        for root in d.roots() {
+            for walk in 0..4 {
+                let mut id = root;
+                let mut last_spacing = f64::INFINITY;
+                loop {
+                    let c = d.corners(id).unwrap();
+                    let (bbox, spacing) = sphere_footprint(&world, n, id, &c, z);
+                    assert!(bbox.min.is_finite() && bbox.max.is_finite(), "{id:?}");
+                    assert!(spacing.is_finite() && spacing > 0.0, "{id:?} {spacing}");
+                    assert!(spacing <= last_spacing * 1.5, "{id:?}");
+                    last_spacing = spacing;
+                    for (i, j) in [(0, 0), (n, 0), (0, n), (n, n), (n / 2, n / 3), (7, 29)] {
+                        let p = d.vertex_position(id, n, i, j).unwrap();
+                        let dir = world.direction(p);
+                        for h in [z.0, z.1] {
+                            let q = dir * (world.radius_m + h);
+                            assert!(contains(&bbox, q), "{id:?} ({i},{j}) {q} {bbox:?}");
+                        }
+                    }
+                    let children = d.children(id).unwrap();
+                    if children.is_empty() {
+                        assert_eq!(d.level(id).unwrap(), d.max_level());
+                        // Diamonds of the deepest level are about R / 2^49 across.
+                        assert!(spacing < 1e-7, "{spacing}");
+                        break;
+                    }
+                    // Walks 0 and 1 stay on a cube corner / the first child (edges and
+                    // corners), the others wander.
+                    seed = seed.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+                    let k = if walk < 2 {
+                        walk
+                    } else {
+                        (seed >> 33) as usize % 4
+                    };
+                    id = children[k % children.len()];
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn planet_up_is_radial_and_planar_up_is_z() {
+        let world = SphereWorld {
+            radius_m: 3_396_000.0,
+            half_side: 8.0,
+            value_scale_m: 1.0,
+            value_offset_m: 0.0,
+        };
+        let eye = DVec3::new(0.0, 0.0, -3_396_001.0);
+        assert!((world.up(eye) - DVec3::NEG_Z).length() < 1e-15);
+        assert_eq!(world.up(DVec3::ZERO), DVec3::Z);
+        let planar = PlanarWorld {
+            spacing_m: 30.0,
+            value_scale_m: 1.0,
+            value_offset_m: 0.0,
+        };
+        assert_eq!(planar.up(eye), DVec3::Z);
     }
 }

@@ -25,6 +25,9 @@ use std::time::{Duration, Instant};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
+use quincunx_codec::incremental::{PlanarRefiner, SphereRefiner};
+
+use crate::domain::{Domain, World};
 use crate::session::{Session, SessionError};
 use crate::view::{Aabb, View};
 
@@ -184,9 +187,9 @@ impl Flight {
     /// A built-in flight over what `session` streams. Warms the session up first (the
     /// root refined, so its height bounds are conservative and low views stay above the
     /// highest point), for at most 10 s.
-    pub fn builtin_for(
+    pub fn builtin_for<R: BuiltinFlights>(
         name: &str,
-        session: &mut Session,
+        session: &mut Session<R>,
         seed: u64,
     ) -> Result<Flight, FlightError> {
         if !BUILTIN.contains(&name) {
@@ -195,7 +198,121 @@ impl Flight {
         if !session.warm_up(Duration::from_secs(10))? {
             tracing::warn!("the root did not arrive within 10 s: heights bounded by its grid only");
         }
-        Flight::builtin(name, session.bounds(), seed)
+        R::builtin(name, session, seed)
+    }
+
+    /// A built-in flight over a planet: `approach` from two radii above the surface down
+    /// to a low view; `low-flight` 30 s at 150 m/s along a great circle; `jump` between
+    /// 6 low views at seeded places on the whole planet. Low views are
+    /// [`LOW_ALTITUDE_M`] above a conservative bound on the heights around them
+    /// ([`Session::height_range_near`]), 20° down, with `up` away from the centre.
+    pub fn builtin_planet(
+        name: &str,
+        session: &Session<SphereRefiner>,
+        seed: u64,
+    ) -> Result<Flight, FlightError> {
+        let radius = session.world().radius_m;
+        let ground = |d: DVec3| radius + session.height_range_near(d).1;
+        // East and north at direction d (any tangent pair at the poles).
+        let frame = |d: DVec3| {
+            let east = DVec3::Z.cross(d).try_normalize().unwrap_or(DVec3::Y);
+            (east, d.cross(east))
+        };
+        let low = |d: DVec3, heading: f64, r: f64| {
+            let (east, north) = frame(d);
+            let eye = d * (r + LOW_ALTITUDE_M);
+            let ahead = east * heading.cos() + north * heading.sin();
+            let dir = ahead - d * 20f64.to_radians().tan();
+            Pose {
+                eye: eye.to_array(),
+                target: (eye + dir * 1_000.0).to_array(),
+            }
+        };
+        let mut rng = SplitMix(seed);
+        let mut place = || {
+            // Uniform on the sphere.
+            let z = 2.0 * rng.unit() - 1.0;
+            let lon = rng.unit() * std::f64::consts::TAU;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            (DVec3::new(r * lon.cos(), r * lon.sin(), z), rng.unit())
+        };
+        let legs = match name {
+            "approach" => {
+                let (d, _) = place();
+                let r0 = ground(d);
+                let (north, steps) = (frame(d).1, 24);
+                let (high, lowest) = (2.0 * radius, LOW_ALTITUDE_M);
+                let pose = |k: usize| {
+                    let s = k as f64 / steps as f64;
+                    let alt = high * (lowest / high).powf(s);
+                    // Looking at the place from the south, steeply at first.
+                    let eye = d * (r0 + alt) - north * (0.3 * alt + 1_000.0 * s);
+                    Pose {
+                        eye: eye.to_array(),
+                        target: (d * r0).to_array(),
+                    }
+                };
+                (0..steps)
+                    .map(|k| (12.0 / steps as f64, pose(k), Some(pose(k + 1))))
+                    .chain(std::iter::once((3.0, pose(steps), None)))
+                    .map(|(duration_s, from, to)| Leg {
+                        duration_s,
+                        from,
+                        to,
+                        jump: false,
+                        settle_s: None,
+                    })
+                    .collect()
+            }
+            "low-flight" => {
+                let (d, h) = place();
+                let heading = h * std::f64::consts::TAU;
+                let (east, north) = frame(d);
+                let axis = d.cross(east * heading.cos() + north * heading.sin());
+                // 1 s legs along the great circle: the chords stay within 0.5 mm of it.
+                let at = |t: f64| {
+                    let q = glam::DQuat::from_axis_angle(axis, 150.0 * t / radius);
+                    q * d
+                };
+                let r = (0..=30)
+                    .map(|t| ground(at(f64::from(t))))
+                    .fold(radius, f64::max);
+                (0..30)
+                    .map(|t| {
+                        let (a, b) = (at(f64::from(t)), at(f64::from(t + 1)));
+                        let tangent = |p: DVec3| {
+                            let (e, n) = frame(p);
+                            let fwd = axis.cross(p);
+                            fwd.dot(n).atan2(fwd.dot(e))
+                        };
+                        Leg {
+                            duration_s: 1.0,
+                            from: low(a, tangent(a), r),
+                            to: Some(low(b, tangent(b), r)),
+                            jump: false,
+                            settle_s: None,
+                        }
+                    })
+                    .collect()
+            }
+            "jump" => (0..6)
+                .map(|_| {
+                    let (d, h) = place();
+                    Leg {
+                        duration_s: 10.0,
+                        from: low(d, h * std::f64::consts::TAU, ground(d)),
+                        to: None,
+                        jump: true,
+                        settle_s: Some(0.5),
+                    }
+                })
+                .collect(),
+            other => return Err(FlightError::Unknown(other.to_string())),
+        };
+        Ok(Flight {
+            name: name.to_string(),
+            legs,
+        })
     }
 
     /// A flight from its JSON text.
@@ -394,8 +511,8 @@ pub fn percentile(sorted: &[f64], p: f64) -> f64 {
 }
 
 /// Flies `flight` with `session` in real time, calling `on_frame` after every frame.
-pub fn fly(
-    session: &mut Session,
+pub fn fly<R: Domain>(
+    session: &mut Session<R>,
     flight: &Flight,
     opts: &FlyOptions,
     mut on_frame: impl FnMut(&FrameRecord),
@@ -432,7 +549,7 @@ pub fn fly(
             let view = View {
                 eye: DVec3::from_array(pose.eye),
                 target: DVec3::from_array(pose.target),
-                up: DVec3::Z,
+                up: session.world().up(DVec3::from_array(pose.eye)),
                 fov_y_rad: opts.fov_y_rad,
                 viewport_px: opts.viewport_px,
                 tolerance_px: opts.tolerance_px,
@@ -544,7 +661,25 @@ pub fn fly(
     Ok(report)
 }
 
-fn session_transport(session: &Session) -> String {
+/// Domains with built-in flights.
+pub trait BuiltinFlights: Domain {
+    /// The built-in flight `name` over what `session` streams (warmed up).
+    fn builtin(name: &str, session: &Session<Self>, seed: u64) -> Result<Flight, FlightError>;
+}
+
+impl BuiltinFlights for PlanarRefiner {
+    fn builtin(name: &str, session: &Session<Self>, seed: u64) -> Result<Flight, FlightError> {
+        Flight::builtin(name, session.bounds(), seed)
+    }
+}
+
+impl BuiltinFlights for SphereRefiner {
+    fn builtin(name: &str, session: &Session<Self>, seed: u64) -> Result<Flight, FlightError> {
+        Flight::builtin_planet(name, session, seed)
+    }
+}
+
+fn session_transport<R: Domain>(session: &Session<R>) -> String {
     session.config().transport.name().to_string()
 }
 

@@ -305,6 +305,17 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         }
     }
 
+    /// How diamond `id` of the DAG looks from `view` (what refinement decides by).
+    pub fn appearance<R: Domain<Id = I>>(
+        &self,
+        dag: &Dag<R>,
+        view: &View,
+        world: R::World,
+        id: I,
+    ) -> Appearance {
+        self.projector(view, world).appearance(dag, id)
+    }
+
     /// The unrefined diamonds of the DAG that `view` would want refined, with their
     /// projected errors: for prefetching along a predicted camera. Changes nothing.
     pub fn wanted_splits<R: Domain<Id = I>>(

@@ -212,6 +212,31 @@ impl<I: Send + Sync + 'static> Weigh for Details<I> {
 /// A planet streamed from a server.
 pub type PlanetSession = Session<SphereRefiner>;
 
+/// A session of the domain the repository's metadata names.
+pub enum AnySession {
+    /// A planar repository.
+    Planar(Session<PlanarRefiner>),
+    /// A planet.
+    Planet(PlanetSession),
+}
+
+impl AnySession {
+    /// Opens repository `name` at `base_url` as a planar or planet session, as its
+    /// metadata says.
+    pub fn open(
+        base_url: &str,
+        name: &str,
+        config: SessionConfig,
+    ) -> Result<AnySession, SessionError> {
+        let (remote, meta) = Remote::open(base_url, name, config.timeout)?;
+        Ok(if meta.domain == SphereRefiner::KIND {
+            AnySession::Planet(Session::with_metadata(remote, meta, config)?)
+        } else {
+            AnySession::Planar(Session::with_metadata(remote, meta, config)?)
+        })
+    }
+}
+
 /// An elevation repository streamed from a server (planar unless `R` says otherwise).
 pub struct Session<R: Domain = PlanarRefiner> {
     name: String,

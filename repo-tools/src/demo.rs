@@ -171,7 +171,11 @@ fn demo_flight(addr: std::net::SocketAddr) -> Result<()> {
     use quincunx_client::flight::{self, Flight, FlyOptions};
     use quincunx_client::session::{Session, SessionConfig};
     let (link, url) = crate::fly::start_link(&format!("http://{addr}"), (4_000.0, 100.0))?;
-    let mut session = Session::open(&url, "korea", SessionConfig::default())?;
+    let mut session = Session::<quincunx_codec::incremental::PlanarRefiner>::open(
+        &url,
+        "korea",
+        SessionConfig::default(),
+    )?;
     let mut f = Flight::builtin_for("jump", &mut session, 1)?;
     f.legs.truncate(3);
     outln!(

@@ -9,8 +9,8 @@ use clap::Args;
 use quincunx_client::fetch::Transport;
 use quincunx_client::fetch::http1::Endpoint;
 use quincunx_client::fetch::link::LinkProxy;
-use quincunx_client::flight::{self, Flight, FlightReport, FlyOptions};
-use quincunx_client::session::{Session, SessionConfig};
+use quincunx_client::flight::{self, BuiltinFlights, Flight, FlightReport, FlyOptions};
+use quincunx_client::session::{AnySession, Session, SessionConfig};
 
 /// `quincunx fly` options.
 #[derive(Args, Debug, Clone)]
@@ -136,7 +136,11 @@ pub fn fly_options(args: &FlyArgs) -> FlyOptions {
 }
 
 /// A built-in flight or one read from a file, over the session's world.
-pub fn load_flight(path: &str, session: &mut Session, seed: u64) -> Result<Flight> {
+pub fn load_flight<R: BuiltinFlights>(
+    path: &str,
+    session: &mut Session<R>,
+    seed: u64,
+) -> Result<Flight> {
     if flight::BUILTIN.contains(&path) {
         return Ok(Flight::builtin_for(path, session, seed)?);
     }
@@ -172,18 +176,26 @@ pub fn run(args: &FlyArgs) -> Result<()> {
     }
     let link = args.link.map(|l| start_link(&args.url, l)).transpose()?;
     let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
-    let mut session = Session::open(url, &args.repo, session_config(args))
+    let session = AnySession::open(url, &args.repo, session_config(args))
         .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
+    let report = match session {
+        AnySession::Planar(s) => fly_session(s, args)?,
+        AnySession::Planet(s) => fly_session(s, args)?,
+    };
+    let link_bytes = link.as_ref().map(|(p, _)| p.bytes_down());
+    print_report(&report, args, link_bytes)
+}
+
+/// Loads and flies the flight of `args` with `session`.
+fn fly_session<R: BuiltinFlights>(mut session: Session<R>, args: &FlyArgs) -> Result<FlightReport> {
     let flight = load_flight(&args.path, &mut session, args.seed)?;
     let opts = fly_options(args);
     let per_frame = args.frames;
-    let report = flight::fly(&mut session, &flight, &opts, |f| {
+    Ok(flight::fly(&mut session, &flight, &opts, |f| {
         if per_frame && let Ok(line) = serde_json::to_string(f) {
             eprintln!("{line}");
         }
-    })?;
-    let link_bytes = link.as_ref().map(|(p, _)| p.bytes_down());
-    print_report(&report, args, link_bytes)
+    })?)
 }
 
 fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) -> Result<()> {

@@ -12,27 +12,28 @@
 
 mod common;
 
-use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use glam::DVec3;
-use quincunx_client::dag::{Dag, Half};
+use common::stream::{Served, converge, cut_of, reference_cut, view_of};
 use quincunx_client::fetch::link::LinkProxy;
 use quincunx_client::flight::{self, Flight, FlyOptions};
-use quincunx_client::refine::{Availability, DetailSource, Refinement, SystemClock};
-use quincunx_client::session::{
-    PlanetSession, Session, SessionConfig, SessionError, planar_refiner,
-};
-use quincunx_client::view::View;
-use quincunx_codec::diamond::PlanarId;
+use quincunx_client::session::{PlanetSession, Session, SessionConfig, SessionError};
 use quincunx_codec::incremental::PlanarRefiner;
 use quincunx_repo_tools::fly::{self, FlyArgs};
-use quincunx_server::{RepoConfig, Server, ServerConfig};
-use quincunx_store::Repository;
+use quincunx_server::RepoConfig;
 
 const REPO: &str = "korea";
+
+trait Korea {
+    fn one_korea(addr: std::net::SocketAddr, path: &Path) -> Served;
+}
+
+impl Korea for Served {
+    fn one_korea(addr: std::net::SocketAddr, path: &Path) -> Served {
+        Served::one(addr, REPO, path)
+    }
+}
 
 /// Builds the bundled 1025 x 1025 SRTM crop at 2 m RMS into `dir/built/korea`, and a
 /// copy the test reads locally (sled locks a repository per open).
@@ -44,146 +45,12 @@ fn build_korea(dir: &Path) -> (PathBuf, PathBuf) {
     (built, local)
 }
 
-/// A server on its own single-worker runtime: dropping it kills it abruptly.
-struct Served {
-    addr: SocketAddr,
-    runtime: Option<tokio::runtime::Runtime>,
-}
-
-impl Served {
-    fn start(addr: SocketAddr, repos: Vec<RepoConfig>) -> Served {
-        let runtime = tokio::runtime::Builder::new_multi_thread()
-            .worker_threads(1)
-            .enable_all()
-            .build()
-            .unwrap();
-        let config = ServerConfig {
-            addr,
-            repos,
-            workers: 1,
-            ..Default::default()
-        };
-        // A restarted server may find the old repository lock still held for a moment.
-        let deadline = Instant::now() + Duration::from_secs(10);
-        let server = loop {
-            match runtime.block_on(Server::bind(config.clone())) {
-                Ok(s) => break s,
-                Err(e) if Instant::now() < deadline => {
-                    eprintln!("bind: {e}; retrying");
-                    std::thread::sleep(Duration::from_millis(100));
-                }
-                Err(e) => panic!("{e}"),
-            }
-        };
-        let addr = server.local_addr().unwrap();
-        runtime.spawn(server.run(std::future::pending()));
-        Served {
-            addr,
-            runtime: Some(runtime),
-        }
-    }
-
-    fn korea(addr: SocketAddr, path: &Path) -> Served {
-        Served::start(
-            addr,
-            vec![RepoConfig {
-                name: REPO.into(),
-                path: path.to_path_buf(),
-            }],
-        )
-    }
-
-    fn kill(mut self) {
-        if let Some(rt) = self.runtime.take() {
-            rt.shutdown_timeout(Duration::from_secs(5));
-        }
-    }
-}
-
-/// Details read and decoded straight from a local copy of the repository.
-struct Local {
-    repo: Repository,
-    refiner: Arc<PlanarRefiner>,
-}
-
-impl DetailSource for Local {
-    fn details(&mut self, id: PlanarId, _priority: f64) -> Availability {
-        let info = self.refiner.info(id).expect("refinable");
-        let blob = self.repo.get(info.key).unwrap();
-        Availability::Ready(blob.map(|b| Arc::new(self.refiner.decode(id, &b).unwrap())))
-    }
-}
-
-/// The converged cut for `view` with every blob at hand: (id, half, grid) sorted.
-fn reference_cut(local: &Path, view: &View, world: quincunx_client::view::PlanarWorld) -> Cut {
-    let repo = Repository::open(local).unwrap();
-    let refiner = Arc::new(planar_refiner(REPO, repo.metadata()).unwrap());
-    let mut dag = Dag::new(Arc::clone(&refiner));
-    let mut source = Local { repo, refiner };
-    let mut refinement = Refinement::default();
-    let clock = SystemClock(Instant::now());
-    for _ in 0..100 {
-        let s = refinement
-            .update(
-                &mut dag,
-                view,
-                world,
-                &mut source,
-                &clock,
-                Duration::from_secs(60),
-            )
-            .unwrap();
-        if s.converged {
-            return cut_of(&dag);
-        }
-    }
-    panic!("the local refinement did not converge");
-}
-
-type Cut = Vec<(PlanarId, Half, Vec<i32>)>;
-
-fn cut_of(dag: &Dag) -> Cut {
-    dag.cut()
-        .into_iter()
-        .map(|(id, h)| (id, h, dag.node(id).unwrap().grid.to_vec()))
-        .collect()
-}
-
-fn view_of(pose: &flight::Pose) -> View {
-    View {
-        eye: DVec3::from_array(pose.eye),
-        target: DVec3::from_array(pose.target),
-        up: DVec3::Z,
-        fov_y_rad: 60f64.to_radians(),
-        viewport_px: [1920, 1080],
-        tolerance_px: 1.0,
-    }
-}
-
-/// Runs frames for `view` until the session has converged (or panics after `limit`),
-/// checking the cut after every frame.
-fn converge(session: &mut Session, view: &View, start: Instant, limit: Duration) {
-    let t0 = Instant::now();
-    loop {
-        let f = session
-            .update(view, start.elapsed(), Duration::from_millis(8))
-            .unwrap();
-        let check = session.dag().check_cut();
-        assert!(check.ok(), "{check:?}");
-        if f.refine.converged && f.wanted == 0 {
-            return;
-        }
-        assert!(t0.elapsed() < limit, "not converged: {f:?}");
-        std::thread::sleep(Duration::from_millis(5));
-    }
-}
-
 #[test]
 fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
     let dir = tempfile::tempdir().unwrap();
     let (built, local) = build_korea(dir.path());
-    let server = Served::korea("127.0.0.1:0".parse().unwrap(), &built);
-    let mut session = Session::open(
+    let server = Served::one_korea("127.0.0.1:0".parse().unwrap(), &built);
+    let mut session = Session::<PlanarRefiner>::open(
         &format!("http://{}", server.addr),
         REPO,
         SessionConfig::default(),
@@ -218,7 +85,7 @@ fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
     );
 
     // The last view, converged: the same cut, bit for bit, as refining locally.
-    let last = view_of(&flight.legs.last().unwrap().from);
+    let last = view_of(&flight.legs.last().unwrap().from, &session.world());
     converge(&mut session, &last, Instant::now(), Duration::from_secs(30));
     let streamed = cut_of(session.dag());
     // The renderer's snapshot is that cut.
@@ -231,10 +98,9 @@ fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
         );
         assert_eq!(p.grid.len(), (snapshot.n + 1) * (snapshot.n + 1));
     }
-    let world = session.world();
     drop(session);
     server.kill();
-    let expected = reference_cut(&local, &last, world);
+    let expected = reference_cut::<PlanarRefiner>(&local, REPO, &last);
     assert!(expected.len() > 100, "{}", expected.len());
     assert_eq!(streamed.len(), expected.len());
     assert!(
@@ -247,7 +113,7 @@ fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
 fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
     let dir = tempfile::tempdir().unwrap();
     let (built, local) = build_korea(dir.path());
-    let server = Served::korea("127.0.0.1:0".parse().unwrap(), &built);
+    let server = Served::one_korea("127.0.0.1:0".parse().unwrap(), &built);
     let addr = server.addr;
     // A slow link, so the kill lands while data is still coming.
     let link = LinkProxy::start(addr, 1_000.0, Duration::from_millis(40)).unwrap();
@@ -256,9 +122,10 @@ fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
         ..SessionConfig::default()
     };
     let mut session =
-        Session::open(&format!("http://{}", link.local_addr()), REPO, config).unwrap();
+        Session::<PlanarRefiner>::open(&format!("http://{}", link.local_addr()), REPO, config)
+            .unwrap();
     let flight = Flight::builtin_for("jump", &mut session, 3).unwrap();
-    let view = view_of(&flight.legs[0].from);
+    let view = view_of(&flight.legs[0].from, &session.world());
     let start = Instant::now();
     let frame = |session: &mut Session| {
         let f = session
@@ -289,13 +156,12 @@ fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
         stats.errors.total() > 0 || session.failures() > 0,
         "the outage went unnoticed: {stats:?}"
     );
-    let restarted = Served::korea(addr, &built);
+    let restarted = Served::one_korea(addr, &built);
     converge(&mut session, &view, start, Duration::from_secs(90));
     let streamed = cut_of(session.dag());
-    let world = session.world();
     drop(session);
     restarted.kill();
-    assert!(streamed == reference_cut(&local, &view, world));
+    assert!(streamed == reference_cut::<PlanarRefiner>(&local, REPO, &view));
 }
 
 fn fly_args(url: &str, path: &str) -> FlyArgs {
@@ -326,7 +192,7 @@ fn fly_args(url: &str, path: &str) -> FlyArgs {
 fn quincunx_fly_runs_a_flight_file_and_refuses_what_it_cannot_do() {
     let dir = tempfile::tempdir().unwrap();
     let (built, _local) = build_korea(dir.path());
-    let server = Served::korea("127.0.0.1:0".parse().unwrap(), &built);
+    let server = Served::one_korea("127.0.0.1:0".parse().unwrap(), &built);
     let url = format!("http://{}", server.addr);
 
     // A two-leg flight file over the raster (about 94 km across): a move, then a jump.

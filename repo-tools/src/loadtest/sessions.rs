@@ -8,8 +8,8 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 
-use quincunx_client::flight::{self, Flight, FlightReport, FlyOptions, percentile};
-use quincunx_client::session::{Session, SessionConfig};
+use quincunx_client::flight::{self, BuiltinFlights, Flight, FlightReport, FlyOptions, percentile};
+use quincunx_client::session::{AnySession, Session, SessionConfig};
 
 use super::LoadtestArgs;
 
@@ -60,6 +60,17 @@ pub struct FlyLoadReport {
     pub errors: Vec<String>,
 }
 
+/// Flies built-in flight `path` with `session`.
+fn fly_builtin<R: BuiltinFlights>(
+    mut session: Session<R>,
+    path: &str,
+    seed: u64,
+    opts: &FlyOptions,
+) -> Result<FlightReport> {
+    let f = Flight::builtin_for(path, &mut session, seed)?;
+    Ok(flight::fly(&mut session, &f, opts, |_| {})?)
+}
+
 /// Runs N sessions in parallel threads.
 pub fn run(args: &LoadtestArgs) -> Result<()> {
     if args.connections == 0 {
@@ -90,10 +101,13 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
                             timeout: Duration::from_secs_f64(args.timeout_s),
                             ..SessionConfig::default()
                         };
-                        let mut session = Session::open(&args.url, &args.repo, config)
+                        let session = AnySession::open(&args.url, &args.repo, config)
                             .with_context(|| format!("client {i}: opening {}", args.repo))?;
-                        let f = Flight::builtin_for(&path, &mut session, args.seed + i as u64)?;
-                        Ok(flight::fly(&mut session, &f, &opts, |_| {})?)
+                        let seed = args.seed + i as u64;
+                        match session {
+                            AnySession::Planar(s) => fly_builtin(s, &path, seed, &opts),
+                            AnySession::Planet(s) => fly_builtin(s, &path, seed, &opts),
+                        }
                     })
             })
             .collect();
