@@ -59,7 +59,7 @@ impl World for SphereWorld {
     fn fingerprint(&self) -> [f64; 4] {
         [
             self.radius_m,
-            self.half_side,
+            self.occluder_radius_m,
             self.value_scale_m,
             self.value_offset_m,
         ]
@@ -97,6 +97,25 @@ pub trait Domain: Refiner + Sized {
         z: (f64, f64),
     ) -> (Aabb, f64);
 
+    /// Whether the domain itself hides the diamond from `eye`: a planet's horizon (never
+    /// on the plane). `z_max` bounds its heights (metres).
+    fn hidden(
+        &self,
+        _world: &Self::World,
+        _id: Self::Id,
+        _corners: &[[i64; 3]; 4],
+        _z_max: f64,
+        _eye: DVec3,
+    ) -> bool {
+        false
+    }
+
+    /// The world mapping once a conservative lowest height of the surface (metres) is
+    /// known: planets cull by their horizon from then on.
+    fn with_lowest_height(world: Self::World, _lowest_m: f64) -> Self::World {
+        world
+    }
+
     /// World position of grid vertex `(i, j)` of `id` with integer value `v`.
     fn vertex_world(
         &self,
@@ -119,9 +138,10 @@ pub trait Domain: Refiner + Sized {
     /// cut covers the domain once when each lies in exactly one half.
     fn probes(&self) -> Vec<(u8, [f64; 2])>;
 
-    /// A view of the whole domain (the raster from as high as it is wide; a planet from
-    /// three radii away), 1920x1080 at 1 px, whose surface lies within `heights`.
-    fn overview(&self, world: &Self::World, heights: (f64, f64)) -> View;
+    /// Views that together see the whole domain (the raster from as high as it is wide;
+    /// a planet from three radii away on opposite sides), 1920x1080 at 1 px, whose
+    /// surface lies within `heights`.
+    fn overviews(&self, world: &Self::World, heights: (f64, f64)) -> Vec<View>;
 }
 
 /// The overview camera: 60 degrees, full HD, 1 px.
@@ -227,7 +247,7 @@ impl Domain for PlanarRefiner {
             .collect()
     }
 
-    fn overview(&self, world: &PlanarWorld, heights: (f64, f64)) -> View {
+    fn overviews(&self, world: &PlanarWorld, heights: (f64, f64)) -> Vec<View> {
         let (w, h) = self.raster_size();
         let a = world.point([0, 0], 0);
         let b = world.point([w as i64 - 1, h as i64 - 1], 0);
@@ -235,7 +255,11 @@ impl Domain for PlanarRefiner {
         centre.z = (heights.0 + heights.1) / 2.0;
         let span = (b - a).truncate().length().max(1.0);
         // The root's grid cells are many pixels wide from there, so it wants refining.
-        overview_view(centre + DVec3::new(0.0, 0.0, span), centre, DVec3::Y)
+        vec![overview_view(
+            centre + DVec3::new(0.0, 0.0, span),
+            centre,
+            DVec3::Y,
+        )]
     }
 }
 
@@ -264,10 +288,7 @@ pub fn sphere_footprint(
     c: &[[i64; 3]; 4],
     z: (f64, f64),
 ) -> (Aabb, f64) {
-    let centre = world.direction(id.c);
-    let dirs = c.map(|p| world.direction(p));
-    let angle = |a: DVec3, b: DVec3| a.cross(b).length().atan2(a.dot(b));
-    let cap = dirs.iter().map(|&d| angle(centre, d)).fold(0.0, f64::max) * 1.05 + 1e-12;
+    let (centre, cap) = sphere_cap(world, id, c);
     let (r0, r1) = (
         (world.radius_m + z.0).max(0.0),
         (world.radius_m + z.1).max(0.0),
@@ -285,8 +306,53 @@ pub fn sphere_footprint(
         min[k] = products.iter().copied().fold(f64::INFINITY, f64::min);
         max[k] = products.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     }
-    let spacing = (dirs[1] - dirs[0]).length() * world.radius_m / n as f64;
+    let spacing =
+        (world.direction(c[1]) - world.direction(c[0])).length() * world.radius_m / n as f64;
     (Aabb { min, max }, spacing)
+}
+
+/// Angle between two unit vectors, accurate for tiny angles too.
+fn angle(a: DVec3, b: DVec3) -> f64 {
+    a.cross(b).length().atan2(a.dot(b))
+}
+
+/// The direction of a planet diamond's centre and the angle of a cap around it that holds
+/// the diamond.
+fn sphere_cap(world: &SphereWorld, id: SphereId, c: &[[i64; 3]; 4]) -> (DVec3, f64) {
+    let centre = world.direction(id.c);
+    let cap = c
+        .iter()
+        .map(|&p| angle(centre, world.direction(p)))
+        .fold(0.0, f64::max)
+        * 1.05
+        + 1e-12;
+    (centre, cap)
+}
+
+/// Horizon culling: whether the sphere of `occluder` radius (inside the surface
+/// everywhere) hides every point within angle `cap` of direction `centre` and at most
+/// `r_max` from the planet's centre, seen from `eye`. The worst such point gives one
+/// *horizon culling point* on the centre's ray; the region is hidden when that point is
+/// (the point is beyond the occluder and inside its shadow cone from the eye).
+pub fn below_horizon(eye: DVec3, occluder: f64, centre: DVec3, cap: f64, r_max: f64) -> bool {
+    if occluder <= 0.0 {
+        return false;
+    }
+    let e = eye / occluder;
+    let horizon2 = e.length_squared() - 1.0;
+    if horizon2 <= 0.0 {
+        return false;
+    }
+    // A point at magnitude m (occluder units) is seen over the occluder's limb at most at
+    // angle beta = acos(1/m) from the tangent point; lower points count as on it.
+    let beta = (1.0 / (r_max / occluder).max(1.0)).acos();
+    if cap + beta >= std::f64::consts::FRAC_PI_2 {
+        return false;
+    }
+    let p = centre * (1.0 / (cap + beta).cos());
+    let to_point = p - e;
+    let along = -to_point.dot(e);
+    along > horizon2 && along * along / to_point.length_squared() > horizon2
 }
 
 impl Domain for SphereRefiner {
@@ -311,6 +377,31 @@ impl Domain for SphereRefiner {
         z: (f64, f64),
     ) -> (Aabb, f64) {
         sphere_footprint(world, self.n(), id, c, z)
+    }
+
+    fn hidden(
+        &self,
+        world: &SphereWorld,
+        id: SphereId,
+        c: &[[i64; 3]; 4],
+        z_max: f64,
+        eye: DVec3,
+    ) -> bool {
+        let (centre, cap) = sphere_cap(world, id, c);
+        below_horizon(
+            eye,
+            world.occluder_radius_m,
+            centre,
+            cap,
+            world.radius_m + z_max,
+        )
+    }
+
+    fn with_lowest_height(world: SphereWorld, lowest_m: f64) -> SphereWorld {
+        SphereWorld {
+            occluder_radius_m: (world.radius_m + lowest_m).max(0.0),
+            ..world
+        }
     }
 
     fn vertex_world(
@@ -355,9 +446,12 @@ impl Domain for SphereRefiner {
             .collect()
     }
 
-    fn overview(&self, world: &SphereWorld, _heights: (f64, f64)) -> View {
+    fn overviews(&self, world: &SphereWorld, _heights: (f64, f64)) -> Vec<View> {
         let eye = DVec3::ONE.normalize() * 3.0 * world.radius_m;
-        overview_view(eye, DVec3::ZERO, DVec3::Z)
+        vec![
+            overview_view(eye, DVec3::ZERO, DVec3::Z),
+            overview_view(-eye, DVec3::ZERO, DVec3::Z),
+        ]
     }
 }
 
@@ -383,6 +477,7 @@ mod tests {
             half_side: d.size() as f64,
             value_scale_m: 1.0,
             value_offset_m: 0.0,
+            occluder_radius_m: 0.0,
         };
         let n = 32;
         let z = (-11_000.0, 9_000.0);
@@ -427,6 +522,60 @@ mod tests {
         }
     }
 
+    /// The horizon test against brute force: a cap is reported hidden only when every
+    /// sampled point of it is below the occluder's horizon, and far-side caps are hidden.
+    #[test]
+    fn horizon_culling_is_conservative() {
+        let ro = 6_360_000.0;
+        let mut seed = 5u64;
+        let mut rand = || {
+            seed = seed
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let visible = |eye: DVec3, p: DVec3| {
+            // The segment eye -> p misses the occluder ball (p itself may be inside it).
+            let d = p - eye;
+            let t = (-eye.dot(d) / d.length_squared()).clamp(0.0, 1.0);
+            (eye + d * t).length() >= ro * (1.0 - 1e-12) || p.length() < ro
+        };
+        let (mut hidden, mut tested) = (0, 0);
+        for _ in 0..4000 {
+            let dir = |r: &mut dyn FnMut() -> f64| {
+                let z = 2.0 * r() - 1.0;
+                let lon = r() * std::f64::consts::TAU;
+                let s = (1.0 - z * z).sqrt();
+                DVec3::new(s * lon.cos(), s * lon.sin(), z)
+            };
+            let eye = dir(&mut rand) * (ro + 10f64.powf(rand() * 8.0));
+            let centre = dir(&mut rand);
+            let cap = rand() * 0.3;
+            let r_max = ro + rand() * 20_000.0;
+            tested += 1;
+            if !below_horizon(eye, ro, centre, cap, r_max) {
+                continue;
+            }
+            hidden += 1;
+            let axis = centre.any_orthonormal_vector();
+            for k in 0..64 {
+                let a = cap * (k % 8) as f64 / 7.0;
+                let q = glam::DQuat::from_axis_angle(
+                    centre,
+                    std::f64::consts::TAU * (k / 8) as f64 / 8.0,
+                );
+                let p = glam::DQuat::from_axis_angle(q * axis, a) * centre * r_max;
+                assert!(!visible(eye, p), "{eye} sees {p}");
+            }
+        }
+        assert!(hidden > tested / 5, "{hidden} of {tested}");
+        // Close to the surface, the far side is hidden and the ground below is not.
+        let eye = DVec3::Z * (ro + 300.0);
+        assert!(below_horizon(eye, ro, DVec3::NEG_Z, 0.1, ro + 9_000.0));
+        assert!(!below_horizon(eye, ro, DVec3::Z, 0.001, ro + 9_000.0));
+        assert!(!below_horizon(eye, 0.0, DVec3::NEG_Z, 0.1, ro));
+    }
+
     #[test]
     fn planet_up_is_radial_and_planar_up_is_z() {
         let world = SphereWorld {
@@ -434,6 +583,7 @@ mod tests {
             half_side: 8.0,
             value_scale_m: 1.0,
             value_offset_m: 0.0,
+            occluder_radius_m: 0.0,
         };
         let eye = DVec3::new(0.0, 0.0, -3_396_001.0);
         assert!((world.up(eye) - DVec3::NEG_Z).length() < 1e-15);

@@ -216,7 +216,10 @@ impl<W: World> Projector<'_, W> {
         }
         Appearance {
             error_px: edge_m * px_per_m,
-            visible: self.frustum.intersects(&bbox),
+            visible: self.frustum.intersects(&bbox)
+                && !dag
+                    .refiner()
+                    .hidden(w, id, &node.corners, za.max(zb) + bound_m, self.view.eye),
             flat,
             margin_m: (distance_m - trigger_m).max(0.0),
         }

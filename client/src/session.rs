@@ -262,6 +262,8 @@ pub struct Session<R: Domain = PlanarRefiner> {
     camera: CameraTrack,
     last_prefetch: Option<Duration>,
     failures: u64,
+    /// The conservative lowest height went into the world mapping.
+    lowest_known: bool,
 }
 
 impl<R: Domain> Session<R> {
@@ -321,6 +323,7 @@ impl<R: Domain> Session<R> {
             camera: CameraTrack::default(),
             last_prefetch: None,
             failures: 0,
+            lowest_known: false,
         })
     }
 
@@ -407,28 +410,53 @@ impl<R: Domain> Session<R> {
         }
     }
 
-    /// Runs frames of an overview (the whole raster from as high as it is wide, or the
-    /// planet from three radii away; 1 px) until it is at full quality or `timeout`
-    /// passes; returns whether a root got refined, which makes the height bounds
-    /// ([`Session::height_range`]) conservative. The finer the overview's cut, the
-    /// tighter the bounds.
+    /// Runs frames of overviews (the whole raster from as high as it is wide, or the
+    /// planet from three radii away on opposite sides; 1 px) until each is at full
+    /// quality or `timeout` passes; returns whether every root got refined, which makes
+    /// the height bounds ([`Session::height_range`]) conservative (and lets planets cull
+    /// by their horizon). The finer the overviews' cuts, the tighter the bounds.
     pub fn warm_up(&mut self, timeout: Duration) -> Result<bool, SessionError> {
-        let roots: Vec<R::Id> = self.refiner.roots().iter().map(|r| r.0).collect();
         let start = std::time::Instant::now();
-        let view = self.refiner.overview(&self.world, self.height_range());
-        let mut root_refined = false;
-        while start.elapsed() < timeout {
-            let f = self.update(&view, start.elapsed(), Duration::from_millis(4))?;
-            root_refined = roots
-                .iter()
-                .any(|&r| self.dag.node(r).is_some_and(|n| n.refined.is_some()));
-            // At full quality for the overview, the bounds are also as tight as its cut.
-            if root_refined && f.refine.full_quality {
-                break;
+        for view in self.refiner.overviews(&self.world, self.height_range()) {
+            while start.elapsed() < timeout {
+                let f = self.update(&view, start.elapsed(), Duration::from_millis(4))?;
+                if f.refine.full_quality {
+                    break;
+                }
+                std::thread::sleep(Duration::from_millis(2));
             }
-            std::thread::sleep(Duration::from_millis(2));
         }
-        Ok(root_refined)
+        Ok(self.roots_refined())
+    }
+
+    /// Whether every root is refined.
+    fn roots_refined(&self) -> bool {
+        self.refiner
+            .roots()
+            .iter()
+            .all(|r| self.dag.node(r.0).is_some_and(|n| n.refined.is_some()))
+    }
+
+    /// Once every root is refined, a conservative lowest height: the lowest point of the
+    /// roots' children's grids less the bounds the roots' blobs carry for them.
+    fn lowest_height(&self) -> Option<f64> {
+        if !self.roots_refined() {
+            return None;
+        }
+        let scale = self.world.value_scale_m().abs();
+        let mut lowest = f64::INFINITY;
+        for (root, _) in self.refiner.roots() {
+            for c in self.dag.children(root).iter() {
+                let n = self.dag.node(*c)?;
+                let bound = n.class.map_or(0.0, |k| class_bound(k) as f64 * scale);
+                let (a, b) = (
+                    self.world.height_m(n.z_range.0),
+                    self.world.height_m(n.z_range.1),
+                );
+                lowest = lowest.min(a.min(b) - bound);
+            }
+        }
+        lowest.is_finite().then_some(lowest)
     }
 
     /// The network thread's counters.
@@ -475,6 +503,14 @@ impl<R: Domain> Session<R> {
                     self.failures += 1;
                 }
             }
+        }
+        if !self.lowest_known
+            && let Some(lowest) = self.lowest_height()
+        {
+            // Planets start culling by their horizon.
+            self.world = R::with_lowest_height(self.world, lowest);
+            tracing::debug!(lowest, world = ?self.world, "lowest height known");
+            self.lowest_known = true;
         }
         let clock = SystemClock(started);
         let mut source = FetchSource {
@@ -857,6 +893,7 @@ pub fn sphere_world(
         half_side: half_side as f64,
         value_scale_m,
         value_offset_m,
+        occluder_radius_m: 0.0,
     })
 }
 

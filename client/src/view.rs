@@ -127,6 +127,10 @@ pub struct SphereWorld {
     pub value_scale_m: f64,
     /// Metres at integer 0.
     pub value_offset_m: f64,
+    /// Radius of a sphere that lies inside the surface everywhere (the planet's radius
+    /// plus a conservative lowest height), for horizon culling: what it hides from the
+    /// eye is not drawn. 0: no horizon culling (until the lowest height is known).
+    pub occluder_radius_m: f64,
 }
 
 #[cfg(test)]

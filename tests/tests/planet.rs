@@ -86,9 +86,10 @@ fn a_jump_flight_over_a_planet_is_crack_free_and_ends_on_the_local_cut() {
     let streamed = cut_of(session.dag());
     let snapshot = session.snapshot();
     assert_eq!(snapshot.patches.len(), streamed.len());
+    let world = session.world();
     drop(session);
     server.kill();
-    let expected = reference_cut::<SphereRefiner>(&local, REPO, &last);
+    let expected = reference_cut::<SphereRefiner>(&local, REPO, &last, world);
     assert!(expected.len() > 50, "{}", expected.len());
     // Every half both cuts hold has the same grid, bit for bit. The cuts themselves may
     // differ slightly: a planet's bounding caps are not nested, so after other views a
@@ -173,6 +174,8 @@ fn numerical_extremes_one_metre_above_poles_corners_and_edges_and_far_away() {
     let (_built, local_path) = build_earth(dir.path());
     let repo = Repository::open(&local_path).unwrap();
     let (refiner, world) = SphereRefiner::from_metadata(REPO, repo.metadata(), None).unwrap();
+    // Horizon culling on, with a sphere below the deepest trench as the occluder.
+    let world = SphereRefiner::with_lowest_height(world, -11_000.0);
     let refiner = Arc::new(refiner);
     let finest = refiner.detail_levels();
     let mut local = Local {

@@ -98,9 +98,10 @@ fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
         );
         assert_eq!(p.grid.len(), (snapshot.n + 1) * (snapshot.n + 1));
     }
+    let world = session.world();
     drop(session);
     server.kill();
-    let expected = reference_cut::<PlanarRefiner>(&local, REPO, &last);
+    let expected = reference_cut::<PlanarRefiner>(&local, REPO, &last, world);
     assert!(expected.len() > 100, "{}", expected.len());
     assert_eq!(streamed.len(), expected.len());
     assert!(
@@ -159,9 +160,10 @@ fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
     let restarted = Served::one_korea(addr, &built);
     converge(&mut session, &view, start, Duration::from_secs(90));
     let streamed = cut_of(session.dag());
+    let world = session.world();
     drop(session);
     restarted.kill();
-    assert!(streamed == reference_cut::<PlanarRefiner>(&local, REPO, &view));
+    assert!(streamed == reference_cut::<PlanarRefiner>(&local, REPO, &view, world));
 }
 
 fn fly_args(url: &str, path: &str) -> FlyArgs {

@@ -101,10 +101,16 @@ pub fn cut_of<R: Domain>(dag: &Dag<R>) -> Cut<R::Id> {
         .collect()
 }
 
-/// The converged cut for `view` with every blob of the local copy at hand.
-pub fn reference_cut<R: Domain>(local: &Path, name: &str, view: &View) -> Cut<R::Id> {
+/// The converged cut for `view` with every blob of the local copy at hand, in `world`
+/// (the streamed session's: a planet's horizon culling depends on it).
+pub fn reference_cut<R: Domain>(
+    local: &Path,
+    name: &str,
+    view: &View,
+    world: R::World,
+) -> Cut<R::Id> {
     let repo = Repository::open(local).unwrap();
-    let (refiner, world) = R::from_metadata(name, repo.metadata(), None).unwrap();
+    let (refiner, _) = R::from_metadata(name, repo.metadata(), None).unwrap();
     let refiner = Arc::new(refiner);
     let mut dag = Dag::new(Arc::clone(&refiner));
     let mut source = Local { repo, refiner };
