@@ -2,10 +2,11 @@
 # Headless streaming sessions (`quincunx fly`) over an emulated link against our server:
 # the issue's streaming bars (time to full quality after a jump, fetch waste, refinement
 # time per frame) on korea_srtm3_4097 at two rates (rms 9 m, the paper's mode, and a 2 m
-# max-error build), for the three transports and two link rates.
+# max-error build), for the three transports and two link rates; and on the planet
+# (etopo5_global as an Earth repository at rms 9 m).
 # Prints one JSON object per run (the `quincunx fly --json` summary plus `rate`).
 #   benches/streaming/measure.sh [shared-data-dir] > benches/streaming/results.jsonl
-# QUICK=1 runs only the 4 Mbit/s jump flight of the rms 9 m build (CI smoke).
+# QUICK=1 runs only the 4 Mbit/s jump flights of the rms 9 m builds (CI smoke).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 data="${1:-../shared/data}"
@@ -27,8 +28,19 @@ build() { # name, rate flags...
 }
 build korea_rms9 --rms-m 9
 [ "$quick" = 1 ] || build korea_max2 --max-error-m 2
+planet=()
+if [ -f "$data/etopo5_global.json" ]; then
+    if ! "$bin/quincunx" info "$work/earth_rms9" >/dev/null 2>&1; then
+        "$bin/quincunx" build "$data/etopo5_global.json" --planet -o "$work/earth_rms9" \
+            --rms-m 9 --overwrite >&2
+    fi
+    planet=(--repo "earth_rms9=$work/earth_rms9")
+else
+    echo "SKIP streaming bench (planet): $data/etopo5_global.json absent" >&2
+fi
 "$bin/quincunx" serve --addr 127.0.0.1:18190 --repo "korea_rms9=$work/korea_rms9" \
-    $([ "$quick" = 1 ] || echo --repo "korea_max2=$work/korea_max2") --log warn >&2 &
+    $([ "$quick" = 1 ] || echo --repo "korea_max2=$work/korea_max2") "${planet[@]}" \
+    --log warn >&2 &
 server_pid=$!
 trap 'kill $server_pid 2>/dev/null; wait 2>/dev/null' EXIT
 for _ in $(seq 100); do
@@ -42,7 +54,18 @@ fly() { # repo, path, link, transport[, tolerance]
 }
 if [ "$quick" = 1 ]; then
     fly korea_rms9 jump 4000,100 pipelined
+    [ ${#planet[@]} = 0 ] || fly earth_rms9 jump 4000,100 pipelined
     exit 0
+fi
+if [ ${#planet[@]} != 0 ]; then
+    for link in 4000,100 300,100; do
+        fly earth_rms9 jump "$link" pipelined
+    done
+    for transport in plain h2; do
+        fly earth_rms9 jump 4000,100 "$transport"
+    done
+    fly earth_rms9 low-flight 4000,100 pipelined
+    fly earth_rms9 approach 4000,100 pipelined
 fi
 for repo in korea_rms9 korea_max2; do
     for link in 4000,100 300,100; do
