@@ -353,7 +353,8 @@ impl<R: Domain> Dag<R> {
     /// and every probe point of the domain ([`Domain::probes`]) lies in exactly one half.
     pub fn check_cut(&self) -> CutCheck {
         let n = self.refiner.n();
-        let mut values: HashMap<[i64; 3], i32> = HashMap::new();
+        let mut values: HashMap<[i64; 3], i32, std::hash::BuildHasherDefault<IdHasher>> =
+            HashMap::default();
         let mut check = CutCheck::default();
         let cut = self.cut();
         let mut triangles: HashMap<u8, Vec<[[f64; 2]; 3]>> = HashMap::new();
@@ -362,7 +363,7 @@ impl<R: Domain> Dag<R> {
             let Some(node) = self.nodes.get(&id) else {
                 continue;
             };
-            if let Some((chart, t)) = self.refiner.half_triangle(id, half) {
+            if let Some((chart, t)) = self.refiner.half_triangle(&node.corners, half) {
                 triangles.entry(chart).or_default().push(t);
             }
             let mask = self.refiner.info(id).and_then(|i| i.mask);
@@ -372,7 +373,7 @@ impl<R: Domain> Dag<R> {
                     if !on_edge || !half.contains(i, j) || mask.is_some_and(|m| !m.vertex(i, j)) {
                         continue;
                     }
-                    let Some(pos) = self.refiner.vertex_point(id, i, j) else {
+                    let Some(pos) = self.refiner.vertex_point(id, &node.corners, i, j) else {
                         continue;
                     };
                     let v = node.grid[i * (n + 1) + j];
@@ -384,10 +385,23 @@ impl<R: Domain> Dag<R> {
                 }
             }
         }
-        for (chart, p) in self.refiner.probes() {
-            let hits = triangles
-                .get(&chart)
-                .map_or(0, |ts| ts.iter().filter(|t| in_triangle(p, t)).count());
+        let probes = self.refiner.probes();
+        let buckets: HashMap<u8, Buckets> = triangles
+            .iter()
+            .map(|(&chart, ts)| {
+                let points = probes.iter().filter(|p| p.0 == chart).map(|p| p.1);
+                (chart, Buckets::new(points, ts))
+            })
+            .collect();
+        for (chart, p) in probes {
+            let hits = match (triangles.get(&chart), buckets.get(&chart)) {
+                (Some(ts), Some(b)) => b
+                    .near(p)
+                    .iter()
+                    .filter(|&&k| in_triangle(p, &ts[k]))
+                    .count(),
+                _ => 0,
+            };
             match hits {
                 0 => check.uncovered += 1,
                 1 => check.probes += 1,
@@ -411,6 +425,60 @@ fn z_range(grid: &[i32], n: usize, present: [bool; 2]) -> (i32, i32) {
         }
     }
     if range.0 > range.1 { (0, 0) } else { range }
+}
+
+/// Triangles of one chart bucketed on a grid over the probes' extent by their bounding
+/// boxes, so that a probe is tested against the triangles near it only.
+struct Buckets {
+    min: [f64; 2],
+    cell: [f64; 2],
+    cells: Vec<Vec<usize>>,
+}
+
+impl Buckets {
+    const SIDE: usize = 64;
+
+    fn new(points: impl Iterator<Item = [f64; 2]>, triangles: &[[[f64; 2]; 3]]) -> Buckets {
+        let (mut min, mut max) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for p in points {
+            for k in 0..2 {
+                min[k] = min[k].min(p[k]);
+                max[k] = max[k].max(p[k]);
+            }
+        }
+        let cell = [0, 1].map(|k| ((max[k] - min[k]) / Self::SIDE as f64).max(1e-9));
+        let mut b = Buckets {
+            min,
+            cell,
+            cells: vec![Vec::new(); Self::SIDE * Self::SIDE],
+        };
+        if !(min[0].is_finite() && min[1].is_finite()) {
+            return b;
+        }
+        for (k, t) in triangles.iter().enumerate() {
+            let lo =
+                [0, 1].map(|a| b.index(t.iter().map(|p| p[a]).fold(f64::INFINITY, f64::min), a));
+            let hi = [0, 1]
+                .map(|a| b.index(t.iter().map(|p| p[a]).fold(f64::NEG_INFINITY, f64::max), a));
+            for y in lo[1]..=hi[1] {
+                for x in lo[0]..=hi[0] {
+                    b.cells[y * Self::SIDE + x].push(k);
+                }
+            }
+        }
+        b
+    }
+
+    /// The grid column (axis 0) or row (axis 1) of a coordinate, clamped to the grid.
+    fn index(&self, v: f64, axis: usize) -> usize {
+        let i = ((v - self.min[axis]) / self.cell[axis]).floor();
+        i.clamp(0.0, (Self::SIDE - 1) as f64) as usize
+    }
+
+    /// The triangles whose boxes meet the cell of `p`.
+    fn near(&self, p: [f64; 2]) -> &[usize] {
+        &self.cells[self.index(p[1], 1) * Self::SIDE + self.index(p[0], 0)]
+    }
 }
 
 /// Whether `p` is strictly inside triangle `t` (either orientation).
@@ -442,5 +510,115 @@ impl CutCheck {
     /// No cracks, and the cut covers the raster exactly once.
     pub fn ok(&self) -> bool {
         self.cracks == 0 && self.uncovered == 0 && self.overlaps == 0 && self.probes > 0
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+    use quincunx_codec::encode::{CubeGrid, EncodeOptions, Grid, RateMode, encode, encode_sphere};
+    use quincunx_codec::incremental::SphereRefiner;
+
+    fn options(n: usize) -> EncodeOptions {
+        EncodeOptions {
+            n,
+            mode: RateMode::Lossless,
+            sparse: false,
+        }
+    }
+
+    fn height(a: f64, b: f64) -> f64 {
+        (300.0 * (a * 0.05).sin() * (b * 0.07).cos() + 17.0 * ((a * b) % 5.0)).round()
+    }
+
+    /// Refines `steps` rounds of every refinable diamond with zero details.
+    fn refine_some<R: Domain>(dag: &mut Dag<R>, steps: usize) {
+        for _ in 0..steps {
+            let ids: Vec<R::Id> = dag
+                .nodes()
+                .filter(|n| n.refined.is_none())
+                .map(|n| n.id)
+                .filter(|&id| dag.is_refinable(id))
+                .collect();
+            for id in ids {
+                if dag.is_refinable(id) {
+                    dag.refine(id, None).unwrap();
+                }
+            }
+        }
+    }
+
+    /// A consistent cut checks out; a changed edge value is a crack, a removed half
+    /// leaves probes uncovered, and a refined diamond whose lattice is dropped without
+    /// coarsening (its children stay) overlaps them.
+    fn check_cut_finds_what_is_wrong<R: Domain>(mut dag: Dag<R>) {
+        refine_some(&mut dag, 3);
+        let good = dag.check_cut();
+        assert!(good.ok() && good.shared_vertices > 0, "{good:?}");
+
+        let mut cracked = Dag {
+            nodes: dag.nodes.clone(),
+            ..Dag::new(Arc::clone(&dag.refiner))
+        };
+        let (id, _) = cracked.cut()[0];
+        let node = cracked.nodes.get_mut(&id).unwrap();
+        let mut grid = node.grid.to_vec();
+        grid[0] += 1; // vertex (0, 0): a corner, shared with neighbours
+        node.grid = Arc::new(grid);
+        assert!(cracked.check_cut().cracks > 0);
+
+        let mut holed = Dag {
+            nodes: dag.nodes.clone(),
+            ..Dag::new(Arc::clone(&dag.refiner))
+        };
+        let (id, _) = holed.cut()[holed.cut().len() / 2];
+        holed.nodes.remove(&id);
+        assert!(holed.check_cut().uncovered > 0);
+
+        let mut doubled = Dag {
+            nodes: dag.nodes.clone(),
+            ..Dag::new(Arc::clone(&dag.refiner))
+        };
+        let refined = doubled
+            .nodes
+            .values()
+            .find(|n| n.refined.is_some())
+            .map(|n| n.id)
+            .unwrap();
+        doubled.nodes.get_mut(&refined).unwrap().refined = None;
+        assert!(doubled.check_cut().overlaps > 0);
+    }
+
+    #[test]
+    fn check_cut_finds_cracks_holes_and_overlaps_on_the_plane() {
+        let (w, h) = (129, 97);
+        let grid = Grid {
+            width: w,
+            height: h,
+            values_m: (0..w * h)
+                .map(|k| height((k % w) as f64, (k / w) as f64))
+                .collect(),
+            quantum_m: Some(1.0),
+        };
+        let enc = encode(&grid, options(8)).unwrap();
+        let refiner = Arc::new(PlanarRefiner::from_encoded(&enc).unwrap());
+        check_cut_finds_what_is_wrong(Dag::new(refiner));
+    }
+
+    #[test]
+    fn check_cut_finds_cracks_holes_and_overlaps_on_a_planet() {
+        let face_side = 32;
+        let w = face_side + 1;
+        let cube = CubeGrid {
+            face_side,
+            values_m: (0..6 * w * w)
+                .map(|k| height((k % w) as f64, (k / w) as f64))
+                .collect(),
+            quantum_m: Some(1.0),
+        };
+        let enc = encode_sphere(&cube, options(8)).unwrap();
+        let refiner = Arc::new(SphereRefiner::from_encoded(&enc).unwrap());
+        check_cut_finds_what_is_wrong(Dag::new(refiner));
     }
 }

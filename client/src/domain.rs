@@ -126,13 +126,20 @@ pub trait Domain: Refiner + Sized {
         v: i32,
     ) -> Option<DVec3>;
 
-    /// Exact position of grid vertex `(i, j)` of `id` (a common integer unit for all
-    /// diamonds), `None` outside the data: vertices with equal positions are one point.
-    fn vertex_point(&self, id: Self::Id, i: usize, j: usize) -> Option<[i64; 3]>;
+    /// Exact position of grid vertex `(i, j)` of `id`, whose frame `corners` are given
+    /// (a common integer unit for all diamonds), `None` outside the data: vertices with
+    /// equal positions are one point.
+    fn vertex_point(
+        &self,
+        id: Self::Id,
+        corners: &[[i64; 3]; 4],
+        i: usize,
+        j: usize,
+    ) -> Option<[i64; 3]>;
 
     /// The triangle of a half in a 2D chart: `(chart, corners)`. Charts are the plane
     /// (one) or the cube faces (every half of a planet lies on one face).
-    fn half_triangle(&self, id: Self::Id, half: Half) -> Option<(u8, [[f64; 2]; 3])>;
+    fn half_triangle(&self, corners: &[[i64; 3]; 4], half: Half) -> Option<(u8, [[f64; 2]; 3])>;
 
     /// Probe points `(chart, point)` spread over the domain, off every diamond edge: a
     /// cut covers the domain once when each lies in exactly one half.
@@ -218,9 +225,14 @@ impl Domain for PlanarRefiner {
         (i <= self.n() && j <= self.n()).then(|| DVec3::new(at(0), at(1), world.height_m(v)))
     }
 
-    fn vertex_point(&self, id: PlanarId, i: usize, j: usize) -> Option<[i64; 3]> {
+    fn vertex_point(
+        &self,
+        _id: PlanarId,
+        c: &[[i64; 3]; 4],
+        i: usize,
+        j: usize,
+    ) -> Option<[i64; 3]> {
         let n = self.n() as i64;
-        let c = Refiner::corners(self, id);
         let (ii, jj) = (i as i64, j as i64);
         // Id units times N (exact).
         let pos = [0, 1].map(|k| c[0][k] * n + ii * (c[1][k] - c[0][k]) + jj * (c[3][k] - c[0][k]));
@@ -230,8 +242,7 @@ impl Domain for PlanarRefiner {
         inside.then_some([pos[0], pos[1], 0])
     }
 
-    fn half_triangle(&self, id: PlanarId, half: Half) -> Option<(u8, [[f64; 2]; 3])> {
-        let c = self.domain().corners(id).ok()?;
+    fn half_triangle(&self, c: &[[i64; 3]; 4], half: Half) -> Option<(u8, [[f64; 2]; 3])> {
         let apex = match half {
             Half::Lower => c[1],
             Half::Upper => c[3],
@@ -416,12 +427,17 @@ impl Domain for SphereRefiner {
         Some(world.point(p, v))
     }
 
-    fn vertex_point(&self, id: SphereId, i: usize, j: usize) -> Option<[i64; 3]> {
+    fn vertex_point(
+        &self,
+        id: SphereId,
+        _corners: &[[i64; 3]; 4],
+        i: usize,
+        j: usize,
+    ) -> Option<[i64; 3]> {
         self.domain().vertex_position(id, self.n(), i, j).ok()
     }
 
-    fn half_triangle(&self, id: SphereId, half: Half) -> Option<(u8, [[f64; 2]; 3])> {
-        let c = self.domain().corners(id).ok()?;
+    fn half_triangle(&self, c: &[[i64; 3]; 4], half: Half) -> Option<(u8, [[f64; 2]; 3])> {
         let apex = match half {
             Half::Lower => c[1],
             Half::Upper => c[3],

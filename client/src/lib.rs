@@ -14,8 +14,8 @@
 //!   set of known leaves. `fetch` never sees the DAG: keys, priorities and results only.
 //!
 //! Invariants: time is passed in (`now`, `budget`), so refinement is deterministic under
-//! test; every frame ends with a cut that covers the raster exactly once and whose
-//! neighbouring patches agree bit for bit on shared edges.
+//! test; every frame ends with a cut that covers the raster (or the whole planet) exactly
+//! once and whose neighbouring patches agree bit for bit on shared edges.
 //!
 //! - [`session`]: a served repository streamed frame by frame: `fetch` feeding `refine`,
 //!   with prefetch along the predicted camera.

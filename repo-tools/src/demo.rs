@@ -165,23 +165,36 @@ fn serve(args: &DemoArgs) -> Result<()> {
     })
 }
 
-/// A streaming client session against the demo server, through an emulated 4 Mbit/s,
-/// 100 ms link: the first three views of the `jump` flight, every frame's cut checked.
+/// Streaming client sessions against the demo server, through an emulated 4 Mbit/s,
+/// 100 ms link: the first three views of the `jump` flight over the SRTM crop, then over
+/// the planet; every frame's cut checked.
 fn demo_flight(addr: std::net::SocketAddr) -> Result<()> {
+    use quincunx_client::session::{AnySession, SessionConfig};
+    for repo in ["korea", "earth"] {
+        let (link, url) = crate::fly::start_link(&format!("http://{addr}"), (4_000.0, 100.0))?;
+        match AnySession::open(&url, repo, SessionConfig::default())? {
+            AnySession::Planar(s) => demo_jumps(s, repo, addr, &link)?,
+            AnySession::Planet(s) => demo_jumps(s, repo, addr, &link)?,
+        }
+    }
+    Ok(())
+}
+
+/// Three jumps of the built-in `jump` flight with `session`, reported.
+fn demo_jumps<R: quincunx_client::flight::BuiltinFlights>(
+    mut session: quincunx_client::session::Session<R>,
+    repo: &str,
+    addr: std::net::SocketAddr,
+    link: &quincunx_client::fetch::link::LinkProxy,
+) -> Result<()> {
     use quincunx_client::flight::{self, Flight, FlyOptions};
-    use quincunx_client::session::{Session, SessionConfig};
-    let (link, url) = crate::fly::start_link(&format!("http://{addr}"), (4_000.0, 100.0))?;
-    let mut session = Session::<quincunx_codec::incremental::PlanarRefiner>::open(
-        &url,
-        "korea",
-        SessionConfig::default(),
-    )?;
     let mut f = Flight::builtin_for("jump", &mut session, 1)?;
     f.legs.truncate(3);
     outln!(
-        "\nstreaming client: {} low views of korea at 1920x1080, 1 px tolerance, through an \
-         emulated 4 Mbit/s, 100 ms link",
-        f.legs.len()
+        "\nstreaming client: {} low views of {repo} ({}) at 1920x1080, 1 px tolerance, \
+         through an emulated 4 Mbit/s, 100 ms link",
+        f.legs.len(),
+        R::KIND
     );
     let r = flight::fly(&mut session, &f, &FlyOptions::default(), |_| {})?;
     for j in &r.jumps {
@@ -200,10 +213,10 @@ fn demo_flight(addr: std::net::SocketAddr) -> Result<()> {
         link.bytes_down(),
         r.cracks + r.coverage_errors
     );
-    outln!("  quincunx fly --url http://{addr} --repo korea --path jump --link 4000,100 --json");
+    outln!("  quincunx fly --url http://{addr} --repo {repo} --path jump --link 4000,100 --json");
     anyhow::ensure!(
         r.cracks == 0 && r.coverage_errors == 0 && r.jumps_unfinished == 0,
-        "the streamed cut was inconsistent or incomplete: {r:?}"
+        "the streamed cut of {repo} was inconsistent or incomplete: {r:?}"
     );
     Ok(())
 }
