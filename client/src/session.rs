@@ -9,7 +9,8 @@
 //! use quincunx_client::session::{Session, SessionConfig};
 //! use quincunx_client::view::View;
 //!
-//! let mut session = Session::open("http://127.0.0.1:8080", "korea", SessionConfig::default())?;
+//! let mut session: Session =
+//!     Session::open("http://127.0.0.1:8080", "korea", SessionConfig::default())?;
 //! let start = Instant::now();
 //! let b = session.bounds();
 //! let view = View {
