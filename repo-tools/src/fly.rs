@@ -75,6 +75,34 @@ pub struct FlyArgs {
     pub frames: bool,
 }
 
+impl FlyArgs {
+    /// The command line's defaults for flying `path` over `repo` at `url` (1 px, pipelined,
+    /// 1920x1080 at 60 frames/s, every frame checked, text output).
+    pub fn new(url: impl Into<String>, repo: impl Into<String>, path: impl Into<String>) -> Self {
+        FlyArgs {
+            url: url.into(),
+            repo: repo.into(),
+            color: None,
+            path: path.into(),
+            tolerance_px: 1.0,
+            transport: Transport::Pipelined,
+            link: None,
+            connections: 2,
+            frame_budget_ms: 4.0,
+            fps: 60.0,
+            viewport: [1920, 1080],
+            prefetch_s: 0.5,
+            lookahead_levels: 2,
+            dag_budget_mb: None,
+            spacing_m: None,
+            seed: 1,
+            check_every: 1,
+            json: false,
+            frames: false,
+        }
+    }
+}
+
 fn parse_link(s: &str) -> Result<(f64, f64), String> {
     let (a, b) = s
         .split_once(',')

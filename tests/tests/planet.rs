@@ -250,25 +250,11 @@ fn quincunx_fly_streams_a_planet() {
     let (built, _local) = build_earth(dir.path());
     let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
     let args = FlyArgs {
-        url: server.url(),
-        repo: REPO.into(),
-        color: None,
-        path: "low-flight".into(),
         tolerance_px: 2.0,
-        transport: quincunx_client::fetch::Transport::Pipelined,
-        link: None,
-        connections: 2,
-        frame_budget_ms: 8.0,
-        fps: 60.0,
         viewport: [1280, 720],
-        prefetch_s: 0.5,
-        dag_budget_mb: None,
-        lookahead_levels: 2,
-        spacing_m: None,
-        seed: 1,
         check_every: 8,
         json: true,
-        frames: false,
+        ..FlyArgs::new(server.url(), REPO, "low-flight")
     };
     fly::run(&args).unwrap();
     server.kill();

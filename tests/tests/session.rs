@@ -168,25 +168,11 @@ fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
 
 fn fly_args(url: &str, path: &str) -> FlyArgs {
     FlyArgs {
-        url: url.into(),
-        repo: REPO.into(),
-        color: None,
-        path: path.into(),
         tolerance_px: 2.0,
-        transport: quincunx_client::fetch::Transport::Pipelined,
-        link: None,
-        connections: 2,
         frame_budget_ms: 8.0,
-        fps: 60.0,
         viewport: [1280, 720],
-        prefetch_s: 0.5,
-        dag_budget_mb: None,
-        lookahead_levels: 2,
-        spacing_m: None,
-        seed: 1,
-        check_every: 1,
         json: true,
-        frames: false,
+        ..FlyArgs::new(url, REPO, path)
     }
 }
 

@@ -252,6 +252,26 @@ pub(crate) fn check_lattice<I>(r: &Refined<I>, n: usize) -> Result<(), RefineErr
     Ok(())
 }
 
+/// Errors when a valid vertex of `child`'s grid was not written (a parent is missing).
+pub(crate) fn check_complete<I: std::fmt::Debug>(
+    child: I,
+    n: usize,
+    written: &[bool],
+    mask: Option<&DiamondMask>,
+) -> Result<(), RefineError> {
+    let missing = (0..=n)
+        .flat_map(|i| (0..=n).map(move |j| (i, j)))
+        .filter(|&(i, j)| !written[i * (n + 1) + j] && mask.is_none_or(|m| m.vertex(i, j)))
+        .count();
+    if missing > 0 {
+        return Err(RefineError::MissingParent {
+            child: id_text(child),
+            missing,
+        });
+    }
+    Ok(())
+}
+
 /// An id in error messages.
 pub(crate) fn id_text(id: impl std::fmt::Debug) -> String {
     format!("{id:?}")
@@ -487,18 +507,10 @@ impl PlanarRefiner {
         child: PlanarId,
         parents: &[&Refined],
     ) -> Result<Vec<i32>, RefineError> {
-        let n = self.n();
         let (grid, written) = self.partial_child_grid(child, parents)?;
-        let mask = self.info(child).and_then(|info| info.mask);
-        let missing = (0..=n)
-            .flat_map(|i| (0..=n).map(move |j| (i, j)))
-            .filter(|&(i, j)| !written[i * (n + 1) + j] && mask.is_none_or(|m| m.vertex(i, j)))
-            .count();
-        if missing > 0 && self.slots.contains_key(&child) {
-            return Err(RefineError::MissingParent {
-                child: id_text(child),
-                missing,
-            });
+        if self.slots.contains_key(&child) {
+            let mask = self.info(child).and_then(|info| info.mask);
+            check_complete(child, self.n(), &written, mask)?;
         }
         Ok(grid)
     }

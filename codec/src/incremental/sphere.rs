@@ -7,8 +7,8 @@
 //! the parent's lattice by the same affine map as in the plane, also across cube edges.
 
 use super::{
-    Details, DiamondInfo, RefineError, Refined, Refiner, check_lattice, decode_details, id_text,
-    synthesize_one,
+    Details, DiamondInfo, RefineError, Refined, Refiner, check_complete, check_lattice,
+    decode_details, id_text, synthesize_one,
 };
 use crate::coverage::Coverage;
 use crate::diamond::sphere::unfold;
@@ -114,19 +114,9 @@ impl SphereRefiner {
         child: SphereId,
         parents: &[&Refined<SphereId>],
     ) -> Result<Vec<i32>, RefineError> {
-        let n = self.geometry.n();
         let (grid, written) = self.partial_child_grid(child, parents)?;
         let mask = self.info(child).and_then(|info| info.mask);
-        let missing = (0..=n)
-            .flat_map(|i| (0..=n).map(move |j| (i, j)))
-            .filter(|&(i, j)| !written[i * (n + 1) + j] && mask.is_none_or(|m| m.vertex(i, j)))
-            .count();
-        if missing > 0 {
-            return Err(RefineError::MissingParent {
-                child: id_text(child),
-                missing,
-            });
-        }
+        check_complete(child, self.geometry.n(), &written, mask)?;
         Ok(grid)
     }
 }
