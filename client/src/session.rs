@@ -418,8 +418,12 @@ impl<R: Domain> Session<R> {
     /// by their horizon). The finer the overviews' cuts, the tighter the bounds.
     pub fn warm_up(&mut self, timeout: Duration) -> Result<bool, SessionError> {
         let start = std::time::Instant::now();
-        for view in self.refiner.overviews(&self.world, self.height_range()) {
-            while start.elapsed() < timeout {
+        let views = self.refiner.overviews(&self.world, self.height_range());
+        // Each overview gets its share of the time, so a slow link still sees them all.
+        let share = timeout / views.len().max(1) as u32;
+        for (k, view) in views.into_iter().enumerate() {
+            let until = share * (k as u32 + 1);
+            while start.elapsed() < until {
                 let f = self.update(&view, start.elapsed(), Duration::from_millis(4))?;
                 if f.refine.full_quality {
                     break;
