@@ -35,20 +35,18 @@ const REPO: &str = "earth";
 /// Builds the bundled ETOPO20 grid as an Earth planet at 10 m RMS into
 /// `dir/built/earth`, and a copy the test reads locally.
 fn build_earth(dir: &Path) -> (PathBuf, PathBuf) {
-    let built = dir.join("built").join(REPO);
-    build::run(&BuildArgs {
-        planet: true,
-        rms_m: Some(10.0),
-        overwrite: true,
-        ..BuildArgs::new(
-            common::workspace_root().join("data/etopo20_global.json"),
-            &built,
-        )
+    common::stream::built_and_local(dir, REPO, |built| {
+        build::run(&BuildArgs {
+            planet: true,
+            rms_m: Some(10.0),
+            overwrite: true,
+            ..BuildArgs::new(
+                common::workspace_root().join("data/etopo20_global.json"),
+                built,
+            )
+        })
+        .unwrap();
     })
-    .unwrap();
-    let local = dir.join("local").join(REPO);
-    common::copy_dir(&built, &local);
-    (built, local)
 }
 
 #[test]

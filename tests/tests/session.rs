@@ -25,31 +25,17 @@ use quincunx_server::RepoConfig;
 
 const REPO: &str = "korea";
 
-trait Korea {
-    fn one_korea(addr: std::net::SocketAddr, path: &Path) -> Served;
-}
-
-impl Korea for Served {
-    fn one_korea(addr: std::net::SocketAddr, path: &Path) -> Served {
-        Served::one(addr, REPO, path)
-    }
-}
-
 /// Builds the bundled 1025 x 1025 SRTM crop at 2 m RMS into `dir/built/korea`, and a
 /// copy the test reads locally (sled locks a repository per open).
 fn build_korea(dir: &Path) -> (PathBuf, PathBuf) {
-    let built = dir.join("built").join(REPO);
-    common::build_bundled_korea(&built);
-    let local = dir.join("local").join(REPO);
-    common::copy_dir(&built, &local);
-    (built, local)
+    common::stream::built_and_local(dir, REPO, common::build_bundled_korea)
 }
 
 #[test]
 fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
     let dir = tempfile::tempdir().unwrap();
     let (built, local) = build_korea(dir.path());
-    let server = Served::one_korea("127.0.0.1:0".parse().unwrap(), &built);
+    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
     let mut session = Session::<PlanarRefiner>::open(
         &format!("http://{}", server.addr),
         REPO,
@@ -114,7 +100,7 @@ fn a_jump_flight_is_crack_free_every_frame_and_ends_on_the_local_cut() {
 fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
     let dir = tempfile::tempdir().unwrap();
     let (built, local) = build_korea(dir.path());
-    let server = Served::one_korea("127.0.0.1:0".parse().unwrap(), &built);
+    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
     let addr = server.addr;
     // A slow link, so the kill lands while data is still coming.
     let link = LinkProxy::start(addr, 1_000.0, Duration::from_millis(40)).unwrap();
@@ -157,7 +143,7 @@ fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
         stats.errors.total() > 0 || session.failures() > 0,
         "the outage went unnoticed: {stats:?}"
     );
-    let restarted = Served::one_korea(addr, &built);
+    let restarted = Served::one(addr, REPO, &built);
     converge(&mut session, &view, start, Duration::from_secs(90));
     let streamed = cut_of(session.dag());
     let world = session.world();
@@ -180,7 +166,7 @@ fn fly_args(url: &str, path: &str) -> FlyArgs {
 fn quincunx_fly_runs_a_flight_file_and_refuses_what_it_cannot_do() {
     let dir = tempfile::tempdir().unwrap();
     let (built, _local) = build_korea(dir.path());
-    let server = Served::one_korea("127.0.0.1:0".parse().unwrap(), &built);
+    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
     let url = format!("http://{}", server.addr);
 
     // A two-leg flight file over the raster (about 94 km across): a move, then a jump.

@@ -2,7 +2,7 @@
 //! a repository, the converged reference cut, and frame loops with cut checks.
 
 use std::net::SocketAddr;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -75,6 +75,16 @@ impl Served {
             rt.shutdown_timeout(Duration::from_secs(5));
         }
     }
+}
+
+/// Builds repository `name` with `build` into `dir/built/name`, and copies it to
+/// `dir/local/name` for the test to read locally (sled locks a repository per open).
+pub fn built_and_local(dir: &Path, name: &str, build: impl FnOnce(&Path)) -> (PathBuf, PathBuf) {
+    let built = dir.join("built").join(name);
+    build(&built);
+    let local = dir.join("local").join(name);
+    super::copy_dir(&built, &local);
+    (built, local)
 }
 
 /// Details read and decoded straight from a local copy of the repository.
