@@ -13,7 +13,8 @@ use std::sync::Arc;
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::incremental::{Details, PlanarRefiner, RefineError, Refined};
 
-use crate::domain::Domain;
+use crate::domain::{Domain, World};
+use quincunx_codec::entropy::class_bound;
 
 pub use quincunx_codec::diamond::{IdHasher, IdMap};
 
@@ -103,6 +104,24 @@ impl<I> Node<I> {
     /// Whether a half is present.
     pub fn has(&self, half: Half) -> bool {
         self.present[half.index()]
+    }
+
+    /// The side-information bound on how far its subtree departs from its grid (metres;
+    /// 0 while unknown).
+    pub fn bound_m(&self, world: &impl World) -> f64 {
+        self.class
+            .map_or(0.0, |k| class_bound(k) as f64 * world.value_scale_m().abs())
+    }
+
+    /// Lowest and highest height (metres) its whole subtree can reach: its grid's range
+    /// widened by [`Node::bound_m`].
+    pub fn height_bounds_m(&self, world: &impl World) -> (f64, f64) {
+        let bound = self.bound_m(world);
+        let (a, b) = (
+            world.height_m(self.z_range.0),
+            world.height_m(self.z_range.1),
+        );
+        (a.min(b) - bound, a.max(b) + bound)
     }
 }
 

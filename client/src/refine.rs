@@ -29,7 +29,6 @@ use std::time::Duration;
 
 use glam::DVec3;
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::entropy::class_bound;
 use quincunx_codec::incremental::Details;
 
 use crate::dag::{Dag, DagError, IdMap};
@@ -195,16 +194,9 @@ impl<W: World> Projector<'_, W> {
             };
         };
         let w = &self.world;
-        let bound_m = node
-            .class
-            .map_or(0.0, |k| class_bound(k) as f64 * w.value_scale_m().abs());
-        let (za, zb) = (w.height_m(node.z_range.0), w.height_m(node.z_range.1));
-        let (bbox, edge_m) = dag.refiner().footprint(
-            w,
-            id,
-            &node.corners,
-            (za.min(zb) - bound_m, za.max(zb) + bound_m),
-        );
+        let bound_m = node.bound_m(w);
+        let z = node.height_bounds_m(w);
+        let (bbox, edge_m) = dag.refiner().footprint(w, id, &node.corners, z);
         let distance_m = bbox.distance(self.view.eye).max(View::NEAR_M);
         let px_per_m = self.px_at_1m / distance_m;
         let flat = node.class.is_some() && bound_m * px_per_m < self.flat_px;
@@ -219,7 +211,7 @@ impl<W: World> Projector<'_, W> {
             visible: self.frustum.intersects(&bbox)
                 && !dag
                     .refiner()
-                    .hidden(w, id, &node.corners, za.max(zb) + bound_m, self.view.eye),
+                    .hidden(w, id, &node.corners, z.1, self.view.eye),
             flat,
             margin_m: (distance_m - trigger_m).max(0.0),
         }

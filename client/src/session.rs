@@ -52,12 +52,12 @@ use std::time::Duration;
 use glam::DVec3;
 use quincunx_codec::coverage::Coverage;
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::entropy::{CodecModel, class_bound};
+use quincunx_codec::entropy::CodecModel;
 use quincunx_codec::incremental::{Details, PlanarRefiner, Refiner, SphereRefiner};
 use quincunx_store::{ChannelCoding, Metadata};
 
 use crate::dag::{Dag, DagError, Half};
-use crate::domain::{Domain, World};
+use crate::domain::Domain;
 use crate::fetch::{
     Decode, FetchConfig, FetchError, FetchStats, Fetched, Fetcher, Key, Remote, Transport, Weigh,
     lock,
@@ -393,16 +393,11 @@ impl<R: Domain> Session<R> {
 
     /// [`Session::height_range`] over the cut diamonds `keep` accepts.
     fn height_range_where(&self, keep: impl Fn(&crate::dag::Node<R::Id>) -> bool) -> (f64, f64) {
-        let scale = self.world.value_scale_m().abs();
         let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
         for n in self.dag.nodes().filter(|n| n.refined.is_none() && keep(n)) {
-            let bound = n.class.map_or(0.0, |k| class_bound(k) as f64 * scale);
-            let (a, b) = (
-                self.world.height_m(n.z_range.0),
-                self.world.height_m(n.z_range.1),
-            );
-            lo = lo.min(a.min(b) - bound);
-            hi = hi.max(a.max(b) + bound);
+            let (a, b) = n.height_bounds_m(&self.world);
+            lo = lo.min(a);
+            hi = hi.max(b);
         }
         if lo.is_finite() && hi.is_finite() {
             (lo, hi)
@@ -448,17 +443,10 @@ impl<R: Domain> Session<R> {
         if !self.roots_refined() {
             return None;
         }
-        let scale = self.world.value_scale_m().abs();
         let mut lowest = f64::INFINITY;
         for (root, _) in self.refiner.roots() {
             for c in self.dag.children(root).iter() {
-                let n = self.dag.node(*c)?;
-                let bound = n.class.map_or(0.0, |k| class_bound(k) as f64 * scale);
-                let (a, b) = (
-                    self.world.height_m(n.z_range.0),
-                    self.world.height_m(n.z_range.1),
-                );
-                lowest = lowest.min(a.min(b) - bound);
+                lowest = lowest.min(self.dag.node(*c)?.height_bounds_m(&self.world).0);
             }
         }
         lowest.is_finite().then_some(lowest)
