@@ -13,6 +13,7 @@ use std::sync::Arc;
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::incremental::{Details, PlanarRefiner, RefineError, Refined};
 
+use crate::colour::{CHANNELS, ColourDetails, ColourLayer, ColourNode};
 use crate::domain::{Domain, World};
 use quincunx_codec::entropy::class_bound;
 
@@ -90,6 +91,8 @@ pub struct Node<I = PlanarId> {
     /// Changes whenever its grid or halves change (a DAG-wide counter), so cached
     /// judgements about it can tell they are stale.
     pub generation: u64,
+    /// Its colour (with a colour layer, where the colour repository covers it).
+    pub colour: Option<ColourNode<I>>,
 }
 
 impl<I> Node<I> {
@@ -129,6 +132,7 @@ impl<I> Node<I> {
 #[derive(Debug)]
 pub struct Dag<R: Domain = PlanarRefiner> {
     refiner: Arc<R>,
+    colour: Option<Arc<ColourLayer<R>>>,
     nodes: IdMap<Node<R::Id>, R::Id>,
     generations: u64,
     /// Diamonds holding a refined lattice.
@@ -138,6 +142,12 @@ pub struct Dag<R: Domain = PlanarRefiner> {
 impl<R: Domain> Dag<R> {
     /// A DAG holding the roots (complete, from the repository's root grids).
     pub fn new(refiner: Arc<R>) -> Dag<R> {
+        Dag::with_colour(refiner, None)
+    }
+
+    /// A DAG of elevation and, optionally, a colour layer matched to it
+    /// ([`ColourLayer::match_to`]): every diamond then carries both.
+    pub fn with_colour(refiner: Arc<R>, colour: Option<Arc<ColourLayer<R>>>) -> Dag<R> {
         let n = refiner.n();
         let nodes = refiner
             .roots()
@@ -158,6 +168,7 @@ impl<R: Domain> Dag<R> {
                     expected: [true, true],
                     refined: None,
                     class: None,
+                    colour: colour.as_ref().and_then(|c| c.root_grids(root)),
                 };
                 (root, node)
             })
@@ -165,9 +176,32 @@ impl<R: Domain> Dag<R> {
         Dag {
             nodes,
             refiner,
+            colour,
             generations: 1,
             refined: 0,
         }
+    }
+
+    /// The colour layer, if any.
+    pub fn colour(&self) -> Option<&ColourLayer<R>> {
+        self.colour.as_deref()
+    }
+
+    /// Colour texels per elevation grid step (`Nc / Ne`; 0 without colour): the mean
+    /// projected texel size is the edge length divided by it.
+    pub fn texels_per_edge(&self) -> f64 {
+        self.colour
+            .as_ref()
+            .map_or(0.0, |c| c.n() as f64 / self.refiner.n() as f64)
+    }
+
+    /// The colour id whose blob refining `id` needs (`None`: no colour layer, or its
+    /// colour is procedural or outside the colour data).
+    pub fn colour_blob_id(&self, id: R::Id) -> Option<R::Id> {
+        let layer = self.colour.as_ref()?;
+        let node = self.nodes.get(&id)?;
+        let colour = node.colour.as_ref()?;
+        layer.is_coded(colour.id).then_some(colour.id)
     }
 
     /// The incremental decoder this DAG refines with.
@@ -198,8 +232,27 @@ impl<R: Domain> Dag<R> {
     /// Bytes of grids, lattices and nodes held (constant time: every grid is `(N+1)^2`
     /// values and every lattice `(N+1)^2 + N^2`).
     pub fn memory_bytes(&self) -> usize {
+        let per_node = |n: usize| self.nodes.len() * 4 * (n + 1) * (n + 1);
+        let colour = self.colour.as_ref().map_or(0, |c| {
+            // Every node holds colour grids once a colour layer exists (estimate: the
+            // few outside the colour data hold none).
+            let n = c.n();
+            CHANNELS * (per_node(n) + self.refined * Self::lattice_bytes(n))
+        });
         self.nodes.len() * Self::node_bytes(self.refiner.n())
             + self.refined * Self::lattice_bytes(self.refiner.n())
+            + colour
+    }
+
+    /// Bytes a refinement adds at most: a lattice and up to four children's nodes, in
+    /// every layer.
+    pub fn refinement_bytes(&self) -> usize {
+        let n = self.refiner.n();
+        let colour = self.colour.as_ref().map_or(0, |c| {
+            let nc = c.n();
+            CHANNELS * (Self::lattice_bytes(nc) + 4 * 4 * (nc + 1) * (nc + 1))
+        });
+        Self::lattice_bytes(n) + 4 * Self::node_bytes(n) + colour
     }
 
     /// Bytes one node holds (its grid and the node itself).
@@ -259,15 +312,38 @@ impl<R: Domain> Dag<R> {
         id: R::Id,
         details: Option<&Details<R::Id>>,
     ) -> Result<Vec<R::Id>, DagError> {
+        self.refine_layers(id, details, None)
+    }
+
+    /// [`Dag::refine`] with the colour's details too (`None`: zero or procedural; ignored
+    /// without a colour layer).
+    pub fn refine_layers(
+        &mut self,
+        id: R::Id,
+        details: Option<&Details<R::Id>>,
+        colour: Option<&ColourDetails<R::Id>>,
+    ) -> Result<Vec<R::Id>, DagError> {
         let not_refinable = || DagError::NotRefinable(format!("{id:?}"));
         if !self.is_refinable(id) {
             return Err(not_refinable());
         }
         let node = self.nodes.get(&id).ok_or_else(not_refinable)?;
         let refined = self.refiner.synthesize(id, &node.grid, details)?;
+        let colour_refined = match (&self.colour, &node.colour) {
+            (Some(layer), Some(c)) if layer.is_refinable(c.id) => {
+                if colour.is_some_and(|d| d.id != c.id) {
+                    return Err(not_refinable());
+                }
+                Some(layer.synthesize(c, colour)?)
+            }
+            _ => None,
+        };
         let classes: HashMap<R::Id, u8> = refined.child_classes.iter().copied().collect();
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = Some(refined);
+            if let Some(c) = node.colour.as_mut() {
+                c.refined = colour_refined;
+            }
             self.refined += 1;
         }
         let children = self.children(id);
@@ -288,6 +364,9 @@ impl<R: Domain> Dag<R> {
         }
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = None;
+            if let Some(c) = node.colour.as_mut() {
+                c.refined = None;
+            }
             self.refined -= 1;
         }
         for &child in self.children(id).iter() {
@@ -312,6 +391,20 @@ impl<R: Domain> Dag<R> {
         let present = side_parents.map(|p| refined.iter().any(|r| r.id == p));
         let expected = side_parents.map(|p| parents.contains(&p) && self.refiner.is_refinable(p));
         let (grid, _) = self.refiner.partial_child_grid(child, &refined)?;
+        let colour = match &self.colour {
+            Some(layer) => {
+                let lattices: Vec<&[Refined<R::Id>]> = parents
+                    .iter()
+                    .filter_map(|p| self.nodes.get(p))
+                    .filter_map(|n| n.colour.as_ref()?.refined.as_deref())
+                    .collect();
+                match layer.colour_id(child) {
+                    Some(c) if !lattices.is_empty() => Some(layer.child(c, &lattices)?),
+                    _ => None,
+                }
+            }
+            None => None,
+        };
         let (class, children) = match self.nodes.get(&child) {
             Some(n) => (n.class, n.children.clone()),
             None => (
@@ -337,6 +430,7 @@ impl<R: Domain> Dag<R> {
                 expected,
                 refined: None,
                 class,
+                colour,
             },
         );
         Ok(())
@@ -389,7 +483,10 @@ impl<R: Domain> Dag<R> {
             for i in 0..=n {
                 for j in 0..=n {
                     let on_edge = i == j || i == 0 || j == 0 || i == n || j == n;
-                    if !on_edge || !half.contains(i, j) || mask.is_some_and(|m| !m.vertex(i, j)) {
+                    if !on_edge
+                        || !half.contains(i, j)
+                        || mask.as_ref().is_some_and(|m| !m.vertex(i, j))
+                    {
                         continue;
                     }
                     let Some(pos) = self.refiner.vertex_point(id, &node.corners, i, j) else {
@@ -404,6 +501,7 @@ impl<R: Domain> Dag<R> {
                 }
             }
         }
+        check.colour_cracks = self.colour_cracks(&cut, &mut check.colour_shared);
         let probes = self.refiner.probes();
         let buckets: HashMap<u8, Buckets> = triangles
             .iter()
@@ -428,6 +526,53 @@ impl<R: Domain> Dag<R> {
             }
         }
         check
+    }
+}
+
+impl<R: Domain> Dag<R> {
+    /// Colour edge vertices of the cut that neighbours disagree on (any channel); counts
+    /// the agreeing ones in `shared`.
+    fn colour_cracks(&self, cut: &[(R::Id, Half)], shared: &mut usize) -> usize {
+        let Some(layer) = &self.colour else {
+            return 0;
+        };
+        let n = layer.n();
+        let mut values: HashMap<
+            [i64; 3],
+            [i32; CHANNELS],
+            std::hash::BuildHasherDefault<IdHasher>,
+        > = HashMap::default();
+        let mut cracks = 0;
+        let refiner = &layer.channels()[0];
+        for &(id, half) in cut {
+            let Some(colour) = self.nodes.get(&id).and_then(|n| n.colour.as_ref()) else {
+                continue;
+            };
+            let corners = refiner.corners(colour.id);
+            let mask = refiner.info(colour.id).and_then(|i| i.mask);
+            for i in 0..=n {
+                for j in 0..=n {
+                    let on_edge = i == j || i == 0 || j == 0 || i == n || j == n;
+                    if !on_edge
+                        || !half.contains(i, j)
+                        || mask.as_ref().is_some_and(|m| !m.vertex(i, j))
+                    {
+                        continue;
+                    }
+                    let Some(pos) = refiner.vertex_point(colour.id, &corners, i, j) else {
+                        continue;
+                    };
+                    let k = i * (n + 1) + j;
+                    let v = [0, 1, 2].map(|c| colour.grids[c][k]);
+                    match values.insert(pos, v) {
+                        Some(old) if old != v => cracks += 1,
+                        Some(_) => *shared += 1,
+                        None => {}
+                    }
+                }
+            }
+        }
+        cracks
     }
 }
 
@@ -517,6 +662,10 @@ pub struct CutCheck {
     pub shared_vertices: usize,
     /// Edge vertices seen by more than one half with different values (must be 0).
     pub cracks: usize,
+    /// With a colour layer: colour edge vertices seen by more than one half, agreeing.
+    pub colour_shared: usize,
+    /// Colour edge vertices whose neighbours disagree in any channel (must be 0).
+    pub colour_cracks: usize,
     /// Probe points of the raster covered by exactly one half.
     pub probes: usize,
     /// Probe points covered by no half (must be 0).
@@ -528,7 +677,11 @@ pub struct CutCheck {
 impl CutCheck {
     /// No cracks, and the cut covers the raster exactly once.
     pub fn ok(&self) -> bool {
-        self.cracks == 0 && self.uncovered == 0 && self.overlaps == 0 && self.probes > 0
+        self.cracks == 0
+            && self.colour_cracks == 0
+            && self.uncovered == 0
+            && self.overlaps == 0
+            && self.probes > 0
     }
 }
 

@@ -7,13 +7,17 @@
 //! centred at the origin).
 
 use glam::DVec3;
+use quincunx_codec::diamond::SphereDomain;
 use quincunx_codec::diamond::sphere::{axes, chart_of, cube_to_unit_sphere};
 use quincunx_codec::diamond::{PlanarId, SphereId};
-use quincunx_codec::incremental::{PlanarRefiner, Refiner, SphereRefiner};
+use quincunx_codec::incremental::{PlanarRefiner, Procedural, RefineError, Refiner, SphereRefiner};
 use quincunx_store::Metadata;
 
 use crate::dag::Half;
-use crate::session::{SessionError, planar_refiner, planar_world, sphere_refiner, sphere_world};
+use crate::session::{
+    SessionError, planar_channel_refiner, planar_refiner, planar_world, sphere_channel_refiner,
+    sphere_refiner, sphere_world,
+};
 use crate::view::{Aabb, PlanarWorld, SphereWorld, View};
 
 /// A world mapping: ids and integer samples to metres.
@@ -86,6 +90,25 @@ pub trait Domain: Refiner + Sized {
         meta: &Metadata,
         spacing_m: Option<f64>,
     ) -> Result<(Self, Self::World), SessionError>;
+
+    /// The refiner of channel `index` of a repository of this domain, whatever its
+    /// attribute: what a colour layer decodes each of its channels with.
+    fn channel_from_metadata(
+        name: &str,
+        meta: &Metadata,
+        index: usize,
+    ) -> Result<Self, SessionError>;
+
+    /// The refiner extended by `extra` procedural levels (see
+    /// [`quincunx_codec::incremental::Procedural`]).
+    fn with_procedural_levels(self, extra: usize, detail: Procedural) -> Result<Self, RefineError>;
+
+    /// The exponent `m` of the id space (planar side, or a planet's cube half side, `2^m`).
+    fn id_exponent(&self) -> u32;
+
+    /// The same diamond in an id space `2^shift` times finer (coarser for `shift < 0`);
+    /// `None` when it is not a diamond there.
+    fn scale_id(id: Self::Id, shift: i32) -> Option<Self::Id>;
 
     /// A conservative world box of a diamond whose surface lies within `z` (metres, low
     /// and high), and its grid spacing (metres between neighbouring grid vertices).
@@ -163,6 +186,26 @@ fn overview_view(eye: DVec3, target: DVec3, up: DVec3) -> View {
     }
 }
 
+/// `c * 2^shift`, exactly (`None` on overflow or a remainder).
+fn scale_coordinate(c: i64, shift: i32) -> Option<i64> {
+    if shift >= 0 {
+        c.checked_mul(1i64.checked_shl(shift as u32)?)
+    } else {
+        let d = 1i64.checked_shl(shift.unsigned_abs())?;
+        (c % d == 0).then_some(c / d)
+    }
+}
+
+/// The position of grid vertex `(i, j)` of a planet diamond in `1/N` sample units: exact
+/// at every level, procedural ones too (whose samples fall between the repository's).
+fn sphere_vertex_fine(r: &SphereRefiner, id: SphereId, i: usize, j: usize) -> Option<[i64; 3]> {
+    let n = r.n();
+    let t = n.trailing_zeros();
+    let fine = SphereDomain::new(r.domain().m() + t).ok()?;
+    let scaled = SphereRefiner::scale_id(id, t as i32)?;
+    fine.vertex_position(scaled, n, i, j).ok()
+}
+
 /// Probe coordinates along one chart axis of `extent`: irrational offsets keep them off
 /// every diamond edge.
 fn probe_axis(extent: f64, steps: usize, offset: f64) -> impl Iterator<Item = f64> {
@@ -179,6 +222,27 @@ impl Domain for PlanarRefiner {
         spacing_m: Option<f64>,
     ) -> Result<(Self, PlanarWorld), SessionError> {
         Ok((planar_refiner(name, meta)?, planar_world(meta, spacing_m)))
+    }
+
+    fn channel_from_metadata(
+        name: &str,
+        meta: &Metadata,
+        index: usize,
+    ) -> Result<Self, SessionError> {
+        planar_channel_refiner(name, meta, index)
+    }
+
+    fn with_procedural_levels(self, extra: usize, detail: Procedural) -> Result<Self, RefineError> {
+        PlanarRefiner::with_procedural_levels(self, extra, detail)
+    }
+
+    fn id_exponent(&self) -> u32 {
+        self.domain().m()
+    }
+
+    fn scale_id(id: PlanarId, shift: i32) -> Option<PlanarId> {
+        let [x, y] = [id.x, id.y].map(|c| scale_coordinate(c, shift));
+        Some(PlanarId::new(x?, y?))
     }
 
     fn footprint(
@@ -380,6 +444,27 @@ impl Domain for SphereRefiner {
         Ok((refiner, world))
     }
 
+    fn channel_from_metadata(
+        name: &str,
+        meta: &Metadata,
+        index: usize,
+    ) -> Result<Self, SessionError> {
+        sphere_channel_refiner(name, meta, index)
+    }
+
+    fn with_procedural_levels(self, extra: usize, detail: Procedural) -> Result<Self, RefineError> {
+        SphereRefiner::with_procedural_levels(self, extra, detail)
+    }
+
+    fn id_exponent(&self) -> u32 {
+        self.domain().m()
+    }
+
+    fn scale_id(id: SphereId, shift: i32) -> Option<SphereId> {
+        let [x, y, z] = id.c.map(|c| scale_coordinate(c, shift));
+        Some(SphereId::new([x?, y?, z?]))
+    }
+
     fn footprint(
         &self,
         world: &SphereWorld,
@@ -423,7 +508,8 @@ impl Domain for SphereRefiner {
         j: usize,
         v: i32,
     ) -> Option<DVec3> {
-        let p = self.domain().vertex_position(id, self.n(), i, j).ok()?;
+        // Directions do not depend on the unit.
+        let p = sphere_vertex_fine(self, id, i, j)?;
         Some(world.point(p, v))
     }
 
@@ -434,7 +520,7 @@ impl Domain for SphereRefiner {
         i: usize,
         j: usize,
     ) -> Option<[i64; 3]> {
-        self.domain().vertex_position(id, self.n(), i, j).ok()
+        sphere_vertex_fine(self, id, i, j)
     }
 
     fn half_triangle(&self, c: &[[i64; 3]; 4], half: Half) -> Option<(u8, [[f64; 2]; 3])> {

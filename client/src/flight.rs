@@ -579,10 +579,11 @@ pub fn fly<R: Domain>(
             };
             if opts.check_every > 0 && frame_no.is_multiple_of(opts.check_every) {
                 let check = session.dag().check_cut();
-                rec.cracks = check.cracks;
+                // Height and colour cracks alike.
+                rec.cracks = check.cracks + check.colour_cracks;
                 rec.coverage_errors = check.uncovered + check.overlaps;
                 report.frames_checked += 1;
-                report.cracks += check.cracks;
+                report.cracks += rec.cracks;
                 report.coverage_errors += rec.coverage_errors;
             }
             if frame_no.is_multiple_of(16) {

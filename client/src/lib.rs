@@ -24,9 +24,12 @@
 //!
 //! - [`domain`]: what differs between planar repositories and planets (world boxes,
 //!   exact vertex positions, coverage probes); everything above is generic over it.
+//! - [`colour`]: an optional colour repository matched at run time to the elevation one
+//!   (different depths and diamond sizes; procedural detail below the shallower layer).
 //!
-//! Not yet: colour layers and rendering.
+//! Not yet: rendering (a later crate reads [`session::Snapshot`]).
 
+pub mod colour;
 pub mod dag;
 pub mod domain;
 pub mod fetch;

@@ -14,8 +14,9 @@
 //! The frame stops when the budget is spent. The DAG stays consistent after every single
 //! operation, so the cut is crack-free whenever the frame ends.
 //!
-//! **Error** is the mean projected edge length of a diamond's grid in pixels, measured at
-//! the nearest point of its bounding box: `max(edge, texel)` once a colour layer exists.
+//! **Error** is `max(edge, texel)`: the mean projected edge length of a diamond's grid and,
+//! with a colour layer, the mean projected size of its texels, in pixels, measured at the
+//! nearest point of its bounding box.
 //! The box is the diamond's footprint times its height range, widened by the side
 //! information bound its parent's blob carries. That makes it conservative for culling.
 //! The same bound skips refinement of flat regions: when refining could move the surface
@@ -31,18 +32,22 @@ use glam::DVec3;
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::incremental::Details;
 
+use crate::colour::ColourDetails;
 use crate::dag::{Dag, DagError, IdMap};
 use crate::domain::{Domain, World};
 use crate::view::{Frustum, View};
 
-/// Whether a diamond's details are here.
+/// Whether a diamond's data (decoded details of one layer) is here.
 #[derive(Clone, Debug)]
-pub enum Availability<I = PlanarId> {
+pub enum Arrival<T> {
     /// Arrived: decoded details, or `None` for a diamond without a blob (zero details).
-    Ready(Option<Arc<Details<I>>>),
+    Ready(Option<Arc<T>>),
     /// Requested (or queued) and not here yet.
     Pending,
 }
+
+/// Whether a diamond's elevation details are here.
+pub type Availability<I = PlanarId> = Arrival<Details<I>>;
 
 /// Where details come from: the data access layer (network thread, caches) or, in tests
 /// and local apps, a repository in memory.
@@ -57,6 +62,19 @@ pub trait DetailSource<I = PlanarId> {
     /// the answer.
     fn want(&mut self, id: I, priority: f64) {
         let _ = self.details(id, priority);
+    }
+
+    /// The colour details of colour diamond `colour` (refining elevation diamond `id`),
+    /// like [`DetailSource::details`]. Asked only with a colour layer, for diamonds the
+    /// colour repository codes. The default has none (zero details).
+    fn colour(&mut self, id: I, colour: I, priority: f64) -> Arrival<ColourDetails<I>> {
+        let _ = (id, colour, priority);
+        Arrival::Ready(None)
+    }
+
+    /// Records that colour diamond `colour` is wanted (see [`DetailSource::want`]).
+    fn want_colour(&mut self, id: I, colour: I, priority: f64) {
+        let _ = self.colour(id, colour, priority);
     }
 }
 
@@ -197,17 +215,25 @@ impl<W: World> Projector<'_, W> {
         let bound_m = node.bound_m(w);
         let z = node.height_bounds_m(w);
         let (bbox, edge_m) = dag.refiner().footprint(w, id, &node.corners, z);
+        // max(edge, texel): texels are edges divided by the texels per edge.
+        let error_m = if node.colour.is_some() {
+            edge_m * (1.0 / dag.texels_per_edge()).max(1.0)
+        } else {
+            edge_m
+        };
         let distance_m = bbox.distance(self.view.eye).max(View::NEAR_M);
         let px_per_m = self.px_at_1m / distance_m;
-        let flat = node.class.is_some() && bound_m * px_per_m < self.flat_px;
+        // Flatness speaks for the heights only: with colour, the texels decide.
+        let flat =
+            node.class.is_some() && node.colour.is_none() && bound_m * px_per_m < self.flat_px;
         // Refining needs error > tolerance and (with a known class) no flatness: both
         // only grow as the camera comes closer.
-        let mut trigger_m = edge_m * self.px_at_1m / self.view.tolerance_px;
-        if node.class.is_some() {
+        let mut trigger_m = error_m * self.px_at_1m / self.view.tolerance_px;
+        if node.class.is_some() && node.colour.is_none() {
             trigger_m = trigger_m.min(bound_m * self.px_at_1m / self.flat_px);
         }
         Appearance {
-            error_px: edge_m * px_per_m,
+            error_px: error_m * px_per_m,
             visible: self.frustum.intersects(&bbox)
                 && !dag
                     .refiner()
@@ -407,10 +433,10 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 stats.out_of_time = true;
                 stats.max_error_px = stats.max_error_px.max(error);
                 // What there was no time for is still wanted: keep its data coming.
-                source.want(id, error);
+                want(dag, source, id, error);
                 for Key(error, id) in splits.drain() {
                     if dag.node(id).is_some_and(|n| n.refined.is_none()) {
-                        source.want(id, error);
+                        want(dag, source, id, error);
                     }
                 }
                 break;
@@ -604,22 +630,40 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             return Ok(Outcome::Impossible);
         }
         if let Some(max) = self.config.max_dag_bytes {
-            // A refinement adds a lattice and up to four children's nodes.
-            let n = dag.refiner().n();
-            if dag.memory_bytes() + Dag::<R>::lattice_bytes(n) + 4 * Dag::<R>::node_bytes(n) > max {
+            if dag.memory_bytes() + dag.refinement_bytes() > max {
                 stats.over_budget = true;
                 stats.max_error_px = stats.max_error_px.max(priority);
                 return Ok(Outcome::Impossible);
             }
         }
-        match source.details(id, priority) {
-            Availability::Ready(details) => {
-                dag.refine(id, details.as_deref())?;
+        // Both layers are asked at once, so both requests go out in the same frame.
+        let details = if dag.refiner().is_coded(id) {
+            source.details(id, priority)
+        } else {
+            Arrival::Ready(None)
+        };
+        let colour = match dag.colour_blob_id(id) {
+            Some(c) => source.colour(id, c, priority),
+            None => Arrival::Ready(None),
+        };
+        match (details, colour) {
+            (Arrival::Ready(details), Arrival::Ready(colour)) => {
+                dag.refine_layers(id, details.as_deref(), colour.as_deref())?;
                 stats.refined += 1;
                 newly.push(id);
                 Ok(Outcome::Done)
             }
-            Availability::Pending => Ok(Outcome::Pending),
+            _ => Ok(Outcome::Pending),
         }
+    }
+}
+
+/// Records that `id`'s data is wanted in every layer that fetches it.
+fn want<R: Domain>(dag: &Dag<R>, source: &mut dyn DetailSource<R::Id>, id: R::Id, priority: f64) {
+    if dag.refiner().is_coded(id) {
+        source.want(id, priority);
+    }
+    if let Some(c) = dag.colour_blob_id(id) {
+        source.want_colour(id, c, priority);
     }
 }

@@ -53,9 +53,10 @@ use glam::DVec3;
 use quincunx_codec::coverage::Coverage;
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::entropy::CodecModel;
-use quincunx_codec::incremental::{Details, PlanarRefiner, Refiner, SphereRefiner};
+use quincunx_codec::incremental::{Details, PlanarRefiner, Procedural, Refiner, SphereRefiner};
 use quincunx_store::{ChannelCoding, Metadata};
 
+use crate::colour::{ColourDetails, ColourLayer};
 use crate::dag::{Dag, DagError, Half};
 use crate::domain::Domain;
 use crate::fetch::{
@@ -63,7 +64,7 @@ use crate::fetch::{
     lock,
 };
 use crate::refine::{
-    Availability, DetailSource, FrameStats, RefineConfig, Refinement, SystemClock,
+    Arrival, Availability, DetailSource, FrameStats, RefineConfig, Refinement, SystemClock,
 };
 use crate::view::{Aabb, PlanarWorld, SphereWorld, View};
 
@@ -132,6 +133,9 @@ pub struct SessionConfig {
     pub spacing_m: Option<f64>,
     /// Timeout of the metadata request and of each blob request.
     pub timeout: Duration,
+    /// With a colour layer, the details made up below the shallower layer's finest level
+    /// so the DAG refines to the deeper one's (zero: smooth interpolation).
+    pub procedural: Procedural,
 }
 
 impl Default for SessionConfig {
@@ -150,6 +154,7 @@ impl Default for SessionConfig {
             lookahead_levels: 2,
             spacing_m: None,
             timeout: Duration::from_secs(10),
+            procedural: Procedural::Zero,
         }
     }
 }
@@ -186,6 +191,9 @@ pub struct Patch<I = PlanarId> {
     /// Changes whenever the grid or the halves change: a renderer re-uploads a patch
     /// only when `(id, half, generation)` is new to it.
     pub generation: u64,
+    /// With a colour layer: the diamond's `(Nc+1)^2` Y, Co, Cg grids (YCoCg-R integers;
+    /// [`ColourLayer::rgb`] turns a vertex into sRGB), laid out on the same frame.
+    pub colour: Option<Arc<Vec<Vec<i32>>>>,
 }
 
 /// What a renderer reads after a frame: the cut as patches, with the mapping to metres.
@@ -199,6 +207,152 @@ pub struct Snapshot<I = PlanarId, W = PlanarWorld> {
     pub world: W,
     /// The cut, in a stable order.
     pub patches: Vec<Patch<I>>,
+    /// Colour diamond size `Nc` (0 without a colour layer).
+    pub colour_n: usize,
+}
+
+/// One layer's data access: its repository, network thread and what it delivered.
+struct Layer<T> {
+    name: String,
+    remote: Remote,
+    meta: Metadata,
+    fetcher: Fetcher<T>,
+    /// Body bytes of each fetched blob (written on the network thread).
+    blob_bytes: Arc<Mutex<HashMap<Key, u32>>>,
+    /// Delivered since the last frame.
+    arrived: HashMap<Key, Option<Arc<T>>>,
+    /// Diamonds refined with a blob at least once (for waste accounting).
+    used: HashSet<Key>,
+    /// Diamonds known to have no blob without asking: a diamond without a blob has no
+    /// descendant with one (docs/blob-format.md), so the children of a leaf are leaves;
+    /// and a blob flags its owned children that have none.
+    inferred_leaves: HashSet<Key>,
+    /// Wanted this frame, with priorities.
+    wants: HashMap<Key, f64>,
+}
+
+impl<T: Weigh + Send + Sync + 'static> Layer<T> {
+    /// Starts the network thread of repository `remote` whose blobs `decode` decodes.
+    fn spawn(
+        remote: Remote,
+        meta: Metadata,
+        config: &SessionConfig,
+        decode: impl Fn(Key, &[u8]) -> Result<T, String> + Send + Sync + 'static,
+    ) -> Result<Layer<T>, SessionError> {
+        let blob_bytes: Arc<Mutex<HashMap<Key, u32>>> = Arc::default();
+        let decode: Decode<T> = {
+            let sizes = Arc::clone(&blob_bytes);
+            Arc::new(move |key: Key, bytes| {
+                lock(&sizes).insert(key, u32::try_from(bytes.len()).unwrap_or(u32::MAX));
+                decode(key, &bytes)
+            })
+        };
+        let mut fetch = FetchConfig::new(remote.clone());
+        fetch.transport = config.transport;
+        fetch.connections = config.connections.max(1);
+        fetch.pipeline_depth = config.pipeline_depth.max(1);
+        fetch.max_in_flight = config.max_in_flight.max(1);
+        fetch.bandwidth_cap_bit_s = config.bandwidth_cap_bit_s;
+        fetch.cache_bytes = config.cache_bytes;
+        fetch.request_timeout = config.timeout;
+        let fetcher = Fetcher::spawn(fetch, decode)?;
+        Ok(Layer {
+            name: remote.name.clone(),
+            remote,
+            meta,
+            fetcher,
+            blob_bytes,
+            arrived: HashMap::new(),
+            used: HashSet::new(),
+            inferred_leaves: HashSet::new(),
+            wants: HashMap::new(),
+        })
+    }
+
+    /// Takes what the network thread delivered; returns the failures.
+    fn poll(&mut self) -> usize {
+        let mut failed = 0;
+        for (key, fetched) in self.fetcher.poll() {
+            match fetched {
+                Fetched::Data(d) => {
+                    self.arrived.insert(key, Some(d));
+                }
+                Fetched::Leaf => {
+                    self.arrived.insert(key, None);
+                }
+                Fetched::Failed(e) => {
+                    tracing::debug!(repo = %self.name, ?key, error = %e, "fetch failed");
+                    failed += 1;
+                }
+            }
+        }
+        failed
+    }
+
+    fn is_leaf(&self, key: Key) -> bool {
+        self.inferred_leaves.contains(&key) || self.fetcher.is_leaf(key)
+    }
+
+    /// The data of `key` if it is here (`Some(None)`: a leaf, zero details); `parents`
+    /// are its parents' keys (a leaf's children are leaves).
+    fn lookup(
+        &mut self,
+        key: Key,
+        parents: impl IntoIterator<Item = Key>,
+    ) -> Option<Option<Arc<T>>> {
+        if let Some(d) = self.arrived.get(&key) {
+            return Some(d.clone());
+        }
+        if self.is_leaf(key) {
+            return Some(None);
+        }
+        if let Some(d) = self.fetcher.cached(key) {
+            return Some(Some(d));
+        }
+        if parents.into_iter().any(|p| self.is_leaf(p)) {
+            self.inferred_leaves.insert(key);
+            return Some(None);
+        }
+        None
+    }
+
+    /// The data of `key` for refinement: marks it used and learns its empty children
+    /// (`empty`), or records it as wanted.
+    fn take(
+        &mut self,
+        key: Key,
+        priority: f64,
+        parents: impl IntoIterator<Item = Key>,
+        empty: impl FnOnce(&T) -> Vec<Key>,
+    ) -> Arrival<T> {
+        match self.lookup(key, parents) {
+            Some(d) => {
+                if let Some(data) = &d {
+                    self.used.insert(key);
+                    self.inferred_leaves.extend(empty(data));
+                }
+                Arrival::Ready(d)
+            }
+            None => {
+                self.record(key, priority);
+                Arrival::Pending
+            }
+        }
+    }
+
+    fn record(&mut self, key: Key, priority: f64) {
+        let p = self.wants.entry(key).or_insert(priority);
+        *p = p.max(priority);
+    }
+
+    /// Body bytes of the distinct blobs refinement used.
+    fn bytes_used(&self) -> u64 {
+        let sizes = lock(&self.blob_bytes);
+        self.used
+            .iter()
+            .map(|k| u64::from(sizes.get(k).copied().unwrap_or(0)))
+            .sum()
+    }
 }
 
 impl<I: Send + Sync + 'static> Weigh for Details<I> {
@@ -229,36 +383,39 @@ impl AnySession {
         name: &str,
         config: SessionConfig,
     ) -> Result<AnySession, SessionError> {
+        AnySession::open_with_colour(base_url, name, None, config)
+    }
+
+    /// [`AnySession::open`] with an optional colour repository matched to it.
+    pub fn open_with_colour(
+        base_url: &str,
+        name: &str,
+        colour: Option<&str>,
+        config: SessionConfig,
+    ) -> Result<AnySession, SessionError> {
         let (remote, meta) = Remote::open(base_url, name, config.timeout)?;
+        let colour = colour
+            .map(|c| Remote::open(base_url, c, config.timeout))
+            .transpose()?;
         Ok(if meta.domain == SphereRefiner::KIND {
-            AnySession::Planet(Session::with_metadata(remote, meta, config)?)
+            AnySession::Planet(Session::with_layers(remote, meta, colour, config)?)
         } else {
-            AnySession::Planar(Session::with_metadata(remote, meta, config)?)
+            AnySession::Planar(Session::with_layers(remote, meta, colour, config)?)
         })
     }
 }
 
 /// An elevation repository streamed from a server (planar unless `R` says otherwise).
 pub struct Session<R: Domain = PlanarRefiner> {
-    name: String,
-    remote: Remote,
-    meta: Metadata,
     world: R::World,
     refiner: Arc<R>,
     dag: Dag<R>,
     refinement: Refinement<R::Id>,
-    fetcher: Fetcher<Details<R::Id>>,
     config: SessionConfig,
-    /// Body bytes of each fetched blob (written on the network thread).
-    blob_bytes: Arc<Mutex<HashMap<Key, u32>>>,
-    /// Delivered since the last frame.
-    arrived: HashMap<Key, Option<Arc<Details<R::Id>>>>,
-    /// Diamonds refined with a blob at least once (for waste accounting).
-    used: HashSet<Key>,
-    /// Diamonds known to have no blob without asking: a diamond without a blob has no
-    /// descendant with one (docs/blob-format.md), so the children of a leaf are leaves;
-    /// and a blob flags its owned children that have none.
-    inferred_leaves: HashSet<Key>,
+    /// The elevation repository's data access.
+    elevation: Layer<Details<R::Id>>,
+    /// The colour layer's (matched to the elevation) and its data access.
+    colour: Option<(Arc<ColourLayer<R>>, Layer<ColourDetails<R::Id>>)>,
     /// Camera motion, for prediction.
     camera: CameraTrack,
     last_prefetch: Option<Duration>,
@@ -285,42 +442,75 @@ impl<R: Domain> Session<R> {
         meta: Metadata,
         config: SessionConfig,
     ) -> Result<Session<R>, SessionError> {
+        Session::with_layers(remote, meta, None, config)
+    }
+
+    /// Opens elevation repository `name` with colour repository `colour` (both served at
+    /// `base_url`), matched at run time ([`ColourLayer::match_to`]).
+    pub fn open_with_colour(
+        base_url: &str,
+        name: &str,
+        colour: &str,
+        config: SessionConfig,
+    ) -> Result<Session<R>, SessionError> {
+        let (remote, meta) = Remote::open(base_url, name, config.timeout)?;
+        let colour = Remote::open(base_url, colour, config.timeout)?;
+        Session::with_layers(remote, meta, Some(colour), config)
+    }
+
+    /// Starts a session on an elevation repository and, optionally, a colour repository
+    /// whose metadata are already known.
+    pub fn with_layers(
+        remote: Remote,
+        meta: Metadata,
+        colour: Option<(Remote, Metadata)>,
+        config: SessionConfig,
+    ) -> Result<Session<R>, SessionError> {
         let name = remote.name.clone();
         let (refiner, world) = R::from_metadata(&name, &meta, config.spacing_m)?;
-        let refiner = Arc::new(refiner);
-        let blob_bytes: Arc<Mutex<HashMap<Key, u32>>> = Arc::default();
-        let decode: Decode<Details<R::Id>> = {
-            let refiner = Arc::clone(&refiner);
-            let sizes = Arc::clone(&blob_bytes);
-            Arc::new(move |key: Key, bytes| {
-                let id = R::id_of(key);
-                lock(&sizes).insert(key, u32::try_from(bytes.len()).unwrap_or(u32::MAX));
-                refiner.decode(id, &bytes).map_err(|e| e.to_string())
-            })
+        let (refiner, colour) = match colour {
+            Some((colour_remote, colour_meta)) => {
+                let (refiner, layer) = ColourLayer::match_to(
+                    refiner,
+                    &meta,
+                    &colour_remote.name,
+                    &colour_meta,
+                    config.procedural,
+                )?;
+                (refiner, Some((Arc::new(layer), colour_remote, colour_meta)))
+            }
+            None => (refiner, None),
         };
-        let mut fetch = FetchConfig::new(remote.clone());
-        fetch.transport = config.transport;
-        fetch.connections = config.connections.max(1);
-        fetch.pipeline_depth = config.pipeline_depth.max(1);
-        fetch.max_in_flight = config.max_in_flight.max(1);
-        fetch.bandwidth_cap_bit_s = config.bandwidth_cap_bit_s;
-        fetch.cache_bytes = config.cache_bytes;
-        fetch.request_timeout = config.timeout;
-        let fetcher = Fetcher::spawn(fetch, decode)?;
+        let refiner = Arc::new(refiner);
+        let elevation = {
+            let refiner = Arc::clone(&refiner);
+            Layer::spawn(remote, meta, &config, move |key, bytes| {
+                refiner
+                    .decode(R::id_of(key), bytes)
+                    .map_err(|e| e.to_string())
+            })?
+        };
+        let colour = match colour {
+            Some((layer, remote, meta)) => {
+                let decoder = Arc::clone(&layer);
+                let stream = Layer::spawn(remote, meta, &config, move |key, bytes| {
+                    decoder.decode(R::id_of(key), bytes)
+                })?;
+                Some((layer, stream))
+            }
+            None => None,
+        };
         Ok(Session {
-            name,
-            remote,
-            meta,
             world,
-            dag: Dag::new(Arc::clone(&refiner)),
+            dag: Dag::with_colour(
+                Arc::clone(&refiner),
+                colour.as_ref().map(|(layer, _)| Arc::clone(layer)),
+            ),
             refiner,
             refinement: Refinement::with_config(config.refine),
-            fetcher,
             config,
-            blob_bytes,
-            arrived: HashMap::new(),
-            used: HashSet::new(),
-            inferred_leaves: HashSet::new(),
+            elevation,
+            colour,
             camera: CameraTrack::default(),
             last_prefetch: None,
             failures: 0,
@@ -335,17 +525,24 @@ impl<R: Domain> Session<R> {
 
     /// Repository name.
     pub fn name(&self) -> &str {
-        &self.name
+        &self.elevation.name
+    }
+
+    /// The colour repository's name and metadata, with a colour layer.
+    pub fn colour(&self) -> Option<(&str, &Metadata)> {
+        self.colour
+            .as_ref()
+            .map(|(_, l)| (l.name.as_str(), &l.meta))
     }
 
     /// Where the blobs come from.
     pub fn remote(&self) -> &Remote {
-        &self.remote
+        &self.elevation.remote
     }
 
     /// The repository's metadata.
     pub fn metadata(&self) -> &Metadata {
-        &self.meta
+        &self.elevation.meta
     }
 
     /// How ids and integer samples map to world metres.
@@ -372,6 +569,7 @@ impl<R: Domain> Session<R> {
                     corners: node.corners,
                     grid: Arc::clone(&node.grid),
                     generation: node.generation,
+                    colour: node.colour.as_ref().map(|c| Arc::clone(&c.grids)),
                 })
             })
             .collect();
@@ -379,6 +577,7 @@ impl<R: Domain> Session<R> {
             n: self.refiner.n(),
             world: self.world,
             patches,
+            colour_n: self.dag.colour().map_or(0, ColourLayer::n),
         }
     }
 
@@ -452,9 +651,13 @@ impl<R: Domain> Session<R> {
         lowest.is_finite().then_some(lowest)
     }
 
-    /// The network thread's counters.
+    /// The network threads' counters (elevation and colour added up).
     pub fn fetch_stats(&self) -> FetchStats {
-        self.fetcher.stats()
+        let mut stats = self.elevation.fetcher.stats();
+        if let Some((_, colour)) = &self.colour {
+            stats.add(&colour.fetcher.stats());
+        }
+        stats
     }
 
     /// Fetch failures reported so far (each is asked for again while wanted).
@@ -465,11 +668,7 @@ impl<R: Domain> Session<R> {
     /// Body bytes of the distinct blobs that refinement has used so far (each counted
     /// once, however often it was refined): the data the views needed.
     pub fn bytes_used(&self) -> u64 {
-        let sizes = lock(&self.blob_bytes);
-        self.used
-            .iter()
-            .map(|k| u64::from(sizes.get(k).copied().unwrap_or(0)))
-            .sum()
+        self.elevation.bytes_used() + self.colour.as_ref().map_or(0, |(_, c)| c.bytes_used())
     }
 
     /// Runs one frame for `view` at time `now` (any monotonic origin, used for camera
@@ -482,21 +681,8 @@ impl<R: Domain> Session<R> {
     ) -> Result<SessionFrame, SessionError> {
         let started = std::time::Instant::now();
         let mut frame = SessionFrame::default();
-        for (key, fetched) in self.fetcher.poll() {
-            match fetched {
-                Fetched::Data(d) => {
-                    self.arrived.insert(key, Some(d));
-                }
-                Fetched::Leaf => {
-                    self.arrived.insert(key, None);
-                }
-                Fetched::Failed(e) => {
-                    tracing::debug!(?key, error = %e, "fetch failed");
-                    frame.failed += 1;
-                    self.failures += 1;
-                }
-            }
-        }
+        frame.failed = self.elevation.poll() + self.colour.as_mut().map_or(0, |(_, c)| c.poll());
+        self.failures += frame.failed as u64;
         if !self.lowest_known
             && let Some(lowest) = self.lowest_height()
         {
@@ -507,23 +693,16 @@ impl<R: Domain> Session<R> {
         }
         let clock = SystemClock(started);
         let mut source = FetchSource {
-            fetcher: &self.fetcher,
             refiner: &*self.refiner,
-            arrived: &mut self.arrived,
-            used: &mut self.used,
-            inferred_leaves: &mut self.inferred_leaves,
-            wants: HashMap::new(),
+            elevation: &mut self.elevation,
+            colour: self.colour.as_mut().map(|(l, c)| (&**l, c)),
         };
         frame.refine =
             self.refinement
                 .update(&mut self.dag, view, self.world, &mut source, &clock, budget)?;
-        let wants: Vec<(Key, f32)> = source
-            .wants
-            .into_iter()
-            .map(|(k, p)| (k, p as f32))
-            .collect();
+        let wants: Vec<(Key, f32)> = take_wants(&mut self.elevation);
         frame.wanted = wants.len();
-        self.arrived.clear();
+        self.elevation.arrived.clear();
 
         let mut prefetch = self.lookahead(&wants, view.tolerance_px);
         prefetch.extend(self.prefetch(view, now, &wants));
@@ -531,7 +710,23 @@ impl<R: Domain> Session<R> {
         prefetch.dedup_by_key(|(k, _)| *k);
         prefetch.truncate(self.config.prefetch_max);
         frame.prefetched = prefetch.len();
-        self.fetcher.submit_with_prefetch(wants, prefetch);
+        if let Some((layer, colour)) = &mut self.colour {
+            let wants = take_wants(colour);
+            frame.wanted += wants.len();
+            colour.arrived.clear();
+            // The colour of what elevation prefetches (same diamonds).
+            let ahead: Vec<(Key, f32)> = prefetch
+                .iter()
+                .filter_map(|&(k, p)| {
+                    let c = layer.colour_id(R::id_of(k))?;
+                    let key = R::key_of(c);
+                    (layer.is_coded(c) && !colour.is_leaf(key)).then_some((key, p))
+                })
+                .collect();
+            frame.prefetched += ahead.len();
+            colour.fetcher.submit_with_prefetch(wants, ahead);
+        }
+        self.elevation.fetcher.submit_with_prefetch(wants, prefetch);
         frame.elapsed = started.elapsed();
         Ok(frame)
     }
@@ -559,9 +754,9 @@ impl<R: Domain> Session<R> {
                 }
                 for &c in self.dag.children(id).iter() {
                     let key = R::key_of(c);
-                    if !self.refiner.is_refinable(c)
+                    if !self.refiner.is_coded(c)
                         || wanted.contains(&key)
-                        || self.inferred_leaves.contains(&key)
+                        || self.elevation.inferred_leaves.contains(&key)
                     {
                         continue;
                     }
@@ -601,6 +796,7 @@ impl<R: Domain> Session<R> {
             .refinement
             .wanted_splits(&self.dag, &predicted, self.world)
             .into_iter()
+            .filter(|(id, _)| self.refiner.is_coded(*id))
             .map(|(id, e)| (R::key_of(id), e as f32))
             .filter(|(k, _)| !wanted.contains(k))
             .collect();
@@ -682,69 +878,65 @@ impl CameraTrack {
     }
 }
 
-/// Details for the refinement from what arrived, the fetcher's caches, or the network.
-struct FetchSource<'a, R: Domain> {
-    fetcher: &'a Fetcher<Details<R::Id>>,
-    refiner: &'a R,
-    arrived: &'a mut HashMap<Key, Option<Arc<Details<R::Id>>>>,
-    used: &'a mut HashSet<Key>,
-    inferred_leaves: &'a mut HashSet<Key>,
-    wants: HashMap<Key, f64>,
+/// A layer's wants, for submitting.
+fn take_wants<T>(layer: &mut Layer<T>) -> Vec<(Key, f32)> {
+    layer.wants.drain().map(|(k, p)| (k, p as f32)).collect()
 }
 
-impl<R: Domain> FetchSource<'_, R> {
-    fn is_leaf(&self, key: Key) -> bool {
-        self.inferred_leaves.contains(&key) || self.fetcher.is_leaf(key)
-    }
-
-    fn lookup(&mut self, id: R::Id) -> Option<Option<Arc<Details<R::Id>>>> {
-        let key = R::key_of(id);
-        if let Some(d) = self.arrived.get(&key) {
-            return Some(d.clone());
-        }
-        if self.is_leaf(key) {
-            return Some(None);
-        }
-        if let Some(d) = self.fetcher.cached(key) {
-            return Some(Some(d));
-        }
-        let parents = self.refiner.parents(id);
-        if parents.iter().any(|&p| self.is_leaf(R::key_of(p))) {
-            self.inferred_leaves.insert(key);
-            return Some(None);
-        }
-        None
-    }
-
-    fn record(&mut self, key: Key, priority: f64) {
-        let p = self.wants.entry(key).or_insert(priority);
-        *p = p.max(priority);
-    }
+/// Details for the refinement from what arrived, the fetchers' caches, or the network.
+struct FetchSource<'a, R: Domain> {
+    refiner: &'a R,
+    elevation: &'a mut Layer<Details<R::Id>>,
+    colour: Option<(&'a ColourLayer<R>, &'a mut Layer<ColourDetails<R::Id>>)>,
 }
 
 impl<R: Domain> DetailSource<R::Id> for FetchSource<'_, R> {
     fn details(&mut self, id: R::Id, priority: f64) -> Availability<R::Id> {
-        let key = R::key_of(id);
-        match self.lookup(id) {
-            Some(d) => {
-                if let Some(details) = &d {
-                    self.used.insert(key);
-                    // Its blob says which of its children have none.
-                    self.inferred_leaves
-                        .extend(details.empty_children.iter().map(|&c| R::key_of(c)));
-                }
-                Availability::Ready(d)
-            }
-            None => {
-                self.record(key, priority);
-                Availability::Pending
-            }
-        }
+        let parents = self.refiner.parents(id).into_iter().map(R::key_of);
+        self.elevation.take(R::key_of(id), priority, parents, |d| {
+            d.empty_children.iter().map(|&c| R::key_of(c)).collect()
+        })
     }
 
     fn want(&mut self, id: R::Id, priority: f64) {
-        if self.lookup(id).is_none() {
-            self.record(R::key_of(id), priority);
+        let parents = self.refiner.parents(id).into_iter().map(R::key_of);
+        let key = R::key_of(id);
+        if self.elevation.lookup(key, parents).is_none() {
+            self.elevation.record(key, priority);
+        }
+    }
+
+    fn colour(
+        &mut self,
+        _id: R::Id,
+        colour: R::Id,
+        priority: f64,
+    ) -> Arrival<ColourDetails<R::Id>> {
+        let Some((layer, stream)) = &mut self.colour else {
+            return Arrival::Ready(None);
+        };
+        let channel = &layer.channels()[0];
+        let parents = channel.parents(colour).into_iter().map(R::key_of);
+        let children = channel.info(colour).map(|i| i.children).unwrap_or_default();
+        stream.take(R::key_of(colour), priority, parents, |d| {
+            d.empty_children(&children)
+                .into_iter()
+                .map(R::key_of)
+                .collect()
+        })
+    }
+
+    fn want_colour(&mut self, _id: R::Id, colour: R::Id, priority: f64) {
+        let Some((layer, stream)) = &mut self.colour else {
+            return;
+        };
+        let parents = layer.channels()[0]
+            .parents(colour)
+            .into_iter()
+            .map(R::key_of);
+        let key = R::key_of(colour);
+        if stream.lookup(key, parents).is_none() {
+            stream.record(key, priority);
         }
     }
 }
@@ -756,12 +948,28 @@ fn metadata_error(name: &str, reason: impl Into<String>) -> SessionError {
     }
 }
 
-/// The coding of a single-channel repository of `domain`, its entropy model and
+/// Errors unless the repository has exactly one channel (elevation).
+fn single_channel(name: &str, meta: &Metadata) -> Result<(), SessionError> {
+    if meta.channels.len() > 1 {
+        return Err(SessionError::Unsupported {
+            name: name.to_string(),
+            reason: format!(
+                "{} channels ({}): open it as a colour layer of an elevation session",
+                meta.channels.len(),
+                meta.attribute.kind
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// The coding of channel `channel` of a repository of `domain`, its entropy model and
 /// coverage, after the checks every session needs.
-fn single_channel<'m>(
+fn channel<'m>(
     name: &str,
     meta: &'m Metadata,
     domain: &str,
+    channel: usize,
 ) -> Result<(&'m ChannelCoding, CodecModel, Option<Coverage>), SessionError> {
     if meta.domain != domain {
         return Err(SessionError::Unsupported {
@@ -780,19 +988,12 @@ fn single_channel<'m>(
     if !meta.complete {
         return Err(metadata_error(name, "the build did not complete"));
     }
-    if meta.channels.is_empty() {
-        return Err(metadata_error(name, "no channels"));
-    }
-    let [coding] = meta.channels.as_slice() else {
-        return Err(SessionError::Unsupported {
-            name: name.to_string(),
-            reason: format!(
-                "{} channels ({}): only single-channel (elevation) repositories stream so far",
-                meta.channels.len(),
-                meta.attribute.kind
-            ),
-        });
-    };
+    let coding = meta.channels.get(channel).ok_or_else(|| {
+        metadata_error(
+            name,
+            format!("no channel {channel} ({} channels)", meta.channels.len()),
+        )
+    })?;
     let model = CodecModel::from_bytes(&coding.model)
         .map_err(|e| metadata_error(name, format!("entropy model: {e}")))?;
     let coverage = meta
@@ -824,7 +1025,17 @@ fn check_levels(name: &str, meta: &Metadata, levels: usize, m: u32) -> Result<()
 
 /// The incremental decoder of a planar single-channel repository from its metadata.
 pub fn planar_refiner(name: &str, meta: &Metadata) -> Result<PlanarRefiner, SessionError> {
-    let (coding, model, coverage) = single_channel(name, meta, "planar")?;
+    single_channel(name, meta)?;
+    planar_channel_refiner(name, meta, 0)
+}
+
+/// The incremental decoder of channel `index` of a planar repository.
+pub fn planar_channel_refiner(
+    name: &str,
+    meta: &Metadata,
+    index: usize,
+) -> Result<PlanarRefiner, SessionError> {
+    let (coding, model, coverage) = channel(name, meta, "planar", index)?;
     let [root] = coding.roots.as_slice() else {
         return Err(metadata_error(
             name,
@@ -847,7 +1058,17 @@ pub fn planar_refiner(name: &str, meta: &Metadata) -> Result<PlanarRefiner, Sess
 
 /// The incremental decoder of a single-channel planet from its metadata.
 pub fn sphere_refiner(name: &str, meta: &Metadata) -> Result<SphereRefiner, SessionError> {
-    let (coding, model, coverage) = single_channel(name, meta, "sphere")?;
+    single_channel(name, meta)?;
+    sphere_channel_refiner(name, meta, 0)
+}
+
+/// The incremental decoder of channel `index` of a planet.
+pub fn sphere_channel_refiner(
+    name: &str,
+    meta: &Metadata,
+    index: usize,
+) -> Result<SphereRefiner, SessionError> {
+    let (coding, model, coverage) = channel(name, meta, "sphere", index)?;
     if coding.roots.len() != 6 {
         return Err(metadata_error(
             name,

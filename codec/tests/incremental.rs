@@ -69,7 +69,7 @@ fn refine_everything(enc: &Encoded) -> HashMap<PlanarId, Refined> {
             // The assembled grid equals the raster state at the diamond's valid vertices.
             for i in 0..=n {
                 for j in 0..=n {
-                    if info.mask.is_some_and(|m| !m.vertex(i, j)) {
+                    if info.mask.as_ref().is_some_and(|m| !m.vertex(i, j)) {
                         continue;
                     }
                     let k = at(domain.vertex_position(id, n, i, j).unwrap()).unwrap();
@@ -84,7 +84,7 @@ fn refine_everything(enc: &Encoded) -> HashMap<PlanarId, Refined> {
             let out = r.refine(id, &grid, blob).unwrap();
             for i in 0..=n {
                 for j in 0..=n {
-                    if info.mask.is_none_or(|m| m.vertex(i, j)) {
+                    if info.mask.as_ref().is_none_or(|m| m.vertex(i, j)) {
                         let k = at(domain.vertex_position(id, n, i, j).unwrap()).unwrap();
                         raster[k] = out.vertices[i * (n + 1) + j];
                     }
@@ -92,7 +92,7 @@ fn refine_everything(enc: &Encoded) -> HashMap<PlanarId, Refined> {
             }
             for i in 0..n {
                 for j in 0..n {
-                    if info.mask.is_none_or(|m| m.cell(i, j)) {
+                    if info.mask.as_ref().is_none_or(|m| m.cell(i, j)) {
                         let k = at(domain.cell_position(id, n, i, j).unwrap()).unwrap();
                         raster[k] = out.cells[i * n + j];
                     }

@@ -11,6 +11,7 @@ use quincunx_client::fetch::http1::Endpoint;
 use quincunx_client::fetch::link::LinkProxy;
 use quincunx_client::flight::{self, BuiltinFlights, Flight, FlightReport, FlyOptions};
 use quincunx_client::session::{AnySession, Session, SessionConfig};
+use quincunx_codec::incremental::Procedural;
 
 /// `quincunx fly` options.
 #[derive(Args, Debug, Clone)]
@@ -21,9 +22,15 @@ pub struct FlyArgs {
     /// Elevation repository name.
     #[arg(long)]
     pub repo: String,
-    /// Colour repository name (not streamed yet: refused with an error).
+    /// Colour repository matched to the elevation (same domain; depths and diamond sizes
+    /// may differ).
     #[arg(long)]
     pub color: Option<String>,
+    /// With `--color`: detail made up below the shallower layer's finest level, as
+    /// zero-centred uniform noise of this amplitude (integer units of that layer; 0:
+    /// zero detail, smooth interpolation).
+    #[arg(long, default_value_t = 0)]
+    pub procedural_noise: i32,
     /// `approach`, `low-flight`, `jump`, or a JSON flight file (see `docs/streaming.md`).
     #[arg(long, default_value = "jump")]
     pub path: String,
@@ -83,6 +90,7 @@ impl FlyArgs {
             url: url.into(),
             repo: repo.into(),
             color: None,
+            procedural_noise: 0,
             path: path.into(),
             tolerance_px: 1.0,
             transport: Transport::Pipelined,
@@ -141,6 +149,13 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
         prefetch_ahead: Duration::from_secs_f64(args.prefetch_s.max(0.0)),
         spacing_m: args.spacing_m,
         lookahead_levels: args.lookahead_levels,
+        procedural: match args.procedural_noise {
+            a if a > 0 => Procedural::Noise {
+                amplitude: a,
+                seed: args.seed,
+            },
+            _ => Procedural::Zero,
+        },
         refine: quincunx_client::refine::RefineConfig {
             max_dag_bytes: args
                 .dag_budget_mb
@@ -194,18 +209,17 @@ pub fn start_link(url: &str, link: (f64, f64)) -> Result<(LinkProxy, String)> {
 
 /// Runs `quincunx fly`.
 pub fn run(args: &FlyArgs) -> Result<()> {
-    if let Some(c) = &args.color {
-        bail!(
-            "--color {c}: colour layers are not streamed yet (elevation only; see docs/streaming.md)"
-        );
-    }
     if !(args.tolerance_px.is_finite() && args.tolerance_px > 0.0) {
         bail!("--tolerance-px must be positive");
     }
     let link = args.link.map(|l| start_link(&args.url, l)).transpose()?;
     let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
-    let session = AnySession::open(url, &args.repo, session_config(args))
-        .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
+    let session =
+        AnySession::open_with_colour(url, &args.repo, args.color.as_deref(), session_config(args))
+            .with_context(|| match &args.color {
+                Some(c) => format!("opening {} with colour {c} at {}", args.repo, args.url),
+                None => format!("opening {} at {}", args.repo, args.url),
+            })?;
     let report = match session {
         AnySession::Planar(s) => fly_session(s, args)?,
         AnySession::Planet(s) => fly_session(s, args)?,

@@ -28,6 +28,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+pub mod channels;
 pub mod page;
 
 /// Version of the repository layout (metadata record + page trees) and of the blobs in

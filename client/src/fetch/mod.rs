@@ -296,6 +296,16 @@ impl ErrorCounts {
         }
     }
 
+    /// Adds another set of counts.
+    pub fn add(&mut self, o: &ErrorCounts) {
+        self.client_status += o.client_status;
+        self.server_status += o.server_status;
+        self.connection += o.connection;
+        self.protocol += o.protocol;
+        self.timeout += o.timeout;
+        self.decode += o.decode;
+    }
+
     /// All errors.
     pub fn total(&self) -> u64 {
         self.client_status
@@ -334,6 +344,34 @@ pub struct FetchStats {
     pub mean_blob_bytes: f64,
     /// Errors by class (each failed attempt counts).
     pub errors: ErrorCounts,
+}
+
+impl FetchStats {
+    /// Adds the counters of another network thread (a second layer's): counts, bytes,
+    /// windows and rates add up; the round trip is the least; the mean blob size is
+    /// weighted by responses.
+    pub fn add(&mut self, o: &FetchStats) {
+        let responses = self.responses + o.responses;
+        if responses > 0 {
+            self.mean_blob_bytes = (self.mean_blob_bytes * self.responses as f64
+                + o.mean_blob_bytes * o.responses as f64)
+                / responses as f64;
+        }
+        self.requests += o.requests;
+        self.responses = responses;
+        self.bytes_fetched += o.bytes_fetched;
+        self.leaves += o.leaves;
+        self.cache_hits += o.cache_hits;
+        self.in_flight += o.in_flight;
+        self.queued += o.queued;
+        self.window += o.window;
+        self.bandwidth_bit_s += o.bandwidth_bit_s;
+        self.rtt = match (self.rtt, o.rtt) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+        self.errors.add(&o.errors);
+    }
 }
 
 /// Locks a mutex, ignoring poisoning: the data guarded here stays consistent even if a

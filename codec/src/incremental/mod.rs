@@ -65,6 +65,10 @@ pub enum RefineError {
     /// The encoding or metadata is of the other domain (planar vs planet).
     #[error("the encoding is not of this refiner's domain")]
     WrongDomain,
+    /// Procedural levels asked for beyond what the id space holds, or on a sparse
+    /// repository (whose holes procedural detail cannot respect).
+    #[error("procedural levels: {0}")]
+    Procedural(String),
     /// The blob does not decode.
     #[error(transparent)]
     Decode(#[from] DecodeError),
@@ -115,11 +119,92 @@ pub struct DiamondInfo<'a, I = PlanarId> {
     /// Storage key (the blob's key in the repository).
     pub key: &'a [u8],
     /// Valid points (`None` = all): vertices outside the raster or its coverage are
-    /// invalid and carry no meaningful value.
-    pub mask: Option<&'a DiamondMask>,
-    /// Its children (inside the data; at the finest detail level, the full-resolution
-    /// leaves).
+    /// invalid and carry no meaningful value. (Cheap to clone: shared storage.)
+    pub mask: Option<DiamondMask>,
+    /// Its children (inside the data; at the finest level, the leaves).
     pub children: Vec<I>,
+    /// Below the repository's finest level: no blob exists, synthesis makes its details
+    /// up ([`Procedural`]); `index` and `key` are then meaningless (0 and empty).
+    pub procedural: bool,
+}
+
+/// Detail a client makes up where a repository has none: on levels below its finest, so
+/// that the graph can refine on to a deeper layer's depth (colour deeper than elevation,
+/// or the reverse; the paper's section 4.2).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Procedural {
+    /// Zero details: the lifting's smooth interpolation of the coarser samples.
+    #[default]
+    Zero,
+    /// Zero-centred uniform noise in `-amplitude ..= amplitude` (integer units), a
+    /// function of the diamond and the seed alone: the same diamond always gets the same
+    /// detail, so a cut depends on the view and not on the path to it.
+    Noise {
+        /// Largest detail magnitude (integer units; 0 = [`Procedural::Zero`]).
+        amplitude: i32,
+        /// Seed mixed with the diamond's centre.
+        seed: u64,
+    },
+}
+
+impl Procedural {
+    /// The made-up details of the diamond centred at `key` (`None`: zeros).
+    pub(crate) fn details<I: Copy>(self, id: I, key: [i64; 3], n: usize) -> Option<Details<I>> {
+        let Procedural::Noise { amplitude, seed } = self else {
+            return None;
+        };
+        if amplitude <= 0 {
+            return None;
+        }
+        let mut state = key.iter().fold(seed ^ 0x9E37_79B9_7F4A_7C15, |h, &x| {
+            splitmix64(h ^ (x as u64).wrapping_mul(0xBF58_476D_1CE4_E5B9))
+        });
+        let span = 2 * amplitude as u64 + 1;
+        let h = (0..n * n)
+            .map(|_| {
+                state = splitmix64(state);
+                // The high bits are uniform; the tiny modulo bias is irrelevant here.
+                ((state >> 16) % span) as i32 - amplitude
+            })
+            .collect();
+        Some(Details {
+            id,
+            h,
+            child_classes: Vec::new(),
+            empty_children: Vec::new(),
+        })
+    }
+}
+
+fn splitmix64(x: u64) -> u64 {
+    let mut z = x.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Checks that `extra` procedural levels below `coded` fit the id space (`max_level`: the
+/// domain's deepest level; the last procedural level needs children) and the data is dense.
+pub(crate) fn check_procedural(
+    coded: usize,
+    extra: usize,
+    max_level: u32,
+    sparse: bool,
+) -> Result<(), RefineError> {
+    if extra == 0 {
+        return Ok(());
+    }
+    if sparse {
+        return Err(RefineError::Procedural(
+            "a sparse repository (holes) cannot be extended procedurally".into(),
+        ));
+    }
+    if coded + extra > max_level as usize {
+        return Err(RefineError::Procedural(format!(
+            "{coded} coded + {extra} procedural levels exceed the id space's {max_level}"
+        )));
+    }
+    Ok(())
 }
 
 /// What a streaming client needs of a repository's hierarchy, whatever its domain: the
@@ -129,13 +214,18 @@ pub trait Refiner: Send + Sync + std::fmt::Debug + 'static {
     type Id: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug + Send + Sync + 'static;
     /// Diamond size `N`.
     fn n(&self) -> usize;
-    /// Levels that carry details.
+    /// Levels that carry details in the repository (blobs).
     fn detail_levels(&self) -> usize;
+    /// Levels that can be refined: the coded ones and the procedural ones below them.
+    fn levels(&self) -> usize;
+    /// Whether `id` is refined from a blob of the repository (refinable and not
+    /// procedural): only such diamonds are ever fetched.
+    fn is_coded(&self, id: Self::Id) -> bool;
     /// The roots (one planar root, six planet face roots) and their vertex grids.
     fn roots(&self) -> Vec<(Self::Id, &[i32])>;
     /// What a client needs to know about a refinable diamond (`None` for leaves).
     fn info(&self, id: Self::Id) -> Option<DiamondInfo<'_, Self::Id>>;
-    /// Whether `id` carries details here.
+    /// Whether `id` can be refined here (coded or procedural).
     fn is_refinable(&self, id: Self::Id) -> bool;
     /// The parents of `id` inside the domain (none for roots).
     fn parents(&self, id: Self::Id) -> Vec<Self::Id>;
@@ -285,6 +375,9 @@ pub struct PlanarRefiner {
     steps: Vec<u32>,
     model: CodecModel,
     root: Vec<i32>,
+    /// Levels below the coded ones, refined with made-up details.
+    extra_levels: usize,
+    procedural: Procedural,
 }
 
 impl PlanarRefiner {
@@ -326,6 +419,63 @@ impl PlanarRefiner {
             steps,
             model,
             root,
+            extra_levels: 0,
+            procedural: Procedural::Zero,
+        })
+    }
+
+    /// The refiner extended by `extra` procedural levels below the coded ones, refined
+    /// with `detail` (see [`Procedural`]). Errors for sparse repositories and beyond the
+    /// id space.
+    pub fn with_procedural_levels(
+        mut self,
+        extra: usize,
+        detail: Procedural,
+    ) -> Result<PlanarRefiner, RefineError> {
+        check_procedural(
+            self.geometry.detail_levels(),
+            extra,
+            self.geometry.domain().max_level(),
+            self.geometry.coverage().is_some(),
+        )?;
+        self.extra_levels = extra;
+        self.procedural = detail;
+        Ok(self)
+    }
+
+    /// The level of a procedural diamond (`None` for others).
+    fn procedural_level(&self, id: PlanarId) -> Option<usize> {
+        if self.extra_levels == 0 {
+            return None;
+        }
+        let level = self.geometry.domain().level(id).ok()? as usize;
+        let coded = self.geometry.detail_levels();
+        ((coded..coded + self.extra_levels).contains(&level) && self.meets_raster(id))
+            .then_some(level)
+    }
+
+    /// Valid points of a procedural diamond (`None`: all; the raster's points, as for
+    /// coded diamonds, in units of `1/N` sample where its samples fall between).
+    fn procedural_mask(&self, id: PlanarId) -> Option<DiamondMask> {
+        let c = self.geometry.domain().corners(id).ok()?;
+        let n = self.n() as i64;
+        let (w, h) = (self.geometry.width() as i64, self.geometry.height() as i64);
+        // Position times 2N of vertex (2i, 2j) / cell (2i+1, 2j+1), exact.
+        let at = |i2: i64, j2: i64| {
+            [0, 1].map(|k| 2 * n * c[0][k] + i2 * (c[1][k] - c[0][k]) + j2 * (c[3][k] - c[0][k]))
+        };
+        let inside = |p: [i64; 2]| {
+            (0..=2 * n * (w - 1)).contains(&p[0]) && (0..=2 * n * (h - 1)).contains(&p[1])
+        };
+        let corners_in = [(0, 0), (2 * n, 0), (2 * n, 2 * n), (0, 2 * n)]
+            .iter()
+            .all(|&(i, j)| inside(at(i, j)));
+        (!corners_in).then(|| {
+            DiamondMask::from_fn(
+                self.n(),
+                |i, j| inside(at(2 * i as i64, 2 * j as i64)),
+                |i, j| inside(at(2 * i as i64 + 1, 2 * j as i64 + 1)),
+            )
         })
     }
 
@@ -370,7 +520,17 @@ impl PlanarRefiner {
     /// What a client needs to know about a refinable diamond; `None` for diamonds
     /// outside the raster or finer than the detail levels (those are leaves).
     pub fn info(&self, id: PlanarId) -> Option<DiamondInfo<'_>> {
-        let &(level, index) = self.slots.get(&id)?;
+        let Some(&(level, index)) = self.slots.get(&id) else {
+            let level = self.procedural_level(id)?;
+            return Some(DiamondInfo {
+                level,
+                index: 0,
+                key: &[],
+                mask: self.procedural_mask(id),
+                children: self.children_in_raster(id),
+                procedural: true,
+            });
+        };
         let s = &self.geometry.level(level)[index];
         let children = if self.geometry.detail_levels() > level + 1 {
             s.children
@@ -378,27 +538,34 @@ impl PlanarRefiner {
                 .map(|&k| self.geometry.level(level + 1)[k].id)
                 .collect()
         } else {
-            // Children of the finest detail level are full-resolution leaves: no slots.
-            let domain = self.geometry.domain();
-            domain
-                .children(id)
-                .unwrap_or_default()
-                .into_iter()
-                .filter(|&c| self.meets_raster(c))
-                .collect()
+            // Children of the finest detail level have no slots: full-resolution leaves,
+            // or the first procedural level.
+            self.children_in_raster(id)
         };
         Some(DiamondInfo {
             level,
             index,
             key: &s.key,
-            mask: s.mask.as_ref(),
+            mask: s.mask.clone(),
             children,
+            procedural: false,
         })
     }
 
-    /// Whether `id` carries details here (can be refined): cheaper than [`Self::info`].
+    fn children_in_raster(&self, id: PlanarId) -> Vec<PlanarId> {
+        self.geometry
+            .domain()
+            .children(id)
+            .unwrap_or_default()
+            .into_iter()
+            .filter(|&c| self.meets_raster(c))
+            .collect()
+    }
+
+    /// Whether `id` can be refined here (coded or procedural): cheaper than
+    /// [`Self::info`].
     pub fn is_refinable(&self, id: PlanarId) -> bool {
-        self.slots.contains_key(&id)
+        self.slots.contains_key(&id) || self.procedural_level(id).is_some()
     }
 
     /// Whether any point of diamond `id` lies inside the raster.
@@ -440,13 +607,17 @@ impl PlanarRefiner {
         grid: &[i32],
         details: Option<&Details>,
     ) -> Result<Refined, RefineError> {
-        let &(level, index) = self
-            .slots
-            .get(&id)
-            .ok_or_else(|| RefineError::NotRefinable(id_text(id)))?;
         if details.is_some_and(|d| d.id != id) {
             return Err(RefineError::NotRefinable(id_text(id)));
         }
+        let Some(&(level, index)) = self.slots.get(&id) else {
+            if details.is_some() || self.procedural_level(id).is_none() {
+                return Err(RefineError::NotRefinable(id_text(id)));
+            }
+            let made_up = self.procedural.details(id, [id.x, id.y, 0], self.n());
+            let mask = self.procedural_mask(id);
+            return synthesize_one(self.n(), id, grid, made_up.as_ref(), mask.as_ref());
+        };
         let slot = &self.geometry.level(level)[index];
         synthesize_one(self.n(), id, grid, details, slot.mask.as_ref())
     }
@@ -508,9 +679,9 @@ impl PlanarRefiner {
         parents: &[&Refined],
     ) -> Result<Vec<i32>, RefineError> {
         let (grid, written) = self.partial_child_grid(child, parents)?;
-        if self.slots.contains_key(&child) {
+        if self.is_refinable(child) {
             let mask = self.info(child).and_then(|info| info.mask);
-            check_complete(child, self.n(), &written, mask)?;
+            check_complete(child, self.n(), &written, mask.as_ref())?;
         }
         Ok(grid)
     }
@@ -527,6 +698,14 @@ impl Refiner for PlanarRefiner {
         self.geometry.detail_levels()
     }
 
+    fn levels(&self) -> usize {
+        self.geometry.detail_levels() + self.extra_levels
+    }
+
+    fn is_coded(&self, id: PlanarId) -> bool {
+        self.slots.contains_key(&id)
+    }
+
     fn roots(&self) -> Vec<(PlanarId, &[i32])> {
         vec![self.root()]
     }
@@ -536,7 +715,7 @@ impl Refiner for PlanarRefiner {
     }
 
     fn is_refinable(&self, id: PlanarId) -> bool {
-        self.slots.contains_key(&id)
+        PlanarRefiner::is_refinable(self, id)
     }
 
     fn parents(&self, id: PlanarId) -> Vec<PlanarId> {

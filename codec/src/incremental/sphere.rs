@@ -7,8 +7,8 @@
 //! the parent's lattice by the same affine map as in the plane, also across cube edges.
 
 use super::{
-    Details, DiamondInfo, RefineError, Refined, Refiner, check_complete, check_lattice,
-    decode_details, id_text, synthesize_one,
+    Details, DiamondInfo, Procedural, RefineError, Refined, Refiner, check_complete, check_lattice,
+    check_procedural, decode_details, id_text, synthesize_one,
 };
 use crate::coverage::Coverage;
 use crate::diamond::sphere::unfold;
@@ -26,6 +26,9 @@ pub struct SphereRefiner {
     steps: Vec<u32>,
     model: CodecModel,
     roots: Vec<Vec<i32>>,
+    /// Levels below the coded ones, refined with made-up details.
+    extra_levels: usize,
+    procedural: Procedural,
 }
 
 impl SphereRefiner {
@@ -72,7 +75,40 @@ impl SphereRefiner {
             steps,
             model,
             roots,
+            extra_levels: 0,
+            procedural: Procedural::Zero,
         })
+    }
+
+    /// The refiner extended by `extra` procedural levels below the coded ones, refined
+    /// with `detail` (see [`Procedural`]). Errors for sparse planets and beyond the id
+    /// space.
+    pub fn with_procedural_levels(
+        mut self,
+        extra: usize,
+        detail: Procedural,
+    ) -> Result<SphereRefiner, RefineError> {
+        check_procedural(
+            self.geometry.detail_levels(),
+            extra,
+            self.geometry.domain().max_level(),
+            self.geometry.coverage().is_some(),
+        )?;
+        self.extra_levels = extra;
+        self.procedural = detail;
+        Ok(self)
+    }
+
+    /// The level of a procedural diamond (`None` for others).
+    fn procedural_level(&self, id: SphereId) -> Option<usize> {
+        if self.extra_levels == 0 {
+            return None;
+        }
+        let level = self.geometry.domain().level(id).ok()? as usize;
+        let coded = self.geometry.detail_levels();
+        (coded..coded + self.extra_levels)
+            .contains(&level)
+            .then_some(level)
     }
 
     /// The refiner of an in-memory planet encoding.
@@ -116,7 +152,7 @@ impl SphereRefiner {
     ) -> Result<Vec<i32>, RefineError> {
         let (grid, written) = self.partial_child_grid(child, parents)?;
         let mask = self.info(child).and_then(|info| info.mask);
-        check_complete(child, self.geometry.n(), &written, mask)?;
+        check_complete(child, self.geometry.n(), &written, mask.as_ref())?;
         Ok(grid)
     }
 }
@@ -132,6 +168,14 @@ impl Refiner for SphereRefiner {
         self.geometry.detail_levels()
     }
 
+    fn levels(&self) -> usize {
+        self.geometry.detail_levels() + self.extra_levels
+    }
+
+    fn is_coded(&self, id: SphereId) -> bool {
+        self.slots.contains_key(&id)
+    }
+
     fn roots(&self) -> Vec<(SphereId, &[i32])> {
         self.geometry
             .domain()
@@ -143,7 +187,17 @@ impl Refiner for SphereRefiner {
     }
 
     fn info(&self, id: SphereId) -> Option<DiamondInfo<'_, SphereId>> {
-        let &(level, index) = self.slots.get(&id)?;
+        let Some(&(level, index)) = self.slots.get(&id) else {
+            let level = self.procedural_level(id)?;
+            return Some(DiamondInfo {
+                level,
+                index: 0,
+                key: &[],
+                mask: None,
+                children: self.geometry.domain().children(id).unwrap_or_default(),
+                procedural: true,
+            });
+        };
         let s = &self.geometry.level(level)[index];
         let children = if self.geometry.detail_levels() > level + 1 {
             s.children
@@ -151,20 +205,22 @@ impl Refiner for SphereRefiner {
                 .map(|&k| self.geometry.level(level + 1)[k].id)
                 .collect()
         } else {
-            // Children of the finest detail level are full-resolution leaves.
+            // Children of the finest detail level: full-resolution leaves, or the first
+            // procedural level.
             self.geometry.domain().children(id).unwrap_or_default()
         };
         Some(DiamondInfo {
             level,
             index,
             key: &s.key,
-            mask: s.mask.as_ref(),
+            mask: s.mask.clone(),
             children,
+            procedural: false,
         })
     }
 
     fn is_refinable(&self, id: SphereId) -> bool {
-        self.slots.contains_key(&id)
+        self.slots.contains_key(&id) || self.procedural_level(id).is_some()
     }
 
     fn parents(&self, id: SphereId) -> Vec<SphereId> {
@@ -201,10 +257,15 @@ impl Refiner for SphereRefiner {
         grid: &[i32],
         details: Option<&Details<SphereId>>,
     ) -> Result<Refined<SphereId>, RefineError> {
-        let (level, index) = self.slot_of(id)?;
         if details.is_some_and(|d| d.id != id) {
             return Err(RefineError::NotRefinable(id_text(id)));
         }
+        if !self.slots.contains_key(&id) && details.is_none() && self.procedural_level(id).is_some()
+        {
+            let made_up = self.procedural.details(id, id.c, self.n());
+            return synthesize_one(self.n(), id, grid, made_up.as_ref(), None);
+        }
+        let (level, index) = self.slot_of(id)?;
         let slot = &self.geometry.level(level)[index];
         synthesize_one(self.n(), id, grid, details, slot.mask.as_ref())
     }
