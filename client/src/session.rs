@@ -988,6 +988,9 @@ fn channel<'m>(
     if !meta.complete {
         return Err(metadata_error(name, "the build did not complete"));
     }
+    if meta.channels.is_empty() {
+        return Err(metadata_error(name, "no channels"));
+    }
     let coding = meta.channels.get(channel).ok_or_else(|| {
         metadata_error(
             name,

@@ -19,15 +19,17 @@ struct Sample {
     name: &'static str,
     source: &'static str,
     planet: bool,
+    colour: bool,
     rms_m: Option<f64>,
     max_error_m: Option<f64>,
 }
 
-const SAMPLES: [Sample; 2] = [
+const SAMPLES: [Sample; 3] = [
     Sample {
         name: "korea",
         source: "korea_srtm3_1025.json",
         planet: false,
+        colour: false,
         rms_m: Some(2.0),
         max_error_m: None,
     },
@@ -35,8 +37,18 @@ const SAMPLES: [Sample; 2] = [
         name: "earth",
         source: "etopo20_global.json",
         planet: true,
+        colour: false,
         rms_m: None,
         max_error_m: Some(2.0),
+    },
+    // The planet's colour (Blue Marble), 4 levels RMS per channel.
+    Sample {
+        name: "earth_colour",
+        source: "bmng_global_1080x540.jpg",
+        planet: true,
+        colour: true,
+        rms_m: Some(4.0),
+        max_error_m: None,
     },
 ];
 
@@ -73,6 +85,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
         outln!("building {} from {} ...", repo.display(), source.display());
         build::run(&BuildArgs {
             planet: s.planet,
+            colour: s.colour,
             rms_m: s.rms_m,
             max_error_m: s.max_error_m,
             overwrite: true,
@@ -167,12 +180,12 @@ fn serve(args: &DemoArgs) -> Result<()> {
 
 /// Streaming client sessions against the demo server, through an emulated 4 Mbit/s,
 /// 100 ms link: the first three views of the `jump` flight over the SRTM crop, then over
-/// the planet; every frame's cut checked.
+/// the planet with its colour; every frame's cut checked.
 fn demo_flight(addr: std::net::SocketAddr) -> Result<()> {
     use quincunx_client::session::{AnySession, SessionConfig};
-    for repo in ["korea", "earth"] {
+    for (repo, colour) in [("korea", None), ("earth", Some("earth_colour"))] {
         let (link, url) = crate::fly::start_link(&format!("http://{addr}"), (4_000.0, 100.0))?;
-        match AnySession::open(&url, repo, SessionConfig::default())? {
+        match AnySession::open_with_colour(&url, repo, colour, SessionConfig::default())? {
             AnySession::Planar(s) => demo_jumps(s, repo, addr, &link)?,
             AnySession::Planet(s) => demo_jumps(s, repo, addr, &link)?,
         }
@@ -191,10 +204,13 @@ fn demo_jumps<R: quincunx_client::flight::BuiltinFlights>(
     let mut f = Flight::builtin_for("jump", &mut session, 1)?;
     f.legs.truncate(3);
     outln!(
-        "\nstreaming client: {} low views of {repo} ({}) at 1920x1080, 1 px tolerance, \
+        "\nstreaming client: {} low views of {repo} ({}{}) at 1920x1080, 1 px tolerance, \
          through an emulated 4 Mbit/s, 100 ms link",
         f.legs.len(),
-        R::KIND
+        R::KIND,
+        session
+            .colour()
+            .map_or(String::new(), |(c, _)| format!(", colour from {c}"))
     );
     let r = flight::fly(&mut session, &f, &FlyOptions::default(), |_| {})?;
     for j in &r.jumps {
@@ -213,7 +229,12 @@ fn demo_jumps<R: quincunx_client::flight::BuiltinFlights>(
         link.bytes_down(),
         r.cracks + r.coverage_errors
     );
-    outln!("  quincunx fly --url http://{addr} --repo {repo} --path jump --link 4000,100 --json");
+    let colour = session
+        .colour()
+        .map_or(String::new(), |(c, _)| format!(" --color {c}"));
+    outln!(
+        "  quincunx fly --url http://{addr} --repo {repo}{colour} --path jump --link 4000,100 --json"
+    );
     anyhow::ensure!(
         r.cracks == 0 && r.coverage_errors == 0 && r.jumps_unfinished == 0,
         "the streamed cut of {repo} was inconsistent or incomplete: {r:?}"

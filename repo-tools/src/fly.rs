@@ -245,6 +245,7 @@ fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) 
         let mut v = serde_json::to_value(r)?;
         if let Some(obj) = v.as_object_mut() {
             obj.insert("repo".into(), args.repo.clone().into());
+            obj.insert("color".into(), args.color.clone().into());
             obj.insert(
                 "link".into(),
                 args.link.map_or(

@@ -628,7 +628,7 @@ fn demo_builds_and_verifies_the_bundled_samples_once() {
         // Built and verified the first time only.
         assert_eq!(
             stdout.matches("0 errors, content hash ok").count(),
-            if round == 0 { 2 } else { 0 },
+            if round == 0 { 3 } else { 0 },
             "{stdout}"
         );
         assert_eq!(stdout.contains("building"), round == 0, "{stdout}");
@@ -637,6 +637,8 @@ fn demo_builds_and_verifies_the_bundled_samples_once() {
             "{stdout}"
         );
         assert!(stdout.contains("smoke check passed"), "{stdout}");
+        // The planet streams with its colour.
+        assert!(stdout.contains("colour from earth_colour"), "{stdout}");
     }
     assert!(repos.join("korea").exists() && repos.join("earth").exists());
     for (name, w, h) in [("earth", 64, 32), ("korea", 64, 64)] {

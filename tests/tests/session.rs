@@ -200,7 +200,8 @@ fn quincunx_fly_runs_a_flight_file_and_refuses_what_it_cannot_do() {
     assert!(err(fly_args(&url, bad.to_str().unwrap())).contains("flight file"));
     let mut colour = fly_args(&url, "jump");
     colour.color = Some("imagery".into());
-    assert!(err(colour).contains("colour layers are not streamed yet"));
+    // A colour layer the server does not have.
+    assert!(err(colour).contains("opening korea with colour imagery"));
     let mut missing = fly_args(&url, "jump");
     missing.repo = "nope".into();
     assert!(err(missing).contains("404"));
