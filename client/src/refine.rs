@@ -483,10 +483,13 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             // one may free its parents, which join the queue.
             let mut merges: BinaryHeap<std::cmp::Reverse<Key<I>>> = dag
                 .nodes()
-                .filter(|n| n.refined.is_some())
+                // Coarsenable first: it is cheap, and most refined diamonds of a deep
+                // DAG have refined children.
+                .filter(|n| n.refined.is_some() && dag.is_coarsenable(n.id))
                 .filter_map(|n| {
                     let a = projector.appearance(dag, n.id);
-                    (projector.allows_merge(&a) && dag.is_coarsenable(n.id))
+                    projector
+                        .allows_merge(&a)
                         .then_some(std::cmp::Reverse(Key(a.error_px, n.id)))
                 })
                 .collect();
