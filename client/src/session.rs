@@ -125,8 +125,14 @@ pub struct SessionConfig {
     /// Levels below each wanted diamond whose blobs are requested ahead (as prefetch)
     /// while the wanted diamond's projected error says they will be wanted too (about
     /// `error / sqrt(2)^depth` above the tolerance). This hides the round trip per level
-    /// a view would otherwise pay on its way down; 0 disables it.
+    /// a view would otherwise pay on its way down; 0 disables it. See also
+    /// [`SessionConfig::lookahead_min_blobs`].
     pub lookahead_levels: usize,
+    /// No lookahead while one round trip of the link (estimated bandwidth x RTT) carries
+    /// fewer than this many mean-sized blobs: on such a link the bandwidth, not the round
+    /// trips, bounds how fast a view fills, and lookahead answers would only queue ahead
+    /// of wanted ones.
+    pub lookahead_min_blobs: f64,
     /// Metres between samples; `None` derives it from the metadata's georeference
     /// (latitude/longitude grids on a sphere of [`EARTH_RADIUS_M`]; projected grids in
     /// their units) and falls back to 1 m.
@@ -152,6 +158,7 @@ impl Default for SessionConfig {
             prefetch_every: Duration::from_millis(100),
             prefetch_max: 1024,
             lookahead_levels: 2,
+            lookahead_min_blobs: 32.0,
             spacing_m: None,
             timeout: Duration::from_secs(10),
             procedural: Procedural::Zero,
@@ -422,6 +429,8 @@ pub struct Session<R: Domain = PlanarRefiner> {
     failures: u64,
     /// The conservative lowest height went into the world mapping.
     lowest_known: bool,
+    /// The highest delivered rate estimated so far (bit/s).
+    peak_bandwidth_bit_s: f64,
 }
 
 impl<R: Domain> Session<R> {
@@ -515,6 +524,7 @@ impl<R: Domain> Session<R> {
             last_prefetch: None,
             failures: 0,
             lowest_known: false,
+            peak_bandwidth_bit_s: 0.0,
         })
     }
 
@@ -704,6 +714,9 @@ impl<R: Domain> Session<R> {
         frame.wanted = wants.len();
         self.elevation.arrived.clear();
 
+        self.peak_bandwidth_bit_s = self
+            .peak_bandwidth_bit_s
+            .max(self.elevation.fetcher.stats().bandwidth_bit_s);
         let mut prefetch = self.lookahead(&wants, view.tolerance_px);
         prefetch.extend(self.prefetch(view, now, &wants));
         prefetch.sort_by(|a, b| b.1.total_cmp(&a.1));
@@ -735,7 +748,7 @@ impl<R: Domain> Session<R> {
     /// their projected error (about the parent's over `sqrt(2)` per level) exceeds the
     /// tolerance.
     fn lookahead(&self, wants: &[(Key, f32)], tolerance_px: f64) -> Vec<(Key, f32)> {
-        let levels = self.config.lookahead_levels;
+        let levels = self.lookahead_levels();
         if levels == 0 {
             return Vec::new();
         }
@@ -770,6 +783,31 @@ impl<R: Domain> Session<R> {
             frontier = next;
         }
         out.into_iter().collect()
+    }
+
+    /// Lookahead depth for the link as measured: lookahead hides round trips, which
+    /// cost only while one round trip of the link carries many blobs. Below
+    /// [`SessionConfig::lookahead_min_blobs`] blobs per round trip (bandwidth x RTT over
+    /// the mean blob) the link itself is the bottleneck: lookahead answers would queue
+    /// ahead of wanted ones, so there is none. Before the first estimate: the configured
+    /// depth.
+    pub fn lookahead_levels(&self) -> usize {
+        let levels = self.config.lookahead_levels;
+        let stats = self.elevation.fetcher.stats();
+        // The link carries at least the most it ever delivered (a lightly loaded link
+        // delivers far less than it could).
+        let bandwidth = stats.bandwidth_bit_s.max(self.peak_bandwidth_bit_s);
+        match stats.rtt {
+            Some(rtt) if bandwidth > 0.0 && stats.mean_blob_bytes > 0.0 => {
+                let per_trip = bandwidth / 8.0 * rtt.as_secs_f64() / stats.mean_blob_bytes;
+                if per_trip < self.config.lookahead_min_blobs {
+                    0
+                } else {
+                    levels
+                }
+            }
+            _ => levels,
+        }
     }
 
     /// Tracks the camera and, when due, lists what the predicted view wants that the

@@ -152,6 +152,38 @@ fn a_server_killed_mid_flight_and_restarted_costs_nothing_but_time() {
     assert!(streamed == reference_cut::<PlanarRefiner>(&local, REPO, &view, world));
 }
 
+#[test]
+fn lookahead_follows_the_measured_link() {
+    let dir = tempfile::tempdir().unwrap();
+    let (built, _) = build_korea(dir.path());
+    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
+    // (kbit/s, lookahead expected once the link is measured): 20 Mbit/s x 100 ms carries
+    // hundreds of blobs per round trip; 300 kbit/s about twenty, fewer than the 32 below
+    // which lookahead would only queue ahead of wanted data.
+    for (kbit_s, expected) in [(20_000.0, 2), (300.0, 0)] {
+        let link = LinkProxy::start(server.addr, kbit_s, Duration::from_millis(100)).unwrap();
+        let mut session = Session::<PlanarRefiner>::open(
+            &format!("http://{}", link.local_addr()),
+            REPO,
+            SessionConfig::default(),
+        )
+        .unwrap();
+        assert_eq!(session.lookahead_levels(), 2, "unmeasured: as configured");
+        session.warm_up(Duration::from_secs(3)).unwrap();
+        let stats = session.fetch_stats();
+        assert!(
+            stats.rtt.is_some() && stats.bandwidth_bit_s > 0.0,
+            "{stats:?}"
+        );
+        assert_eq!(
+            session.lookahead_levels(),
+            expected,
+            "{kbit_s} kbit/s: {stats:?}"
+        );
+    }
+    server.kill();
+}
+
 fn fly_args(url: &str, path: &str) -> FlyArgs {
     FlyArgs {
         tolerance_px: 2.0,
