@@ -632,12 +632,12 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         if depth == 0 && !projector.wants_split(&projector.appearance(dag, id)) {
             return Ok(Outcome::Impossible);
         }
-        if let Some(max) = self.config.max_dag_bytes {
-            if dag.memory_bytes() + dag.refinement_bytes() > max {
-                stats.over_budget = true;
-                stats.max_error_px = stats.max_error_px.max(priority);
-                return Ok(Outcome::Impossible);
-            }
+        if let Some(max) = self.config.max_dag_bytes
+            && dag.memory_bytes() + dag.refinement_bytes() > max
+        {
+            stats.over_budget = true;
+            stats.max_error_px = stats.max_error_px.max(priority);
+            return Ok(Outcome::Impossible);
         }
         // Both layers are asked at once, so both requests go out in the same frame.
         let details = if dag.refiner().is_coded(id) {

@@ -218,6 +218,12 @@ pub struct Snapshot<I = PlanarId, W = PlanarWorld> {
     pub colour_n: usize,
 }
 
+/// A colour layer and its data access.
+type ColourStream<R> = (
+    Arc<ColourLayer<R>>,
+    Layer<ColourDetails<<R as Refiner>::Id>>,
+);
+
 /// One layer's data access: its repository, network thread and what it delivered.
 struct Layer<T> {
     name: String,
@@ -421,8 +427,8 @@ pub struct Session<R: Domain = PlanarRefiner> {
     config: SessionConfig,
     /// The elevation repository's data access.
     elevation: Layer<Details<R::Id>>,
-    /// The colour layer's (matched to the elevation) and its data access.
-    colour: Option<(Arc<ColourLayer<R>>, Layer<ColourDetails<R::Id>>)>,
+    /// The colour layer (matched to the elevation) and its data access.
+    colour: Option<ColourStream<R>>,
     /// Camera motion, for prediction.
     camera: CameraTrack,
     last_prefetch: Option<Duration>,
@@ -690,8 +696,10 @@ impl<R: Domain> Session<R> {
         budget: Duration,
     ) -> Result<SessionFrame, SessionError> {
         let started = std::time::Instant::now();
-        let mut frame = SessionFrame::default();
-        frame.failed = self.elevation.poll() + self.colour.as_mut().map_or(0, |(_, c)| c.poll());
+        let mut frame = SessionFrame {
+            failed: self.elevation.poll() + self.colour.as_mut().map_or(0, |(_, c)| c.poll()),
+            ..SessionFrame::default()
+        };
         self.failures += frame.failed as u64;
         if !self.lowest_known
             && let Some(lowest) = self.lowest_height()
@@ -711,53 +719,87 @@ impl<R: Domain> Session<R> {
             self.refinement
                 .update(&mut self.dag, view, self.world, &mut source, &clock, budget)?;
         let wants: Vec<(Key, f32)> = take_wants(&mut self.elevation);
-        frame.wanted = wants.len();
+        let colour_wants: Vec<(Key, f32)> = self
+            .colour
+            .as_mut()
+            .map(|(_, c)| take_wants(c))
+            .unwrap_or_default();
+        frame.wanted = wants.len() + colour_wants.len();
         self.elevation.arrived.clear();
+        if let Some((_, c)) = &mut self.colour {
+            c.arrived.clear();
+        }
 
         self.peak_bandwidth_bit_s = self
             .peak_bandwidth_bit_s
             .max(self.elevation.fetcher.stats().bandwidth_bit_s);
-        let mut prefetch = self.lookahead(&wants, view.tolerance_px);
-        prefetch.extend(self.prefetch(view, now, &wants));
-        prefetch.sort_by(|a, b| b.1.total_cmp(&a.1));
-        prefetch.dedup_by_key(|(k, _)| *k);
-        prefetch.truncate(self.config.prefetch_max);
-        frame.prefetched = prefetch.len();
+        // The diamonds any layer wants (elevation ids), for lookahead.
+        let mut wanted: HashMap<R::Id, f32> =
+            wants.iter().map(|&(k, p)| (R::id_of(k), p)).collect();
+        if let Some((layer, _)) = &self.colour {
+            for &(k, p) in &colour_wants {
+                if let Some(id) = layer.elevation_id(R::id_of(k)) {
+                    let e = wanted.entry(id).or_insert(p);
+                    *e = e.max(p);
+                }
+            }
+        }
+        let mut ahead = self.lookahead(&wanted, view.tolerance_px);
+        ahead.extend(self.prefetch(view, now, &wanted));
+        ahead.sort_by(|a, b| b.1.total_cmp(&a.1));
+        ahead.dedup_by_key(|(id, _)| *id);
+        ahead.truncate(self.config.prefetch_max);
+        // Each layer fetches the diamonds it codes and does not know to be leaves.
+        let elevation_ahead: Vec<(Key, f32)> = ahead
+            .iter()
+            .filter(|(id, _)| self.refiner.is_coded(*id))
+            .map(|&(id, p)| (R::key_of(id), p))
+            .filter(|(k, _)| !self.elevation.is_leaf(*k))
+            .collect();
+        frame.prefetched = elevation_ahead.len();
         if let Some((layer, colour)) = &mut self.colour {
-            let wants = take_wants(colour);
-            frame.wanted += wants.len();
-            colour.arrived.clear();
-            // The colour of what elevation prefetches (same diamonds).
-            let ahead: Vec<(Key, f32)> = prefetch
+            let colour_ahead: Vec<(Key, f32)> = ahead
                 .iter()
-                .filter_map(|&(k, p)| {
-                    let c = layer.colour_id(R::id_of(k))?;
+                .filter_map(|&(id, p)| {
+                    let c = layer.colour_id(id)?;
                     let key = R::key_of(c);
                     (layer.is_coded(c) && !colour.is_leaf(key)).then_some((key, p))
                 })
                 .collect();
-            frame.prefetched += ahead.len();
-            colour.fetcher.submit_with_prefetch(wants, ahead);
+            frame.prefetched += colour_ahead.len();
+            colour
+                .fetcher
+                .submit_with_prefetch(colour_wants, colour_ahead);
         }
-        self.elevation.fetcher.submit_with_prefetch(wants, prefetch);
+        self.elevation
+            .fetcher
+            .submit_with_prefetch(wants, elevation_ahead);
         frame.elapsed = started.elapsed();
         Ok(frame)
     }
 
+    /// Whether some layer would fetch data for diamond `id` (coded there and not known
+    /// to be a leaf).
+    fn fetchable(&self, id: R::Id) -> bool {
+        (self.refiner.is_coded(id) && !self.elevation.is_leaf(R::key_of(id)))
+            || self.colour.as_ref().is_some_and(|(layer, colour)| {
+                layer
+                    .colour_id(id)
+                    .is_some_and(|c| layer.is_coded(c) && !colour.is_leaf(R::key_of(c)))
+            })
+    }
+
     /// The descendants of wanted diamonds that will be wanted once these arrive, while
     /// their projected error (about the parent's over `sqrt(2)` per level) exceeds the
-    /// tolerance.
-    fn lookahead(&self, wants: &[(Key, f32)], tolerance_px: f64) -> Vec<(Key, f32)> {
+    /// tolerance, and that some layer would fetch.
+    fn lookahead(&self, wanted: &HashMap<R::Id, f32>, tolerance_px: f64) -> Vec<(R::Id, f32)> {
         let levels = self.lookahead_levels();
         if levels == 0 {
             return Vec::new();
         }
-        let wanted: HashSet<Key> = wants.iter().map(|&(k, _)| k).collect();
-        let mut out: HashMap<Key, f32> = HashMap::new();
-        let mut frontier: Vec<(R::Id, f64)> = wants
-            .iter()
-            .map(|&(k, p)| (R::id_of(k), f64::from(p)))
-            .collect();
+        let mut out: HashMap<R::Id, f32> = HashMap::new();
+        let mut frontier: Vec<(R::Id, f64)> =
+            wanted.iter().map(|(&id, &p)| (id, f64::from(p))).collect();
         for _ in 0..levels {
             let mut next = Vec::new();
             for (id, p) in frontier {
@@ -766,14 +808,10 @@ impl<R: Domain> Session<R> {
                     continue;
                 }
                 for &c in self.dag.children(id).iter() {
-                    let key = R::key_of(c);
-                    if !self.refiner.is_coded(c)
-                        || wanted.contains(&key)
-                        || self.elevation.inferred_leaves.contains(&key)
-                    {
+                    if wanted.contains_key(&c) || !self.fetchable(c) {
                         continue;
                     }
-                    let e = out.entry(key).or_insert(0.0);
+                    let e = out.entry(c).or_insert(0.0);
                     if child_error as f32 > *e {
                         *e = child_error as f32;
                         next.push((c, child_error));
@@ -812,7 +850,12 @@ impl<R: Domain> Session<R> {
 
     /// Tracks the camera and, when due, lists what the predicted view wants that the
     /// current one does not.
-    fn prefetch(&mut self, view: &View, now: Duration, wants: &[(Key, f32)]) -> Vec<(Key, f32)> {
+    fn prefetch(
+        &mut self,
+        view: &View,
+        now: Duration,
+        wanted: &HashMap<R::Id, f32>,
+    ) -> Vec<(R::Id, f32)> {
         self.camera.observe(now, view.eye);
         let ahead = self.config.prefetch_ahead.as_secs_f64();
         let due = self
@@ -829,16 +872,12 @@ impl<R: Domain> Session<R> {
             target: view.target + shift,
             ..*view
         };
-        let wanted: HashSet<Key> = wants.iter().map(|&(k, _)| k).collect();
-        let keys: Vec<(Key, f32)> = self
-            .refinement
+        self.refinement
             .wanted_splits(&self.dag, &predicted, self.world)
             .into_iter()
-            .filter(|(id, _)| self.refiner.is_coded(*id))
-            .map(|(id, e)| (R::key_of(id), e as f32))
-            .filter(|(k, _)| !wanted.contains(k))
-            .collect();
-        keys
+            .filter(|(id, _)| !wanted.contains_key(id) && self.fetchable(*id))
+            .map(|(id, e)| (id, e as f32))
+            .collect()
     }
 }
 
@@ -916,6 +955,12 @@ impl CameraTrack {
     }
 }
 
+/// A colour layer and its data access, borrowed for a frame.
+type ColourSource<'a, R> = (
+    &'a ColourLayer<R>,
+    &'a mut Layer<ColourDetails<<R as Refiner>::Id>>,
+);
+
 /// A layer's wants, for submitting.
 fn take_wants<T>(layer: &mut Layer<T>) -> Vec<(Key, f32)> {
     layer.wants.drain().map(|(k, p)| (k, p as f32)).collect()
@@ -925,7 +970,7 @@ fn take_wants<T>(layer: &mut Layer<T>) -> Vec<(Key, f32)> {
 struct FetchSource<'a, R: Domain> {
     refiner: &'a R,
     elevation: &'a mut Layer<Details<R::Id>>,
-    colour: Option<(&'a ColourLayer<R>, &'a mut Layer<ColourDetails<R::Id>>)>,
+    colour: Option<ColourSource<'a, R>>,
 }
 
 impl<R: Domain> DetailSource<R::Id> for FetchSource<'_, R> {

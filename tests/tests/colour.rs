@@ -108,10 +108,10 @@ fn colour_samples_match<R: Domain>(
                 let Some(k) = index(colour.id, i, j) else {
                     continue;
                 };
-                for c in 0..3 {
+                for (c, channel) in decoded.iter().enumerate() {
                     assert_eq!(
                         colour.grids[c][i * (nc + 1) + j],
-                        decoded[c][k],
+                        channel[k],
                         "{id:?} colour {:?} ({i},{j}) channel {c}",
                         colour.id
                     );
@@ -195,8 +195,17 @@ fn planar_colour_streams_crack_free_and_equals_the_decoded_imagery() {
         .dag()
         .colour()
         .unwrap()
-        .rgb(p.colour.as_ref().unwrap(), 0);
+        .rgb(p.colour.as_ref().unwrap(), 0)
+        .unwrap();
     assert!(rgb.iter().any(|&c| c > 0), "{rgb:?}");
+    assert!(
+        session
+            .dag()
+            .colour()
+            .unwrap()
+            .rgb(p.colour.as_ref().unwrap(), 65 * 65)
+            .is_none()
+    );
 }
 
 #[test]

@@ -48,6 +48,9 @@ pub struct LoadtestArgs {
     /// Repository name (as in `/repos/<name>/...`).
     #[arg(long)]
     pub repo: String,
+    /// With `--mode fly`: a colour repository each session streams with the elevation.
+    #[arg(long)]
+    pub color: Option<String>,
     /// `requests` (replayed request streams, the default) or `fly` (real client
     /// sessions flying a built-in flight).
     #[arg(long, default_value = "requests", value_parser = ["requests", "fly"])]
@@ -230,6 +233,9 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
 fn check_args(args: &LoadtestArgs) -> Result<()> {
     if args.connections == 0 {
         bail!("--connections must be at least 1");
+    }
+    if args.color.is_some() && args.mode != "fly" {
+        bail!("--color needs --mode fly (replayed request streams are of one repository)");
     }
     if !(1..=1024).contains(&args.pipeline_depth) {
         bail!("--pipeline-depth must be between 1 and 1024");

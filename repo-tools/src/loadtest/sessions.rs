@@ -101,8 +101,13 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
                             timeout: Duration::from_secs_f64(args.timeout_s),
                             ..SessionConfig::default()
                         };
-                        let session = AnySession::open(&args.url, &args.repo, config)
-                            .with_context(|| format!("client {i}: opening {}", args.repo))?;
+                        let session = AnySession::open_with_colour(
+                            &args.url,
+                            &args.repo,
+                            args.color.as_deref(),
+                            config,
+                        )
+                        .with_context(|| format!("client {i}: opening {}", args.repo))?;
                         let seed = args.seed + i as u64;
                         match session {
                             AnySession::Planar(s) => fly_builtin(s, &path, seed, &opts),
