@@ -12,6 +12,7 @@ use std::sync::Arc;
 
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::incremental::{Details, PlanarRefiner, RefineError, Refined};
+use quincunx_codec::lifting::DiamondMask;
 
 use crate::colour::{CHANNELS, ColourDetails, ColourLayer, ColourNode};
 use crate::domain::{Domain, World};
@@ -480,26 +481,17 @@ impl<R: Domain> Dag<R> {
                 triangles.entry(chart).or_default().push(t);
             }
             let mask = self.refiner.info(id).and_then(|i| i.mask);
-            for i in 0..=n {
-                for j in 0..=n {
-                    let on_edge = i == j || i == 0 || j == 0 || i == n || j == n;
-                    if !on_edge
-                        || !half.contains(i, j)
-                        || mask.as_ref().is_some_and(|m| !m.vertex(i, j))
-                    {
-                        continue;
-                    }
-                    let Some(pos) = self.refiner.vertex_point(id, &node.corners, i, j) else {
-                        continue;
-                    };
-                    let v = node.grid[i * (n + 1) + j];
-                    match values.insert(pos, v) {
-                        Some(old) if old != v => check.cracks += 1,
-                        Some(_) => check.shared_vertices += 1,
-                        None => {}
-                    }
+            edge_vertices(n, half, mask.as_ref(), |i, j| {
+                let Some(pos) = self.refiner.vertex_point(id, &node.corners, i, j) else {
+                    return;
+                };
+                let v = node.grid[i * (n + 1) + j];
+                match values.insert(pos, v) {
+                    Some(old) if old != v => check.cracks += 1,
+                    Some(_) => check.shared_vertices += 1,
+                    None => {}
                 }
-            }
+            });
         }
         check.colour_cracks = self.colour_cracks(&cut, &mut check.colour_shared);
         let probes = self.refiner.probes();
@@ -550,29 +542,38 @@ impl<R: Domain> Dag<R> {
             };
             let corners = refiner.corners(colour.id);
             let mask = refiner.info(colour.id).and_then(|i| i.mask);
-            for i in 0..=n {
-                for j in 0..=n {
-                    let on_edge = i == j || i == 0 || j == 0 || i == n || j == n;
-                    if !on_edge
-                        || !half.contains(i, j)
-                        || mask.as_ref().is_some_and(|m| !m.vertex(i, j))
-                    {
-                        continue;
-                    }
-                    let Some(pos) = refiner.vertex_point(colour.id, &corners, i, j) else {
-                        continue;
-                    };
-                    let k = i * (n + 1) + j;
-                    let v = [0, 1, 2].map(|c| colour.grids[c][k]);
-                    match values.insert(pos, v) {
-                        Some(old) if old != v => cracks += 1,
-                        Some(_) => *shared += 1,
-                        None => {}
-                    }
+            edge_vertices(n, half, mask.as_ref(), |i, j| {
+                let Some(pos) = refiner.vertex_point(colour.id, &corners, i, j) else {
+                    return;
+                };
+                let k = i * (n + 1) + j;
+                let v = [0, 1, 2].map(|c| colour.grids[c][k]);
+                match values.insert(pos, v) {
+                    Some(old) if old != v => cracks += 1,
+                    Some(_) => *shared += 1,
+                    None => {}
                 }
-            }
+            });
         }
         cracks
+    }
+}
+
+/// Calls `f(i, j)` for each valid vertex of `half` of an `N`-grid that lies on an edge of
+/// the half (the diamond's border or its diagonal): what neighbours share.
+fn edge_vertices(
+    n: usize,
+    half: Half,
+    mask: Option<&DiamondMask>,
+    mut f: impl FnMut(usize, usize),
+) {
+    for i in 0..=n {
+        for j in 0..=n {
+            let on_edge = i == j || i == 0 || j == 0 || i == n || j == n;
+            if on_edge && half.contains(i, j) && mask.is_none_or(|m| m.vertex(i, j)) {
+                f(i, j);
+            }
+        }
     }
 }
 

@@ -7,21 +7,13 @@ mod common;
 
 use std::collections::HashMap;
 
-use common::{bundled_korea, grid};
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::encode::{EncodeOptions, Encoded, RateMode, decode_integers, encode};
 use quincunx_codec::incremental::{PlanarRefiner, RefineError, Refined};
 
 fn korea(mode: RateMode, n: usize) -> Encoded {
-    let mut g = grid(&bundled_korea());
     // A crop that is not a power of two plus one: border diamonds have masks.
-    let (w, h) = (700, 513);
-    g.values_m = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| g.values_m[y * g.width + x])
-        .collect();
-    g.width = w;
-    g.height = h;
+    let g = common::bundled_korea_crop(700, 513);
     encode(
         &g,
         EncodeOptions {

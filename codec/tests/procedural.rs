@@ -23,14 +23,11 @@ fn options(n: usize, mode: RateMode) -> EncodeOptions {
 
 /// A Korea crop that is not a power of two plus one (border diamonds have masks).
 fn korea_crop(w: usize, h: usize, n: usize) -> Encoded {
-    let mut g = grid(&bundled_korea());
-    g.values_m = (0..h)
-        .flat_map(|y| (0..w).map(move |x| (x, y)))
-        .map(|(x, y)| g.values_m[y * g.width + x])
-        .collect();
-    g.width = w;
-    g.height = h;
-    encode(&g, options(n, RateMode::MaxErrorM(1.0))).unwrap()
+    encode(
+        &common::bundled_korea_crop(w, h),
+        options(n, RateMode::MaxErrorM(1.0)),
+    )
+    .unwrap()
 }
 
 /// Every level's grids, refining everything refinable coarse to fine through the trait.

@@ -183,28 +183,58 @@ fn splitmix64(x: u64) -> u64 {
     z ^ (z >> 31)
 }
 
-/// Checks that `extra` procedural levels below `coded` fit the id space (`max_level`: the
-/// domain's deepest level; the last procedural level needs children) and the data is dense.
-pub(crate) fn check_procedural(
-    coded: usize,
+/// Procedural levels below a refiner's coded ones: how many and with what detail.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct Extension {
     extra: usize,
-    max_level: u32,
-    sparse: bool,
-) -> Result<(), RefineError> {
-    if extra == 0 {
-        return Ok(());
+    detail: Procedural,
+}
+
+impl Extension {
+    /// `extra` procedural levels below `coded`, checked against the id space
+    /// (`max_level`: the domain's deepest level; the last procedural level needs
+    /// children) and the data (a sparse repository cannot be extended).
+    pub(crate) fn new(
+        coded: usize,
+        extra: usize,
+        detail: Procedural,
+        max_level: u32,
+        sparse: bool,
+    ) -> Result<Extension, RefineError> {
+        if extra > 0 && sparse {
+            return Err(RefineError::Procedural(
+                "a sparse repository (holes) cannot be extended procedurally".into(),
+            ));
+        }
+        if extra > 0 && coded + extra > max_level as usize {
+            return Err(RefineError::Procedural(format!(
+                "{coded} coded + {extra} procedural levels exceed the id space's {max_level}"
+            )));
+        }
+        Ok(Extension { extra, detail })
     }
-    if sparse {
-        return Err(RefineError::Procedural(
-            "a sparse repository (holes) cannot be extended procedurally".into(),
-        ));
+
+    /// Levels added.
+    pub(crate) fn extra(&self) -> usize {
+        self.extra
     }
-    if coded + extra > max_level as usize {
-        return Err(RefineError::Procedural(format!(
-            "{coded} coded + {extra} procedural levels exceed the id space's {max_level}"
-        )));
+
+    /// The made-up details.
+    pub(crate) fn detail(&self) -> Procedural {
+        self.detail
     }
-    Ok(())
+
+    /// The procedural level of a diamond of `level` below `coded` ones (`None` when it
+    /// is not procedural).
+    pub(crate) fn level(&self, coded: usize, level: Option<u32>) -> Option<usize> {
+        if self.extra == 0 {
+            return None;
+        }
+        let level = level? as usize;
+        (coded..coded + self.extra)
+            .contains(&level)
+            .then_some(level)
+    }
 }
 
 /// What a streaming client needs of a repository's hierarchy, whatever its domain: the
@@ -376,8 +406,7 @@ pub struct PlanarRefiner {
     model: CodecModel,
     root: Vec<i32>,
     /// Levels below the coded ones, refined with made-up details.
-    extra_levels: usize,
-    procedural: Procedural,
+    extension: Extension,
 }
 
 impl PlanarRefiner {
@@ -419,8 +448,7 @@ impl PlanarRefiner {
             steps,
             model,
             root,
-            extra_levels: 0,
-            procedural: Procedural::Zero,
+            extension: Extension::default(),
         })
     }
 
@@ -432,26 +460,22 @@ impl PlanarRefiner {
         extra: usize,
         detail: Procedural,
     ) -> Result<PlanarRefiner, RefineError> {
-        check_procedural(
+        self.extension = Extension::new(
             self.geometry.detail_levels(),
             extra,
+            detail,
             self.geometry.domain().max_level(),
             self.geometry.coverage().is_some(),
         )?;
-        self.extra_levels = extra;
-        self.procedural = detail;
         Ok(self)
     }
 
     /// The level of a procedural diamond (`None` for others).
     fn procedural_level(&self, id: PlanarId) -> Option<usize> {
-        if self.extra_levels == 0 {
-            return None;
-        }
-        let level = self.geometry.domain().level(id).ok()? as usize;
-        let coded = self.geometry.detail_levels();
-        ((coded..coded + self.extra_levels).contains(&level) && self.meets_raster(id))
-            .then_some(level)
+        let level = self.geometry.domain().level(id).ok();
+        self.extension
+            .level(self.geometry.detail_levels(), level)
+            .filter(|_| self.meets_raster(id))
     }
 
     /// Valid points of a procedural diamond (`None`: all; the raster's points, as for
@@ -614,7 +638,10 @@ impl PlanarRefiner {
             if details.is_some() || self.procedural_level(id).is_none() {
                 return Err(RefineError::NotRefinable(id_text(id)));
             }
-            let made_up = self.procedural.details(id, [id.x, id.y, 0], self.n());
+            let made_up = self
+                .extension
+                .detail()
+                .details(id, [id.x, id.y, 0], self.n());
             let mask = self.procedural_mask(id);
             return synthesize_one(self.n(), id, grid, made_up.as_ref(), mask.as_ref());
         };
@@ -699,7 +726,7 @@ impl Refiner for PlanarRefiner {
     }
 
     fn levels(&self) -> usize {
-        self.geometry.detail_levels() + self.extra_levels
+        self.geometry.detail_levels() + self.extension.extra()
     }
 
     fn is_coded(&self, id: PlanarId) -> bool {

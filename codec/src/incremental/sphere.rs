@@ -7,8 +7,8 @@
 //! the parent's lattice by the same affine map as in the plane, also across cube edges.
 
 use super::{
-    Details, DiamondInfo, Procedural, RefineError, Refined, Refiner, check_complete, check_lattice,
-    check_procedural, decode_details, id_text, synthesize_one,
+    Details, DiamondInfo, Extension, Procedural, RefineError, Refined, Refiner, check_complete,
+    check_lattice, decode_details, id_text, synthesize_one,
 };
 use crate::coverage::Coverage;
 use crate::diamond::sphere::unfold;
@@ -27,8 +27,7 @@ pub struct SphereRefiner {
     model: CodecModel,
     roots: Vec<Vec<i32>>,
     /// Levels below the coded ones, refined with made-up details.
-    extra_levels: usize,
-    procedural: Procedural,
+    extension: Extension,
 }
 
 impl SphereRefiner {
@@ -75,8 +74,7 @@ impl SphereRefiner {
             steps,
             model,
             roots,
-            extra_levels: 0,
-            procedural: Procedural::Zero,
+            extension: Extension::default(),
         })
     }
 
@@ -88,27 +86,20 @@ impl SphereRefiner {
         extra: usize,
         detail: Procedural,
     ) -> Result<SphereRefiner, RefineError> {
-        check_procedural(
+        self.extension = Extension::new(
             self.geometry.detail_levels(),
             extra,
+            detail,
             self.geometry.domain().max_level(),
             self.geometry.coverage().is_some(),
         )?;
-        self.extra_levels = extra;
-        self.procedural = detail;
         Ok(self)
     }
 
     /// The level of a procedural diamond (`None` for others).
     fn procedural_level(&self, id: SphereId) -> Option<usize> {
-        if self.extra_levels == 0 {
-            return None;
-        }
-        let level = self.geometry.domain().level(id).ok()? as usize;
-        let coded = self.geometry.detail_levels();
-        (coded..coded + self.extra_levels)
-            .contains(&level)
-            .then_some(level)
+        let level = self.geometry.domain().level(id).ok();
+        self.extension.level(self.geometry.detail_levels(), level)
     }
 
     /// The refiner of an in-memory planet encoding.
@@ -169,7 +160,7 @@ impl Refiner for SphereRefiner {
     }
 
     fn levels(&self) -> usize {
-        self.geometry.detail_levels() + self.extra_levels
+        self.geometry.detail_levels() + self.extension.extra()
     }
 
     fn is_coded(&self, id: SphereId) -> bool {
@@ -262,7 +253,7 @@ impl Refiner for SphereRefiner {
         }
         if !self.slots.contains_key(&id) && details.is_none() && self.procedural_level(id).is_some()
         {
-            let made_up = self.procedural.details(id, id.c, self.n());
+            let made_up = self.extension.detail().details(id, id.c, self.n());
             return synthesize_one(self.n(), id, grid, made_up.as_ref(), None);
         }
         let (level, index) = self.slot_of(id)?;

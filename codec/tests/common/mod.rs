@@ -72,6 +72,19 @@ pub fn grid(sidecar: &Path) -> Grid {
     load_grid(sidecar).unwrap_or_else(|e| panic!("cannot load {}: {e}", sidecar.display()))
 }
 
+/// The top-left `w x h` samples of the bundled Korea crop (sizes that are not a power of
+/// two plus one give border diamonds masks).
+pub fn bundled_korea_crop(w: usize, h: usize) -> Grid {
+    let mut g = grid(&bundled_korea());
+    g.values_m = (0..h)
+        .flat_map(|y| (0..w).map(move |x| (x, y)))
+        .map(|(x, y)| g.values_m[y * g.width + x])
+        .collect();
+    g.width = w;
+    g.height = h;
+    g
+}
+
 /// Measured errors of a decode over the valid (non-NaN) samples of the original.
 #[derive(Clone, Copy, Debug)]
 pub struct Errors {
