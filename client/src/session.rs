@@ -1,7 +1,9 @@
-//! A streaming session: one served elevation repository (planar or planet), its DAG,
-//! refinement and data access layer, driven one frame at a time. [`Session`] is planar by
-//! default; [`PlanetSession`] streams planets (the world is then centred on the planet).
-//! [`quincunx_store::Metadata::domain`] says which one a repository needs.
+//! A streaming session: one served elevation repository (planar or planet) and,
+//! optionally, a colour repository matched to it ([`Session::open_with_colour`], see
+//! [`crate::colour`]), with their DAG, refinement and data access layers, driven one frame
+//! at a time. [`Session`] is planar by default; [`PlanetSession`] streams planets (the
+//! world is then centred on the planet). [`quincunx_store::Metadata::domain`] says which
+//! one a repository needs.
 //!
 //! ```no_run
 //! use std::time::{Duration, Instant};
