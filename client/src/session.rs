@@ -114,7 +114,7 @@ pub struct SessionConfig {
     pub max_in_flight: usize,
     /// Optional cap on the blob request rate, bit/s.
     pub bandwidth_cap_bit_s: Option<f64>,
-    /// Byte budget of the decoded-details cache.
+    /// Byte budget of the decoded-details cache (per layer: a colour layer has its own).
     pub cache_bytes: usize,
     /// Refinement tuning.
     pub refine: RefineConfig,
