@@ -73,7 +73,8 @@ pub struct ColourNode<I> {
     pub id: I,
     /// Y, Co, Cg vertex grids (entries of absent halves are 0).
     pub grids: std::sync::Arc<Vec<Vec<i32>>>,
-    /// Y, Co, Cg lattices while refined.
+    /// Y, Co, Cg refinements while refined (side information; the lattices themselves
+    /// are not kept once the children have their halves).
     pub refined: Option<Vec<Refined<I>>>,
 }
 
@@ -242,26 +243,25 @@ impl<R: Domain> ColourLayer<R> {
             .collect()
     }
 
-    /// A child's colour grids from the colour lattices of its refined parents.
-    pub fn child(
+    /// The part of a child's colour grids (colour id) that lies in one refined parent
+    /// (its Y, Co, Cg lattices), and which vertices that is.
+    pub fn child_half(
         &self,
         child: R::Id,
-        parents: &[&[Refined<R::Id>]],
-    ) -> Result<ColourNode<R::Id>, RefineError> {
+        lattices: &[Refined<R::Id>],
+    ) -> Result<(Vec<Vec<i32>>, Vec<bool>), RefineError> {
+        let mut written = Vec::new();
         let grids = self
             .channels
             .iter()
-            .enumerate()
-            .map(|(k, r)| {
-                let lattices: Vec<&Refined<R::Id>> = parents.iter().map(|p| &p[k]).collect();
-                r.partial_child_grid(child, &lattices).map(|(g, _)| g)
+            .zip(lattices)
+            .map(|(r, lattice)| {
+                let (g, w) = r.partial_child_grid(child, &[lattice])?;
+                written = w;
+                Ok(g)
             })
-            .collect::<Result<Vec<_>, _>>()?;
-        Ok(ColourNode {
-            id: child,
-            grids: std::sync::Arc::new(grids),
-            refined: None,
-        })
+            .collect::<Result<Vec<_>, RefineError>>()?;
+        Ok((grids, written))
     }
 
     /// The sRGB colour of vertex `k` of a diamond's colour grids (YCoCg-R inverted,

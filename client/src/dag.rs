@@ -77,7 +77,9 @@ pub struct Node<I = PlanarId> {
     /// Which halves exist at all (a border diamond has one; a half inside a parent that
     /// lies outside the raster never arrives).
     pub expected: [bool; 2],
-    /// Its refined lattice, while it is refined.
+    /// Its refinement while it is refined: side information only; the lattice is
+    /// dropped once its children have their halves (it would only be read to rebuild
+    /// them, and their halves never change while it stays refined).
     pub refined: Option<Refined<I>>,
     /// The side-information class its first parent's blob carries for it: a bound on how
     /// far its finer surface departs from its grid (`None` until known).
@@ -230,23 +232,21 @@ impl<R: Domain> Dag<R> {
         self.nodes.is_empty()
     }
 
-    /// Bytes of grids, lattices and nodes held (constant time: every grid is `(N+1)^2`
-    /// values and every lattice `(N+1)^2 + N^2`).
+    /// Bytes of grids and nodes held (constant time: every grid is `(N+1)^2` values;
+    /// lattices live only while a refinement hands its children their halves).
     pub fn memory_bytes(&self) -> usize {
         let per_node = |n: usize| self.nodes.len() * 4 * (n + 1) * (n + 1);
-        let colour = self.colour.as_ref().map_or(0, |c| {
-            // Every node holds colour grids once a colour layer exists (estimate: the
-            // few outside the colour data hold none).
-            let n = c.n();
-            CHANNELS * (per_node(n) + self.refined * Self::lattice_bytes(n))
-        });
-        self.nodes.len() * Self::node_bytes(self.refiner.n())
-            + self.refined * Self::lattice_bytes(self.refiner.n())
-            + colour
+        // Every node holds colour grids once a colour layer exists (estimate: the few
+        // outside the colour data hold none). Lattices are not kept.
+        let colour = self
+            .colour
+            .as_ref()
+            .map_or(0, |c| CHANNELS * per_node(c.n()));
+        self.nodes.len() * Self::node_bytes(self.refiner.n()) + colour
     }
 
-    /// Bytes a refinement adds at most: a lattice and up to four children's nodes, in
-    /// every layer.
+    /// Bytes a refinement adds at most: its transient lattice and up to four children's
+    /// nodes, in every layer.
     pub fn refinement_bytes(&self) -> usize {
         let n = self.refiner.n();
         let colour = self.colour.as_ref().map_or(0, |c| {
@@ -340,24 +340,27 @@ impl<R: Domain> Dag<R> {
             _ => None,
         };
         let classes: HashMap<R::Id, u8> = refined.child_classes.iter().copied().collect();
-        if let Some(node) = self.nodes.get_mut(&id) {
-            node.refined = Some(refined);
-            if let Some(c) = node.colour.as_mut() {
-                c.refined = colour_refined;
-            }
-            self.refined += 1;
-        }
         let children = self.children(id);
+        // Each child gets the half that lies in this diamond, from its fresh lattices.
         for &child in children.iter() {
-            self.rebuild_child(child)?;
+            self.add_half(child, &refined, colour_refined.as_deref())?;
             if let (Some(class), Some(node)) = (classes.get(&child), self.nodes.get_mut(&child)) {
                 node.class = Some(*class);
             }
         }
+        // The lattices are not kept: a child's half never changes while this diamond
+        // stays refined, and coarsening only clears it.
+        if let Some(node) = self.nodes.get_mut(&id) {
+            node.refined = Some(without_lattice(refined));
+            if let Some(c) = node.colour.as_mut() {
+                c.refined = colour_refined.map(|ls| ls.into_iter().map(without_lattice).collect());
+            }
+            self.refined += 1;
+        }
         Ok(children.to_vec())
     }
 
-    /// Coarsens `id`: drops its lattice and the halves of its children that lay in it
+    /// Coarsens `id`: drops its refinement and the halves of its children that lay in it
     /// (children left with no half leave the DAG).
     pub fn coarsen(&mut self, id: R::Id) -> Result<(), DagError> {
         if !self.is_coarsenable(id) {
@@ -371,70 +374,133 @@ impl<R: Domain> Dag<R> {
             self.refined -= 1;
         }
         for &child in self.children(id).iter() {
-            self.rebuild_child(child)?;
+            self.remove_half(child, id);
         }
         Ok(())
     }
 
-    /// Recomputes a child's grid and halves from its currently refined parents.
-    fn rebuild_child(&mut self, child: R::Id) -> Result<(), DagError> {
-        let corners = self.refiner.corners(child);
+    /// Writes the half of `child` that lies in `parent` (its fresh lattice, and its colour
+    /// lattices) into the child's grids, creating the child if it is new.
+    fn add_half(
+        &mut self,
+        child: R::Id,
+        parent: &Refined<R::Id>,
+        colour: Option<&[Refined<R::Id>]>,
+    ) -> Result<(), DagError> {
         let side_parents = self.refiner.side_parents(child);
-        let parents = self.parents(child);
-        let refined: Vec<&Refined<R::Id>> = parents
-            .iter()
-            .filter_map(|p| self.nodes.get(p).and_then(|n| n.refined.as_ref()))
-            .collect();
-        if refined.is_empty() {
-            self.nodes.remove(&child);
-            return Ok(());
-        }
-        let present = side_parents.map(|p| refined.iter().any(|r| r.id == p));
-        let expected = side_parents.map(|p| parents.contains(&p) && self.refiner.is_refinable(p));
-        let (grid, _) = self.refiner.partial_child_grid(child, &refined)?;
-        let colour = match &self.colour {
-            Some(layer) => {
-                let lattices: Vec<&[Refined<R::Id>]> = parents
-                    .iter()
-                    .filter_map(|p| self.nodes.get(p))
-                    .filter_map(|n| n.colour.as_ref()?.refined.as_deref())
-                    .collect();
-                match layer.colour_id(child) {
-                    Some(c) if !lattices.is_empty() => Some(layer.child(c, &lattices)?),
-                    _ => None,
+        let Some(h) = side_parents.iter().position(|&p| p == parent.id) else {
+            return Err(DagError::NotRefinable(format!(
+                "{:?} is not a side parent of {child:?}",
+                parent.id
+            )));
+        };
+        let (half, written) = self.refiner.partial_child_grid(child, &[parent])?;
+        let colour_half = match (&self.colour, colour) {
+            (Some(layer), Some(lattices)) => match layer.colour_id(child) {
+                Some(c) => Some(layer.child_half(c, lattices)?),
+                None => None,
+            },
+            _ => None,
+        };
+        let merge = |grid: &mut [i32], half: &[i32], written: &[bool]| {
+            for ((g, v), w) in grid.iter_mut().zip(half).zip(written) {
+                if *w {
+                    *g = *v;
                 }
             }
-            None => None,
         };
-        let (class, children) = match self.nodes.get(&child) {
-            Some(n) => (n.class, n.children.clone()),
-            None => (
-                None,
-                self.refiner
-                    .info(child)
-                    .map(|i| i.children)
-                    .unwrap_or_default()
-                    .into(),
-            ),
+        let node = match self.nodes.remove(&child) {
+            Some(mut node) => {
+                merge(
+                    Arc::make_mut(&mut node.grid).as_mut_slice(),
+                    &half,
+                    &written,
+                );
+                node.present[h] = true;
+                node.colour = match (node.colour.take(), colour_half) {
+                    (Some(mut c), Some((grids, written))) => {
+                        for (g, v) in Arc::make_mut(&mut c.grids).iter_mut().zip(&grids) {
+                            merge(g, v, &written);
+                        }
+                        Some(c)
+                    }
+                    (None, Some((grids, _))) => layer_node(self.colour.as_deref(), child, grids),
+                    (c, None) => c,
+                };
+                node
+            }
+            None => {
+                let parents = self.parents(child);
+                let mut present = [false; 2];
+                present[h] = true;
+                Node {
+                    id: child,
+                    generation: 0,
+                    corners: self.refiner.corners(child),
+                    children: self
+                        .refiner
+                        .info(child)
+                        .map(|i| i.children)
+                        .unwrap_or_default()
+                        .into(),
+                    z_range: (0, 0),
+                    grid: Arc::new(half),
+                    present,
+                    expected: side_parents
+                        .map(|p| parents.contains(&p) && self.refiner.is_refinable(p)),
+                    refined: None,
+                    class: None,
+                    colour: colour_half
+                        .and_then(|(grids, _)| layer_node(self.colour.as_deref(), child, grids)),
+                }
+            }
         };
-        self.generations += 1;
-        self.nodes.insert(
-            child,
-            Node {
-                id: child,
-                generation: self.generations,
-                corners,
-                children,
-                z_range: z_range(&grid, self.refiner.n(), present),
-                grid: Arc::new(grid),
-                present,
-                expected,
-                refined: None,
-                class,
-                colour,
-            },
-        );
+        self.insert_changed(node);
         Ok(())
+    }
+
+    /// Clears the half of `child` that lies in `parent` (the diagonal stays: the other
+    /// half shares it); a child left with no half leaves the DAG.
+    fn remove_half(&mut self, child: R::Id, parent: R::Id) {
+        let side_parents = self.refiner.side_parents(child);
+        let Some(h) = side_parents.iter().position(|&p| p == parent) else {
+            return;
+        };
+        let Some(mut node) = self.nodes.remove(&child) else {
+            return;
+        };
+        node.present[h] = false;
+        if !node.present.iter().any(|p| *p) {
+            return;
+        }
+        let keep = Half::BOTH[1 - h];
+        let clear = |grid: &mut [i32], n: usize| {
+            for i in 0..=n {
+                for j in 0..=n {
+                    if !keep.contains(i, j) {
+                        grid[i * (n + 1) + j] = 0;
+                    }
+                }
+            }
+        };
+        clear(
+            Arc::make_mut(&mut node.grid).as_mut_slice(),
+            self.refiner.n(),
+        );
+        if let (Some(layer), Some(c)) = (&self.colour, node.colour.as_mut()) {
+            for g in Arc::make_mut(&mut c.grids).iter_mut() {
+                clear(g, layer.n());
+            }
+        }
+        self.insert_changed(node);
+    }
+
+    /// Stores a node whose grid or halves changed: new generation, its height range.
+    fn insert_changed(&mut self, mut node: Node<R::Id>) {
+        self.generations += 1;
+        node.generation = self.generations;
+        node.z_range = z_range(&node.grid, self.refiner.n(), node.present);
+        self.nodes.insert(node.id, node);
     }
 
     /// Halves in the cut (without listing them).
@@ -575,6 +641,28 @@ fn edge_vertices(
             }
         }
     }
+}
+
+/// A refinement without its lattice (what a refined node keeps).
+fn without_lattice<I>(r: Refined<I>) -> Refined<I> {
+    Refined {
+        vertices: Vec::new(),
+        cells: Vec::new(),
+        ..r
+    }
+}
+
+/// A colour node for `child` (elevation id) with these grids.
+fn layer_node<R: Domain>(
+    layer: Option<&ColourLayer<R>>,
+    child: R::Id,
+    grids: Vec<Vec<i32>>,
+) -> Option<ColourNode<R::Id>> {
+    Some(ColourNode {
+        id: layer?.colour_id(child)?,
+        grids: Arc::new(grids),
+        refined: None,
+    })
 }
 
 /// Smallest and largest value of the present halves of a grid.
