@@ -309,12 +309,9 @@ impl<T: Weigh + Send + Sync + 'static> Layer<T> {
     }
 
     /// The data of `key` if it is here (`Some(None)`: a leaf, zero details); `parents`
-    /// are its parents' keys (a leaf's children are leaves).
-    fn lookup(
-        &mut self,
-        key: Key,
-        parents: impl IntoIterator<Item = Key>,
-    ) -> Option<Option<Arc<T>>> {
+    /// gives its parents' keys, asked only when nothing else answers (a leaf's children
+    /// are leaves).
+    fn lookup(&mut self, key: Key, parents: impl FnOnce() -> Vec<Key>) -> Option<Option<Arc<T>>> {
         if let Some(d) = self.arrived.get(&key) {
             return Some(d.clone());
         }
@@ -324,7 +321,7 @@ impl<T: Weigh + Send + Sync + 'static> Layer<T> {
         if let Some(d) = self.fetcher.cached(key) {
             return Some(Some(d));
         }
-        if parents.into_iter().any(|p| self.is_leaf(p)) {
+        if parents().into_iter().any(|p| self.is_leaf(p)) {
             self.inferred_leaves.insert(key);
             return Some(None);
         }
@@ -337,7 +334,7 @@ impl<T: Weigh + Send + Sync + 'static> Layer<T> {
         &mut self,
         key: Key,
         priority: f64,
-        parents: impl IntoIterator<Item = Key>,
+        parents: impl FnOnce() -> Vec<Key>,
         empty: impl FnOnce(&T) -> Vec<Key>,
     ) -> Arrival<T> {
         match self.lookup(key, parents) {
@@ -732,9 +729,9 @@ impl<R: Domain> Session<R> {
             c.arrived.clear();
         }
 
-        self.peak_bandwidth_bit_s = self
-            .peak_bandwidth_bit_s
-            .max(self.elevation.fetcher.stats().bandwidth_bit_s);
+        let stats = self.elevation.fetcher.stats();
+        self.peak_bandwidth_bit_s = self.peak_bandwidth_bit_s.max(stats.bandwidth_bit_s);
+        let levels = self.lookahead_levels_for(&stats);
         // The diamonds any layer wants (elevation ids), for lookahead.
         let mut wanted: HashMap<R::Id, f32> =
             wants.iter().map(|&(k, p)| (R::id_of(k), p)).collect();
@@ -746,7 +743,7 @@ impl<R: Domain> Session<R> {
                 }
             }
         }
-        let mut ahead = self.lookahead(&wanted, view.tolerance_px);
+        let mut ahead = self.lookahead(&wanted, levels, view.tolerance_px);
         ahead.extend(self.prefetch(view, now, &wanted));
         ahead.sort_by(|a, b| b.1.total_cmp(&a.1));
         ahead.dedup_by_key(|(id, _)| *id);
@@ -794,8 +791,12 @@ impl<R: Domain> Session<R> {
     /// The descendants of wanted diamonds that will be wanted once these arrive, while
     /// their projected error (about the parent's over `sqrt(2)` per level) exceeds the
     /// tolerance, and that some layer would fetch.
-    fn lookahead(&self, wanted: &HashMap<R::Id, f32>, tolerance_px: f64) -> Vec<(R::Id, f32)> {
-        let levels = self.lookahead_levels();
+    fn lookahead(
+        &self,
+        wanted: &HashMap<R::Id, f32>,
+        levels: usize,
+        tolerance_px: f64,
+    ) -> Vec<(R::Id, f32)> {
         if levels == 0 {
             return Vec::new();
         }
@@ -832,8 +833,12 @@ impl<R: Domain> Session<R> {
     /// ahead of wanted ones, so there is none. Before the first estimate: the configured
     /// depth.
     pub fn lookahead_levels(&self) -> usize {
+        self.lookahead_levels_for(&self.elevation.fetcher.stats())
+    }
+
+    /// [`Session::lookahead_levels`] from the network thread's counters.
+    fn lookahead_levels_for(&self, stats: &FetchStats) -> usize {
         let levels = self.config.lookahead_levels;
-        let stats = self.elevation.fetcher.stats();
         // The link carries at least the most it ever delivered (a lightly loaded link
         // delivers far less than it could).
         let bandwidth = stats.bandwidth_bit_s.max(self.peak_bandwidth_bit_s);
@@ -977,14 +982,16 @@ struct FetchSource<'a, R: Domain> {
 
 impl<R: Domain> DetailSource<R::Id> for FetchSource<'_, R> {
     fn details(&mut self, id: R::Id, priority: f64) -> Availability<R::Id> {
-        let parents = self.refiner.parents(id).into_iter().map(R::key_of);
+        let refiner = self.refiner;
+        let parents = || refiner.parents(id).into_iter().map(R::key_of).collect();
         self.elevation.take(R::key_of(id), priority, parents, |d| {
             d.empty_children.iter().map(|&c| R::key_of(c)).collect()
         })
     }
 
     fn want(&mut self, id: R::Id, priority: f64) {
-        let parents = self.refiner.parents(id).into_iter().map(R::key_of);
+        let refiner = self.refiner;
+        let parents = || refiner.parents(id).into_iter().map(R::key_of).collect();
         let key = R::key_of(id);
         if self.elevation.lookup(key, parents).is_none() {
             self.elevation.record(key, priority);
@@ -1001,9 +1008,9 @@ impl<R: Domain> DetailSource<R::Id> for FetchSource<'_, R> {
             return Arrival::Ready(None);
         };
         let channel = &layer.channels()[0];
-        let parents = channel.parents(colour).into_iter().map(R::key_of);
-        let children = channel.info(colour).map(|i| i.children).unwrap_or_default();
+        let parents = || channel.parents(colour).into_iter().map(R::key_of).collect();
         stream.take(R::key_of(colour), priority, parents, |d| {
+            let children = channel.info(colour).map(|i| i.children).unwrap_or_default();
             d.empty_children(&children)
                 .into_iter()
                 .map(R::key_of)
@@ -1015,10 +1022,8 @@ impl<R: Domain> DetailSource<R::Id> for FetchSource<'_, R> {
         let Some((layer, stream)) = &mut self.colour else {
             return;
         };
-        let parents = layer.channels()[0]
-            .parents(colour)
-            .into_iter()
-            .map(R::key_of);
+        let channel = &layer.channels()[0];
+        let parents = || channel.parents(colour).into_iter().map(R::key_of).collect();
         let key = R::key_of(colour);
         if stream.lookup(key, parents).is_none() {
             stream.record(key, priority);
