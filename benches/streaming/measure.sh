@@ -47,10 +47,11 @@ for _ in $(seq 100); do
     (exec 3<>/dev/tcp/127.0.0.1/18190) 2>/dev/null && break
     sleep 0.1
 done
-fly() { # repo, path, link, transport[, tolerance]
+fly() { # repo, path, link, transport[, tolerance[, package factor]]
     "$bin/quincunx" fly --url http://127.0.0.1:18190 --repo "$1" --path "$2" --link "$3" \
-        --transport "$4" --tolerance-px "${5:-1}" --check-every 10 --json \
-        | python3 -c "import json,sys; d=json.load(sys.stdin); d['transport']='$4'; print(json.dumps(d))"
+        --transport "$4" --tolerance-px "${5:-1}" --package-factor "${6:-2}" \
+        --check-every 10 --json \
+        | python3 -c "import json,sys; d=json.load(sys.stdin); d['transport']='$4'; d['package_factor']=${6:-2}; print(json.dumps(d))"
 }
 if [ "$quick" = 1 ]; then
     fly korea_rms9 jump 4000,100 pipelined
@@ -67,6 +68,9 @@ if [ ${#planet[@]} != 0 ]; then
     fly earth_rms9 jump 300,100 h2
     fly earth_rms9 low-flight 4000,100 pipelined
     fly earth_rms9 approach 4000,100 pipelined
+    for link in 4000,100 300,100; do
+        fly earth_rms9 jump "$link" pipelined 1 0
+    done
 fi
 for repo in korea_rms9 korea_max2; do
     for link in 4000,100 300,100; do
@@ -77,6 +81,10 @@ for repo in korea_rms9 korea_max2; do
     done
     # HTTP/2's compressed headers on the slow link, where answer heads dominate.
     fly "$repo" jump 300,100 h2
+    # Side by side: bare blobs only (no packages), both links.
+    for link in 4000,100 300,100; do
+        fly "$repo" jump "$link" pipelined 1 0
+    done
     fly "$repo" low-flight 4000,100 pipelined
     fly "$repo" approach 4000,100 pipelined
     # The speed/accuracy trade: coarser tolerances.

@@ -72,10 +72,20 @@ pub struct BuildArgs {
     /// Print one JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
+    /// Inline small answers: a diamond's answer carries those of its owned children that
+    /// are at most this many bytes, instead of one answer each (0: never). See
+    /// `docs/blob-format.md`, "Answers".
+    #[arg(long, default_value_t = DEFAULT_INLINE_BYTES)]
+    pub inline_bytes: u64,
     /// Test hook: stop making progress after storing this many blobs (to be killed).
     #[arg(long, hide = true)]
     pub stall_after_blobs: Option<u64>,
 }
+
+/// Default of `--inline-bytes`: an answer a fraction of an HTTP/1.1 head (about 240 bytes
+/// down, 90 up) costs more in heads and round trips than in bytes a client may not need
+/// (measured in `docs/streaming.md`).
+pub const DEFAULT_INLINE_BYTES: u64 = 512;
 
 impl BuildArgs {
     /// The command line's defaults for `input` -> `output`: an elevation repository,
@@ -98,6 +108,7 @@ impl BuildArgs {
             memory_budget_mb: None,
             overwrite: false,
             json: false,
+            inline_bytes: DEFAULT_INLINE_BYTES,
             stall_after_blobs: None,
         }
     }
@@ -748,6 +759,7 @@ fn publish(
         }),
         level_stats: Vec::new(),
         coverage: d.coverage.clone(),
+        inline_max_bytes: u32::try_from(args.inline_bytes).ok().filter(|&t| t > 0),
     };
     builder
         .publish(meta, args.overwrite)

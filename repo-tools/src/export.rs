@@ -7,32 +7,53 @@
 //! <dir>/repos/<name>/v/<hash16>/d/<x>/<y>/<z>    sphere blob
 //! ```
 //! `hash16` is the first 16 hex digits of the content hash, so a rebuilt repository gets
-//! new URLs and caches never serve stale blobs. Leaves (no blob) have no file.
+//! new URLs and caches never serve stale blobs. Leaves (no blob) have no file. A
+//! repository with an inlining limit also gets each diamond's package (its blob with its
+//! small owned children's, `quincunx_store::answer`) at `.../p/<centre>`.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use quincunx_codec::diamond::{PlanarDomain, SphereDomain};
+use quincunx_store::answer::Domain;
 use quincunx_store::{Metadata, Repository};
 
 use crate::progress;
 
 /// The URL path (no leading slash) of a blob, from its storage key.
 pub fn blob_path(meta: &Metadata, name: &str, key: &[u8]) -> Result<String> {
+    Ok(blob_path_centre(meta, name, key)?.0)
+}
+
+/// [`blob_path`] and the diamond's centre (`z = 0` for planar ids).
+fn blob_path_centre(meta: &Metadata, name: &str, key: &[u8]) -> Result<(String, [i64; 3])> {
     let version = &meta.content_hash[..meta.content_hash.len().min(16)];
-    let centre = match meta.domain.as_str() {
+    let (centre, c) = match meta.domain.as_str() {
         "planar" => {
             let id = PlanarDomain::new(meta.m)?.id_from_key(key)?;
-            format!("{}/{}", id.x, id.y)
+            (format!("{}/{}", id.x, id.y), [id.x, id.y, 0])
         }
         "sphere" => {
             let id = SphereDomain::new(meta.m)?.id_from_key(key)?;
             let [x, y, z] = id.c;
-            format!("{x}/{y}/{z}")
+            (format!("{x}/{y}/{z}"), id.c)
         }
         other => bail!("unknown domain {other:?}"),
     };
-    Ok(format!("repos/{name}/v/{version}/d/{centre}"))
+    Ok((format!("repos/{name}/v/{version}/d/{centre}"), c))
+}
+
+/// The path of a diamond's package from its blob path (`/d/` becomes `/p/`).
+fn package_path(blob_path: &str) -> String {
+    blob_path.replacen("/d/", "/p/", 1)
+}
+
+fn write_file(file: &Path, bytes: &[u8]) -> Result<()> {
+    if let Some(parent) = file.parent() {
+        std::fs::create_dir_all(parent)
+            .with_context(|| format!("creating {}", parent.display()))?;
+    }
+    std::fs::write(file, bytes).with_context(|| format!("writing {}", file.display()))
 }
 
 /// Runs `quincunx export`.
@@ -51,16 +72,18 @@ pub fn run(path: &Path, dir: &Path, name: Option<&str>) -> Result<()> {
     let meta = repo.metadata();
     let root: PathBuf = dir.join("repos").join(&name);
     std::fs::create_dir_all(&root).with_context(|| format!("creating {}", root.display()))?;
+    let domain = Domain::of(meta).map_err(anyhow::Error::msg)?;
     let pb = progress::bar(repo.blob_count() as u64, "exporting", "blobs");
     let mut files = 0u64;
     for kv in repo.blobs() {
         let (key, blob) = kv?;
-        let file = dir.join(blob_path(meta, &name, &key)?);
-        if let Some(parent) = file.parent() {
-            std::fs::create_dir_all(parent)
-                .with_context(|| format!("creating {}", parent.display()))?;
+        let (path, centre) = blob_path_centre(meta, &name, &key)?;
+        let file = dir.join(&path);
+        if meta.inline_max_bytes.is_some() {
+            let package = repo.package(&domain, centre)?.unwrap_or_default();
+            write_file(&dir.join(package_path(&path)), &package)?;
         }
-        std::fs::write(&file, &blob).with_context(|| format!("writing {}", file.display()))?;
+        write_file(&file, &blob)?;
         files += 1;
         pb.inc(1);
     }

@@ -62,6 +62,10 @@ pub struct FlyArgs {
     /// Levels below each wanted diamond requested ahead (see `SessionConfig`).
     #[arg(long, default_value_t = 2)]
     pub lookahead_levels: usize,
+    /// Ask for packages (a blob with its small owned children's) when a diamond's
+    /// projected error is above this many times the tolerance; 0: bare blobs only.
+    #[arg(long, default_value_t = 2.0)]
+    pub package_factor: f64,
     /// Memory budget of the client's DAG in MiB (default: only the view bounds it).
     #[arg(long)]
     pub dag_budget_mb: Option<f64>,
@@ -101,6 +105,7 @@ impl FlyArgs {
             viewport: [1920, 1080],
             prefetch_s: 0.5,
             lookahead_levels: 2,
+            package_factor: 2.0,
             dag_budget_mb: None,
             spacing_m: None,
             seed: 1,
@@ -149,6 +154,7 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
         prefetch_ahead: Duration::from_secs_f64(args.prefetch_s.max(0.0)),
         spacing_m: args.spacing_m,
         lookahead_levels: args.lookahead_levels,
+        package_factor: (args.package_factor > 0.0).then_some(args.package_factor),
         procedural: match args.procedural_noise {
             a if a > 0 => Procedural::Noise {
                 amplitude: a,

@@ -102,6 +102,10 @@ pub fn run(path: &Path, json: bool) -> Result<()> {
     if let Some(r) = meta.radius_m {
         outln!("radius         {r} m");
     }
+    match meta.inline_max_bytes {
+        Some(t) => outln!("packages       carry owned children of at most {t} bytes"),
+        None => outln!("packages       none (bare blobs only)"),
+    }
     outln!("level      blobs        bytes  bytes/blob");
     for s in &meta.level_stats {
         outln!(

@@ -6,8 +6,8 @@ use std::sync::Arc;
 
 use axum::http::HeaderValue;
 use bytes::Bytes;
-use quincunx_diamond::{PlanarDomain, PlanarId, SphereDomain, SphereId};
 use quincunx_store::Repository;
+pub use quincunx_store::answer::Domain;
 
 use crate::ServeError;
 use crate::config::{Cors, ServerConfig};
@@ -38,39 +38,6 @@ impl std::ops::Deref for AppState {
     }
 }
 
-/// The id space of a repository.
-#[derive(Clone, Copy, Debug)]
-pub enum Domain {
-    /// Planar square `[0, 2^m]^2`: ids have 2 coordinates.
-    Planar(PlanarDomain),
-    /// Cube-mapped sphere `[-2^m, 2^m]^3`: ids have 3 coordinates.
-    Sphere(SphereDomain),
-}
-
-impl Domain {
-    /// Coordinates in an id.
-    pub fn dims(&self) -> usize {
-        match self {
-            Domain::Planar(_) => 2,
-            Domain::Sphere(_) => 3,
-        }
-    }
-
-    /// The storage key and level of a centre, or why it is not a diamond of this domain.
-    fn key(&self, c: [i64; 3]) -> Result<(Vec<u8>, u32), quincunx_diamond::IdError> {
-        match self {
-            Domain::Planar(d) => {
-                let id = PlanarId { x: c[0], y: c[1] };
-                Ok((d.key(id)?, d.level(id)?))
-            }
-            Domain::Sphere(d) => {
-                let id = SphereId { c };
-                Ok((d.key(id)?, d.level(id)?))
-            }
-        }
-    }
-}
-
 /// One repository being served.
 pub struct Served {
     /// Name in URLs.
@@ -79,6 +46,8 @@ pub struct Served {
     /// Its id space.
     pub domain: Domain,
     levels: u32,
+    /// Whether `.../p/` serves packages (the repository has an inlining limit).
+    pub packaged: bool,
     /// First 16 hex digits of the content hash: the version in blob URLs.
     pub version: String,
     /// `GET /repos/<name>/metadata.json` body (byte-identical to `quincunx export`'s).
@@ -102,14 +71,17 @@ struct BlobWeighter;
 /// Per-entry bookkeeping beyond the body, counted against the byte budget.
 const ENTRY_OVERHEAD_BYTES: u64 = 96;
 
-impl quick_cache::Weighter<(u32, [i64; 3]), CachedBlob> for BlobWeighter {
-    fn weight(&self, _key: &(u32, [i64; 3]), val: &CachedBlob) -> u64 {
+impl quick_cache::Weighter<BlobKey, CachedBlob> for BlobWeighter {
+    fn weight(&self, _key: &BlobKey, val: &CachedBlob) -> u64 {
         val.body.len() as u64 + val.etag.len() as u64 + ENTRY_OVERHEAD_BYTES
     }
 }
 
-/// The hot cache: `(repository index, centre)` -> blob, bounded in bytes.
-type BlobCache = quick_cache::sync::Cache<(u32, [i64; 3]), CachedBlob, BlobWeighter>;
+/// `(repository index, centre, package?)`.
+type BlobKey = (u32, [i64; 3], bool);
+
+/// The hot cache: blob or package by [`BlobKey`], bounded in bytes.
+type BlobCache = quick_cache::sync::Cache<BlobKey, CachedBlob, BlobWeighter>;
 
 impl AppState {
     /// Opens every configured repository (read-only).
@@ -156,11 +128,12 @@ impl AppState {
         Some((i as u32, &self.repos[i]))
     }
 
-    /// The blob of the diamond centred at `c` in repository `index`: from the hot cache,
-    /// else validated, read from sled and cached. In-domain diamonds without a blob (leaves,
-    /// holes of sparse repositories, levels deeper than the repository) get an empty body.
-    pub fn blob(&self, index: u32, c: [i64; 3]) -> Result<CachedBlob, ApiError> {
-        if let Some(hit) = self.cache.get(&(index, c)) {
+    /// The blob of the diamond centred at `c` in repository `index`, or with `packaged`
+    /// its package (`quincunx_store::answer`): from the hot cache, else validated, read
+    /// from sled and cached. In-domain diamonds without a blob (leaves, holes of sparse
+    /// repositories, levels deeper than the repository) get an empty body.
+    pub fn blob(&self, index: u32, c: [i64; 3], packaged: bool) -> Result<CachedBlob, ApiError> {
+        if let Some(hit) = self.cache.get(&(index, c, packaged)) {
             self.metrics
                 .cache_hits
                 .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
@@ -172,10 +145,16 @@ impl AppState {
         let served = &self.repos[index as usize];
         let (key, level) = served
             .domain
-            .key(c)
+            .key_level(c)
             .map_err(|e| ApiError::bad_request(format!("not a diamond of this repository: {e}")))?;
         let body = if level >= served.levels {
             Bytes::new()
+        } else if packaged {
+            match served.repo.package(&served.domain, c) {
+                Ok(Some(answer)) => Bytes::from(answer),
+                Ok(None) => Bytes::new(),
+                Err(e) => return Err(ApiError::internal(&served.name, &e)),
+            }
         } else {
             match served.repo.get(&key) {
                 Ok(Some(blob)) => Bytes::copy_from_slice(&blob),
@@ -183,15 +162,18 @@ impl AppState {
                 Err(e) => return Err(ApiError::internal(&served.name, &e)),
             }
         };
+        let kind = if packaged { "p." } else { "" };
         let etag = match served.domain {
-            Domain::Planar(_) => format!("\"{}.{}.{}\"", served.version, c[0], c[1]),
-            Domain::Sphere(_) => format!("\"{}.{}.{}.{}\"", served.version, c[0], c[1], c[2]),
+            Domain::Planar(_) => format!("\"{}.{kind}{}.{}\"", served.version, c[0], c[1]),
+            Domain::Sphere(_) => {
+                format!("\"{}.{kind}{}.{}.{}\"", served.version, c[0], c[1], c[2])
+            }
         };
         let blob = CachedBlob {
             body,
             etag: HeaderValue::try_from(etag).map_err(|e| ApiError::internal(&served.name, &e))?,
         };
-        self.cache.insert((index, c), blob.clone());
+        self.cache.insert((index, c, packaged), blob.clone());
         Ok(blob)
     }
 
@@ -205,11 +187,7 @@ impl Served {
     fn new(name: String, repo: Repository) -> Result<Served, ServeError> {
         let meta = repo.metadata();
         let bad = |what: String| ServeError::Config(format!("repository {name:?}: {what}"));
-        let domain = match meta.domain.as_str() {
-            "planar" => Domain::Planar(PlanarDomain::new(meta.m).map_err(|e| bad(e.to_string()))?),
-            "sphere" => Domain::Sphere(SphereDomain::new(meta.m).map_err(|e| bad(e.to_string()))?),
-            other => return Err(bad(format!("unknown domain {other:?}"))),
-        };
+        let domain = Domain::of(meta).map_err(bad)?;
         if meta.content_hash.len() < 16 || !meta.content_hash.bytes().all(|b| b.is_ascii_hexdigit())
         {
             return Err(bad("content hash missing or malformed".into()));
@@ -220,6 +198,7 @@ impl Served {
             .map_err(|e| bad(e.to_string()))?;
         Ok(Served {
             levels: meta.levels,
+            packaged: meta.inline_max_bytes.is_some(),
             name,
             repo,
             domain,

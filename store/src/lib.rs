@@ -28,6 +28,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+pub mod answer;
 pub mod channels;
 pub mod page;
 
@@ -183,6 +184,10 @@ pub struct Metadata {
     /// says where data exists; points elsewhere are invalid (holes). `None` = dense.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub coverage: Option<Vec<u8>>,
+    /// Inlining limit `T`: a diamond's package carries the packages of its owned children
+    /// of at most `T` bytes ([`answer`]). `None`: no packages are served.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inline_max_bytes: Option<u32>,
 }
 
 /// The attribute a repository carries.
@@ -837,6 +842,7 @@ mod tests {
             build: serde_json::json!({}),
             level_stats: vec![],
             coverage: None,
+            inline_max_bytes: None,
         }
     }
 

@@ -52,6 +52,7 @@ fn metadata(domain: &str, m: u32, levels: u32) -> Metadata {
         build: serde_json::json!({"fixture": true}),
         level_stats: vec![],
         coverage: None,
+        inline_max_bytes: None,
     }
 }
 

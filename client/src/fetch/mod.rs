@@ -50,6 +50,21 @@ pub type Key = [i64; 3];
 /// thread. An `Err` is reported as [`FetchError::Decode`] and not retried.
 pub type Decode<T> = Arc<dyn Fn(Key, Bytes) -> Result<T, String> + Send + Sync>;
 
+/// What one answer decoded to: the requested key's value, and the other keys the answer
+/// carried (a repository's inlined levels, `quincunx_store::answer`): `Some` with their
+/// value, `None` for keys it shows to be leaves.
+#[derive(Debug)]
+pub struct Decoded<T> {
+    /// The value of the key asked for.
+    pub value: T,
+    /// Other keys settled by the same answer.
+    pub carried: Vec<(Key, Option<T>)>,
+}
+
+/// Like [`Decode`], for answers that may carry other keys' values: the flag says whether
+/// the answer was asked for as a package ([`Remote::package_path`]).
+pub type Unpack<T> = Arc<dyn Fn(Key, Bytes, bool) -> Result<Decoded<T>, String> + Send + Sync>;
+
 /// What became of a wanted key.
 #[derive(Debug)]
 pub enum Fetched<T> {
@@ -328,6 +343,8 @@ pub struct FetchStats {
     pub bytes_fetched: u64,
     /// Keys answered with an empty body.
     pub leaves: u64,
+    /// Keys settled inside another key's answer (values and leaves).
+    pub carried: u64,
     /// Wants answered from the cache or the leaf set, without a request.
     pub cache_hits: u64,
     /// Requests outstanding now.
@@ -361,6 +378,7 @@ impl FetchStats {
         self.responses = responses;
         self.bytes_fetched += o.bytes_fetched;
         self.leaves += o.leaves;
+        self.carried += o.carried;
         self.cache_hits += o.cache_hits;
         self.in_flight += o.in_flight;
         self.queued += o.queued;

@@ -81,6 +81,10 @@ impl Remote {
 
     /// The request path of `key` (with the endpoint's prefix).
     pub fn blob_path(&self, key: Key) -> String {
+        self.path(key, "d")
+    }
+
+    fn path(&self, key: Key, kind: &str) -> String {
         let [x, y, z] = key;
         let Remote {
             endpoint,
@@ -90,10 +94,16 @@ impl Remote {
         } = self;
         let prefix = &endpoint.prefix;
         if self.sphere {
-            format!("{prefix}/repos/{name}/v/{version}/d/{x}/{y}/{z}")
+            format!("{prefix}/repos/{name}/v/{version}/{kind}/{x}/{y}/{z}")
         } else {
-            format!("{prefix}/repos/{name}/v/{version}/d/{x}/{y}")
+            format!("{prefix}/repos/{name}/v/{version}/{kind}/{x}/{y}")
         }
+    }
+
+    /// The path of `key`'s package: its blob with its small owned children's
+    /// (`quincunx_store::answer`; repositories with an inlining limit only).
+    pub fn package_path(&self, key: Key) -> String {
+        self.path(key, "p")
     }
 
     /// The absolute URL of `key`.

@@ -88,6 +88,11 @@ impl Scheduler {
         self.wants.get(&key).map(|w| w.0)
     }
 
+    /// The priority of a wanted key.
+    pub fn priority(&self, key: Key) -> Option<f32> {
+        self.wants.get(&key).map(|w| w.1)
+    }
+
     /// Stops wanting `key` until the next [`Scheduler::set_wants`] (it was answered).
     pub fn unwant(&mut self, key: Key) {
         self.wants.remove(&key);

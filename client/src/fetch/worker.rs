@@ -1,6 +1,6 @@
 //! The network thread and its handle, [`Fetcher`].
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::mpsc as std_mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -12,13 +12,16 @@ use super::bandwidth::{Bandwidth, Cap};
 use super::cache::DecodedCache;
 use super::schedule::{Backoff, Class, Scheduler};
 use super::transport::{Completion, Driver, Request};
-use super::{Decode, FetchConfig, FetchError, FetchStats, Fetched, Key, Weigh, lock};
+use super::{
+    Decode, Decoded, FetchConfig, FetchError, FetchStats, Fetched, Key, Unpack, Weigh, lock,
+};
 
 /// Messages from the frame loop to the network thread.
 enum Command {
     Wants {
         wants: Vec<(Key, f32)>,
         prefetch: Vec<(Key, f32)>,
+        package_above: Option<f32>,
     },
     Stop,
 }
@@ -69,6 +72,22 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
     /// Starts the network thread (a tokio current-thread runtime) with `config`; `decode`
     /// runs on that thread for every non-empty blob.
     pub fn spawn(config: FetchConfig, decode: Decode<T>) -> Result<Fetcher<T>, FetchError> {
+        let unpack: Unpack<T> = Arc::new(move |key, bytes, _packaged| {
+            Ok(Decoded {
+                value: decode(key, bytes)?,
+                carried: Vec::new(),
+            })
+        });
+        Fetcher::spawn_unpacking(config, unpack)
+    }
+
+    /// [`Fetcher::spawn`] for answers that carry other keys' values too: those are cached
+    /// (or recorded as leaves), dropped from the queue, and reported if wanted, as if
+    /// fetched.
+    pub fn spawn_unpacking(
+        config: FetchConfig,
+        decode: Unpack<T>,
+    ) -> Result<Fetcher<T>, FetchError> {
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_io()
             .enable_time()
@@ -99,6 +118,8 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
             charged: HashMap::new(),
             driver,
             stats: FetchStats::default(),
+            package_above: None,
+            packaged: HashSet::new(),
         };
         let thread = std::thread::Builder::new()
             .name("quincunx-fetch".into())
@@ -124,6 +145,18 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
     /// only when every wanted key is in flight and the bandwidth allows more. Prefetched
     /// blobs go to the cache; they are not reported by [`Fetcher::poll`].
     pub fn submit_with_prefetch(&self, wants: Vec<(Key, f32)>, prefetch: Vec<(Key, f32)>) {
+        self.submit_packaged(wants, prefetch, None);
+    }
+
+    /// Like [`Fetcher::submit_with_prefetch`]; keys whose priority is at least
+    /// `package_above` are asked for as packages (the answer carries small owned
+    /// children's values too, [`Unpack`]), the others as bare blobs.
+    pub fn submit_packaged(
+        &self,
+        wants: Vec<(Key, f32)>,
+        prefetch: Vec<(Key, f32)>,
+        package_above: Option<f32>,
+    ) {
         let mut hits = 0u64;
         let (wants, prefetch) = {
             let mut cache = lock(&self.shared.cache);
@@ -151,7 +184,11 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
         if hits > 0 {
             lock(&self.shared.stats).cache_hits += hits;
         }
-        let _ = self.commands.send(Command::Wants { wants, prefetch });
+        let _ = self.commands.send(Command::Wants {
+            wants,
+            prefetch,
+            package_above,
+        });
     }
 
     /// Results ready since the last call, in arrival order.
@@ -167,6 +204,11 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
     /// The cached value of `key`, if any (marks it recently used).
     pub fn cached(&self, key: Key) -> Option<Arc<T>> {
         lock(&self.shared.cache).get(key)
+    }
+
+    /// Whether `key`'s value is cached (without marking it used).
+    pub fn contains(&self, key: Key) -> bool {
+        lock(&self.shared.cache).contains(key)
     }
 
     /// Whether `key` is known to be a leaf.
@@ -194,7 +236,7 @@ impl<T> Drop for Fetcher<T> {
 /// The network thread's state.
 struct Worker<T> {
     config: FetchConfig,
-    decode: Decode<T>,
+    decode: Unpack<T>,
     shared: Arc<Shared<T>>,
     results: std_mpsc::Sender<Results<T>>,
     sched: Scheduler,
@@ -205,6 +247,10 @@ struct Worker<T> {
     driver: Driver,
     /// The thread's own counters, published to `shared.stats` after each event.
     stats: FetchStats,
+    /// Priority from which keys are asked for as packages (latest submit).
+    package_above: Option<f32>,
+    /// Keys in flight asked for as packages.
+    packaged: HashSet<Key>,
 }
 
 enum Event {
@@ -240,15 +286,21 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
             };
             match event {
                 Event::Command(None | Some(Command::Stop)) | Event::Done(None) => break,
-                Event::Command(Some(Command::Wants { wants, prefetch })) => {
+                Event::Command(Some(Command::Wants {
+                    wants,
+                    prefetch,
+                    package_above,
+                })) => {
                     // Only the latest frame's wants matter.
                     let (mut wants, mut prefetch) = (wants, prefetch);
+                    self.package_above = package_above;
                     while let Ok(next) = commands.try_recv() {
                         match next {
                             Command::Wants {
                                 wants: w,
                                 prefetch: p,
-                            } => (wants, prefetch) = (w, p),
+                                package_above: a,
+                            } => (wants, prefetch, self.package_above) = (w, p, a),
                             Command::Stop => return,
                         }
                     }
@@ -298,14 +350,24 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
                 }
                 self.charged.insert(key, expected);
             }
-            let path = self.config.remote.blob_path(key);
+            let packaged = self
+                .package_above
+                .is_some_and(|t| self.sched.priority(key).is_some_and(|p| p >= t));
+            let path = if packaged {
+                self.config.remote.package_path(key)
+            } else {
+                self.config.remote.blob_path(key)
+            };
             if !self.driver.send(Request { key, path }) {
                 if let (Some(cap), Some(charged)) = (&mut self.cap, self.charged.remove(&key)) {
                     cap.correct(charged, 0.0);
                 }
                 break;
             }
-            tracing::trace!(?key, "request");
+            tracing::trace!(?key, packaged, "request");
+            if packaged {
+                self.packaged.insert(key);
+            }
             self.sched.issued(key, now);
             self.stats.requests += 1;
         }
@@ -320,6 +382,7 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
         let now = Instant::now();
         self.driver.finished(done.slot);
         let in_flight_before = self.sched.in_flight();
+        let packaged = self.packaged.remove(&done.key);
         let Some((latency, issued_as)) = self.sched.finished(done.key, now) else {
             return;
         };
@@ -335,7 +398,7 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
         let report = issued_as == Class::Want || self.sched.class(key) == Some(Class::Want);
         let error = match done.result {
             Ok((200, body)) => {
-                self.answered(key, body, latency, report);
+                self.answered(key, body, packaged, latency, report);
                 self.bandwidth.advance(now, in_flight_before);
                 return;
             }
@@ -347,7 +410,7 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
     }
 
     /// A 200 answer: a leaf, or a blob to decode and cache.
-    fn answered(&mut self, key: Key, body: Bytes, latency: Duration, report: bool) {
+    fn answered(&mut self, key: Key, body: Bytes, packaged: bool, latency: Duration, report: bool) {
         let len = body.len();
         self.stats.responses += 1;
         self.stats.bytes_fetched += len as u64;
@@ -362,8 +425,28 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
             }
             return;
         }
-        match (self.decode)(key, body) {
-            Ok(value) => {
+        match (self.decode)(key, body, packaged) {
+            Ok(Decoded { value, carried }) => {
+                // Carried keys first: once the asked key is cached, so is what it carried.
+                for (k, v) in carried {
+                    self.stats.carried += 1;
+                    let wanted = self.sched.class(k) == Some(Class::Want);
+                    self.sched.unwant(k);
+                    let fetched = match v {
+                        Some(v) => {
+                            let v = Arc::new(v);
+                            lock(&self.shared.cache).insert(k, Arc::clone(&v));
+                            Fetched::Data(v)
+                        }
+                        None => {
+                            lock(&self.shared.cache).mark_leaf(k);
+                            Fetched::Leaf
+                        }
+                    };
+                    if wanted {
+                        self.deliver(k, fetched);
+                    }
+                }
                 let value = Arc::new(value);
                 lock(&self.shared.cache).insert(key, Arc::clone(&value));
                 if report {

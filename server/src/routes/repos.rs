@@ -68,11 +68,18 @@ fn resource(state: &AppState, request: &Request) -> Result<Response, ApiError> {
                     "this version of the repository is not served (current: see metadata.json)",
                 ));
             }
-            if parts.next() != Some("d") {
-                return Err(ApiError::not_found("expected .../d/<x>/<y>[/<z>]"));
-            }
+            let packaged = match parts.next() {
+                Some("d") => false,
+                Some("p") if served.packaged => true,
+                Some("p") => {
+                    return Err(ApiError::not_found(
+                        "this repository has no packages (no inlining limit): use .../d/",
+                    ));
+                }
+                _ => return Err(ApiError::not_found("expected .../d/<x>/<y>[/<z>]")),
+            };
             let centre = parse_centre(parts, served.domain)?;
-            let blob = state.blob(index, centre)?;
+            let blob = state.blob(index, centre, packaged)?;
             if not_modified(request.headers(), &blob.etag) {
                 return Ok(not_modified_response(blob.etag, IMMUTABLE));
             }
