@@ -150,8 +150,9 @@ pub struct SessionConfig {
     /// inlining limit) where the diamond's children and grandchildren will want refining
     /// too: projected error at least `package_factor x tolerance`. `None`: bare blobs
     /// only. The default, 2, is where the grandchildren's error (about half the
-    /// diamond's) still exceeds the tolerance; 1 or sqrt(2) fetched 1.28 or 1.19 times
-    /// what the planet's jump flight used, against 1.10 (`docs/streaming.md`).
+    /// diamond's) still exceeds the tolerance. With a 300-byte limit, 1 or sqrt(2)
+    /// fetched 1.28 or 1.19 times what the planet's jump flight used, 2 1.10
+    /// (`docs/streaming.md`, "Packages").
     pub package_factor: Option<f64>,
 }
 
@@ -254,7 +255,7 @@ struct Layer<T> {
     inferred_leaves: HashSet<Key>,
     /// Wanted this frame, with priorities.
     wants: HashMap<Key, f64>,
-    /// How the repository's answers carry its inlined levels, if it has any.
+    /// How the repository's packages carry small owned children, if it serves any.
     packing: Option<Packing>,
 }
 
