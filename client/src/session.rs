@@ -301,7 +301,7 @@ impl Packing {
         key: Key,
         bytes: &[u8],
         decode: &D,
-        carried: &mut Vec<(Key, Option<T>)>,
+        carried: &mut Vec<(Key, T)>,
     ) -> Result<T, String> {
         let parsed = answer::parse(bytes, true).map_err(|e| e.to_string())?;
         let value = decode(key, parsed.blob)?;
@@ -318,7 +318,7 @@ impl Packing {
                 .get(i)
                 .ok_or_else(|| format!("carries owned child {i} of {}", owned.len()))?;
             let v = self.unpack(child, bytes, decode, carried)?;
-            carried.push((child, Some(v)));
+            carried.push((child, v));
         }
         Ok(value)
     }

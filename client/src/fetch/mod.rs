@@ -50,15 +50,14 @@ pub type Key = [i64; 3];
 /// thread. An `Err` is reported as [`FetchError::Decode`] and not retried.
 pub type Decode<T> = Arc<dyn Fn(Key, Bytes) -> Result<T, String> + Send + Sync>;
 
-/// What one answer decoded to: the requested key's value, and the other keys the answer
-/// carried (a repository's inlined levels, `quincunx_store::answer`): `Some` with their
-/// value, `None` for keys it shows to be leaves.
+/// What one answer decoded to: the requested key's value, and the values of the other
+/// keys the answer carried (a package's owned children, `quincunx_store::answer`).
 #[derive(Debug)]
 pub struct Decoded<T> {
     /// The value of the key asked for.
     pub value: T,
-    /// Other keys settled by the same answer.
-    pub carried: Vec<(Key, Option<T>)>,
+    /// Other keys the same answer brought, with their values.
+    pub carried: Vec<(Key, T)>,
 }
 
 /// Like [`Decode`], for answers that may carry other keys' values: the flag says whether
@@ -343,7 +342,7 @@ pub struct FetchStats {
     pub bytes_fetched: u64,
     /// Keys answered with an empty body.
     pub leaves: u64,
-    /// Keys settled inside another key's answer (values and leaves).
+    /// Keys whose values came inside another key's answer.
     pub carried: u64,
     /// Wants answered from the cache or the leaf set, without a request.
     pub cache_hits: u64,

@@ -81,9 +81,8 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
         Fetcher::spawn_unpacking(config, unpack)
     }
 
-    /// [`Fetcher::spawn`] for answers that carry other keys' values too: those are cached
-    /// (or recorded as leaves), dropped from the queue, and reported if wanted, as if
-    /// fetched.
+    /// [`Fetcher::spawn`] for answers that carry other keys' values too: those are
+    /// cached, dropped from the queue, and reported if wanted, as if fetched.
     pub fn spawn_unpacking(
         config: FetchConfig,
         decode: Unpack<T>,
@@ -432,19 +431,10 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
                     self.stats.carried += 1;
                     let wanted = self.sched.class(k) == Some(Class::Want);
                     self.sched.unwant(k);
-                    let fetched = match v {
-                        Some(v) => {
-                            let v = Arc::new(v);
-                            lock(&self.shared.cache).insert(k, Arc::clone(&v));
-                            Fetched::Data(v)
-                        }
-                        None => {
-                            lock(&self.shared.cache).mark_leaf(k);
-                            Fetched::Leaf
-                        }
-                    };
+                    let v = Arc::new(v);
+                    lock(&self.shared.cache).insert(k, Arc::clone(&v));
                     if wanted {
-                        self.deliver(k, fetched);
+                        self.deliver(k, Fetched::Data(v));
                     }
                 }
                 let value = Arc::new(value);
