@@ -22,11 +22,12 @@ use crate::progress;
 
 /// The URL path (no leading slash) of a blob, from its storage key.
 pub fn blob_path(meta: &Metadata, name: &str, key: &[u8]) -> Result<String> {
-    Ok(blob_path_centre(meta, name, key)?.0)
+    Ok(path_centre(meta, name, key, "d")?.0)
 }
 
-/// [`blob_path`] and the diamond's centre (`z = 0` for planar ids).
-fn blob_path_centre(meta: &Metadata, name: &str, key: &[u8]) -> Result<(String, [i64; 3])> {
+/// The URL path of a diamond's blob (`kind` "d") or package ("p"), and its centre
+/// (`z = 0` for planar ids).
+fn path_centre(meta: &Metadata, name: &str, key: &[u8], kind: &str) -> Result<(String, [i64; 3])> {
     let version = &meta.content_hash[..meta.content_hash.len().min(16)];
     let (centre, c) = match meta.domain.as_str() {
         "planar" => {
@@ -40,12 +41,7 @@ fn blob_path_centre(meta: &Metadata, name: &str, key: &[u8]) -> Result<(String, 
         }
         other => bail!("unknown domain {other:?}"),
     };
-    Ok((format!("repos/{name}/v/{version}/d/{centre}"), c))
-}
-
-/// The path of a diamond's package from its blob path (`/d/` becomes `/p/`).
-fn package_path(blob_path: &str) -> String {
-    blob_path.replacen("/d/", "/p/", 1)
+    Ok((format!("repos/{name}/v/{version}/{kind}/{centre}"), c))
 }
 
 fn write_file(file: &Path, bytes: &[u8]) -> Result<()> {
@@ -77,13 +73,12 @@ pub fn run(path: &Path, dir: &Path, name: Option<&str>) -> Result<()> {
     let mut files = 0u64;
     for kv in repo.blobs() {
         let (key, blob) = kv?;
-        let (path, centre) = blob_path_centre(meta, &name, &key)?;
-        let file = dir.join(&path);
+        let (path, centre) = path_centre(meta, &name, &key, "d")?;
         if meta.inline_max_bytes.is_some() {
             let package = repo.package(&domain, centre)?.unwrap_or_default();
-            write_file(&dir.join(package_path(&path)), &package)?;
+            write_file(&dir.join(path_centre(meta, &name, &key, "p")?.0), &package)?;
         }
-        write_file(&file, &blob)?;
+        write_file(&dir.join(path), &blob)?;
         files += 1;
         pb.inc(1);
     }

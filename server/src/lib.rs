@@ -3,9 +3,9 @@
 //! It never decodes a blob (this crate does not depend on the codec; CI checks it): a
 //! request is parsed, its id validated with `quincunx-diamond` (through
 //! `quincunx_store::answer::Domain`), and the blob's bytes come from the in-memory hot
-//! cache or the sled store; in repositories with an inlining limit, answers are framed
-//! with their small owned children's blobs (`quincunx_store::answer`), never decoded. Blob URLs carry the repository's
-//! content hash, so responses are immutable and any HTTP cache or CDN can sit in front.
+//! cache or the sled store; packages are framed from stored blobs
+//! (`quincunx_store::answer`), never decoded. Blob URLs carry the repository's content
+//! hash, so responses are immutable and any HTTP cache or CDN can sit in front.
 //! The API is documented in `docs/http-api.md`.
 //!
 //! - [`config`]: TOML + flags + environment.
