@@ -502,13 +502,25 @@ pub(crate) trait Layout: Sync {
     fn is_distinct(&self, k: usize) -> bool;
     /// Number of distinct points.
     fn distinct_len(&self) -> usize;
-    /// Fills `values` where `valid` is false, smoothly; `false` if nothing is valid.
-    fn fill_nodata(&self, values: &mut [f64], valid: &[bool]) -> bool;
+    /// Writes `to_int(fill)` into `out[k]` wherever `valid[k]` is false, the fill being a
+    /// smooth continuation of the valid `values` around it (so holes make no spikes);
+    /// `false` if nothing is valid.
+    fn fill_nodata(
+        &self,
+        values: &[f64],
+        valid: &[bool],
+        out: &mut [i32],
+        to_int: &(dyn Fn(f64) -> i32 + Sync),
+    ) -> bool;
     /// The coverage that makes points invalid (sparse mode), if any.
     fn coverage(&self) -> Option<&Coverage>;
     /// Per array entry, whether it is a valid point; `None` when every entry is.
     fn point_validity(&self) -> Option<Vec<bool>>;
 }
+
+/// Diamonds transformed in parallel between two serial scatters into the raster: large
+/// enough to keep both cores busy, small enough that the lattices stay in a reused buffer.
+const CHUNK: usize = 1024;
 
 /// Forward transform of every level, fine to coarse, diamonds of a level in parallel.
 pub(crate) fn analyze_levels<G: Layout>(g: &G, raster: &mut [i32]) -> Vec<Vec<Vec<i32>>> {
@@ -528,33 +540,39 @@ where
     R: Send,
 {
     let n = g.n();
+    let (vlen, clen) = ((n + 1) * (n + 1), n * n);
     let levels = g.slot_levels();
     let mut details = vec![Vec::new(); levels.len()];
     let mut visits: Vec<Vec<R>> = (0..levels.len()).map(|_| Vec::new()).collect();
+    // Coarse vertex lattices of a chunk of diamonds, reused (no per-level allocation).
+    let mut vbuf = vec![0; CHUNK * vlen];
     for level in (0..levels.len()).rev() {
         let slots = &levels[level];
-        let shared: &[i32] = raster;
-        let results: Vec<(Vec<i32>, Vec<i32>, R)> = slots
-            .par_iter()
-            .enumerate()
-            .map(|(index, s)| {
-                let mut v = vec![0; (n + 1) * (n + 1)];
-                let mut c = vec![0; n * n];
-                let mut h = vec![0; n * n];
-                g.gather_vertices(s, shared, &mut v);
-                g.gather_cells(s, shared, &mut c);
-                let fine = v.clone();
-                lifting::analyze(n, &mut v, &c, &mut h, g.mask(s));
-                let r = visit(level, index, &v, &fine, &c);
-                (v, h, r)
-            })
-            .collect();
-        let mut hs = Vec::with_capacity(results.len());
-        let mut rs = Vec::with_capacity(results.len());
-        for (s, (v, h, r)) in slots.iter().zip(results) {
-            g.scatter_interior(s, &v, raster);
-            hs.push(h);
-            rs.push(r);
+        let mut hs = Vec::with_capacity(slots.len());
+        let mut rs = Vec::with_capacity(slots.len());
+        for start in (0..slots.len()).step_by(CHUNK) {
+            let chunk = &slots[start..(start + CHUNK).min(slots.len())];
+            let shared: &[i32] = raster;
+            let results: Vec<(Vec<i32>, R)> = vbuf
+                .par_chunks_mut(vlen)
+                .zip(chunk.par_iter())
+                .enumerate()
+                .map(|(k, (v, s))| {
+                    let mut c = vec![0; clen];
+                    let mut h = vec![0; clen];
+                    g.gather_vertices(s, shared, v);
+                    g.gather_cells(s, shared, &mut c);
+                    let fine = v.to_vec();
+                    lifting::analyze(n, v, &c, &mut h, g.mask(s));
+                    let r = visit(level, start + k, v, &fine, &c);
+                    (h, r)
+                })
+                .collect();
+            for (k, (s, (h, r))) in chunk.iter().zip(results).enumerate() {
+                g.scatter_interior(s, &vbuf[k * vlen..(k + 1) * vlen], raster);
+                hs.push(h);
+                rs.push(r);
+            }
         }
         details[level] = hs;
         visits[level] = rs;
@@ -619,30 +637,36 @@ where
     R: Send,
 {
     let n = g.n();
+    let (vlen, clen) = ((n + 1) * (n + 1), n * n);
     let levels = g.slot_levels();
     let mut out = Vec::with_capacity(levels.len());
+    // Refined lattices of a chunk of diamonds, reused (no per-level allocation).
+    let mut vbuf = vec![0; CHUNK * vlen];
+    let mut cbuf = vec![0; CHUNK * clen];
     for (level, slots) in levels.iter().enumerate() {
-        let shared: &[i32] = raster;
-        let results: Vec<(Vec<i32>, Vec<i32>, R)> = slots
-            .par_iter()
-            .enumerate()
-            .map(|(index, s)| {
-                let mut v = vec![0; (n + 1) * (n + 1)];
-                let mut c = vec![0; n * n];
-                let mut h = vec![0; n * n];
-                details(level, index, &mut h);
-                g.gather_vertices(s, shared, &mut v);
-                let coarse = v.clone();
-                lifting::synthesize(n, &mut v, &h, &mut c, g.mask(s));
-                let r = visit(level, index, &coarse, &v, &c);
-                (v, c, r)
-            })
-            .collect();
-        let mut rs = Vec::with_capacity(results.len());
-        for (s, (v, c, r)) in slots.iter().zip(results) {
-            g.scatter_interior(s, &v, raster);
-            g.scatter_cells(s, &c, raster);
-            rs.push(r);
+        let mut rs = Vec::with_capacity(slots.len());
+        for start in (0..slots.len()).step_by(CHUNK) {
+            let chunk = &slots[start..(start + CHUNK).min(slots.len())];
+            let shared: &[i32] = raster;
+            let results: Vec<R> = vbuf
+                .par_chunks_mut(vlen)
+                .zip(cbuf.par_chunks_mut(clen))
+                .zip(chunk.par_iter())
+                .enumerate()
+                .map(|(k, ((v, c), s))| {
+                    let mut h = vec![0; clen];
+                    details(level, start + k, &mut h);
+                    g.gather_vertices(s, shared, v);
+                    let coarse = v.to_vec();
+                    lifting::synthesize(n, v, &h, c, g.mask(s));
+                    visit(level, start + k, &coarse, v, c)
+                })
+                .collect();
+            for (k, s) in chunk.iter().enumerate() {
+                g.scatter_interior(s, &vbuf[k * vlen..(k + 1) * vlen], raster);
+                g.scatter_cells(s, &cbuf[k * clen..(k + 1) * clen], raster);
+            }
+            rs.extend(results);
         }
         out.push(rs);
     }
@@ -722,8 +746,21 @@ impl Layout for RasterGeometry {
         self.width * self.height
     }
 
-    fn fill_nodata(&self, values: &mut [f64], valid: &[bool]) -> bool {
-        crate::fill::push_pull(self.width, self.height, values, valid)
+    fn fill_nodata(
+        &self,
+        values: &[f64],
+        valid: &[bool],
+        out: &mut [i32],
+        to_int: &(dyn Fn(f64) -> i32 + Sync),
+    ) -> bool {
+        match crate::fill::holes(self.width, self.height, values, valid) {
+            crate::fill::Holes::NoData => false,
+            crate::fill::Holes::None => true,
+            crate::fill::Holes::Some(filler) => {
+                filler.write(out, valid, to_int);
+                true
+            }
+        }
     }
 
     fn coverage(&self) -> Option<&Coverage> {

@@ -735,26 +735,35 @@ impl Layout for SphereGeometry {
         self.distinct_points()
     }
 
-    fn fill_nodata(&self, values: &mut [f64], valid: &[bool]) -> bool {
-        if !valid.iter().any(|&b| b) {
-            return false;
-        }
-        let w = self.width();
+    fn fill_nodata(
+        &self,
+        values: &[f64],
+        valid: &[bool],
+        out: &mut [i32],
+        to_int: &(dyn Fn(f64) -> i32 + Sync),
+    ) -> bool {
         let (sum, count) = values
-            .iter()
+            .par_iter()
             .zip(valid)
             .filter(|(_, b)| **b)
-            .fold((0.0, 0usize), |(s, c), (&x, _)| (s + x, c + 1));
+            .map(|(&x, _)| (x, 1usize))
+            .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+        if count == 0 {
+            return false;
+        }
         let mean = sum / count as f64;
-        values
-            .par_chunks_exact_mut(w * w)
+        let w = self.width();
+        out.par_chunks_exact_mut(w * w)
+            .zip(values.par_chunks_exact(w * w))
             .zip(valid.par_chunks_exact(w * w))
-            .for_each(|(face, ok)| {
-                if !crate::fill::push_pull(w, w, face, ok) {
-                    face.iter_mut().for_each(|x| *x = mean);
-                }
-            });
-        self.make_consistent(values).is_ok()
+            .for_each(
+                |((out, face), ok)| match crate::fill::holes(w, w, face, ok) {
+                    crate::fill::Holes::NoData => out.iter_mut().for_each(|x| *x = to_int(mean)),
+                    crate::fill::Holes::None => {}
+                    crate::fill::Holes::Some(filler) => filler.write(out, ok, to_int),
+                },
+            );
+        self.make_consistent(out).is_ok()
     }
 
     fn coverage(&self) -> Option<&Coverage> {
