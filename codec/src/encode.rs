@@ -636,11 +636,11 @@ impl ValueMap {
 /// priors need approximate statistics only, so large levels are subsampled (every
 /// `TRAIN_STRIDE`-th diamond) and small ones used whole.
 pub(crate) fn trains_on(level_len: usize, index: usize) -> bool {
-    level_len < 4096 || index.is_multiple_of(TRAIN_STRIDE)
+    level_len < 1024 || index.is_multiple_of(TRAIN_STRIDE)
 }
 
 /// Subsampling of large levels for model training (see [`trains_on`]).
-const TRAIN_STRIDE: usize = 4;
+const TRAIN_STRIDE: usize = 8;
 
 /// One rate-control attempt: scale, steps, quantised details, measures, `(rms, max)`.
 type Attempt = (
@@ -1025,7 +1025,7 @@ fn encode_layout<G: Layout>(
         // The largest scale whose estimated RMS, times `ratio`, stays under `goal`.
         let solve = |goal: f64, ratio: f64| -> f64 {
             let (mut lo, mut hi) = (1e-3f64, 1e7f64);
-            for _ in 0..50 {
+            for _ in 0..36 {
                 let mid = (lo * hi).sqrt();
                 if estimate(mid) * ratio <= goal {
                     lo = mid
