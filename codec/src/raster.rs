@@ -305,10 +305,7 @@ impl RasterGeometry {
         let n = self.n;
         if let Some([v0, _, si, sj]) = s.lin {
             for (i, row) in v.chunks_exact_mut(n + 1).enumerate() {
-                let base = v0 + i as isize * si;
-                for (j, x) in row.iter_mut().enumerate() {
-                    *x = raster[(base + j as isize * sj) as usize];
-                }
+                read_strided(raster, v0 + i as isize * si, sj, row);
             }
             return;
         }
@@ -323,10 +320,7 @@ impl RasterGeometry {
         let n = self.n;
         if let Some([_, c0, si, sj]) = s.lin {
             for (i, row) in c.chunks_exact_mut(n).enumerate() {
-                let base = c0 + i as isize * si;
-                for (j, x) in row.iter_mut().enumerate() {
-                    *x = raster[(base + j as isize * sj) as usize];
-                }
+                read_strided(raster, c0 + i as isize * si, sj, row);
             }
             return;
         }
@@ -344,10 +338,9 @@ impl RasterGeometry {
         let n = self.n;
         if let Some([v0, _, si, sj]) = s.lin {
             for i in margin..=n - margin {
-                let base = v0 + i as isize * si;
-                for j in margin..=n - margin {
-                    raster[(base + j as isize * sj) as usize] = v[i * (n + 1) + j];
-                }
+                let base = v0 + i as isize * si + margin as isize * sj;
+                let row = &v[i * (n + 1) + margin..=i * (n + 1) + n - margin];
+                write_strided(raster, base, sj, row);
             }
             return;
         }
@@ -364,10 +357,7 @@ impl RasterGeometry {
         let n = self.n;
         if let Some([_, c0, si, sj]) = s.lin {
             for (i, row) in c.chunks_exact(n).enumerate() {
-                let base = c0 + i as isize * si;
-                for (j, &x) in row.iter().enumerate() {
-                    raster[(base + j as isize * sj) as usize] = x;
-                }
+                write_strided(raster, c0 + i as isize * si, sj, row);
             }
             return;
         }
@@ -518,6 +508,54 @@ pub(crate) trait Layout: Sync {
     fn point_validity(&self) -> Option<Vec<bool>>;
 }
 
+/// The raster range holding `count` entries `base + j step` (`j = 0..count`), as
+/// `(first, last)` indices in ascending order.
+fn strided_span(base: isize, step: isize, count: usize) -> (usize, usize) {
+    let end = base + (count as isize - 1) * step;
+    (base.min(end) as usize, base.max(end) as usize)
+}
+
+/// `out[j] = raster[base + j step]`: one bounds check per row instead of one per entry.
+fn read_strided(raster: &[i32], base: isize, step: isize, out: &mut [i32]) {
+    if out.is_empty() {
+        return;
+    }
+    let (lo, hi) = strided_span(base, step, out.len());
+    let span = &raster[lo..=hi];
+    let by = step.unsigned_abs().max(1);
+    if step >= 0 {
+        out.iter_mut()
+            .zip(span.iter().step_by(by))
+            .for_each(|(o, &x)| *o = x);
+    } else {
+        out.iter_mut()
+            .zip(span.iter().rev().step_by(by))
+            .for_each(|(o, &x)| *o = x);
+    }
+}
+
+/// `raster[base + j step] = row[j]`.
+fn write_strided(raster: &mut [i32], base: isize, step: isize, row: &[i32]) {
+    if row.is_empty() {
+        return;
+    }
+    let (lo, hi) = strided_span(base, step, row.len());
+    let span = &mut raster[lo..=hi];
+    let by = step.unsigned_abs().max(1);
+    if step >= 0 {
+        span.iter_mut()
+            .step_by(by)
+            .zip(row)
+            .for_each(|(o, &x)| *o = x);
+    } else {
+        span.iter_mut()
+            .rev()
+            .step_by(by)
+            .zip(row)
+            .for_each(|(o, &x)| *o = x);
+    }
+}
+
 /// Diamonds transformed in parallel between two serial scatters into the raster: large
 /// enough to keep both cores busy, small enough that the lattices stay in a reused buffer.
 const CHUNK: usize = 1024;
@@ -586,7 +624,6 @@ pub(crate) fn synthesize_levels<G: Layout, E>(
     mut details: impl FnMut(usize, usize, &mut [i32]) -> Result<bool, E>,
 ) -> Result<(), E> {
     let n = g.n();
-    let zeros = vec![0; n * n];
     let mut h = vec![0; n * n];
     let mut v = vec![0; (n + 1) * (n + 1)];
     let mut c = vec![0; n * n];
@@ -594,8 +631,13 @@ pub(crate) fn synthesize_levels<G: Layout, E>(
         for (index, s) in slots.iter().enumerate() {
             let has = details(level, index, &mut h)?;
             g.gather_vertices(s, raster, &mut v);
-            lifting::synthesize(n, &mut v, if has { &h } else { &zeros }, &mut c, g.mask(s));
-            g.scatter_interior(s, &v, raster);
+            if has {
+                lifting::synthesize(n, &mut v, &h, &mut c, g.mask(s));
+                g.scatter_interior(s, &v, raster);
+            } else {
+                // No details: the vertices stay as they are, the cells are predicted.
+                lifting::synthesize_zero(n, &v, &mut c, g.mask(s));
+            }
             g.scatter_cells(s, &c, raster);
         }
     }

@@ -107,6 +107,21 @@ pub fn synthesize(n: usize, v: &mut [i32], h: &[i32], c: &mut [i32], mask: Optio
     }
 }
 
+/// Synthesis of a diamond whose details are all zero: the update changes nothing, so
+/// `v` is left as it is and the cells are the prediction (zero at invalid cells), exactly
+/// what [`synthesize`] gives with a zero `h`.
+pub fn synthesize_zero(n: usize, v: &[i32], c: &mut [i32], mask: Option<&DiamondMask>) {
+    debug_assert!(v.len() == (n + 1) * (n + 1) && c.len() == n * n);
+    predict(n, v, c, mask);
+    if let Some(m) = mask {
+        for (x, &ok) in c.iter_mut().zip(m.cell.iter()) {
+            if !ok {
+                *x = 0;
+            }
+        }
+    }
+}
+
 #[inline(always)]
 fn p2(a: i32, b: i32, c: i32, d: i32) -> i32 {
     a.wrapping_add(b)
@@ -295,6 +310,33 @@ mod tests {
                 synthesize(n, &mut v, &h, &mut c, None);
                 assert_eq!(v, v0);
                 assert_eq!(c, c0);
+            }
+        }
+    }
+
+    #[test]
+    fn zero_detail_synthesis_equals_synthesis_of_zeros() {
+        let mut seed = 7;
+        let n = 16;
+        let masks = [
+            None,
+            Some(DiamondMask::from_fn(
+                n,
+                |i, j| i + 3 >= j,
+                |i, j| i + 3 > j && (i + j) % 7 != 3,
+            )),
+        ];
+        for mask in &masks {
+            for _ in 0..20 {
+                let v: Vec<i32> = (0..(n + 1) * (n + 1))
+                    .map(|_| (lcg(&mut seed) >> 40) as i32 - (1 << 23))
+                    .collect();
+                let (mut v1, mut c1) = (v.clone(), vec![1; n * n]);
+                synthesize(n, &mut v1, &vec![0; n * n], &mut c1, mask.as_ref());
+                let mut c2 = vec![2; n * n];
+                synthesize_zero(n, &v, &mut c2, mask.as_ref());
+                assert_eq!(v1, v, "zero details leave the vertices unchanged");
+                assert_eq!(c1, c2);
             }
         }
     }
