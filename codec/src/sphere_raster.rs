@@ -742,12 +742,13 @@ impl Layout for SphereGeometry {
         out: &mut [i32],
         to_int: &(dyn Fn(f64) -> i32 + Sync),
     ) -> bool {
+        // Summed in order: a parallel reduction would make the mean, and so the
+        // repository's bytes, depend on how the work was split.
         let (sum, count) = values
-            .par_iter()
+            .iter()
             .zip(valid)
             .filter(|(_, b)| **b)
-            .map(|(&x, _)| (x, 1usize))
-            .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+            .fold((0.0, 0usize), |(s, c), (&x, _)| (s + x, c + 1));
         if count == 0 {
             return false;
         }
