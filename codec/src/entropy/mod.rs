@@ -288,19 +288,26 @@ pub fn read_gammas(d: &mut ModelDecoder<'_>, g: usize, count: usize) -> Vec<u8> 
         .collect()
 }
 
-fn activity_class(a: u32) -> usize {
-    match a {
-        0 => 0,
-        1..=2 => 1,
-        3..=4 => 2,
-        5..=6 => 3,
-        7..=9 => 4,
-        10..=13 => 5,
-        14..=19 => 6,
-        20..=29 => 7,
-        30..=49 => 8,
-        _ => 9,
+/// Activity classes of activities below 50 (50 and above: class 9).
+const ACTIVITY: [u8; 50] = {
+    let mut t = [0u8; 50];
+    let bounds = [0u32, 2, 4, 6, 9, 13, 19, 29, 49];
+    let mut a = 0;
+    while a < 50 {
+        let mut c = 0;
+        while c < bounds.len() && (a as u32) > bounds[c] {
+            c += 1;
+        }
+        t[a] = c as u8;
+        a += 1;
     }
+    t
+};
+
+/// Class of activity `a`: 0, 1-2, 3-4, 5-6, 7-9, 10-13, 14-19, 20-29, 30-49, 50+.
+#[inline(always)]
+fn activity_class(a: u32) -> usize {
+    ACTIVITY.get(a as usize).map_or(9, |&c| c as usize)
 }
 
 fn sgn3(v: i32) -> usize {
@@ -324,24 +331,41 @@ impl Blocks {
     }
 }
 
-/// Context of coefficient `(i, j)` from already coded neighbours in `rec`.
-#[inline(always)]
-fn neighbourhood(rec: &[i32], n: usize, i: usize, j: usize) -> (usize, usize) {
-    let at = |ii: usize, jj: usize| rec[ii * n + jj];
-    let w = if j > 0 { at(i, j - 1) } else { 0 };
-    let nn = if i > 0 { at(i - 1, j) } else { 0 };
-    let nw = if i > 0 && j > 0 { at(i - 1, j - 1) } else { 0 };
-    let ne = if i > 0 && j + 1 < n {
-        at(i - 1, j + 1)
-    } else {
-        0
-    };
-    let a = 2u32
-        .saturating_mul(w.unsigned_abs())
-        .saturating_add(2u32.saturating_mul(nn.unsigned_abs()))
-        .saturating_add(nw.unsigned_abs())
-        .saturating_add(ne.unsigned_abs());
-    (activity_class(a), 3 * sgn3(w) + sgn3(nn))
+/// The coefficients coded so far, padded with a zero column on each side and a zero row
+/// on top, so every cell's causal neighbours are read without bounds tests.
+struct Causal {
+    w: usize,
+    v: Vec<i32>,
+}
+
+impl Causal {
+    fn new(n: usize) -> Self {
+        Causal {
+            w: n + 2,
+            v: vec![0; (n + 2) * (n + 1)],
+        }
+    }
+
+    #[inline(always)]
+    fn set(&mut self, i: usize, j: usize, x: i32) {
+        self.v[(i + 1) * self.w + j + 1] = x;
+    }
+
+    /// Context of coefficient `(i, j)`: activity class of `2|W| + 2|N| + |NW| + |NE|`
+    /// and the sign context of W and N (outside the matrix counts as 0).
+    #[inline(always)]
+    fn context(&self, i: usize, j: usize) -> (usize, usize) {
+        let up = i * self.w + j + 1;
+        let here = up + self.w;
+        let (w, nn) = (self.v[here - 1], self.v[up]);
+        let (nw, ne) = (self.v[up - 1], self.v[up + 1]);
+        let a = 2u32
+            .saturating_mul(w.unsigned_abs())
+            .saturating_add(2u32.saturating_mul(nn.unsigned_abs()))
+            .saturating_add(nw.unsigned_abs())
+            .saturating_add(ne.unsigned_abs());
+        (activity_class(a), 3 * sgn3(w) + sgn3(nn))
+    }
 }
 
 fn size_class(size_in_blocks: usize) -> usize {
@@ -428,7 +452,7 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
             stack.push((y, x, half));
         }
     }
-    let mut rec = vec![0i32; n * n];
+    let mut rec = Causal::new(n);
     blocks.sort_unstable();
     let mut cells = [0usize; 16];
     for (by, bx) in blocks {
@@ -444,7 +468,7 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
         let mut seen = false;
         for (idx, &k) in cells[..nc].iter().enumerate() {
             let (i, j) = (k / n, k % n);
-            let (class, sctx) = neighbourhood(&rec, n, i, j);
+            let (class, sctx) = rec.context(i, j);
             let v = q[k];
             if idx + 1 != nc || seen {
                 s.bit(ctx(g, SIG + class), v != 0);
@@ -478,7 +502,7 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
                 s.bypass(1, 1);
                 s.bypass(e, bits - 1);
             }
-            rec[k] = v;
+            rec.set(i, j, v);
         }
     }
 }
@@ -555,6 +579,7 @@ pub fn read_matrix(
             stack.push((y, x, half));
         }
     }
+    let mut rec = Causal::new(n);
     blocks.sort_unstable();
     let mut cells = [0usize; 16];
     for (by, bx) in blocks {
@@ -570,7 +595,7 @@ pub fn read_matrix(
         let mut seen = false;
         for (idx, &k) in cells[..nc].iter().enumerate() {
             let (i, j) = (k / n, k % n);
-            let (class, sctx) = neighbourhood(q, n, i, j);
+            let (class, sctx) = rec.context(i, j);
             let nonzero = if idx + 1 == nc && !seen {
                 true
             } else {
@@ -614,6 +639,7 @@ pub fn read_matrix(
             } else {
                 m.min(i32::MAX as i64) as i32
             };
+            rec.set(i, j, q[k]);
         }
         if d.dec.consumed() > d.len + 64 {
             return Err(EntropyError::Truncated);
