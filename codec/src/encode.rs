@@ -987,9 +987,12 @@ fn encode_layout<G: Layout>(
             geom,
             out,
             |l, i, h| {
+                let mut any = false;
                 for (d, &x) in h.iter_mut().zip(&q[l][i]) {
                     *d = dequantize(x, steps[l]);
+                    any |= x != 0;
                 }
+                any
             },
             |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
         )?)

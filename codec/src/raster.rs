@@ -450,7 +450,10 @@ where
     synthesize_levels_par(
         g,
         raster,
-        |l, i, h| h.copy_from_slice(&details[l][i]),
+        |l, i, h| {
+            h.copy_from_slice(&details[l][i]);
+            h.iter().any(|&x| x != 0)
+        },
         visit,
     )
 }
@@ -666,6 +669,10 @@ pub(crate) fn check_details<G: Layout>(
     Ok(())
 }
 
+/// Inverse transform with the diamonds of a level in parallel: `details(level, index, h)`
+/// fills a diamond's details and says whether any is nonzero (a diamond without details
+/// skips the update and the vertex write-back); `visit(level, index, coarse, fine, cells)`
+/// sees each diamond's lattices before and after.
 pub(crate) fn synthesize_levels_par<G, D, F, R>(
     g: &G,
     raster: &mut [i32],
@@ -674,7 +681,7 @@ pub(crate) fn synthesize_levels_par<G, D, F, R>(
 ) -> Result<Vec<Vec<R>>, RasterError>
 where
     G: Layout,
-    D: Fn(usize, usize, &mut [i32]) + Sync,
+    D: Fn(usize, usize, &mut [i32]) -> bool + Sync,
     F: Fn(usize, usize, &[i32], &[i32], &[i32]) -> R + Sync,
     R: Send,
 {
@@ -690,25 +697,33 @@ where
         for start in (0..slots.len()).step_by(CHUNK) {
             let chunk = &slots[start..(start + CHUNK).min(slots.len())];
             let shared: &[i32] = raster;
-            let results: Vec<R> = vbuf
+            let results: Vec<(R, bool)> = vbuf
                 .par_chunks_mut(vlen)
                 .zip(cbuf.par_chunks_mut(clen))
                 .zip(chunk.par_iter())
                 .enumerate()
                 .map(|(k, ((v, c), s))| {
                     let mut h = vec![0; clen];
-                    details(level, start + k, &mut h);
+                    let has = details(level, start + k, &mut h);
                     g.gather_vertices(s, shared, v);
-                    let coarse = v.to_vec();
-                    lifting::synthesize(n, v, &h, c, g.mask(s));
-                    visit(level, start + k, &coarse, v, c)
+                    if has {
+                        let coarse = v.to_vec();
+                        lifting::synthesize(n, v, &h, c, g.mask(s));
+                        (visit(level, start + k, &coarse, v, c), true)
+                    } else {
+                        // No details: the vertices stay, the cells are the prediction.
+                        lifting::synthesize_zero(n, v, c, g.mask(s));
+                        (visit(level, start + k, v, v, c), false)
+                    }
                 })
                 .collect();
-            for (k, s) in chunk.iter().enumerate() {
-                g.scatter_interior(s, &vbuf[k * vlen..(k + 1) * vlen], raster);
+            for (k, (s, (r, has))) in chunk.iter().zip(results).enumerate() {
+                if has {
+                    g.scatter_interior(s, &vbuf[k * vlen..(k + 1) * vlen], raster);
+                }
                 g.scatter_cells(s, &cbuf[k * clen..(k + 1) * clen], raster);
+                rs.push(r);
             }
-            rs.extend(results);
         }
         out.push(rs);
     }
