@@ -1429,6 +1429,59 @@ mod tests {
         }
     }
 
+    /// Runs a [`ScaleSearch`] against a model of real decodes: `rms(q)` is the truth, the
+    /// estimate is off by a ratio that drifts with `q`. Returns the scales tried.
+    fn search(target: f64, rms: impl Fn(f64) -> f64, est: impl Fn(f64) -> f64) -> Vec<f64> {
+        let solve = |goal: f64, ratio: f64| {
+            let (mut lo, mut hi) = (1e-3f64, 1e7f64);
+            for _ in 0..60 {
+                let mid = (lo * hi).sqrt();
+                if est(mid) * ratio <= goal {
+                    lo = mid
+                } else {
+                    hi = mid
+                }
+            }
+            lo
+        };
+        let mut s = ScaleSearch::new(target);
+        let mut q = solve(s.goal(), 1.2);
+        let mut tried = vec![q];
+        for _ in 0..8 {
+            match s.next(q, rms(q), est(q), &solve) {
+                Some(next) => {
+                    q = next;
+                    tried.push(q);
+                }
+                None => break,
+            }
+        }
+        tried
+    }
+
+    #[test]
+    fn the_scale_search_lands_just_under_the_target_in_few_decodes() {
+        // Real RMS grows like q^0.9 and the estimate's error drifts by up to 15 % over
+        // the range: the search must end on a scale that meets the target within the
+        // accepted window, in at most 5 decodes.
+        for (c, drift) in [(0.16, 0.0), (0.16, 0.05), (0.02, -0.04), (1.3, 0.03)] {
+            for target in [0.5, 1.0, 9.0, 20.0] {
+                let rms = |q: f64| c * q.powf(0.9);
+                let est = |q: f64| rms(q) / (1.25 + drift * q.ln());
+                let tried = search(target, rms, est);
+                let best = tried
+                    .iter()
+                    .copied()
+                    .filter(|&q| rms(q) <= target)
+                    .fold(0.0, f64::max);
+                assert!(tried.len() <= 5, "{c} {drift} {target}: {tried:?}");
+                assert!(best > 0.0, "{c} {drift} {target}: nothing met the target");
+                let r = rms(best) / target;
+                assert!((ACCEPT..=1.0).contains(&r), "{c} {drift} {target}: {r}");
+            }
+        }
+    }
+
     #[test]
     fn nodata_is_filled_and_excluded_from_errors() {
         let mut g = synthetic(100, 80);
