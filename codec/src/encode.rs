@@ -660,6 +660,18 @@ fn initial_ratio(quanta: f64) -> f64 {
     1.0 + 0.075 * quanta.max(0.0).sqrt()
 }
 
+/// The largest quantisation scale in `[1e-3, 1e7]` for which `ok` holds (`ok` must be
+/// monotone: true below some scale, false above), by bisection in log scale to a relative
+/// precision of about `1e-9`.
+fn largest_scale(ok: impl Fn(f64) -> bool) -> f64 {
+    let (mut lo, mut hi) = (1e-3f64, 1e7f64);
+    for _ in 0..36 {
+        let mid = (lo * hi).sqrt();
+        if ok(mid) { lo = mid } else { hi = mid }
+    }
+    lo
+}
+
 /// The RMS a scale search aims at, as a fraction of the target.
 const GOAL: f64 = 0.998;
 /// A decode whose RMS is at least this fraction of the target (and at most the target)
@@ -1026,18 +1038,7 @@ fn encode_layout<G: Layout>(
             (mse / valid_count.max(1) as f64).sqrt() * scale
         };
         // The largest scale whose estimated RMS, times `ratio`, stays under `goal`.
-        let solve = |goal: f64, ratio: f64| -> f64 {
-            let (mut lo, mut hi) = (1e-3f64, 1e7f64);
-            for _ in 0..36 {
-                let mid = (lo * hi).sqrt();
-                if estimate(mid) * ratio <= goal {
-                    lo = mid
-                } else {
-                    hi = mid
-                }
-            }
-            lo
-        };
+        let solve = |goal: f64, ratio: f64| largest_scale(|q| estimate(q) * ratio <= goal);
         let quanta = target / quantum_m.unwrap_or(scale);
         let mut search = ScaleSearch::new(target);
         let mut q = solve(search.goal(), initial_ratio(quanta));
@@ -1432,18 +1433,7 @@ mod tests {
     /// Runs a [`ScaleSearch`] against a model of real decodes: `rms(q)` is the truth, the
     /// estimate is off by a ratio that drifts with `q`. Returns the scales tried.
     fn search(target: f64, rms: impl Fn(f64) -> f64, est: impl Fn(f64) -> f64) -> Vec<f64> {
-        let solve = |goal: f64, ratio: f64| {
-            let (mut lo, mut hi) = (1e-3f64, 1e7f64);
-            for _ in 0..60 {
-                let mid = (lo * hi).sqrt();
-                if est(mid) * ratio <= goal {
-                    lo = mid
-                } else {
-                    hi = mid
-                }
-            }
-            lo
-        };
+        let solve = |goal: f64, ratio: f64| largest_scale(|q| est(q) * ratio <= goal);
         let mut s = ScaleSearch::new(target);
         let mut q = solve(s.goal(), 1.2);
         let mut tried = vec![q];
