@@ -22,8 +22,29 @@ pub fn push_pull(width: usize, height: usize, values: &mut [f64], valid: &[bool]
     }
 }
 
+/// Writes `map(fill)` into `out[k]` for every `k` with `valid[k]` false, the fills of
+/// [`push_pull`] computed from `values` (read at valid samples only). Returns `false`
+/// (writing nothing) if no sample is valid.
+pub(crate) fn fill_into<T: Send>(
+    width: usize,
+    height: usize,
+    values: &[f64],
+    valid: &[bool],
+    out: &mut [T],
+    map: impl Fn(f64) -> T + Sync,
+) -> bool {
+    match holes(width, height, values, valid) {
+        Holes::NoData => false,
+        Holes::None => true,
+        Holes::Some(filler) => {
+            filler.write(out, valid, map);
+            true
+        }
+    }
+}
+
 /// What [`holes`] found.
-pub(crate) enum Holes {
+enum Holes {
     /// No sample is valid.
     NoData,
     /// Every sample is valid.
@@ -35,7 +56,7 @@ pub(crate) enum Holes {
 /// The fill values of an image's holes: the filled half-resolution level of the push-pull
 /// pyramid (bilinear interpolation gives each hole's value), or, for sparse holes, the
 /// values themselves.
-pub(crate) enum Filler {
+enum Filler {
     /// The whole pyramid was built.
     Pyramid {
         /// Image width.
@@ -51,12 +72,7 @@ pub(crate) enum Filler {
 
 impl Filler {
     /// Writes `map(fill)` into `out[k]` for every `k` with `valid[k]` false.
-    pub(crate) fn write<T: Send>(
-        &self,
-        out: &mut [T],
-        valid: &[bool],
-        map: impl Fn(f64) -> T + Sync,
-    ) {
+    fn write<T: Send>(&self, out: &mut [T], valid: &[bool], map: impl Fn(f64) -> T + Sync) {
         match self {
             Filler::Pyramid {
                 width,
@@ -162,7 +178,7 @@ const LOCAL_FRACTION: usize = 64;
 
 /// The push-pull pyramid of `values` (read at valid samples only): valid samples are
 /// averaged down half-resolution levels, then each level is filled coarse to fine.
-pub(crate) fn holes(width: usize, height: usize, values: &[f64], valid: &[bool]) -> Holes {
+fn holes(width: usize, height: usize, values: &[f64], valid: &[bool]) -> Holes {
     let invalid = valid.par_iter().filter(|&&v| !v).count();
     if invalid == valid.len() {
         return Holes::NoData;

@@ -810,14 +810,7 @@ impl Layout for RasterGeometry {
         out: &mut [i32],
         to_int: &(dyn Fn(f64) -> i32 + Sync),
     ) -> bool {
-        match crate::fill::holes(self.width, self.height, values, valid) {
-            crate::fill::Holes::NoData => false,
-            crate::fill::Holes::None => true,
-            crate::fill::Holes::Some(filler) => {
-                filler.write(out, valid, to_int);
-                true
-            }
-        }
+        crate::fill::fill_into(self.width, self.height, values, valid, out, to_int)
     }
 
     fn coverage(&self) -> Option<&Coverage> {

@@ -757,13 +757,11 @@ impl Layout for SphereGeometry {
         out.par_chunks_exact_mut(w * w)
             .zip(values.par_chunks_exact(w * w))
             .zip(valid.par_chunks_exact(w * w))
-            .for_each(
-                |((out, face), ok)| match crate::fill::holes(w, w, face, ok) {
-                    crate::fill::Holes::NoData => out.iter_mut().for_each(|x| *x = to_int(mean)),
-                    crate::fill::Holes::None => {}
-                    crate::fill::Holes::Some(filler) => filler.write(out, ok, to_int),
-                },
-            );
+            .for_each(|((out, face), ok)| {
+                if !crate::fill::fill_into(w, w, face, ok, out, to_int) {
+                    out.iter_mut().for_each(|x| *x = to_int(mean));
+                }
+            });
         self.make_consistent(out).is_ok()
     }
 
