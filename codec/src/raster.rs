@@ -304,9 +304,8 @@ impl RasterGeometry {
     fn gather_vertices(&self, s: &DiamondSlot, raster: &[i32], v: &mut [i32]) {
         let n = self.n;
         if let Some([v0, _, si, sj]) = s.lin {
-            for (i, row) in v.chunks_exact_mut(n + 1).enumerate() {
-                read_strided(raster, v0 + i as isize * si, sj, row);
-            }
+            let at = Lattice::new(n + 1, 0, n + 1, v0, si, sj);
+            at.lines(|r, rs, b, bs, len| read_line(raster, r, rs, v, b, bs, len));
             return;
         }
         for i in 0..=n {
@@ -319,9 +318,8 @@ impl RasterGeometry {
     fn gather_cells(&self, s: &DiamondSlot, raster: &[i32], c: &mut [i32]) {
         let n = self.n;
         if let Some([_, c0, si, sj]) = s.lin {
-            for (i, row) in c.chunks_exact_mut(n).enumerate() {
-                read_strided(raster, c0 + i as isize * si, sj, row);
-            }
+            let at = Lattice::new(n, 0, n, c0, si, sj);
+            at.lines(|r, rs, b, bs, len| read_line(raster, r, rs, c, b, bs, len));
             return;
         }
         for i in 0..n {
@@ -337,11 +335,8 @@ impl RasterGeometry {
     fn scatter_vertices(&self, s: &DiamondSlot, v: &[i32], raster: &mut [i32], margin: usize) {
         let n = self.n;
         if let Some([v0, _, si, sj]) = s.lin {
-            for i in margin..=n - margin {
-                let base = v0 + i as isize * si + margin as isize * sj;
-                let row = &v[i * (n + 1) + margin..=i * (n + 1) + n - margin];
-                write_strided(raster, base, sj, row);
-            }
+            let at = Lattice::new(n + 1 - 2 * margin, margin, n + 1, v0, si, sj);
+            at.lines(|r, rs, b, bs, len| write_line(raster, r, rs, v, b, bs, len));
             return;
         }
         for i in margin..=n - margin {
@@ -356,9 +351,8 @@ impl RasterGeometry {
     fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], raster: &mut [i32]) {
         let n = self.n;
         if let Some([_, c0, si, sj]) = s.lin {
-            for (i, row) in c.chunks_exact(n).enumerate() {
-                write_strided(raster, c0 + i as isize * si, sj, row);
-            }
+            let at = Lattice::new(n, 0, n, c0, si, sj);
+            at.lines(|r, rs, b, bs, len| write_line(raster, r, rs, c, b, bs, len));
             return;
         }
         for i in 0..n {
@@ -518,44 +512,126 @@ fn strided_span(base: isize, step: isize, count: usize) -> (usize, usize) {
     (base.min(end) as usize, base.max(end) as usize)
 }
 
-/// `out[j] = raster[base + j step]`: one bounds check per row instead of one per entry.
-fn read_strided(raster: &[i32], base: isize, step: isize, out: &mut [i32]) {
-    if out.is_empty() {
-        return;
+/// The `m x m` sub-grid at `(o, o)` of a diamond's `w x w` lattice (buffer index
+/// `i w + j`), whose point `(i, j)` is raster index `base + i si + j sj`.
+///
+/// [`Lattice::lines`] walks it along the lattice direction with the shortest raster
+/// step. For a diamond rotated 45 degrees in the raster that is a diagonal of the
+/// lattice, which runs along a raster row: its points are 2 (or 2^k) samples apart
+/// instead of a raster row, so the accesses stream through cache lines and pages
+/// instead of touching a new page per sample (the finest, rotated level decodes about
+/// 2x faster this way; docs/codec.md).
+struct Lattice {
+    m: usize,
+    o: usize,
+    w: usize,
+    base: isize,
+    si: isize,
+    sj: isize,
+}
+
+impl Lattice {
+    fn new(m: usize, o: usize, w: usize, base: isize, si: isize, sj: isize) -> Self {
+        Lattice {
+            m,
+            o,
+            w,
+            base,
+            si,
+            sj,
+        }
     }
-    let (lo, hi) = strided_span(base, step, out.len());
-    let span = &raster[lo..=hi];
-    let by = step.unsigned_abs().max(1);
-    if step >= 0 {
-        out.iter_mut()
-            .zip(span.iter().step_by(by))
-            .for_each(|(o, &x)| *o = x);
-    } else {
-        out.iter_mut()
-            .zip(span.iter().rev().step_by(by))
-            .for_each(|(o, &x)| *o = x);
+
+    /// Calls `line(raster_start, raster_step, buffer_start, buffer_step, len)` for lines
+    /// covering the sub-grid exactly once.
+    fn lines(&self, mut line: impl FnMut(isize, isize, usize, usize, usize)) {
+        let (m, w) = (self.m, self.w);
+        if m == 0 {
+            return;
+        }
+        let mut at = |i: usize, j: usize, rs: isize, bs: usize, len: usize| {
+            let (i, j) = (self.o + i, self.o + j);
+            line(
+                self.base + i as isize * self.si + j as isize * self.sj,
+                rs,
+                i * w + j,
+                bs,
+                len,
+            );
+        };
+        let (si, sj) = (self.si, self.sj);
+        let steps = [sj, si, si + sj, si - sj].map(isize::unsigned_abs);
+        let best = (0..4).min_by_key(|&k| steps[k]).unwrap_or(0);
+        match best {
+            0 => (0..m).for_each(|i| at(i, 0, sj, 1, m)),
+            1 => (0..m).for_each(|j| at(0, j, si, w, m)),
+            2 => {
+                // Lines of constant j - i, from the corner (m - 1, 0) to (0, m - 1).
+                for i in (1..m).rev() {
+                    at(i, 0, si + sj, w + 1, m - i);
+                }
+                for j in 0..m {
+                    at(0, j, si + sj, w + 1, m - j);
+                }
+            }
+            _ => {
+                // Lines of constant i + j, stepping (i + 1, j - 1).
+                for j in 0..m {
+                    at(0, j, si - sj, w - 1, j + 1);
+                }
+                for i in 1..m {
+                    at(i, m - 1, si - sj, w - 1, m - i);
+                }
+            }
+        }
     }
 }
 
-/// `raster[base + j step] = row[j]`.
-fn write_strided(raster: &mut [i32], base: isize, step: isize, row: &[i32]) {
-    if row.is_empty() {
+/// `buf[b0 + t bstep] = raster[base + t step]` for `t < len`: the raster bounds are
+/// checked once per line (plain index loops: `step_by` divides to find its length, which
+/// costs more than the copy on the short diagonal lines).
+fn read_line(
+    raster: &[i32],
+    base: isize,
+    step: isize,
+    buf: &mut [i32],
+    b0: usize,
+    bstep: usize,
+    len: usize,
+) {
+    if len == 0 {
         return;
     }
-    let (lo, hi) = strided_span(base, step, row.len());
+    let (lo, hi) = strided_span(base, step, len);
+    let span = &raster[lo..=hi];
+    let out = &mut buf[b0..=b0 + (len - 1) * bstep];
+    let mut r = base - lo as isize;
+    for t in 0..len {
+        out[t * bstep] = span[r as usize];
+        r += step;
+    }
+}
+
+/// `raster[base + t step] = buf[b0 + t bstep]` for `t < len`.
+fn write_line(
+    raster: &mut [i32],
+    base: isize,
+    step: isize,
+    buf: &[i32],
+    b0: usize,
+    bstep: usize,
+    len: usize,
+) {
+    if len == 0 {
+        return;
+    }
+    let (lo, hi) = strided_span(base, step, len);
     let span = &mut raster[lo..=hi];
-    let by = step.unsigned_abs().max(1);
-    if step >= 0 {
-        span.iter_mut()
-            .step_by(by)
-            .zip(row)
-            .for_each(|(o, &x)| *o = x);
-    } else {
-        span.iter_mut()
-            .rev()
-            .step_by(by)
-            .zip(row)
-            .for_each(|(o, &x)| *o = x);
+    let src = &buf[b0..=b0 + (len - 1) * bstep];
+    let mut r = base - lo as isize;
+    for t in 0..len {
+        span[r as usize] = src[t * bstep];
+        r += step;
     }
 }
 
@@ -889,6 +965,40 @@ mod tests {
         (0..w * h)
             .map(|k| (k % w) as i32 * 7 - (k / w) as i32 * 3 + ((k * 2654435761) % 97) as i32)
             .collect()
+    }
+
+    #[test]
+    fn lattice_lines_cover_each_point_once_in_every_orientation() {
+        let w_raster = 1000isize;
+        // Axis-aligned, transposed and both 45-degree rotations, at several spacings.
+        for (si, sj) in [
+            (w_raster, 1),
+            (1, w_raster),
+            (2 * w_raster, -2),
+            (w_raster + 1, -w_raster + 1),
+            (w_raster + 1, w_raster - 1),
+            (-w_raster - 1, w_raster - 1),
+            (2 * w_raster - 2, -2 * w_raster - 2),
+        ] {
+            for (m, o, w) in [(33, 0, 33), (32, 0, 32), (31, 1, 33), (1, 0, 1), (2, 0, 2)] {
+                let base = 400 * w_raster + 400;
+                let mut seen = Vec::new();
+                Lattice::new(m, o, w, base, si, sj).lines(|r, rs, b, bs, len| {
+                    for t in 0..len {
+                        seen.push((r + t as isize * rs, b + t * bs));
+                    }
+                });
+                let mut want: Vec<(isize, usize)> = (o..o + m)
+                    .flat_map(|i| {
+                        (o..o + m)
+                            .map(move |j| (base + i as isize * si + j as isize * sj, i * w + j))
+                    })
+                    .collect();
+                seen.sort_unstable();
+                want.sort_unstable();
+                assert_eq!(seen, want, "si {si} sj {sj} m {m} o {o}");
+            }
+        }
     }
 
     #[test]
