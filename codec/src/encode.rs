@@ -467,6 +467,9 @@ fn measure_gains(n: usize) -> Vec<f64> {
 }
 
 /// The integer representation of a grid: `metres = offset + value * scale`.
+/// Samples per parallel task in whole-raster passes.
+const PASS_CHUNK: usize = 1 << 16;
+
 struct Integerised {
     values: Vec<i32>,
     valid: Vec<bool>,
@@ -482,13 +485,16 @@ fn integerise<G: Layout>(
 ) -> Result<Integerised, EncodeError> {
     let valid: Vec<bool> = values_m.par_iter().map(|v| v.is_finite()).collect();
     // Fills are weighted means of valid values, so the valid values give the range.
+    // Chunks with plain loops inside: per-item rayon folders cost more than these tests.
     let (lo, hi) = values_m
-        .par_iter()
-        .filter(|v| v.is_finite())
-        .fold(
-            || (f64::INFINITY, f64::NEG_INFINITY),
-            |(lo, hi), &v| (lo.min(v), hi.max(v)),
-        )
+        .par_chunks(PASS_CHUNK)
+        .map(|c| {
+            c.iter()
+                .filter(|v| v.is_finite())
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+                    (lo.min(v), hi.max(v))
+                })
+        })
         .reduce(
             || (f64::INFINITY, f64::NEG_INFINITY),
             |a, b| (a.0.min(b.0), a.1.max(b.1)),
@@ -497,10 +503,11 @@ fn integerise<G: Layout>(
         return Err(EncodeError::AllNodata);
     }
     let native = native_quantum(quantum_m, |q| {
-        values_m
-            .par_iter()
-            .filter(|v| v.is_finite())
-            .all(|&v| on_quantum(v, q))
+        values_m.par_chunks(PASS_CHUNK).all(|c| {
+            c.iter()
+                .filter(|v| v.is_finite())
+                .all(|&v| on_quantum(v, q))
+        })
     });
     let map = ValueMap::new(lo, hi, native, mode)?;
     let mut values: Vec<i32> = values_m

@@ -290,7 +290,7 @@ impl RasterGeometry {
     /// Writes the root vertex grid into the raster.
     pub fn scatter_root(&self, root_grid: &[i32], raster: &mut [i32]) {
         let root = self.root_slot();
-        self.scatter_vertices(&root, root_grid, raster, 0);
+        self.scatter_vertices(&root, root_grid, raster, 0, 0);
     }
 
     fn index(&self, (x, y): (i64, i64)) -> Option<usize> {
@@ -331,37 +331,56 @@ impl RasterGeometry {
 
     /// Writes vertices `margin..=n - margin` of each row and column: margin 0 writes the
     /// whole grid, margin 1 only the interior, which is all lifting ever changes
-    /// (boundary vertices are never updated).
-    fn scatter_vertices(&self, s: &DiamondSlot, v: &[i32], raster: &mut [i32], margin: usize) {
+    /// (boundary vertices are never updated). Only raster indices inside `part`
+    /// (`raster[start..start + part.len()]`) are written.
+    fn scatter_vertices(
+        &self,
+        s: &DiamondSlot,
+        v: &[i32],
+        part: &mut [i32],
+        start: usize,
+        margin: usize,
+    ) {
         let n = self.n;
         if let Some([v0, _, si, sj]) = s.lin {
-            let at = Lattice::new(n + 1 - 2 * margin, margin, n + 1, v0, si, sj);
-            at.lines(|r, rs, b, bs, len| write_line(raster, r, rs, v, b, bs, len));
+            Lattice::new(n + 1 - 2 * margin, margin, n + 1, v0, si, sj).write_part(v, part, start);
             return;
         }
         for i in margin..=n - margin {
             for j in margin..=n - margin {
-                if let Some(k) = self.index(s.vertex_xy(i, j)) {
-                    raster[k] = v[i * (n + 1) + j];
+                if let Some(x) = self.part_entry(s.vertex_xy(i, j), part, start) {
+                    *x = v[i * (n + 1) + j];
                 }
             }
         }
     }
 
-    fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], raster: &mut [i32]) {
+    /// Writes the cell centres that fall inside `part` (see [`Self::scatter_vertices`]).
+    fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], part: &mut [i32], start: usize) {
         let n = self.n;
         if let Some([_, c0, si, sj]) = s.lin {
-            let at = Lattice::new(n, 0, n, c0, si, sj);
-            at.lines(|r, rs, b, bs, len| write_line(raster, r, rs, c, b, bs, len));
+            Lattice::new(n, 0, n, c0, si, sj).write_part(c, part, start);
             return;
         }
         for i in 0..n {
             for j in 0..n {
-                if let Some(k) = self.index(s.cell_xy(i, j)) {
-                    raster[k] = c[i * n + j];
+                if let Some(x) = self.part_entry(s.cell_xy(i, j), part, start) {
+                    *x = c[i * n + j];
                 }
             }
         }
+    }
+
+    /// The entry of `part` (raster indices from `start`) at a raster position, if both
+    /// are inside.
+    fn part_entry<'p>(
+        &self,
+        xy: (i64, i64),
+        part: &'p mut [i32],
+        start: usize,
+    ) -> Option<&'p mut i32> {
+        let k = self.index(xy)?.checked_sub(start)?;
+        part.get_mut(k)
     }
 
     /// Forward transform in place: on return the raster holds the root-level values and
@@ -475,10 +494,23 @@ pub(crate) trait Layout: Sync {
     fn gather_vertices(&self, s: &Self::Slot, raster: &[i32], v: &mut [i32]);
     /// Reads the `N^2` cell centres.
     fn gather_cells(&self, s: &Self::Slot, raster: &[i32], c: &mut [i32]);
-    /// Writes the interior vertices (all lifting ever changes) to every copy of each point.
-    fn scatter_interior(&self, s: &Self::Slot, v: &[i32], raster: &mut [i32]);
-    /// Writes the cell centres to every copy of each point.
-    fn scatter_cells(&self, s: &Self::Slot, c: &[i32], raster: &mut [i32]);
+    /// Writes the interior vertices (all lifting ever changes) to every copy of each
+    /// point, as far as they fall in `part`, the raster entries from index `start` (so
+    /// disjoint parts of the raster are written in parallel).
+    fn scatter_interior_part(&self, s: &Self::Slot, v: &[i32], part: &mut [i32], start: usize);
+    /// Writes the cell centres to every copy of each point inside `part` (see
+    /// [`Layout::scatter_interior_part`]).
+    fn scatter_cells_part(&self, s: &Self::Slot, c: &[i32], part: &mut [i32], start: usize);
+    /// Lowest and highest raster index a diamond's scatters can write (a bound).
+    fn index_span(&self, s: &Self::Slot) -> (usize, usize);
+    /// [`Layout::scatter_interior_part`] into the whole raster.
+    fn scatter_interior(&self, s: &Self::Slot, v: &[i32], raster: &mut [i32]) {
+        self.scatter_interior_part(s, v, raster, 0);
+    }
+    /// [`Layout::scatter_cells_part`] into the whole raster.
+    fn scatter_cells(&self, s: &Self::Slot, c: &[i32], raster: &mut [i32]) {
+        self.scatter_cells_part(s, c, raster, 0);
+    }
     /// What the blob decoder must know about a diamond.
     fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_>;
     /// Reads the root vertex grids, in root order.
@@ -587,6 +619,65 @@ impl Lattice {
     }
 }
 
+impl Lattice {
+    /// Lowest and highest raster index of the sub-grid.
+    fn span(&self) -> (isize, isize) {
+        let e = self.m.saturating_sub(1) as isize;
+        let b = self.base + self.o as isize * (self.si + self.sj);
+        let c = [
+            b,
+            b + e * self.si,
+            b + e * self.sj,
+            b + e * (self.si + self.sj),
+        ];
+        (
+            c.iter().copied().min().unwrap_or(b),
+            c.iter().copied().max().unwrap_or(b),
+        )
+    }
+
+    /// Writes the sub-grid of `buf` to the raster, as far as it falls in `part` (raster
+    /// indices `start..start + part.len()`).
+    fn write_part(&self, buf: &[i32], part: &mut [i32], start: usize) {
+        let (lo, hi) = self.span();
+        let (start, end) = (start as isize, (start + part.len()) as isize);
+        if hi < start || lo >= end {
+            return;
+        }
+        if lo >= start && hi < end {
+            self.lines(|r, rs, b, bs, len| write_line(part, r - start, rs, buf, b, bs, len));
+        } else {
+            self.lines(|r, rs, b, bs, len| {
+                let (t0, t1) = clip_line(r, rs, len, start, end);
+                if t0 < t1 {
+                    let r = r + t0 as isize * rs - start;
+                    write_line(part, r, rs, buf, b + t0 * bs, bs, t1 - t0);
+                }
+            });
+        }
+    }
+}
+
+/// The range `t0..t1` of `t < len` with `start <= base + t step < end`.
+fn clip_line(base: isize, step: isize, len: usize, start: isize, end: isize) -> (usize, usize) {
+    let len = len as isize;
+    let (lo, hi) = match step.signum() {
+        0 if (start..end).contains(&base) => (0, len),
+        0 => (0, 0),
+        // ceil((start - base) / step) ..= floor((end - 1 - base) / step)
+        1 => (
+            -(base - start).div_euclid(step),
+            (end - 1 - base).div_euclid(step) + 1,
+        ),
+        _ => (
+            -(end - 1 - base).div_euclid(-step),
+            (base - start).div_euclid(-step) + 1,
+        ),
+    };
+    let (lo, hi) = (lo.clamp(0, len), hi.clamp(0, len));
+    (lo as usize, hi.max(lo) as usize)
+}
+
 /// `buf[b0 + t bstep] = raster[base + t step]` for `t < len`: the raster bounds are
 /// checked once per line (plain index loops: `step_by` divides to find its length, which
 /// costs more than the copy on the short diagonal lines).
@@ -639,6 +730,55 @@ fn write_line(
 /// enough to keep both cores busy, small enough that the lattices stay in a reused buffer.
 const CHUNK: usize = 1024;
 
+/// Parts a chunk's raster range is split into for [`scatter_chunk`] (a few per thread).
+const SCATTER_PARTS: usize = 8;
+
+/// Writes a chunk of transformed diamonds back: interior vertices of diamond `k` when
+/// `interior[k]`, and cells when `cells` is given. Diamonds of one level write disjoint
+/// entries, so the chunk's raster range is cut into parts written in parallel, each by
+/// the diamonds that reach into it.
+fn scatter_chunk<G: Layout>(
+    g: &G,
+    raster: &mut [i32],
+    chunk: &[G::Slot],
+    vbuf: &[i32],
+    cells: Option<&[i32]>,
+    interior: &[bool],
+) {
+    let n = g.n();
+    let (vlen, clen) = ((n + 1) * (n + 1), n * n);
+    let spans: Vec<(usize, usize)> = chunk.iter().map(|s| g.index_span(s)).collect();
+    let lo = spans.iter().map(|s| s.0).min().unwrap_or(0);
+    let hi = spans
+        .iter()
+        .map(|s| s.1)
+        .max()
+        .unwrap_or(0)
+        .min(raster.len().saturating_sub(1));
+    if lo > hi {
+        return;
+    }
+    let part_len = (hi + 1 - lo).div_ceil(SCATTER_PARTS);
+    raster[lo..=hi]
+        .par_chunks_mut(part_len)
+        .enumerate()
+        .for_each(|(p, part)| {
+            let start = lo + p * part_len;
+            let end = start + part.len();
+            for (k, s) in chunk.iter().enumerate() {
+                if spans[k].1 < start || spans[k].0 >= end {
+                    continue;
+                }
+                if interior[k] {
+                    g.scatter_interior_part(s, &vbuf[k * vlen..(k + 1) * vlen], part, start);
+                }
+                if let Some(c) = cells {
+                    g.scatter_cells_part(s, &c[k * clen..(k + 1) * clen], part, start);
+                }
+            }
+        });
+}
+
 /// Forward transform of every level, fine to coarse, diamonds of a level in parallel.
 pub(crate) fn analyze_levels<G: Layout>(g: &G, raster: &mut [i32]) -> Vec<Vec<Vec<i32>>> {
     analyze_levels_with(g, raster, |_, _, _, _, _| ()).0
@@ -685,8 +825,8 @@ where
                     (h, r)
                 })
                 .collect();
-            for (k, (s, (h, r))) in chunk.iter().zip(results).enumerate() {
-                g.scatter_interior(s, &vbuf[k * vlen..(k + 1) * vlen], raster);
+            scatter_chunk(g, raster, chunk, &vbuf, None, &vec![true; chunk.len()]);
+            for (h, r) in results {
                 hs.push(h);
                 rs.push(r);
             }
@@ -793,13 +933,9 @@ where
                     }
                 })
                 .collect();
-            for (k, (s, (r, has))) in chunk.iter().zip(results).enumerate() {
-                if has {
-                    g.scatter_interior(s, &vbuf[k * vlen..(k + 1) * vlen], raster);
-                }
-                g.scatter_cells(s, &cbuf[k * clen..(k + 1) * clen], raster);
-                rs.push(r);
-            }
+            let has: Vec<bool> = results.iter().map(|r| r.1).collect();
+            scatter_chunk(g, raster, chunk, &vbuf, Some(&cbuf), &has);
+            rs.extend(results.into_iter().map(|r| r.0));
         }
         out.push(rs);
     }
@@ -841,12 +977,22 @@ impl Layout for RasterGeometry {
         RasterGeometry::gather_cells(self, s, raster, c);
     }
 
-    fn scatter_interior(&self, s: &DiamondSlot, v: &[i32], raster: &mut [i32]) {
-        self.scatter_vertices(s, v, raster, 1);
+    fn index_span(&self, s: &DiamondSlot) -> (usize, usize) {
+        match s.lin {
+            Some([v0, _, si, sj]) => {
+                let (lo, hi) = Lattice::new(self.n + 1, 0, self.n + 1, v0, si, sj).span();
+                (lo.max(0) as usize, hi.max(0) as usize)
+            }
+            None => (0, self.raster_len().saturating_sub(1)),
+        }
     }
 
-    fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], raster: &mut [i32]) {
-        RasterGeometry::scatter_cells(self, s, c, raster);
+    fn scatter_interior_part(&self, s: &DiamondSlot, v: &[i32], part: &mut [i32], start: usize) {
+        self.scatter_vertices(s, v, part, start, 1);
+    }
+
+    fn scatter_cells_part(&self, s: &DiamondSlot, c: &[i32], part: &mut [i32], start: usize) {
+        RasterGeometry::scatter_cells(self, s, c, part, start);
     }
 
     fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
@@ -997,6 +1143,25 @@ mod tests {
                 seen.sort_unstable();
                 want.sort_unstable();
                 assert_eq!(seen, want, "si {si} sj {sj} m {m} o {o}");
+                // Written part by part (cut anywhere), the raster is what one write gives.
+                let lat = Lattice::new(m, o, w, base, si, sj);
+                let buf: Vec<i32> = (0..(w * w) as i32).map(|x| x + 1).collect();
+                let len = (1000 * w_raster) as usize;
+                let mut whole = vec![0; len];
+                lat.write_part(&buf, &mut whole, 0);
+                for part_len in [1usize, 7, 999, 1000, 4093, 65536] {
+                    let mut parts = vec![0; len];
+                    for (p, part) in parts.chunks_mut(part_len).enumerate() {
+                        lat.write_part(&buf, part, p * part_len);
+                    }
+                    assert!(parts == whole, "si {si} sj {sj} m {m} parts of {part_len}");
+                }
+                let (lo, hi) = lat.span();
+                assert_eq!(whole.iter().position(|&x| x != 0), usize::try_from(lo).ok());
+                assert_eq!(
+                    whole.iter().rposition(|&x| x != 0),
+                    usize::try_from(hi).ok()
+                );
             }
         }
     }

@@ -57,6 +57,21 @@ impl Placement {
     fn base(&self, cell: bool) -> isize {
         if cell { self.c0 } else { self.v0 }
     }
+
+    /// Lowest and highest index of a `side x side` grid from `base`.
+    fn span(&self, base: isize, side: usize) -> (isize, isize) {
+        let e = side.saturating_sub(1) as isize;
+        let c = [
+            base,
+            base + e * self.si,
+            base + e * self.sj,
+            base + e * (self.si + self.sj),
+        ];
+        (
+            c.iter().copied().min().unwrap_or(base),
+            c.iter().copied().max().unwrap_or(base),
+        )
+    }
 }
 
 /// Where one diamond's samples live in the cube raster.
@@ -138,13 +153,35 @@ impl SphereSlot {
     /// Writes points `margin..side - margin` of a `side x side` grid to every copy. Only
     /// diagonal points of edge diamonds have two copies among those ever written (interior
     /// vertices and cells); other edge points are boundary vertices, never written here.
-    fn scatter(&self, side: usize, margin: usize, cell: bool, values: &[i32], raster: &mut [i32]) {
+    /// Only raster indices inside `part` (`raster[start..start + part.len()]`) are written.
+    fn scatter(
+        &self,
+        side: usize,
+        margin: usize,
+        cell: bool,
+        values: &[i32],
+        part: &mut [i32],
+        start: usize,
+    ) {
+        let end = start + part.len();
+        let misses = |p: &Placement| {
+            let (lo, hi) = p.span(p.base(cell), side);
+            hi < start as isize || lo >= end as isize
+        };
+        if misses(&self.lower) && self.upper.as_ref().is_none_or(misses) {
+            return;
+        }
+        let mut put = |k: usize, x: i32| {
+            if let Some(e) = k.checked_sub(start).and_then(|k| part.get_mut(k)) {
+                *e = x;
+            }
+        };
         let lo = &self.lower;
         let bl = lo.base(cell);
         let Some(up) = &self.upper else {
             for i in margin..side - margin {
                 for j in margin..side - margin {
-                    raster[lo.at(bl, i, j)] = values[i * side + j];
+                    put(lo.at(bl, i, j), values[i * side + j]);
                 }
             }
             return;
@@ -154,10 +191,10 @@ impl SphereSlot {
             for j in margin..side - margin {
                 let x = values[i * side + j];
                 if j <= i {
-                    raster[lo.at(bl, i, j)] = x;
+                    put(lo.at(bl, i, j), x);
                 }
                 if j >= i {
-                    raster[up.at(bu, i, j)] = x;
+                    put(up.at(bu, i, j), x);
                 }
             }
         }
@@ -609,7 +646,7 @@ impl SphereGeometry {
         }
         check_len(self, raster)?;
         for (s, grid) in self.roots.iter().zip(roots) {
-            s.scatter(side, 1, false, grid, raster);
+            s.scatter(side, 1, false, grid, raster, 0);
             for i in 0..side {
                 for j in 0..side {
                     if i != 0 && j != 0 && i != self.n && j != self.n {
@@ -707,12 +744,23 @@ impl Layout for SphereGeometry {
         s.gather(self.n, true, raster, c);
     }
 
-    fn scatter_interior(&self, s: &SphereSlot, v: &[i32], raster: &mut [i32]) {
-        s.scatter(self.n + 1, 1, false, v, raster);
+    fn index_span(&self, s: &SphereSlot) -> (usize, usize) {
+        let (mut lo, mut hi) = (isize::MAX, isize::MIN);
+        for p in std::iter::once(&s.lower).chain(&s.upper) {
+            for (base, side) in [(p.v0, self.n + 1), (p.c0, self.n)] {
+                let (l, h) = p.span(base, side);
+                (lo, hi) = (lo.min(l), hi.max(h));
+            }
+        }
+        (lo.max(0) as usize, hi.max(0) as usize)
     }
 
-    fn scatter_cells(&self, s: &SphereSlot, c: &[i32], raster: &mut [i32]) {
-        s.scatter(self.n, 0, true, c, raster);
+    fn scatter_interior_part(&self, s: &SphereSlot, v: &[i32], part: &mut [i32], start: usize) {
+        s.scatter(self.n + 1, 1, false, v, part, start);
+    }
+
+    fn scatter_cells_part(&self, s: &SphereSlot, c: &[i32], part: &mut [i32], start: usize) {
+        s.scatter(self.n, 0, true, c, part, start);
     }
 
     fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {

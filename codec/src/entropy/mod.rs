@@ -454,20 +454,20 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
     }
     let mut rec = Causal::new(n);
     blocks.sort_unstable();
-    let mut cells = [0usize; 16];
+    // (index, row, column) of the block's valid cells (no division per cell).
+    let mut cells = [(0usize, 0usize, 0usize); 16];
     for (by, bx) in blocks {
         let mut nc = 0;
         for i in by * bl.b..(by + 1) * bl.b {
             for j in bx * bl.b..(bx + 1) * bl.b {
                 if is_valid(i * n + j) {
-                    cells[nc] = i * n + j;
+                    cells[nc] = (i * n + j, i, j);
                     nc += 1;
                 }
             }
         }
         let mut seen = false;
-        for (idx, &k) in cells[..nc].iter().enumerate() {
-            let (i, j) = (k / n, k % n);
+        for (idx, &(k, i, j)) in cells[..nc].iter().enumerate() {
             let (class, sctx) = rec.context(i, j);
             let v = q[k];
             if idx + 1 != nc || seen {
@@ -581,20 +581,20 @@ pub fn read_matrix(
     }
     let mut rec = Causal::new(n);
     blocks.sort_unstable();
-    let mut cells = [0usize; 16];
+    // (index, row, column) of the block's valid cells (no division per cell).
+    let mut cells = [(0usize, 0usize, 0usize); 16];
     for (by, bx) in blocks {
         let mut nc = 0;
         for i in by * bl.b..(by + 1) * bl.b {
             for j in bx * bl.b..(bx + 1) * bl.b {
                 if is_valid(i * n + j) {
-                    cells[nc] = i * n + j;
+                    cells[nc] = (i * n + j, i, j);
                     nc += 1;
                 }
             }
         }
         let mut seen = false;
-        for (idx, &k) in cells[..nc].iter().enumerate() {
-            let (i, j) = (k / n, k % n);
+        for (idx, &(k, i, j)) in cells[..nc].iter().enumerate() {
             let (class, sctx) = rec.context(i, j);
             let nonzero = if idx + 1 == nc && !seen {
                 true
