@@ -971,21 +971,28 @@ fn encode_layout<G: Layout>(
     let n = geom.n();
     let ints = integerise(geom, values_m, quantum_m, opts.mode)?;
     // The samples errors are measured over: valid, one copy of each point.
-    let counted: Vec<bool> = (0..values_m.len())
+    let valid = &ints.valid;
+    let counted = |k: usize| valid[k] && geom.is_distinct(k);
+    let valid_count: usize = (0..values_m.len())
         .into_par_iter()
-        .map(|k| ints.valid[k] && geom.is_distinct(k))
-        .collect();
-    let valid_count = counted.iter().filter(|&&b| b).count();
+        .with_min_len(PASS_CHUNK)
+        .filter(|&k| counted(k))
+        .count();
     let (scale, value_offset) = (ints.scale, ints.offset);
     let error_of = |decoded: &[i32]| -> (f64, f64) {
         let (sum, max) = decoded
-            .par_iter()
-            .zip(values_m)
-            .zip(&counted)
-            .filter(|(_, c)| **c)
-            .map(|((&d, &v), _)| {
-                let e = (value_offset + d as f64 * scale - v).abs();
-                (e * e, e)
+            .par_chunks(PASS_CHUNK)
+            .zip(values_m.par_chunks(PASS_CHUNK))
+            .enumerate()
+            .map(|(p, (ds, vs))| {
+                let mut acc = (0.0, 0.0f64);
+                for (k, (&d, &v)) in ds.iter().zip(vs).enumerate() {
+                    if counted(p * PASS_CHUNK + k) {
+                        let e = (value_offset + d as f64 * scale - v).abs();
+                        acc = (acc.0 + e * e, acc.1.max(e));
+                    }
+                }
+                acc
             })
             .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1.max(b.1)));
         ((sum / valid_count.max(1) as f64).sqrt(), max)
@@ -1000,7 +1007,9 @@ fn encode_layout<G: Layout>(
         exact.then(|| measure(n, geom.mask(&geom.slot_levels()[l][i]), c, f, x))
     });
     let roots = geom.gather_roots(&raster);
-    drop(raster);
+    // The buffer is reused by the verification decodes (no second 4-byte-per-sample
+    // allocation to fault in).
+    let mut spare_raster = Some(raster);
     let levels = geom.slot_levels().len();
     let level_len = |l: usize| geom.slot_levels()[l].len();
     let slot = |l: usize, i: usize| &geom.slot_levels()[l][i];
@@ -1020,7 +1029,11 @@ fn encode_layout<G: Layout>(
     // Quantises every detail into `out` (reused between attempts: these are big).
     let quantize_into = |steps: &[u32], out: &mut Vec<Vec<Vec<i32>>>| {
         if out.len() != details.len() {
-            *out = details.clone();
+            // Shaped like `details`; every entry is overwritten below.
+            *out = details
+                .iter()
+                .map(|ds| ds.iter().map(|h| vec![0; h.len()]).collect())
+                .collect();
         }
         for (l, (qs, ds)) in out.iter_mut().zip(&details).enumerate() {
             let quantizer = Quantizer::new(steps[l], offset);
@@ -1092,7 +1105,7 @@ fn encode_layout<G: Layout>(
         // The attempt kept: scale, steps, quantised details, measures, errors.
         let mut best: Option<Attempt> = None;
         let mut qd = Vec::new();
-        let mut raster = Vec::new();
+        let mut raster = spare_raster.take().unwrap_or_default();
         for _ in 0..8 {
             let st: Vec<u32> = (0..levels).map(|l| step_of(q, l)).collect();
             quantize_into(&st, &mut qd);
@@ -1136,6 +1149,7 @@ fn encode_layout<G: Layout>(
             .collect::<Vec<_>>();
     }
 
+    drop(spare_raster);
     // Bottom-up: subtree bounds, side information, which diamonds have data.
     let mut gamma: Vec<Vec<u64>> = vec![Vec::new(); levels];
     let mut has_data: Vec<Vec<bool>> = vec![Vec::new(); levels];

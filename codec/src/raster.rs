@@ -908,6 +908,7 @@ where
     // Refined lattices of a chunk of diamonds, reused (no per-level allocation).
     let mut vbuf = vec![0; CHUNK * vlen];
     let mut cbuf = vec![0; CHUNK * clen];
+    let mut hbuf = vec![0; CHUNK * clen];
     for (level, slots) in levels.iter().enumerate() {
         let mut rs = Vec::with_capacity(slots.len());
         for start in (0..slots.len()).step_by(CHUNK) {
@@ -916,15 +917,15 @@ where
             let results: Vec<(R, bool)> = vbuf
                 .par_chunks_mut(vlen)
                 .zip(cbuf.par_chunks_mut(clen))
+                .zip(hbuf.par_chunks_mut(clen))
                 .zip(chunk.par_iter())
                 .enumerate()
-                .map(|(k, ((v, c), s))| {
-                    let mut h = vec![0; clen];
-                    let has = details(level, start + k, &mut h);
+                .map(|(k, (((v, c), h), s))| {
+                    let has = details(level, start + k, h);
                     g.gather_vertices(s, shared, v);
                     if has {
                         let coarse = v.to_vec();
-                        lifting::synthesize(n, v, &h, c, g.mask(s));
+                        lifting::synthesize(n, v, h, c, g.mask(s));
                         (visit(level, start + k, &coarse, v, c), true)
                     } else {
                         // No details: the vertices stay, the cells are the prediction.
