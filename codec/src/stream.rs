@@ -233,6 +233,10 @@ pub fn encode_streaming(
     })
 }
 
+/// Samples per parallel piece of the per-sample passes (fixed, so sums do not depend
+/// on the thread count).
+const PIECE: usize = 1 << 14;
+
 /// Buffer sizes, fixed from the dimensions and the budget.
 struct Plan {
     width: usize,
@@ -365,13 +369,37 @@ fn scan(source: &mut dyn RowSource, plan: &Plan, meter: &mut Meter) -> Result<Sc
         source
             .read_rows(first, count, out)
             .map_err(EncodeError::Source)?;
-        for &v in out.iter().filter(|v| v.is_finite()) {
-            s.valid += 1;
-            s.lo = s.lo.min(v);
-            s.hi = s.hi.max(v);
-            s.sum += v;
-            for (q, ok) in &mut s.quanta {
-                *ok = *ok && on_quantum(v, *q);
+        // Fixed pieces in parallel, merged in order (the same sums with any thread count).
+        let quanta: Vec<f64> = s.quanta.iter().map(|&(q, _)| q).collect();
+        let pieces: Vec<Scan> = out
+            .par_chunks(PIECE)
+            .map(|c| {
+                let mut p = Scan {
+                    valid: 0,
+                    lo: f64::INFINITY,
+                    hi: f64::NEG_INFINITY,
+                    sum: 0.0,
+                    quanta: quanta.iter().map(|&q| (q, true)).collect(),
+                };
+                for &v in c.iter().filter(|v| v.is_finite()) {
+                    p.valid += 1;
+                    p.lo = p.lo.min(v);
+                    p.hi = p.hi.max(v);
+                    p.sum += v;
+                    for (q, ok) in &mut p.quanta {
+                        *ok = *ok && on_quantum(v, *q);
+                    }
+                }
+                p
+            })
+            .collect();
+        for p in pieces {
+            s.valid += p.valid;
+            s.lo = s.lo.min(p.lo);
+            s.hi = s.hi.max(p.hi);
+            s.sum += p.sum;
+            for (a, b) in s.quanta.iter_mut().zip(&p.quanta) {
+                a.1 = a.1 && b.1;
             }
         }
         first += count;
@@ -557,14 +585,31 @@ impl Reader {
             .map_err(EncodeError::Source)?;
         let (vals, valid) = (&mut self.vals[..total], &mut self.valid[..total]);
         valid[..ctx].iter_mut().for_each(|b| *b = true);
-        for (b, v) in valid[ctx..].iter_mut().zip(&vals[ctx..]) {
-            *b = v.is_finite();
-        }
+        valid[ctx..]
+            .par_chunks_mut(PIECE)
+            .zip(vals[ctx..].par_chunks(PIECE))
+            .for_each(|(bs, vs)| {
+                for (b, v) in bs.iter_mut().zip(vs) {
+                    *b = v.is_finite();
+                }
+            });
         if let Some(e) = errors {
-            for (&v, _) in vals[ctx..].iter().zip(&valid[ctx..]).filter(|(_, b)| **b) {
-                let d = (map.offset + map.int_of(v) as f64 * map.scale - v).abs();
-                e.sum2 += d * d;
-                e.max = e.max.max(d);
+            // Fixed pieces in parallel, summed in order (deterministic).
+            let pieces: Vec<(f64, f64)> = vals[ctx..]
+                .par_chunks(PIECE)
+                .map(|vs| {
+                    let (mut sum2, mut max) = (0.0, 0.0f64);
+                    for &v in vs.iter().filter(|v| v.is_finite()) {
+                        let d = (map.offset + map.int_of(v) as f64 * map.scale - v).abs();
+                        sum2 += d * d;
+                        max = max.max(d);
+                    }
+                    (sum2, max)
+                })
+                .collect();
+            for (sum2, max) in pieces {
+                e.sum2 += sum2;
+                e.max = e.max.max(max);
             }
         }
         let mut fill_bytes = 0;
@@ -580,7 +625,12 @@ impl Reader {
                 }
             }
         }
-        out.extend(vals[ctx..].iter().map(|&v| map.int_of(v)));
+        out.par_extend(
+            vals[ctx..]
+                .par_iter()
+                .with_min_len(PIECE)
+                .map(|&v| map.int_of(v)),
+        );
         let keep = CONTEXT_ROWS.min(self.context + count);
         let from = total - keep * w;
         self.vals.copy_within(from..total, 0);
