@@ -703,13 +703,7 @@ pub(crate) fn trains_on(level_len: usize, index: usize) -> bool {
 const TRAIN_STRIDE: usize = 8;
 
 /// One rate-control attempt: scale, steps, quantised details, measures, `(rms, max)`.
-type Attempt = (
-    f64,
-    Vec<u32>,
-    Vec<Vec<Vec<i32>>>,
-    Vec<Vec<Measure>>,
-    (f64, f64),
-);
+type Attempt = (f64, Vec<u32>, Vec<Vec<Measure>>, (f64, f64));
 
 /// The first guess of the ratio of a real decode's RMS to the open-loop estimate, for a
 /// tolerance of `quanta` value quanta. The estimate treats every level's quantisation
@@ -1051,9 +1045,10 @@ fn encode_layout<G: Layout>(
     let exact = !matches!(opts.mode, RateMode::RmsM(_));
     let exact_errors = exact.then(|| error_of(&ints.values));
     let mut raster = ints.values;
-    let (details, analysis_measures) = analyze_levels_with(geom, &mut raster, |l, i, c, f, x| {
-        exact.then(|| measure(n, geom.mask(&geom.slot_levels()[l][i]), c, f, x))
-    });
+    let (mut details, analysis_measures) =
+        analyze_levels_with(geom, &mut raster, |l, i, c, f, x| {
+            exact.then(|| measure(n, geom.mask(&geom.slot_levels()[l][i]), c, f, x))
+        });
     let roots = geom.gather_roots(&raster);
     // The buffer is reused by the verification decodes (no second 4-byte-per-sample
     // allocation to fault in).
@@ -1074,49 +1069,40 @@ fn encode_layout<G: Layout>(
     };
     // Only the RMS mode trades individual details for rate; the other modes are exact.
     let prune = matches!(opts.mode, RateMode::RmsM(_));
-    // Quantises every detail into `out` (reused between attempts: these are big).
-    let quantize_into = |steps: &[u32], out: &mut Vec<Vec<Vec<i32>>>| {
-        if out.len() != details.len() {
-            // Shaped like `details`; every entry is overwritten below.
-            *out = details
-                .iter()
-                .map(|ds| ds.iter().map(|h| vec![0; h.len()]).collect())
-                .collect();
+    // Quantises one diamond's details in place.
+    let quantize_matrix = |steps: &[u32], l: usize, h: &mut [i32]| {
+        let quantizer = Quantizer::new(steps[l], offset);
+        for x in h.iter_mut() {
+            *x = quantizer.apply(*x);
         }
-        for (l, (qs, ds)) in out.iter_mut().zip(&details).enumerate() {
-            let quantizer = Quantizer::new(steps[l], offset);
-            qs.par_iter_mut().zip(ds.par_iter()).for_each(|(q, h)| {
-                for (x, &d) in q.iter_mut().zip(h) {
-                    *x = quantizer.apply(d);
-                }
-                if prune && steps[l] > 256 {
-                    drop_isolated_ones(n, q);
-                }
-            });
+        if prune && steps[l] > 256 {
+            drop_isolated_ones(n, h);
         }
     };
-    // Decodes into `out` (reused between attempts) and measures every diamond.
-    let decode_measure = |q: &[Vec<Vec<i32>>],
-                          steps: &[u32],
-                          out: &mut Vec<i32>|
-     -> Result<Vec<Vec<Measure>>, EncodeError> {
-        out.clear();
-        out.resize(geom.raster_len(), 0);
-        geom.scatter_roots(&roots, out)?;
-        Ok(synthesize_levels_par(
-            geom,
-            out,
-            |l, i, h| {
-                let mut any = false;
-                for (d, &x) in h.iter_mut().zip(&q[l][i]) {
-                    *d = dequantize(x, steps[l]);
-                    any |= x != 0;
-                }
-                any
-            },
-            |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
-        )?)
-    };
+    // Decodes the details quantised with `steps` into `out` (reused between attempts)
+    // and measures every diamond. Quantising on the fly keeps no quantised copy of the
+    // details: the attempt finally kept is quantised once, in place, at the end.
+    let decode_measure =
+        |steps: &[u32], out: &mut Vec<i32>| -> Result<Vec<Vec<Measure>>, EncodeError> {
+            out.clear();
+            out.resize(geom.raster_len(), 0);
+            geom.scatter_roots(&roots, out)?;
+            Ok(synthesize_levels_par(
+                geom,
+                out,
+                |l, i, h| {
+                    h.copy_from_slice(&details[l][i]);
+                    quantize_matrix(steps, l, h);
+                    let mut any = false;
+                    for x in h.iter_mut() {
+                        any |= *x != 0;
+                        *x = dequantize(*x, steps[l]);
+                    }
+                    any
+                },
+                |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
+            )?)
+        };
 
     let (rms_m, max_abs_m);
     if let RateMode::RmsM(target) = opts.mode {
@@ -1150,42 +1136,39 @@ fn encode_layout<G: Layout>(
         let quanta = target / quantum_m.unwrap_or(scale);
         let mut search = ScaleSearch::new(target);
         let mut q = solve(search.goal(), initial_ratio(quanta));
-        // The attempt kept: scale, steps, quantised details, measures, errors.
+        // The attempt kept: scale, steps, measures, errors.
         let mut best: Option<Attempt> = None;
-        let mut qd = Vec::new();
         let mut raster = spare_raster.take().unwrap_or_default();
         for _ in 0..8 {
             let st: Vec<u32> = (0..levels).map(|l| step_of(q, l)).collect();
-            quantize_into(&st, &mut qd);
-            let ms = decode_measure(&qd, &st, &mut raster)?;
+            let ms = decode_measure(&st, &mut raster)?;
             let (rms, max) = error_of(&raster);
             let est = estimate(q);
             let improves = rms <= target && best.as_ref().is_none_or(|b| q > b.0);
             if improves {
-                // Keep this attempt; reuse the previous best's buffer next time.
-                let spare = best.take().map(|b| b.2).unwrap_or_default();
-                best = Some((q, st, std::mem::replace(&mut qd, spare), ms, (rms, max)));
+                best = Some((q, st, ms, (rms, max)));
             }
             match search.next(q, rms, est, &solve) {
                 Some(next) => q = next,
                 None => break,
             }
         }
-        drop(raster);
-        let (_, st, qd, ms, errors) = match best {
+        let (_, st, ms, errors) = match best {
             Some(b) => b,
             None => {
                 // Fall back to the finest steps (integer lossless) if nothing met the target.
                 let st = vec![256; levels];
-                quantize_into(&st, &mut qd);
-                let mut raster = Vec::new();
-                let ms = decode_measure(&qd, &st, &mut raster)?;
+                let ms = decode_measure(&st, &mut raster)?;
                 let errors = error_of(&raster);
-                (0.0, st, qd, ms, errors)
+                (0.0, st, ms, errors)
             }
         };
+        drop(raster);
+        for (l, ds) in details.iter_mut().enumerate() {
+            ds.par_iter_mut().for_each(|h| quantize_matrix(&st, l, h));
+        }
         steps = st;
-        quantized = qd;
+        quantized = details;
         measures = ms;
         (rms_m, max_abs_m) = errors;
     } else {
@@ -1381,7 +1364,20 @@ fn sphere_geometry(enc: &Encoded, face_side: usize) -> Result<SphereGeometry, Ra
 
 /// Decodes with a prepared geometry (built with the encoding's coverage, if any).
 pub fn decode_integers_with(geom: &RasterGeometry, enc: &Encoded) -> Result<Vec<i32>, DecodeError> {
-    decode_layout(geom, std::slice::from_ref(&enc.root), enc)
+    let mut raster = Vec::new();
+    decode_integers_into(geom, enc, &mut raster)?;
+    Ok(raster)
+}
+
+/// [`decode_integers_with`] into `out` (resized to the raster), reusing its allocation:
+/// repeated decodes then touch no fresh memory (a page fault costs about 2.7 us on the
+/// machine the figures in docs/codec.md come from: 44 ms for korea's 67 MB raster).
+pub fn decode_integers_into(
+    geom: &RasterGeometry,
+    enc: &Encoded,
+    out: &mut Vec<i32>,
+) -> Result<(), DecodeError> {
+    decode_layout(geom, std::slice::from_ref(&enc.root), enc, out)
 }
 
 /// Decodes a planet to integer values: the cube raster at full resolution (one thread).
@@ -1398,21 +1394,26 @@ pub fn decode_sphere_integers_with(
     geom: &SphereGeometry,
     enc: &Encoded,
 ) -> Result<Vec<i32>, DecodeError> {
-    decode_layout(geom, &enc.roots, enc)
+    let mut raster = Vec::new();
+    decode_layout(geom, &enc.roots, enc, &mut raster)?;
+    Ok(raster)
 }
 
 fn decode_layout<G: Layout>(
     geom: &G,
     roots: &[Vec<i32>],
     enc: &Encoded,
-) -> Result<Vec<i32>, DecodeError> {
+    raster: &mut Vec<i32>,
+) -> Result<(), DecodeError> {
     if geom.coverage() != enc.coverage.as_ref() {
         return Err(RasterError::Coverage("the geometry was built with another coverage").into());
     }
-    let mut raster = vec![0; geom.raster_len()];
-    geom.scatter_roots(roots, &mut raster)?;
+    raster.clear();
+    raster.resize(geom.raster_len(), 0);
+    let raster = &mut raster[..];
+    geom.scatter_roots(roots, raster)?;
     let mut q = Vec::with_capacity(enc.n * enc.n);
-    synthesize_levels::<G, DecodeError>(geom, &mut raster, |l, i, h| {
+    synthesize_levels::<G, DecodeError>(geom, raster, |l, i, h| {
         let Some(bytes) = enc
             .blobs
             .get(l)
@@ -1435,7 +1436,7 @@ fn decode_layout<G: Layout>(
             .filter(|(_, ok)| !**ok)
             .for_each(|(x, _)| *x = 0);
     }
-    Ok(raster)
+    Ok(())
 }
 
 /// Decodes to metres. Invalid points of a sparse encoding decode to `NaN` (nodata).
