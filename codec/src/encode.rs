@@ -362,8 +362,10 @@ impl Quantizer {
 fn magnitude_histogram(details: &[Vec<i32>]) -> Vec<(u32, u64)> {
     /// Magnitudes below this are counted in a table, the rest in a map.
     const DENSE: usize = 1 << 16;
+    // Few, large pieces: every piece zeroes (and faults in) its own 512 KB table.
     let (dense, sparse) = details
         .par_iter()
+        .with_min_len(512)
         .fold(
             || (vec![0u64; DENSE], BTreeMap::<u32, u64>::new()),
             |(mut dense, mut sparse), h| {
