@@ -98,22 +98,7 @@ impl Running {
     }
 }
 
-/// One parsed response.
-#[derive(Debug)]
-pub struct Response {
-    pub status: u16,
-    pub headers: Vec<(String, String)>,
-    pub body: Vec<u8>,
-}
-
-impl Response {
-    pub fn header(&self, name: &str) -> Option<&str> {
-        self.headers
-            .iter()
-            .find(|(n, _)| n.eq_ignore_ascii_case(name))
-            .map(|(_, v)| v.as_str())
-    }
-}
+pub use quincunx_testkit::http::Response;
 
 /// Parses one response at the start of `buf`: `Ok(Some((response, used)))`, `Ok(None)` if
 /// more bytes are needed.
