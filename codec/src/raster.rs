@@ -304,8 +304,7 @@ impl RasterGeometry {
     fn gather_vertices(&self, s: &DiamondSlot, raster: &[i32], v: &mut [i32]) {
         let n = self.n;
         if let Some([v0, _, si, sj]) = s.lin {
-            let at = Lattice::new(n + 1, 0, n + 1, v0, si, sj);
-            at.lines(|r, rs, b, bs, len| read_line(raster, r, rs, v, b, bs, len));
+            read_lattice(raster, n + 1, v0, si, sj, v);
             return;
         }
         for i in 0..=n {
@@ -318,8 +317,7 @@ impl RasterGeometry {
     fn gather_cells(&self, s: &DiamondSlot, raster: &[i32], c: &mut [i32]) {
         let n = self.n;
         if let Some([_, c0, si, sj]) = s.lin {
-            let at = Lattice::new(n, 0, n, c0, si, sj);
-            at.lines(|r, rs, b, bs, len| read_line(raster, r, rs, c, b, bs, len));
+            read_lattice(raster, n, c0, si, sj, c);
             return;
         }
         for i in 0..n {
@@ -656,6 +654,34 @@ impl Lattice {
             });
         }
     }
+}
+
+/// Reads the `side x side` lattice whose point `(i, j)` is `raster[base + i si + j sj]`
+/// into `out` (row-major), walking the shortest raster step ([`Lattice`]).
+pub(crate) fn read_lattice(
+    raster: &[i32],
+    side: usize,
+    base: isize,
+    si: isize,
+    sj: isize,
+    out: &mut [i32],
+) {
+    Lattice::new(side, 0, side, base, si, sj)
+        .lines(|r, rs, b, bs, len| read_line(raster, r, rs, out, b, bs, len));
+}
+
+/// Writes rows and columns `margin..side - margin` of the `side x side` grid `v` back to
+/// the lattice of [`read_lattice`].
+pub(crate) fn write_lattice(
+    raster: &mut [i32],
+    side: usize,
+    margin: usize,
+    base: isize,
+    si: isize,
+    sj: isize,
+    v: &[i32],
+) {
+    Lattice::new(side - 2 * margin, margin, side, base, si, sj).write_part(v, raster, 0);
 }
 
 /// The range `t0..t1` of `t < len` with `start <= base + t step < end`.

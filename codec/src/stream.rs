@@ -36,7 +36,7 @@ use crate::encode::{
 };
 use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::lifting::{self, DiamondMask};
-use crate::raster::{DiamondSlot, RasterGeometry};
+use crate::raster::{DiamondSlot, RasterGeometry, read_lattice, write_lattice};
 
 /// Rows of a planar raster, read on demand (row 0 = north). May be called several times
 /// over the same rows (the encoder makes more than one pass).
@@ -680,6 +680,9 @@ impl Frame {
         v: &mut [i32],
     ) {
         let [v0, _, si, sj] = self.lin(base, w);
+        if mask.is_none() {
+            return read_lattice(buf, n + 1, v0, si, sj, v);
+        }
         gather_strided(
             n + 1,
             v0,
@@ -701,6 +704,9 @@ impl Frame {
         c: &mut [i32],
     ) {
         let [_, c0, si, sj] = self.lin(base, w);
+        if mask.is_none() {
+            return read_lattice(buf, n, c0, si, sj, c);
+        }
         gather_strided(
             n,
             c0,
@@ -723,6 +729,9 @@ impl Frame {
         w: usize,
     ) {
         let [v0, _, si, sj] = self.lin(base, w);
+        if mask.is_none() {
+            return write_lattice(buf, n + 1, 1, v0, si, sj, v);
+        }
         for i in 1..n {
             let start = v0 + i as isize * si;
             for j in 1..n {
