@@ -146,6 +146,30 @@ fn wants_dropped_from_the_next_submit_are_not_fetched() {
 }
 
 #[test]
+fn a_key_resubmitted_before_its_answer_is_polled_is_reported_once() {
+    // The race the frame loop runs into: an answer arrives between one frame's poll and
+    // the next frame's submit, which still wants the key and so hits the cache.
+    let server = TestServer::start();
+    let link = LinkProxy::start(server.addr, 100_000.0, Duration::from_millis(1)).unwrap();
+    let fetcher = serial_fetcher(&server, &link);
+    let key = planar_wants()
+        .into_iter()
+        .map(|(k, _)| k)
+        .find(|k| *k != PLANAR_LEAF)
+        .unwrap();
+    fetcher.submit(vec![(key, 1.0)]);
+    let start = Instant::now();
+    while fetcher.cached(key).is_none() && start.elapsed() < Duration::from_secs(20) {
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    assert!(fetcher.cached(key).is_some(), "the blob never arrived");
+    fetcher.submit(vec![(key, 1.0)]);
+    let keys: Vec<Key> = fetcher.poll().into_iter().map(|(k, _)| k).collect();
+    assert_eq!(keys, vec![key]);
+    assert_eq!(fetcher.stats().requests, 1);
+}
+
+#[test]
 fn prefetch_is_issued_only_after_the_wants_and_lands_in_the_cache() {
     let server = TestServer::start();
     let link = LinkProxy::start(server.addr, 100_000.0, Duration::from_millis(10)).unwrap();

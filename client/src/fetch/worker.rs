@@ -190,9 +190,15 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
         });
     }
 
-    /// Results ready since the last call, in arrival order.
+    /// Results ready since the last call, in arrival order, each key at most once: a key
+    /// submitted again after its answer was sent but before it was polled is answered a
+    /// second time from the cache, and that repeat is dropped here.
     pub fn poll(&self) -> Vec<(Key, Fetched<T>)> {
-        self.results.try_iter().collect()
+        let mut seen = HashSet::new();
+        self.results
+            .try_iter()
+            .filter(|(k, _)| seen.insert(*k))
+            .collect()
     }
 
     /// A snapshot of the counters.
