@@ -681,7 +681,23 @@ pub(crate) fn write_lattice(
     sj: isize,
     v: &[i32],
 ) {
-    Lattice::new(side - 2 * margin, margin, side, base, si, sj).write_part(v, raster, 0);
+    write_lattice_part(raster, 0, side, margin, base, si, sj, v);
+}
+
+/// [`write_lattice`] into `part`, the raster entries from index `start` (points outside
+/// it are skipped).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn write_lattice_part(
+    part: &mut [i32],
+    start: usize,
+    side: usize,
+    margin: usize,
+    base: isize,
+    si: isize,
+    sj: isize,
+    v: &[i32],
+) {
+    Lattice::new(side - 2 * margin, margin, side, base, si, sj).write_part(v, part, start);
 }
 
 /// The range `t0..t1` of `t < len` with `start <= base + t step < end`.

@@ -34,7 +34,8 @@ use crate::diamond::{SphereDomain, SphereId, check_size};
 use crate::entropy;
 use crate::lifting::DiamondMask;
 use crate::raster::{
-    Layout, RasterError, analyze_levels, check_len, synthesize_checked, synthesize_par_checked,
+    Layout, RasterError, analyze_levels, check_len, read_lattice, synthesize_checked,
+    synthesize_par_checked, write_lattice_part,
 };
 
 /// An affine index map: vertex `(i, j)` at `v0 + i si + j sj`, cell `(i, j)` at
@@ -126,12 +127,7 @@ impl SphereSlot {
     fn gather(&self, side: usize, cell: bool, raster: &[i32], out: &mut [i32]) {
         let lo = &self.lower;
         let Some(up) = &self.upper else {
-            let base = lo.base(cell);
-            for (i, row) in out.chunks_exact_mut(side).enumerate() {
-                for (j, x) in row.iter_mut().enumerate() {
-                    *x = raster[lo.at(base, i, j)];
-                }
-            }
+            read_lattice(raster, side, lo.base(cell), lo.si, lo.sj, out);
             return;
         };
         let diag = if self.diag_upper { up } else { lo };
@@ -171,20 +167,16 @@ impl SphereSlot {
         if misses(&self.lower) && self.upper.as_ref().is_none_or(misses) {
             return;
         }
+        let lo = &self.lower;
+        let bl = lo.base(cell);
+        let Some(up) = &self.upper else {
+            write_lattice_part(part, start, side, margin, bl, lo.si, lo.sj, values);
+            return;
+        };
         let mut put = |k: usize, x: i32| {
             if let Some(e) = k.checked_sub(start).and_then(|k| part.get_mut(k)) {
                 *e = x;
             }
-        };
-        let lo = &self.lower;
-        let bl = lo.base(cell);
-        let Some(up) = &self.upper else {
-            for i in margin..side - margin {
-                for j in margin..side - margin {
-                    put(lo.at(bl, i, j), values[i * side + j]);
-                }
-            }
-            return;
         };
         let bu = up.base(cell);
         for i in margin..side - margin {
