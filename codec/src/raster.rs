@@ -341,7 +341,7 @@ impl RasterGeometry {
     ) {
         let n = self.n;
         if let Some([v0, _, si, sj]) = s.lin {
-            Lattice::new(n + 1 - 2 * margin, margin, n + 1, v0, si, sj).write_part(v, part, start);
+            write_lattice(part, start, n + 1, margin, v0, si, sj, v);
             return;
         }
         for i in margin..=n - margin {
@@ -357,7 +357,7 @@ impl RasterGeometry {
     fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], part: &mut [i32], start: usize) {
         let n = self.n;
         if let Some([_, c0, si, sj]) = s.lin {
-            Lattice::new(n, 0, n, c0, si, sj).write_part(c, part, start);
+            write_lattice(part, start, n, 0, c0, si, sj, c);
             return;
         }
         for i in 0..n {
@@ -671,23 +671,10 @@ pub(crate) fn read_lattice(
 }
 
 /// Writes rows and columns `margin..side - margin` of the `side x side` grid `v` back to
-/// the lattice of [`read_lattice`].
-pub(crate) fn write_lattice(
-    raster: &mut [i32],
-    side: usize,
-    margin: usize,
-    base: isize,
-    si: isize,
-    sj: isize,
-    v: &[i32],
-) {
-    write_lattice_part(raster, 0, side, margin, base, si, sj, v);
-}
-
-/// [`write_lattice`] into `part`, the raster entries from index `start` (points outside
-/// it are skipped).
+/// the lattice of [`read_lattice`], as far as it falls in `part`, the raster entries from
+/// index `start` (the whole raster: `start` 0).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn write_lattice_part(
+pub(crate) fn write_lattice(
     part: &mut [i32],
     start: usize,
     side: usize,

@@ -35,7 +35,7 @@ use crate::entropy;
 use crate::lifting::DiamondMask;
 use crate::raster::{
     Layout, RasterError, analyze_levels, check_len, read_lattice, synthesize_checked,
-    synthesize_par_checked, write_lattice_part,
+    synthesize_par_checked, write_lattice,
 };
 
 /// An affine index map: vertex `(i, j)` at `v0 + i si + j sj`, cell `(i, j)` at
@@ -170,7 +170,7 @@ impl SphereSlot {
         let lo = &self.lower;
         let bl = lo.base(cell);
         let Some(up) = &self.upper else {
-            write_lattice_part(part, start, side, margin, bl, lo.si, lo.sj, values);
+            write_lattice(part, start, side, margin, bl, lo.si, lo.sj, values);
             return;
         };
         let mut put = |k: usize, x: i32| {

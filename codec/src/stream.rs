@@ -730,7 +730,7 @@ impl Frame {
     ) {
         let [v0, _, si, sj] = self.lin(base, w);
         if mask.is_none() {
-            return write_lattice(buf, n + 1, 1, v0, si, sj, v);
+            return write_lattice(buf, 0, n + 1, 1, v0, si, sj, v);
         }
         for i in 1..n {
             let start = v0 + i as isize * si;
