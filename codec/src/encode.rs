@@ -577,7 +577,7 @@ const INTEGRAL: f64 = 4_503_599_627_370_496.0;
 /// x86-64 target has no rounding instruction, and these run once or twice per sample
 /// (integerising took 0.18 s of a 1.1 s korea encode before).
 #[inline]
-pub(crate) fn round(x: f64) -> f64 {
+pub fn round(x: f64) -> f64 {
     if x.is_nan() || x.abs() >= INTEGRAL {
         return x; // integral already, or NaN / infinite
     }
@@ -1015,13 +1015,26 @@ fn encode_layout<G: Layout>(
     let n = geom.n();
     let ints = integerise(geom, values_m, quantum_m, opts.mode)?;
     // The samples errors are measured over: valid, one copy of each point.
-    let valid = &ints.valid;
-    let counted = |k: usize| valid[k] && geom.is_distinct(k);
-    let valid_count: usize = (0..values_m.len())
-        .into_par_iter()
-        .with_min_len(PASS_CHUNK)
-        .filter(|&k| counted(k))
-        .count();
+    // A planet's extra copies of edge points are masked out once (asking per sample, per
+    // error measurement, was 3 % of a planet build); a planar raster has none.
+    let counted_mask: std::borrow::Cow<'_, [bool]> = if geom.distinct_len() == values_m.len() {
+        std::borrow::Cow::Borrowed(&ints.valid)
+    } else {
+        let mut mask = ints.valid.clone();
+        mask.par_chunks_mut(PASS_CHUNK)
+            .enumerate()
+            .for_each(|(p, part)| {
+                for (k, ok) in part.iter_mut().enumerate() {
+                    *ok = *ok && geom.is_distinct(p * PASS_CHUNK + k);
+                }
+            });
+        std::borrow::Cow::Owned(mask)
+    };
+    let counted = |k: usize| counted_mask[k];
+    let valid_count: usize = counted_mask
+        .par_chunks(PASS_CHUNK)
+        .map(|part| part.iter().filter(|&&ok| ok).count())
+        .sum();
     let (scale, value_offset) = (ints.scale, ints.offset);
     let error_of = |decoded: &[i32]| -> (f64, f64) {
         let (sum, max) = decoded
