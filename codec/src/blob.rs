@@ -15,7 +15,7 @@ use crate::entropy::{self, CodecModel, EntropyError, ModelDecoder, ModelEncoder}
 use crate::lifting::DiamondMask;
 
 /// Current blob format version.
-pub const VERSION: u8 = 2;
+pub const VERSION: u8 = 3;
 /// Bytes before the payload.
 pub const HEADER_BYTES: usize = 3;
 
