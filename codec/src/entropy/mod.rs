@@ -14,9 +14,10 @@
 //! - quadtree significance of 4x4 blocks (the last candidate child of a significant node
 //!   is inferred), context = node size and significant left/upper neighbours;
 //! - per valid cell of a significant block, in raster order: significance (context:
-//!   activity `a = 2|W| + 2|N| + |NW| + |NE|` of already coded neighbours), sign (context:
-//!   signs of W and N), then the magnitude `|q| - 1` split Golomb-Rice style by a
-//!   parameter `k` that grows with `a` (`k = floor(log2((a + 6) / 12))`, 0 below 18): its
+//!   activity `a = 2|W| + 2|N| + |NW| + |NE| + |WW| + |NN|` of already coded
+//!   neighbours), sign (context: signs of W and N), then the magnitude `|q| - 1` split
+//!   Golomb-Rice style by a parameter `k` that grows with `a`
+//!   (`k = floor(log2((a + 8) / 16))`, 0 below 24): its
 //!   high part `(|q| - 1) >> k` in unary over 14 context-coded bins (context set: the
 //!   activity bucket for `k = 0`, else `k`), escaping past 14 to Exp-Golomb with a
 //!   context-coded prefix and a bypass suffix, then its `k` low bits in bypass bits.
@@ -341,8 +342,8 @@ impl Blocks {
     }
 }
 
-/// The coefficients coded so far, padded with a zero column on each side and a zero row
-/// on top, so every cell's causal neighbours are read without bounds tests.
+/// The coefficients coded so far, padded with two zero columns on each side and two zero
+/// rows on top, so every cell's causal neighbours are read without bounds tests.
 struct Causal {
     w: usize,
     v: Vec<i32>,
@@ -351,21 +352,22 @@ struct Causal {
 impl Causal {
     fn new(n: usize) -> Self {
         Causal {
-            w: n + 2,
-            v: vec![0; (n + 2) * (n + 1)],
+            w: n + 4,
+            v: vec![0; (n + 4) * (n + 2)],
         }
     }
 
     #[inline(always)]
     fn set(&mut self, i: usize, j: usize, x: i32) {
-        self.v[(i + 1) * self.w + j + 1] = x;
+        self.v[(i + 2) * self.w + j + 2] = x;
     }
 
-    /// Context of coefficient `(i, j)`: the activity `2|W| + 2|N| + |NW| + |NE|`
-    /// (saturating) and the sign context of W and N (outside the matrix counts as 0).
+    /// Context of coefficient `(i, j)`: the activity `2|W| + 2|N| + |NW| + |NE| + |WW| +
+    /// |NN|` (saturating; `WW`, `NN` two cells west and north) and the sign context of W
+    /// and N (outside the matrix counts as 0).
     #[inline(always)]
     fn context(&self, i: usize, j: usize) -> (u32, usize) {
-        let up = i * self.w + j + 1;
+        let up = (i + 1) * self.w + j + 2;
         let here = up + self.w;
         let (w, nn) = (self.v[here - 1], self.v[up]);
         let (nw, ne) = (self.v[up - 1], self.v[up + 1]);
@@ -374,6 +376,9 @@ impl Causal {
             .saturating_add(2u32.saturating_mul(nn.unsigned_abs()))
             .saturating_add(nw.unsigned_abs())
             .saturating_add(ne.unsigned_abs());
+        let a = a
+            .saturating_add(self.v[here - 2].unsigned_abs())
+            .saturating_add(self.v[up - self.w].unsigned_abs());
         (a, 3 * sgn3(w) + sgn3(nn))
     }
 }
@@ -382,7 +387,7 @@ impl Causal {
 /// (activity class `class`).
 #[inline(always)]
 fn rice(a: u32, class: usize) -> (u32, usize) {
-    let t = a.saturating_add(6) / 12;
+    let t = a.saturating_add(8) / 16;
     let k = if t < 2 {
         0
     } else {
@@ -732,9 +737,10 @@ mod tests {
     #[test]
     fn golomb_rice_parameters_grow_with_activity_and_stay_bounded() {
         assert_eq!(rice(0, 0), (0, 0));
-        assert_eq!(rice(17, activity_class(17)), (0, 2));
-        assert_eq!(rice(18, activity_class(18)), (1, 3));
-        assert_eq!(rice(42, activity_class(42)).0, 2);
+        assert_eq!(rice(23, activity_class(23)), (0, 2));
+        assert_eq!(rice(24, activity_class(24)), (1, 3));
+        assert_eq!(rice(55, activity_class(55)).0, 1);
+        assert_eq!(rice(56, activity_class(56)).0, 2);
         assert_eq!(rice(u32::MAX, 9), (RICE_MAX, MAG_SETS - 1));
         let mut last = 0;
         for a in (0..100_000u32).step_by(7) {
