@@ -15,7 +15,7 @@
 //!   is inferred), context = node size and significant left/upper neighbours;
 //! - per valid cell of a significant block, in raster order: significance (context:
 //!   activity `a = 2|W| + 2|N| + |NW| + |NE| + |WW| + |NN|` of already coded
-//!   neighbours), sign (context: signs of W and N), then the magnitude `|q| - 1` split
+//!   neighbours), sign (context: signs of W, N, NW and NE), then the magnitude `|q| - 1` split
 //!   Golomb-Rice style by a parameter `k` that grows with `a`
 //!   (`k = floor(log2((a + 8) / 16))`, 0 below 24): its
 //!   high part `(|q| - 1) >> k` in unary over 14 context-coded bins (context set: the
@@ -37,9 +37,9 @@ const GAMMA_ZERO: usize = 1;
 const GAMMA_UNARY: usize = 2; // 16
 const QUAD: usize = 18; // 4 sizes x 3
 const SIG: usize = 30; // 10 classes
-const SIGN: usize = 40; // 9
-const ESCAPE: usize = 49; // 16: Exp-Golomb prefix positions of magnitude escapes
-const MAG: usize = 65; // MAG_SETS x MAG_BINS
+const SIGN: usize = 40; // 81
+const ESCAPE: usize = 121; // 16: Exp-Golomb prefix positions of magnitude escapes
+const MAG: usize = 137; // MAG_SETS x MAG_BINS
 const MAG_BINS: usize = 14;
 /// Magnitude context sets: 3 activity buckets for `k = 0`, then `k = 1..=7` (and more).
 const MAG_SETS: usize = 10;
@@ -78,39 +78,73 @@ impl Default for CodecModel {
     }
 }
 
+/// Starting probability (of a 0, 16 bits) of each model byte `b`: log-odds
+/// `(b - 128) / 16`, clamped to the coder's range. A table, not `exp`, so every platform
+/// decodes the same bits from the same model bytes.
+const MODEL_PROBS: [Prob; 256] = [
+    32, 32, 32, 32, 32, 32, 32, 34, 36, 39, 41, 44, 47, 50, 53, 56, 60, 64, 68, 72, 77, 82, 87, 92,
+    98, 105, 111, 119, 126, 134, 143, 152, 162, 172, 184, 195, 208, 221, 236, 251, 267, 284, 302,
+    321, 342, 364, 387, 412, 439, 467, 497, 528, 562, 598, 636, 677, 720, 766, 815, 867, 922, 980,
+    1042, 1109, 1179, 1253, 1333, 1417, 1506, 1601, 1701, 1808, 1921, 2041, 2168, 2303, 2446, 2598,
+    2758, 2928, 3108, 3298, 3500, 3713, 3938, 4176, 4427, 4692, 4971, 5266, 5577, 5904, 6249, 6611,
+    6992, 7392, 7812, 8252, 8714, 9197, 9702, 10230, 10782, 11357, 11955, 12579, 13226, 13898,
+    14595, 15316, 16062, 16832, 17625, 18442, 19282, 20143, 21025, 21928, 22849, 23788, 24743,
+    25712, 26695, 27689, 28693, 29705, 30723, 31744, 32768, 33792, 34813, 35831, 36843, 37847,
+    38841, 39824, 40793, 41748, 42687, 43608, 44511, 45393, 46254, 47094, 47911, 48704, 49474,
+    50220, 50941, 51638, 52310, 52957, 53581, 54179, 54754, 55306, 55834, 56339, 56822, 57284,
+    57724, 58144, 58544, 58925, 59287, 59632, 59959, 60270, 60565, 60844, 61109, 61360, 61598,
+    61823, 62036, 62238, 62428, 62608, 62778, 62938, 63090, 63233, 63368, 63495, 63615, 63728,
+    63835, 63935, 64030, 64119, 64203, 64283, 64357, 64427, 64494, 64556, 64614, 64669, 64721,
+    64770, 64816, 64859, 64900, 64938, 64974, 65008, 65039, 65069, 65097, 65124, 65149, 65172,
+    65194, 65215, 65234, 65252, 65269, 65285, 65300, 65315, 65328, 65341, 65352, 65364, 65374,
+    65384, 65393, 65402, 65410, 65417, 65425, 65431, 65438, 65444, 65449, 65454, 65459, 65464,
+    65468, 65472, 65476, 65480, 65483, 65486, 65489, 65492, 65495, 65497, 65500, 65502, 65504,
+    65504, 65504, 65504, 65504, 65504,
+];
+
 impl CodecModel {
-    /// A model from per-context counts of zeros and ones.
+    /// A model from per-context counts of zeros and ones (each probability rounded to a
+    /// model byte, so a model survives [`CodecModel::to_bytes`] exactly).
     pub fn from_counts(counts: &ContextCounts) -> Self {
         let probs = counts
             .counts
             .iter()
             .map(|&[n0, n1]| {
                 let p = (n0 as f64 + 0.4) / (n0 as f64 + n1 as f64 + 0.8);
-                (p * 65536.0).round().clamp(32.0, 65504.0) as Prob
+                MODEL_PROBS[model_byte(p) as usize]
             })
             .collect();
         CodecModel { probs }
     }
 
-    /// Serialised form: one little-endian `u16` per context.
+    /// Serialised form: one byte per context (the log-odds of its starting probability in
+    /// 1/16 steps). Blob version 2 stored a `u16` per context; at 0.26 bits/sample the
+    /// model's bytes are part of the rate, and 8 bits of a starting probability that
+    /// adapts from the first decision on are plenty.
     pub fn to_bytes(&self) -> Vec<u8> {
-        self.probs.iter().flat_map(|p| p.to_le_bytes()).collect()
+        self.probs
+            .iter()
+            .map(|&p| model_byte(f64::from(p) / 65536.0))
+            .collect()
     }
 
-    /// Parses [`CodecModel::to_bytes`].
+    /// Parses [`CodecModel::to_bytes`]: every byte is a valid probability.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, EntropyError> {
-        if bytes.len() != 2 * CONTEXTS {
+        if bytes.len() != CONTEXTS {
             return Err(EntropyError::BadModel("wrong length"));
         }
-        let probs: Vec<Prob> = bytes
-            .chunks_exact(2)
-            .map(|c| u16::from_le_bytes([c[0], c[1]]))
-            .collect();
-        if probs.iter().any(|&p| !(32..=65504).contains(&p)) {
-            return Err(EntropyError::BadModel("probability out of range"));
-        }
-        Ok(CodecModel { probs })
+        Ok(CodecModel {
+            probs: bytes.iter().map(|&b| MODEL_PROBS[b as usize]).collect(),
+        })
     }
+}
+
+/// The model byte whose probability is closest to `p` in log-odds.
+fn model_byte(p: f64) -> u8 {
+    let p = p.clamp(1e-9, 1.0 - 1e-9);
+    (16.0 * (p / (1.0 - p)).ln() + 128.0)
+        .round()
+        .clamp(0.0, 255.0) as u8
 }
 
 /// Per-context counts of coded zeros and ones (for training a [`CodecModel`]).
@@ -379,7 +413,7 @@ impl Causal {
         let a = a
             .saturating_add(self.v[here - 2].unsigned_abs())
             .saturating_add(self.v[up - self.w].unsigned_abs());
-        (a, 3 * sgn3(w) + sgn3(nn))
+        (a, 27 * sgn3(nw) + 9 * sgn3(ne) + 3 * sgn3(w) + sgn3(nn))
     }
 }
 
@@ -731,6 +765,43 @@ mod tests {
                     .collect();
                 round_trip(n, &qm, Some(&valid), &model);
             }
+        }
+    }
+
+    #[test]
+    fn models_survive_their_bytes_and_reject_wrong_lengths() {
+        // Every byte is a probability, and a model's bytes give it back exactly.
+        for b in 0..=255u8 {
+            let m = CodecModel::from_bytes(&vec![b; CONTEXTS]).unwrap();
+            assert_eq!(
+                CodecModel::from_bytes(&m.to_bytes()).unwrap(),
+                m,
+                "byte {b}"
+            );
+        }
+        assert_eq!(MODEL_PROBS[128], HALF);
+        assert!(MODEL_PROBS.windows(2).all(|w| w[0] <= w[1]));
+        let mut counts = ContextCounts::default();
+        for (k, c) in counts.counts.iter_mut().enumerate() {
+            *c = [(k as u64 * 7919) % 1000, (k as u64 * 104_729) % 997];
+        }
+        let trained = CodecModel::from_counts(&counts);
+        assert_eq!(
+            CodecModel::from_bytes(&trained.to_bytes()).unwrap(),
+            trained
+        );
+        // Trained probabilities stay close to the counts' (1/32 in log-odds).
+        for (&p, &[n0, n1]) in trained.probs.iter().zip(&counts.counts) {
+            let want = (n0 as f64 + 0.4) / ((n0 + n1) as f64 + 0.8);
+            let got = f64::from(p) / 65536.0;
+            let lo = |x: f64| (x / (1.0 - x)).ln();
+            assert!(
+                (lo(got) - lo(want.clamp(5e-4, 1.0 - 5e-4))).abs() <= 0.04,
+                "{want} {got}"
+            );
+        }
+        for len in [0, CONTEXTS - 1, CONTEXTS + 1, 2 * CONTEXTS] {
+            assert!(CodecModel::from_bytes(&vec![128; len]).is_err());
         }
     }
 
