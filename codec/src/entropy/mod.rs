@@ -4,7 +4,7 @@
 //! Design (why): blobs are small (tens of bytes at 0.2 bits/sample), so an adaptive coder
 //! that starts from flat probabilities learns nothing before the blob ends. Each context's
 //! starting probability is therefore trained on the whole repository at build time and
-//! shipped once in its metadata ([`CodecModel`], ~1 KB); within a blob the probabilities
+//! shipped once in its metadata ([`CodecModel`], ~1.7 KB); within a blob the probabilities
 //! still adapt. Decoding is built for weak clients: all-zero regions are skipped by a
 //! quadtree of 4x4 blocks (one or two binary decisions for a flat diamond), and each
 //! coefficient costs one decision when zero, about three when small.
