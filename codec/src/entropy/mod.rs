@@ -4,7 +4,7 @@
 //! Design (why): blobs are small (tens of bytes at 0.2 bits/sample), so an adaptive coder
 //! that starts from flat probabilities learns nothing before the blob ends. Each context's
 //! starting probability is therefore trained on the whole repository at build time and
-//! shipped once in its metadata ([`CodecModel`], ~1.7 KB); within a blob the probabilities
+//! shipped once in its metadata ([`CodecModel`], ~2.6 KB); within a blob the probabilities
 //! still adapt. Decoding is built for weak clients: all-zero regions are skipped by a
 //! quadtree of 4x4 blocks (one or two binary decisions for a flat diamond), and each
 //! coefficient costs one decision when zero, about three when small.
@@ -36,13 +36,14 @@ const NONZERO: usize = 0;
 const GAMMA_ZERO: usize = 1;
 const GAMMA_UNARY: usize = 2; // 16
 const QUAD: usize = 18; // 4 sizes x 3
-const SIG: usize = 30; // 10 classes
-const SIGN: usize = 40; // 81
-const ESCAPE: usize = 121; // 16: Exp-Golomb prefix positions of magnitude escapes
-const MAG: usize = 137; // MAG_SETS x MAG_BINS
+const SIG: usize = 30; // 10 classes x (inside, outer ring)
+const SIGN: usize = 50; // 81
+const ESCAPE: usize = 131; // 16: Exp-Golomb prefix positions of magnitude escapes
+const MAG: usize = 147; // MAG_SETS x MAG_BINS
 const MAG_BINS: usize = 14;
-/// Magnitude context sets: 3 activity buckets for `k = 0`, then `k = 1..=7` (and more).
-const MAG_SETS: usize = 10;
+/// Magnitude context sets: 3 activity buckets for `k = 0`, then `k = 1..=7` (and more);
+/// the same 10 again for cells on the outer ring.
+const MAG_SETS: usize = 20;
 const PER_GROUP: usize = MAG + MAG_SETS * MAG_BINS;
 /// Largest Golomb-Rice parameter (bounds the bypass bits of one magnitude's low part).
 const RICE_MAX: u32 = 15;
@@ -417,10 +418,23 @@ impl Causal {
     }
 }
 
-/// Golomb-Rice parameter and magnitude context set of a coefficient with activity `a`
-/// (activity class `class`).
+/// Whether cell `(i, j)` of an `n x n` matrix is on its outer ring, where the transform
+/// predicts with order 2 only (larger details).
 #[inline(always)]
-fn rice(a: u32, class: usize) -> (u32, usize) {
+fn on_ring(n: usize, i: usize, j: usize) -> bool {
+    i == 0 || j == 0 || i + 1 == n || j + 1 == n
+}
+
+/// Significance context of a coefficient of activity class `class`.
+#[inline(always)]
+fn sig_ctx(class: usize, ring: bool) -> usize {
+    SIG + class + 10 * ring as usize
+}
+
+/// Golomb-Rice parameter and magnitude context set of a coefficient with activity `a`
+/// (activity class `class`; `ring`: on the outer ring).
+#[inline(always)]
+fn rice(a: u32, class: usize, ring: bool) -> (u32, usize) {
     let t = a.saturating_add(8) / 16;
     let k = if t < 2 {
         0
@@ -436,9 +450,9 @@ fn rice(a: u32, class: usize) -> (u32, usize) {
             2
         }
     } else {
-        (2 + k as usize).min(MAG_SETS - 1)
+        (2 + k as usize).min(9)
     };
-    (k, set)
+    (k, set + 10 * ring as usize)
 }
 
 fn size_class(size_in_blocks: usize) -> usize {
@@ -544,8 +558,9 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
             let (a, sctx) = rec.context(i, j);
             let class = activity_class(a);
             let v = q[k];
+            let ring = on_ring(n, i, j);
             if idx + 1 != nc || seen {
-                s.bit(ctx(g, SIG + class), v != 0);
+                s.bit(ctx(g, sig_ctx(class, ring)), v != 0);
             }
             if v == 0 {
                 continue;
@@ -553,7 +568,7 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
             seen = true;
             s.bit(ctx(g, SIGN + sctx), v < 0);
             let mag = v.unsigned_abs() - 1;
-            let (kr, set) = rice(a, class);
+            let (kr, set) = rice(a, class, ring);
             let hi = mag >> kr;
             let mut b = 0;
             while b < MAG_BINS {
@@ -670,17 +685,18 @@ pub fn read_matrix(
         for (idx, &(k, i, j)) in cells[..nc].iter().enumerate() {
             let (a, sctx) = rec.context(i, j);
             let class = activity_class(a);
+            let ring = on_ring(n, i, j);
             let nonzero = if idx + 1 == nc && !seen {
                 true
             } else {
-                d.bit(ctx(g, SIG + class))
+                d.bit(ctx(g, sig_ctx(class, ring)))
             };
             if !nonzero {
                 continue;
             }
             seen = true;
             let negative = d.bit(ctx(g, SIGN + sctx));
-            let (kr, set) = rice(a, class);
+            let (kr, set) = rice(a, class, ring);
             let mut hi = 0u32;
             while (hi as usize) < MAG_BINS && d.bit(ctx(g, MAG + set * MAG_BINS + hi as usize)) {
                 hi += 1;
@@ -807,39 +823,46 @@ mod tests {
 
     #[test]
     fn golomb_rice_parameters_grow_with_activity_and_stay_bounded() {
-        assert_eq!(rice(0, 0), (0, 0));
-        assert_eq!(rice(23, activity_class(23)), (0, 2));
-        assert_eq!(rice(24, activity_class(24)), (1, 3));
-        assert_eq!(rice(55, activity_class(55)).0, 1);
-        assert_eq!(rice(56, activity_class(56)).0, 2);
-        assert_eq!(rice(u32::MAX, 9), (RICE_MAX, MAG_SETS - 1));
+        assert_eq!(rice(0, 0, false), (0, 0));
+        assert_eq!(rice(23, activity_class(23), false), (0, 2));
+        assert_eq!(rice(24, activity_class(24), false), (1, 3));
+        assert_eq!(rice(55, activity_class(55), true).0, 1);
+        assert_eq!(rice(56, activity_class(56), false).0, 2);
+        assert_eq!(rice(u32::MAX, 9, false), (RICE_MAX, 9));
+        assert_eq!(rice(u32::MAX, 9, true), (RICE_MAX, MAG_SETS - 1));
         let mut last = 0;
         for a in (0..100_000u32).step_by(7) {
-            let (k, set) = rice(a, activity_class(a));
+            let (k, set) = rice(a, activity_class(a), a % 2 == 0);
             assert!(k >= last && set < MAG_SETS);
             last = k;
         }
     }
 
     /// Writes a 4 x 4 matrix whose first coefficient escapes with `zeros` prefix zeros
-    /// and an all-ones suffix.
+    /// and an all-ones suffix (its magnitude is then `2^(zeros + 1) + 13`), the rest 0.
     fn escape_stream(zeros: usize) -> Vec<u8> {
         let model = CodecModel::default();
         let mut e = ModelEncoder::new(&model);
         e.bit(ctx(0, NONZERO), true);
-        e.bit(ctx(0, SIG), true); // cell (0, 0): activity 0, k = 0
-        e.bit(ctx(0, SIGN), false);
+        // Cell (0, 0): on the ring, activity 0, k = 0, magnitude set 0 + 10.
+        assert_eq!(rice(0, 0, true), (0, 10));
+        e.bit(ctx(0, sig_ctx(0, true)), true);
+        e.bit(ctx(0, SIGN + 40), false); // W, N, NW and NE all zero: 27 + 9 + 3 + 1
         for b in 0..MAG_BINS {
-            e.bit(ctx(0, MAG + b), true);
+            e.bit(ctx(0, MAG + 10 * MAG_BINS + b), true);
         }
         for p in 0..zeros {
             e.bit(ctx(0, ESCAPE + p.min(15)), false);
         }
         e.bit(ctx(0, ESCAPE + zeros.min(15)), true);
         e.bypass(u32::MAX, zeros as u32);
-        // The other 15 cells: zero.
-        for _ in 0..15 {
-            e.bit(ctx(0, SIG), false);
+        // The other 15 cells: zero, each in the context its neighbours give it.
+        let mut rec = Causal::new(4);
+        rec.set(0, 0, (1i32 << (zeros + 1).min(30)) + 13);
+        for k in 1..16 {
+            let (i, j) = (k / 4, k % 4);
+            let (a, _) = rec.context(i, j);
+            e.bit(ctx(0, sig_ctx(activity_class(a), on_ring(4, i, j))), false);
         }
         e.finish()
     }
