@@ -3,9 +3,9 @@
 //! Input layout: byte 0 selects `N` (2^(1 + b % 9)) and the level group, byte 1 the
 //! number of owned children (0..=4) and whether the checksum is patched to match, byte 2
 //! the key length (0..=15), then the key, then the blob. With the checksum patched the
-//! garbage reaches the entropy decoder instead of stopping at the CRC. A prefix of the
-//! input is also parsed as a `CodecModel`, and when that succeeds the blob is decoded with
-//! it too, as is a valid model built from the blob bytes with its probabilities clamped.
+//! garbage reaches the entropy decoder instead of stopping at the CRC. The whole input is
+//! also parsed as a `CodecModel`, and when that succeeds the blob is decoded with it too,
+//! as is a valid model with every context explicit, its bytes taken from the blob bytes.
 
 #![no_main]
 
@@ -45,19 +45,19 @@ fuzz_target!(|data: &[u8]| {
         assert_eq!(content.child_classes.len(), owned_children);
     }
 
-    // A model from a prefix: rejected unless exactly the right length; every byte is a
-    // valid probability, and the model survives its own serialisation.
-    let prefix = &data[..data.len().min(entropy::CONTEXTS)];
-    if let Ok(model) = CodecModel::from_bytes(prefix) {
+    // A model parsed from the input itself: accepted only when well formed (bitmap, then
+    // one byte per set bit), and then it survives its own serialisation.
+    if let Ok(model) = CodecModel::from_bytes(data) {
         assert_eq!(CodecModel::from_bytes(&model.to_bytes()).as_ref(), Ok(&model));
         let _ = blob::decode(&blob_bytes, &ctx, &model);
     }
-    // And a full-length model made of the input's bytes, so that extreme trained priors
-    // meet garbage payloads.
+    // And a model with every context explicit, its bytes taken from the input, so that
+    // extreme trained priors meet garbage payloads.
     if !bytes.is_empty() {
-        let skewed: Vec<u8> = (0..entropy::CONTEXTS)
-            .map(|k| bytes[k % bytes.len()])
-            .collect();
+        let map_len = entropy::CONTEXTS.div_ceil(8);
+        let mut skewed = vec![0xFFu8; map_len];
+        skewed[map_len - 1] = (0xFFu16 >> (map_len * 8 - entropy::CONTEXTS)) as u8;
+        skewed.extend((0..entropy::CONTEXTS).map(|k| bytes[k % bytes.len()]));
         let model = CodecModel::from_bytes(&skewed).expect("every byte is a probability");
         let _ = blob::decode(&blob_bytes, &ctx, &model);
     }

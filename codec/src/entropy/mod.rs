@@ -4,7 +4,7 @@
 //! Design (why): blobs are small (tens of bytes at 0.2 bits/sample), so an adaptive coder
 //! that starts from flat probabilities learns nothing before the blob ends. Each context's
 //! starting probability is therefore trained on the whole repository at build time and
-//! shipped once in its metadata ([`CodecModel`], ~2.6 KB); within a blob the probabilities
+//! shipped once in its metadata ([`CodecModel`], 1-2.5 KB); within a blob the probabilities
 //! still adapt. Decoding is built for weak clients: all-zero regions are skipped by a
 //! quadtree of 4x4 blocks (one or two binary decisions for a flat diamond), and each
 //! coefficient costs one decision when zero, about three when small.
@@ -118,25 +118,49 @@ impl CodecModel {
         CodecModel { probs }
     }
 
-    /// Serialised form: one byte per context (the log-odds of its starting probability in
-    /// 1/16 steps). Blob version 2 stored a `u16` per context; at 0.26 bits/sample the
-    /// model's bytes are part of the rate, and 8 bits of a starting probability that
-    /// adapts from the first decision on are plenty.
+    /// Serialised form: a bitmap of the contexts whose starting probability is not 1/2
+    /// (bit `k % 8` of byte `k / 8`), then one byte per such context, in order: the
+    /// log-odds of its probability in 1/16 steps. Blob version 2 stored a `u16` for every
+    /// context; a small repository uses few of them, and at 0.26 bits/sample the model's
+    /// bytes are part of the rate.
     pub fn to_bytes(&self) -> Vec<u8> {
-        self.probs
+        let bytes: Vec<u8> = self
+            .probs
             .iter()
             .map(|&p| model_byte(f64::from(p) / 65536.0))
-            .collect()
+            .collect();
+        let mut out = vec![0u8; CONTEXTS.div_ceil(8)];
+        for (k, &b) in bytes.iter().enumerate() {
+            if b != 128 {
+                out[k / 8] |= 1 << (k % 8);
+            }
+        }
+        out.extend(bytes.iter().filter(|&&b| b != 128));
+        out
     }
 
-    /// Parses [`CodecModel::to_bytes`]: every byte is a valid probability.
+    /// Parses [`CodecModel::to_bytes`]; any byte is a valid probability.
     pub fn from_bytes(bytes: &[u8]) -> Result<Self, EntropyError> {
-        if bytes.len() != CONTEXTS {
+        let map_len = CONTEXTS.div_ceil(8);
+        let Some((map, values)) = bytes.split_at_checked(map_len) else {
+            return Err(EntropyError::BadModel("shorter than its bitmap"));
+        };
+        let set = |k: usize| map[k / 8] >> (k % 8) & 1 == 1;
+        if (CONTEXTS..map_len * 8).any(set) {
+            return Err(EntropyError::BadModel("bits set past the last context"));
+        }
+        let count = map.iter().map(|b| b.count_ones() as usize).sum::<usize>();
+        if values.len() != count {
             return Err(EntropyError::BadModel("wrong length"));
         }
-        Ok(CodecModel {
-            probs: bytes.iter().map(|&b| MODEL_PROBS[b as usize]).collect(),
-        })
+        let mut values = values.iter();
+        let probs = (0..CONTEXTS)
+            .map(|k| match set(k) {
+                true => values.next().map_or(HALF, |&b| MODEL_PROBS[b as usize]),
+                false => HALF,
+            })
+            .collect();
+        Ok(CodecModel { probs })
     }
 }
 
@@ -784,11 +808,21 @@ mod tests {
         }
     }
 
+    /// A model's bytes with every context explicit (bitmap all ones).
+    fn explicit(values: &[u8]) -> Vec<u8> {
+        let mut bytes = vec![0u8; CONTEXTS.div_ceil(8)];
+        for k in 0..CONTEXTS {
+            bytes[k / 8] |= 1 << (k % 8);
+        }
+        bytes.extend_from_slice(values);
+        bytes
+    }
+
     #[test]
-    fn models_survive_their_bytes_and_reject_wrong_lengths() {
+    fn models_survive_their_bytes_and_reject_malformed_ones() {
         // Every byte is a probability, and a model's bytes give it back exactly.
         for b in 0..=255u8 {
-            let m = CodecModel::from_bytes(&vec![b; CONTEXTS]).unwrap();
+            let m = CodecModel::from_bytes(&explicit(&vec![b; CONTEXTS])).unwrap();
             assert_eq!(
                 CodecModel::from_bytes(&m.to_bytes()).unwrap(),
                 m,
@@ -797,15 +831,19 @@ mod tests {
         }
         assert_eq!(MODEL_PROBS[128], HALF);
         assert!(MODEL_PROBS.windows(2).all(|w| w[0] <= w[1]));
+        // The default model is its bitmap alone.
+        let default = CodecModel::default();
+        assert_eq!(default.to_bytes(), vec![0; CONTEXTS.div_ceil(8)]);
         let mut counts = ContextCounts::default();
         for (k, c) in counts.counts.iter_mut().enumerate() {
-            *c = [(k as u64 * 7919) % 1000, (k as u64 * 104_729) % 997];
+            if k % 3 != 0 {
+                *c = [(k as u64 * 7919) % 1000, (k as u64 * 104_729) % 997];
+            }
         }
         let trained = CodecModel::from_counts(&counts);
-        assert_eq!(
-            CodecModel::from_bytes(&trained.to_bytes()).unwrap(),
-            trained
-        );
+        let bytes = trained.to_bytes();
+        assert!(bytes.len() < CONTEXTS.div_ceil(8) + CONTEXTS * 2 / 3 + 1);
+        assert_eq!(CodecModel::from_bytes(&bytes).unwrap(), trained);
         // Trained probabilities stay close to the counts' (1/32 in log-odds).
         for (&p, &[n0, n1]) in trained.probs.iter().zip(&counts.counts) {
             let want = (n0 as f64 + 0.4) / ((n0 + n1) as f64 + 0.8);
@@ -816,8 +854,18 @@ mod tests {
                 "{want} {got}"
             );
         }
-        for len in [0, CONTEXTS - 1, CONTEXTS + 1, 2 * CONTEXTS] {
-            assert!(CodecModel::from_bytes(&vec![128; len]).is_err());
+        // Malformed: too short, a value missing or extra, bits past the last context.
+        let map_len = CONTEXTS.div_ceil(8);
+        assert!(CodecModel::from_bytes(&bytes[..map_len - 1]).is_err());
+        assert!(CodecModel::from_bytes(&bytes[..bytes.len() - 1]).is_err());
+        let mut extra = bytes.clone();
+        extra.push(7);
+        assert!(CodecModel::from_bytes(&extra).is_err());
+        if CONTEXTS % 8 != 0 {
+            let mut past = vec![0u8; map_len];
+            past[map_len - 1] = 0x80;
+            past.push(7);
+            assert!(CodecModel::from_bytes(&past).is_err());
         }
     }
 
