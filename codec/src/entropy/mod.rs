@@ -861,7 +861,7 @@ mod tests {
         let mut extra = bytes.clone();
         extra.push(7);
         assert!(CodecModel::from_bytes(&extra).is_err());
-        if CONTEXTS % 8 != 0 {
+        if !CONTEXTS.is_multiple_of(8) {
             let mut past = vec![0u8; map_len];
             past[map_len - 1] = 0x80;
             past.push(7);
