@@ -33,7 +33,8 @@ pub mod channels;
 pub mod page;
 
 /// Version of the repository layout (metadata record + page trees) and of the blobs in
-/// it: 3 holds version-2 blobs (the no-data flags); format-2 repositories held version 1.
+/// it: 4 holds version-3 blobs and their compact model; 3 held version 2 (the no-data
+/// flags), format 2 version 1.
 pub const FORMAT_VERSION: u32 = 4;
 
 const METADATA_KEY: &[u8] = b"metadata";
