@@ -421,11 +421,10 @@ impl Causal {
         self.v[(i + 2) * self.w + j + 2] = x;
     }
 
-    /// Context of coefficient `(i, j)`: the activity `2|W| + 2|N| + |NW| + |NE| + |WW| +
-    /// |NN|` (saturating; `WW`, `NN` two cells west and north) and the sign context of W
-    /// and N (outside the matrix counts as 0).
+    /// Activity of coefficient `(i, j)`: `2|W| + 2|N| + |NW| + |NE| + |WW| + |NN|`
+    /// (saturating; `WW`, `NN` two cells west and north; outside the matrix counts as 0).
     #[inline(always)]
-    fn context(&self, i: usize, j: usize) -> (u32, usize) {
+    fn activity(&self, i: usize, j: usize) -> u32 {
         let up = (i + 1) * self.w + j + 2;
         let here = up + self.w;
         let (w, nn) = (self.v[here - 1], self.v[up]);
@@ -435,10 +434,19 @@ impl Causal {
             .saturating_add(2u32.saturating_mul(nn.unsigned_abs()))
             .saturating_add(nw.unsigned_abs())
             .saturating_add(ne.unsigned_abs());
-        let a = a
-            .saturating_add(self.v[here - 2].unsigned_abs())
-            .saturating_add(self.v[up - self.w].unsigned_abs());
-        (a, 27 * sgn3(nw) + 9 * sgn3(ne) + 3 * sgn3(w) + sgn3(nn))
+        a.saturating_add(self.v[here - 2].unsigned_abs())
+            .saturating_add(self.v[up - self.w].unsigned_abs())
+    }
+
+    /// Sign context of coefficient `(i, j)`: the signs of W, N, NW and NE (81). Asked only
+    /// for nonzero coefficients.
+    #[inline(always)]
+    fn sign_context(&self, i: usize, j: usize) -> usize {
+        let up = (i + 1) * self.w + j + 2;
+        let here = up + self.w;
+        let (w, nn) = (self.v[here - 1], self.v[up]);
+        let (nw, ne) = (self.v[up - 1], self.v[up + 1]);
+        27 * sgn3(nw) + 9 * sgn3(ne) + 3 * sgn3(w) + sgn3(nn)
     }
 }
 
@@ -579,7 +587,7 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
         }
         let mut seen = false;
         for (idx, &(k, i, j)) in cells[..nc].iter().enumerate() {
-            let (a, sctx) = rec.context(i, j);
+            let a = rec.activity(i, j);
             let class = activity_class(a);
             let v = q[k];
             let ring = on_ring(n, i, j);
@@ -590,7 +598,7 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
                 continue;
             }
             seen = true;
-            s.bit(ctx(g, SIGN + sctx), v < 0);
+            s.bit(ctx(g, SIGN + rec.sign_context(i, j)), v < 0);
             let mag = v.unsigned_abs() - 1;
             let (kr, set) = rice(a, class, ring);
             let hi = mag >> kr;
@@ -707,7 +715,7 @@ pub fn read_matrix(
         }
         let mut seen = false;
         for (idx, &(k, i, j)) in cells[..nc].iter().enumerate() {
-            let (a, sctx) = rec.context(i, j);
+            let a = rec.activity(i, j);
             let class = activity_class(a);
             let ring = on_ring(n, i, j);
             let nonzero = if idx + 1 == nc && !seen {
@@ -719,7 +727,7 @@ pub fn read_matrix(
                 continue;
             }
             seen = true;
-            let negative = d.bit(ctx(g, SIGN + sctx));
+            let negative = d.bit(ctx(g, SIGN + rec.sign_context(i, j)));
             let (kr, set) = rice(a, class, ring);
             let mut hi = 0u32;
             while (hi as usize) < MAG_BINS && d.bit(ctx(g, MAG + set * MAG_BINS + hi as usize)) {
@@ -909,7 +917,7 @@ mod tests {
         rec.set(0, 0, (1i32 << (zeros + 1).min(30)) + 13);
         for k in 1..16 {
             let (i, j) = (k / 4, k % 4);
-            let (a, _) = rec.context(i, j);
+            let a = rec.activity(i, j);
             e.bit(ctx(0, sig_ctx(activity_class(a), on_ring(4, i, j))), false);
         }
         e.finish()
