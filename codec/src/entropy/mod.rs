@@ -421,20 +421,31 @@ impl Causal {
         self.v[(i + 2) * self.w + j + 2] = x;
     }
 
+    /// Indices in `v` of the row above cell `(i, j)` (at its column) and of the cell.
+    #[inline(always)]
+    fn at(&self, i: usize, j: usize) -> (usize, usize) {
+        let up = (i + 1) * self.w + j + 2;
+        (up, up + self.w)
+    }
+
+    /// W, N, NW and NE of cell `(i, j)` (0 outside the matrix or not yet coded).
+    #[inline(always)]
+    fn near(&self, i: usize, j: usize) -> [i32; 4] {
+        let (up, here) = self.at(i, j);
+        [self.v[here - 1], self.v[up], self.v[up - 1], self.v[up + 1]]
+    }
+
     /// Activity of coefficient `(i, j)`: `2|W| + 2|N| + |NW| + |NE| + |WW| + |NN|`
     /// (saturating; `WW`, `NN` two cells west and north; outside the matrix counts as 0).
     #[inline(always)]
     fn activity(&self, i: usize, j: usize) -> u32 {
-        let up = (i + 1) * self.w + j + 2;
-        let here = up + self.w;
-        let (w, nn) = (self.v[here - 1], self.v[up]);
-        let (nw, ne) = (self.v[up - 1], self.v[up + 1]);
-        let a = 2u32
-            .saturating_mul(w.unsigned_abs())
+        let [w, nn, nw, ne] = self.near(i, j);
+        let (up, here) = self.at(i, j);
+        2u32.saturating_mul(w.unsigned_abs())
             .saturating_add(2u32.saturating_mul(nn.unsigned_abs()))
             .saturating_add(nw.unsigned_abs())
-            .saturating_add(ne.unsigned_abs());
-        a.saturating_add(self.v[here - 2].unsigned_abs())
+            .saturating_add(ne.unsigned_abs())
+            .saturating_add(self.v[here - 2].unsigned_abs())
             .saturating_add(self.v[up - self.w].unsigned_abs())
     }
 
@@ -442,10 +453,7 @@ impl Causal {
     /// for nonzero coefficients.
     #[inline(always)]
     fn sign_context(&self, i: usize, j: usize) -> usize {
-        let up = (i + 1) * self.w + j + 2;
-        let here = up + self.w;
-        let (w, nn) = (self.v[here - 1], self.v[up]);
-        let (nw, ne) = (self.v[up - 1], self.v[up + 1]);
+        let [w, nn, nw, ne] = self.near(i, j);
         27 * sgn3(nw) + 9 * sgn3(ne) + 3 * sgn3(w) + sgn3(nn)
     }
 }
