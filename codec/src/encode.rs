@@ -1461,16 +1461,15 @@ fn decode_layout<G: Layout>(
             return Ok(false);
         };
         blob::decode_into(bytes, &geom.blob_context(l, i), &enc.model, &mut q)?;
-        if q.iter().all(|&x| x == 0) {
-            // A blob that only carries its children's side information: synthesising
-            // zeros is the prediction alone (`lifting::synthesize_zero`).
-            return Ok(false);
-        }
         let step = enc.steps.get(l).copied().unwrap_or(256);
+        // A blob that only carries its children's side information has no nonzero
+        // detail: synthesising it is the prediction alone (`lifting::synthesize_zero`).
+        let mut any = false;
         for (dst, &x) in h.iter_mut().zip(q.iter()) {
+            any |= x != 0;
             *dst = dequantize(x, step);
         }
-        Ok(true)
+        Ok(any)
     })?;
     if let Some(valid) = geom.point_validity() {
         raster

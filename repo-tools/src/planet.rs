@@ -32,7 +32,11 @@ pub fn body_radius_m(body: &str) -> Option<f64> {
 
 /// Latitude and longitude (degrees) of a point on (or off) the cube.
 pub fn lat_lon(p: [i64; 3]) -> (f64, f64) {
-    let q = cube_to_unit_sphere([p[0] as f64, p[1] as f64, p[2] as f64]);
+    degrees(cube_to_unit_sphere([p[0] as f64, p[1] as f64, p[2] as f64]))
+}
+
+/// Latitude and longitude (degrees) of a unit vector.
+fn degrees(q: [f64; 3]) -> (f64, f64) {
     (
         q[2].clamp(-1.0, 1.0).asin().to_degrees(),
         q[1].atan2(q[0]).to_degrees(),
@@ -233,11 +237,7 @@ impl CubeAngles {
     fn lat_lon(&self, p: [i64; 3]) -> (f64, f64) {
         let q = p.map(|x| self.tans[(x + self.half) as usize]);
         let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt();
-        let q = [q[0] / norm, q[1] / norm, q[2] / norm];
-        (
-            q[2].clamp(-1.0, 1.0).asin().to_degrees(),
-            q[1].atan2(q[0]).to_degrees(),
-        )
+        degrees([q[0] / norm, q[1] / norm, q[2] / norm])
     }
 }
 

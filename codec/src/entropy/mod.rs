@@ -36,15 +36,22 @@ const NONZERO: usize = 0;
 const GAMMA_ZERO: usize = 1;
 const GAMMA_UNARY: usize = 2; // 16
 const QUAD: usize = 18; // 4 sizes x 3
-const SIG: usize = 30; // 10 classes x (inside, outer ring)
-const SIGN: usize = 50; // 81
-const ESCAPE: usize = 131; // 16: Exp-Golomb prefix positions of magnitude escapes
-const MAG: usize = 147; // MAG_SETS x MAG_BINS
+/// Activity classes (significance contexts per ring position).
+const CLASSES: usize = 10;
+const SIG: usize = 30; // CLASSES x (inside, outer ring)
+/// Sign contexts: the signs of W, N, NW and NE.
+const SIGNS: usize = 81;
+const SIGN: usize = SIG + 2 * CLASSES;
+/// Exp-Golomb prefix positions of magnitude escapes with their own context (the last
+/// shared by all longer prefixes).
+const ESCAPES: usize = 16;
+const ESCAPE: usize = SIGN + SIGNS;
+const MAG: usize = ESCAPE + ESCAPES; // 2 x RING_SETS x MAG_BINS
 const MAG_BINS: usize = 14;
-/// Magnitude context sets: 3 activity buckets for `k = 0`, then `k = 1..=7` (and more);
-/// the same 10 again for cells on the outer ring.
-const MAG_SETS: usize = 20;
-const PER_GROUP: usize = MAG + MAG_SETS * MAG_BINS;
+/// Magnitude context sets per ring position: 3 activity buckets for `k = 0`, then
+/// `k = 1..=6` and one for larger `k`.
+const RING_SETS: usize = 10;
+const PER_GROUP: usize = MAG + 2 * RING_SETS * MAG_BINS;
 /// Largest Golomb-Rice parameter (bounds the bypass bits of one magnitude's low part).
 const RICE_MAX: u32 = 15;
 
@@ -377,7 +384,9 @@ const ACTIVITY: [u8; 50] = {
 /// Class of activity `a`: 0, 1-2, 3-4, 5-6, 7-9, 10-13, 14-19, 20-29, 30-49, 50+.
 #[inline(always)]
 fn activity_class(a: u32) -> usize {
-    ACTIVITY.get(a as usize).map_or(9, |&c| c as usize)
+    ACTIVITY
+        .get(a as usize)
+        .map_or(CLASSES - 1, |&c| c as usize)
 }
 
 fn sgn3(v: i32) -> usize {
@@ -468,7 +477,7 @@ fn on_ring(n: usize, i: usize, j: usize) -> bool {
 /// Significance context of a coefficient of activity class `class`.
 #[inline(always)]
 fn sig_ctx(class: usize, ring: bool) -> usize {
-    SIG + class + 10 * ring as usize
+    SIG + class + CLASSES * ring as usize
 }
 
 /// Golomb-Rice parameter and magnitude context set of a coefficient with activity `a`
@@ -490,9 +499,9 @@ fn rice(a: u32, class: usize, ring: bool) -> (u32, usize) {
             2
         }
     } else {
-        (2 + k as usize).min(9)
+        (2 + k as usize).min(RING_SETS - 1)
     };
-    (k, set + 10 * ring as usize)
+    (k, set + RING_SETS * ring as usize)
 }
 
 fn size_class(size_in_blocks: usize) -> usize {
@@ -623,7 +632,7 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
                 let e = hi - MAG_BINS as u32 + 1;
                 let bits = 32 - e.leading_zeros();
                 for p in 0..bits as usize {
-                    s.bit(ctx(g, ESCAPE + p.min(15)), p + 1 == bits as usize);
+                    s.bit(ctx(g, ESCAPE + p.min(ESCAPES - 1)), p + 1 == bits as usize);
                 }
                 s.bypass(e, bits - 1);
             }
@@ -744,7 +753,7 @@ pub fn read_matrix(
             let mut hi = u64::from(hi);
             if hi as usize == MAG_BINS {
                 let mut zeros = 0usize;
-                while !d.bit(ctx(g, ESCAPE + zeros.min(15))) {
+                while !d.bit(ctx(g, ESCAPE + zeros.min(ESCAPES - 1))) {
                     zeros += 1;
                     if zeros > 31 {
                         return Err(EntropyError::EscapeTooLong);
@@ -893,11 +902,11 @@ mod tests {
         assert_eq!(rice(55, activity_class(55), true).0, 1);
         assert_eq!(rice(56, activity_class(56), false).0, 2);
         assert_eq!(rice(u32::MAX, 9, false), (RICE_MAX, 9));
-        assert_eq!(rice(u32::MAX, 9, true), (RICE_MAX, MAG_SETS - 1));
+        assert_eq!(rice(u32::MAX, 9, true), (RICE_MAX, 2 * RING_SETS - 1));
         let mut last = 0;
         for a in (0..100_000u32).step_by(7) {
             let (k, set) = rice(a, activity_class(a), a % 2 == 0);
-            assert!(k >= last && set < MAG_SETS);
+            assert!(k >= last && set < 2 * RING_SETS);
             last = k;
         }
     }
@@ -913,12 +922,12 @@ mod tests {
         e.bit(ctx(0, sig_ctx(0, true)), true);
         e.bit(ctx(0, SIGN + 40), false); // W, N, NW and NE all zero: 27 + 9 + 3 + 1
         for b in 0..MAG_BINS {
-            e.bit(ctx(0, MAG + 10 * MAG_BINS + b), true);
+            e.bit(ctx(0, MAG + RING_SETS * MAG_BINS + b), true);
         }
         for p in 0..zeros {
-            e.bit(ctx(0, ESCAPE + p.min(15)), false);
+            e.bit(ctx(0, ESCAPE + p.min(ESCAPES - 1)), false);
         }
-        e.bit(ctx(0, ESCAPE + zeros.min(15)), true);
+        e.bit(ctx(0, ESCAPE + zeros.min(ESCAPES - 1)), true);
         e.bypass(u32::MAX, zeros as u32);
         // The other 15 cells: zero, each in the context its neighbours give it.
         let mut rec = Causal::new(4);
