@@ -995,6 +995,11 @@ pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> 
 /// Encodes a planet ([`CubeGrid`]). Where the copies of a cube edge or corner point
 /// differ, the canonical (lowest face) copy is the point's value (nodata included).
 pub fn encode_sphere(grid: &CubeGrid, opts: EncodeOptions) -> Result<Encoded, EncodeError> {
+    encode_sphere_owned(grid.clone(), opts)
+}
+
+/// [`encode_sphere`] consuming the grid (no copy of the samples).
+pub fn encode_sphere_owned(grid: CubeGrid, opts: EncodeOptions) -> Result<Encoded, EncodeError> {
     let geom = SphereGeometry::new(grid.face_side, opts.n)?;
     if grid.values_m.len() != geom.cube_len() {
         return Err(EncodeError::WrongLength {
@@ -1003,7 +1008,7 @@ pub fn encode_sphere(grid: &CubeGrid, opts: EncodeOptions) -> Result<Encoded, En
         });
     }
     check_tolerance(opts.mode)?;
-    let mut values_m = grid.values_m.clone();
+    let mut values_m = grid.values_m;
     geom.make_consistent(&mut values_m)?;
     let geom = if opts.sparse {
         let coverage = Coverage::of_cube(grid.face_side, opts.n, |k| values_m[k].is_finite());

@@ -576,7 +576,7 @@ fn encode_planet(
 ) -> Result<Coded> {
     let spin = progress::spinner("encoding");
     spin.set_message(format!("6 faces of {0} x {0}", cube.face_side));
-    let enc = encode::encode_sphere(&cube, EncodeOptions { n, mode, sparse })
+    let enc = encode::encode_sphere_owned(cube, EncodeOptions { n, mode, sparse })
         .context("encoding the planet")?;
     spin.finish_and_clear();
     elevation(raster, enc, Some(radius_m), mode)
