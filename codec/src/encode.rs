@@ -583,16 +583,15 @@ pub fn round(x: f64) -> f64 {
     if x.is_nan() || x.abs() >= INTEGRAL {
         return x; // integral already, or NaN / infinite
     }
-    let t = x as i64 as f64; // truncation toward zero
-    let frac = x - t; // exact
-    if frac >= 0.5 {
-        t + 1.0
-    } else if frac <= -0.5 {
-        t - 1.0
-    } else if t == 0.0 {
+    let t = x as i64; // truncation toward zero
+    let frac = x - t as f64; // exact
+    // Comparisons as integers, not branches: which way a sample rounds is data, and
+    // mispredicted branches here were 8 % of a planet build.
+    let r = t + i64::from(frac >= 0.5) - i64::from(frac <= -0.5);
+    if r == 0 {
         0.0 * x // keeps the sign of zero, as `round` does
     } else {
-        t
+        r as f64
     }
 }
 
