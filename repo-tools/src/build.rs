@@ -11,6 +11,7 @@ use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_codec::stream::{self, BlobSink, StreamOptions};
 use quincunx_store::{Attribute, ChannelCoding, Metadata, NodataPolicy, RepositoryBuilder};
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::input::{self, Georef};
@@ -641,8 +642,8 @@ fn encode_colour(
                 },
                 opts,
             ),
-            ColourDomain::Sphere(geom) => encode::encode_sphere(
-                &CubeGrid {
+            ColourDomain::Sphere(geom) => encode::encode_sphere_owned(
+                CubeGrid {
                     face_side: geom.face_side(),
                     values_m: values,
                     quantum_m: Some(1.0),
@@ -655,8 +656,9 @@ fn encode_colour(
         pb.inc(1);
     }
     pb.finish_and_clear();
+    // Each decode runs on one thread: the three channels in parallel.
     let decoded = channels
-        .iter()
+        .par_iter()
         .map(|(_, e)| encode::decode(e).map(|v| v.into_iter().map(|x| x.round() as i32).collect()))
         .collect::<Result<Vec<Vec<i32>>, _>>()
         .context("decoding colour for measurement")?;

@@ -139,9 +139,9 @@ impl<'a> Equirect<'a> {
         self.dlon
     }
 
-    /// Bilinear sample at a latitude/longitude; nodata (`NaN`) neighbours are left out,
-    /// `NaN` outside the grid or when all four are nodata.
-    pub fn sample(&self, lat: f64, lon: f64) -> f64 {
+    /// The four source samples around a latitude/longitude and the weights between them;
+    /// `None` outside a source that does not wrap around the globe.
+    fn locate(&self, lat: f64, lon: f64) -> Option<Bilinear> {
         let row = ((self.lat0 - lat) / self.dlat).clamp(0.0, (self.height - 1) as f64);
         let mut east = lon - self.lon0;
         if !(0.0..360.0).contains(&east) {
@@ -156,7 +156,7 @@ impl<'a> Equirect<'a> {
             } else if (0.0..=(self.width - 1) as f64).contains(&alt) {
                 alt
             } else {
-                return f64::NAN;
+                return None;
             };
         }
         // Both are finite and non-negative: truncation is `floor`, without a libm call.
@@ -173,29 +173,37 @@ impl<'a> Equirect<'a> {
             c0
         };
         let (w0, w1) = (r0 * self.width, r1 * self.width);
-        let [a, b, c, d] = [
-            self.values[w0 + c0],
-            self.values[w0 + c1],
-            self.values[w1 + c0],
-            self.values[w1 + c1],
-        ];
-        if a.is_finite() && b.is_finite() && c.is_finite() && d.is_finite() {
+        Some(Bilinear {
+            at: [w0 + c0, w0 + c1, w1 + c0, w1 + c1],
+            fr,
+            fc,
+            nearest: row.round() as usize * self.width + (col.round() as usize % self.width),
+        })
+    }
+
+    /// Bilinear sample at a latitude/longitude; nodata (`NaN`) neighbours are left out,
+    /// `NaN` outside the grid or when all four are nodata.
+    pub fn sample(&self, lat: f64, lon: f64) -> f64 {
+        let Some(b) = self.locate(lat, lon) else {
+            return f64::NAN;
+        };
+        let v = b.at.map(|k| self.values[k]);
+        if v.iter().all(|x| x.is_finite()) {
             // The common case: no nodata neighbour.
-            let top = a * (1.0 - fc) + b * fc;
-            let bottom = c * (1.0 - fc) + d * fc;
-            return top * (1.0 - fr) + bottom * fr;
+            return b.mix(v);
         }
+        let (fr, fc) = (b.fr, b.fc);
+        let weights = [
+            (1.0 - fr) * (1.0 - fc),
+            (1.0 - fr) * fc,
+            fr * (1.0 - fc),
+            fr * fc,
+        ];
         let mut sum = 0.0;
         let mut weight = 0.0;
-        for (r, c, w) in [
-            (r0, c0, (1.0 - fr) * (1.0 - fc)),
-            (r0, c1, (1.0 - fr) * fc),
-            (r1, c0, fr * (1.0 - fc)),
-            (r1, c1, fr * fc),
-        ] {
-            let v = self.values[r * self.width + c];
-            if v.is_finite() && w > 0.0 {
-                sum += v * w;
+        for (x, w) in v.into_iter().zip(weights) {
+            if x.is_finite() && w > 0.0 {
+                sum += x * w;
                 weight += w;
             }
         }
@@ -203,8 +211,7 @@ impl<'a> Equirect<'a> {
             sum / weight
         } else {
             // Exactly on a nodata sample with zero-weight neighbours: nearest.
-            let v = self.values
-                [row.round() as usize * self.width + (col.round() as usize % self.width)];
+            let v = self.values[b.nearest];
             if v.is_finite() { v } else { f64::NAN }
         }
     }
@@ -220,6 +227,26 @@ impl<'a> Equirect<'a> {
             }
         });
         out
+    }
+}
+
+/// Where a latitude/longitude falls in a source grid: the indices of the four samples
+/// around it (NW, NE, SW, SE), the fractions south and east, and the nearest sample.
+struct Bilinear {
+    at: [usize; 4],
+    fr: f64,
+    fc: f64,
+    nearest: usize,
+}
+
+impl Bilinear {
+    /// The bilinear mix of the four samples' values.
+    #[inline]
+    fn mix(&self, [a, b, c, d]: [f64; 4]) -> f64 {
+        let (fr, fc) = (self.fr, self.fc);
+        let top = a * (1.0 - fc) + b * fc;
+        let bottom = c * (1.0 - fc) + d * fc;
+        top * (1.0 - fr) + bottom * fr
     }
 }
 
@@ -376,25 +403,19 @@ pub fn resample_rgb(image: &RgbImage, geom: &SphereGeometry) -> Result<Vec<[u8; 
         .georef
         .as_ref()
         .context("planet builds need georeferenced imagery (a sidecar with `georef`)")?;
-    let planes: Vec<Vec<f64>> = (0..3)
-        .map(|c| image.pixels.iter().map(|p| p[c] as f64).collect())
-        .collect();
-    let channels = planes
-        .iter()
-        .map(|plane| Equirect::new(image.width, image.height, plane, georef))
-        .collect::<Result<Vec<_>>>()?;
+    // One lookup of the four neighbours for all three channels, straight from the
+    // interleaved pixels (no per-channel copy of the image).
+    let e = Equirect::new(image.width, image.height, &[], georef)?;
     let mut cube = vec![[0u8; 3]; geom.cube_len()];
     for_each_cube_sample(geom, &mut cube, |lat, lon| {
-        let mut px = [0u8; 3];
-        for (dst, e) in px.iter_mut().zip(&channels) {
-            let v = e.sample(lat, lon);
-            *dst = if v.is_finite() {
-                round(v).clamp(0.0, 255.0) as u8
-            } else {
-                0
-            };
-        }
-        px
+        let Some(b) = e.locate(lat, lon) else {
+            return [0; 3];
+        };
+        let p = b.at.map(|k| image.pixels[k]);
+        std::array::from_fn(|c| {
+            let v = b.mix(p.map(|px| f64::from(px[c])));
+            round(v).clamp(0.0, 255.0) as u8
+        })
     });
     Ok(cube)
 }
