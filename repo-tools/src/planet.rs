@@ -295,14 +295,21 @@ impl CubeAngles {
     fn new(geom: &SphereGeometry) -> Self {
         let half = (geom.face_side() / 2) as i64;
         let big = half as f64;
-        // The expression of `cube_to_unit_sphere`.
-        let tans = (-half..=half)
+        // The expression of `cube_to_unit_sphere`, made odd by construction (the mirrored
+        // half of each row reuses the other half's latitudes, see `row`).
+        let positive: Vec<f64> = (0..=half)
             .map(|k| {
-                if k.abs() == half {
-                    (k as f64).signum()
+                if k == half {
+                    1.0
                 } else {
                     (std::f64::consts::FRAC_PI_4 * (k as f64 / big)).tan()
                 }
+            })
+            .collect();
+        let tans = (-half..=half)
+            .map(|k| {
+                let t = positive[k.unsigned_abs() as usize];
+                if k < 0 { -t } else { t }
             })
             .collect();
         let mut angles = CubeAngles {
@@ -341,16 +348,25 @@ impl CubeAngles {
         // z axis) or along this row (`u` is).
         let row_lon = (f.b == 2).then(|| lon_of(self.vector(f, 0, v)));
         let columns = self.column_lons[face].as_deref();
-        for (u, o) in out.iter_mut().enumerate() {
+        // Mirroring `u` about the face centre negates the tangent along `u`: the norm
+        // stays bit for bit, and the latitude too, or changes sign where `u` is the z
+        // axis (`asin` is odd). So the second half of the row reuses the first's.
+        let last = out.len() - 1;
+        let mirror_sign = if f.b == 2 { -1.0 } else { 1.0 };
+        for u in 0..out.len() {
             let q = self.vector(f, u, v);
-            let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt();
-            let lat = (q[2] / norm).clamp(-1.0, 1.0).asin().to_degrees();
+            let lat = if 2 * u > last {
+                mirror_sign * out[last - u].0
+            } else {
+                let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt();
+                (q[2] / norm).clamp(-1.0, 1.0).asin().to_degrees()
+            };
             let lon = match (row_lon, columns) {
                 (Some(l), _) => l,
                 (None, Some(c)) => c[u],
                 (None, None) => lon_of(q),
             };
-            *o = (lat, lon);
+            out[u] = (lat, lon);
         }
     }
 }
