@@ -15,7 +15,7 @@ use crate::entropy::{self, CodecModel, EntropyError, ModelDecoder, ModelEncoder}
 use crate::lifting::DiamondMask;
 
 /// Current blob format version.
-pub const VERSION: u8 = 3;
+pub const VERSION: u8 = 4;
 /// Bytes before the payload.
 pub const HEADER_BYTES: usize = 3;
 
@@ -63,6 +63,17 @@ pub struct BlobContext<'a> {
     pub mask: Option<&'a DiamondMask>,
     /// Number of children whose side information this diamond carries.
     pub owned_children: usize,
+    /// The quantiser step of the diamond's level (1/256 units, from the repository's
+    /// metadata): above 256 (a quantised level, RMS mode) blocks hide a sign
+    /// ([`entropy::HIDDEN_SIGN_MIN`]).
+    pub step: u32,
+}
+
+impl BlobContext<'_> {
+    /// Whether this diamond's blocks hide signs.
+    pub fn hides_signs(&self) -> bool {
+        self.step > 256
+    }
 }
 
 /// A decoded blob.
@@ -122,6 +133,7 @@ pub fn encode(
         ctx.n,
         q,
         ctx.mask.map(DiamondMask::cells),
+        ctx.hides_signs(),
     );
     let payload = e.finish();
     let head = (VERSION << 4) | ctx.n.trailing_zeros() as u8;
@@ -168,6 +180,7 @@ pub fn decode_into(
         ctx.n,
         q,
         ctx.mask.map(DiamondMask::cells),
+        ctx.hides_signs(),
     )?;
     d.finish()?;
     Ok(classes)
@@ -206,6 +219,7 @@ mod tests {
             group: 1,
             mask: None,
             owned_children: 2,
+            step: 256,
         };
         let q: Vec<i32> = (0..1024)
             .map(|k: i32| if k % 37 == 0 { (k % 11) - 5 } else { 0 })

@@ -461,6 +461,8 @@ impl SphereGeometry {
             group: entropy::group(self.levels.len() - 1 - level),
             mask: s.mask.as_ref(),
             owned_children: s.owned.len(),
+            // Set by callers that know the repository's steps.
+            step: 256,
         }
     }
 

@@ -1056,6 +1056,8 @@ impl Octave {
                                 n,
                                 &r.h,
                                 slots[i].mask.as_ref().map(DiamondMask::cells),
+                                // Exact modes only: no quantised level hides signs.
+                                false,
                             );
                             acc
                         })

@@ -191,6 +191,7 @@ proptest! {
         group in 0..entropy::GROUPS,
         owned_children in 0usize..=4,
         masked in any::<bool>(),
+        quantised in any::<bool>(),
     ) {
         let model = CodecModel::default();
         let (border_key, border_mask) = border_slot_cached();
@@ -200,6 +201,7 @@ proptest! {
             group,
             mask: masked.then_some(border_mask),
             owned_children,
+            step: if quantised { 512 } else { 256 },
         };
         let _ = blob::decode(&bytes, &ctx, &model);
 
@@ -249,7 +251,10 @@ fn bit_flips_of_real_blobs_are_detected_or_decoded_without_panic() {
     let (mut flips, mut patched_ok, mut masked) = (0usize, 0usize, 0usize);
     for (l, i, bytes) in picked {
         masked += usize::from(geom.level(*l)[*i].mask.is_some());
-        let ctx = geom.blob_context(*l, *i);
+        let ctx = BlobContext {
+            step: enc.steps[*l],
+            ..geom.blob_context(*l, *i)
+        };
         assert!(
             blob::decode(bytes, &ctx, &enc.model).is_ok(),
             "unmodified blob {l}_{i} must decode"

@@ -196,7 +196,11 @@ fn sparse_blobs_decode_from_id_and_coverage_bytes_alone() {
                 continue;
             };
             let (ll, ii) = geom.locate(slot.id).unwrap();
-            let content = blob::decode(bytes, &geom.blob_context(ll, ii), &enc.model).unwrap();
+            let ctx = blob::BlobContext {
+                step: enc.steps[ll],
+                ..geom.blob_context(ll, ii)
+            };
+            let content = blob::decode(bytes, &ctx, &enc.model).unwrap();
             assert_eq!(content.child_classes.len(), slot.owned.len());
             if valid_cells == 0 {
                 assert!(content.q.iter().all(|&x| x == 0));

@@ -245,7 +245,11 @@ fn one_blob_decodes_from_its_id_alone() {
             // A client knows the id (from the DAG) and the repository metadata only.
             let id = geom.level(l)[i].id;
             let (ll, ii) = geom.locate(id).unwrap();
-            let content = blob::decode(bytes, &geom.blob_context(ll, ii), &enc.model).unwrap();
+            let ctx = blob::BlobContext {
+                step: enc.steps[ll],
+                ..geom.blob_context(ll, ii)
+            };
+            let content = blob::decode(bytes, &ctx, &enc.model).unwrap();
             assert_eq!(content.q.len(), n * n);
             assert_eq!(content.child_classes.len(), geom.level(l)[i].owned.len());
             // The wrong id's context is detected by the checksum.

@@ -32,6 +32,7 @@ fuzz_target!(|data: &[u8]| {
         group,
         mask: None,
         owned_children,
+        step: if flags & 0x40 != 0 { 512 } else { 256 },
     };
 
     let mut blob_bytes = bytes.to_vec();

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use quincunx_codec::blob;
+use quincunx_codec::blob::{self, BlobContext};
 use quincunx_codec::entropy::CodecModel;
 use quincunx_store::Repository;
 use serde::Serialize;
@@ -119,6 +119,10 @@ fn check_blobs(repo: &Repository, geom: &Geometry) -> Result<(u64, u64)> {
             }
         };
         for (c, part) in parts.iter().enumerate() {
+            let ctx = BlobContext {
+                step: meta.channels[c].steps.get(level).copied().unwrap_or(256),
+                ..ctx
+            };
             if let Some(part) = part
                 && let Err(e) = blob::decode_into(part, &ctx, &models[c], &mut q)
             {

@@ -35,7 +35,7 @@ pub mod page;
 /// Version of the repository layout (metadata record + page trees) and of the blobs in
 /// it: 4 holds version-3 blobs and their compact model; 3 held version 2 (the no-data
 /// flags), format 2 version 1.
-pub const FORMAT_VERSION: u32 = 4;
+pub const FORMAT_VERSION: u32 = 5;
 
 const METADATA_KEY: &[u8] = b"metadata";
 

@@ -54,6 +54,11 @@ const RING_SETS: usize = 10;
 const PER_GROUP: usize = MAG + 2 * RING_SETS * MAG_BINS;
 /// Largest Golomb-Rice parameter (bounds the bypass bits of one magnitude's low part).
 const RICE_MAX: u32 = 15;
+/// Sign hiding (blob version 4, quantised levels only): in a 4x4 block with at least this
+/// many nonzero coefficients, the sign of the first is not coded: it is negative exactly
+/// when the block's magnitudes sum to an odd number (the encoder makes it so, see
+/// `encode::hide_signs`). In other blocks that sign is coded after the block's last cell.
+pub const HIDDEN_SIGN_MIN: usize = 8;
 
 /// Total number of contexts.
 pub const CONTEXTS: usize = GROUPS * PER_GROUP;
@@ -509,7 +514,17 @@ fn size_class(size_in_blocks: usize) -> usize {
 }
 
 /// Writes one quantised detail matrix (`valid` marks coded cells; others must be 0).
-pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid: Option<&[bool]>) {
+///
+/// With `hide_signs` (a quantised level), each block's first nonzero sign follows
+/// [`HIDDEN_SIGN_MIN`]; the caller guarantees the parity rule for blocks that hide it.
+pub fn write_matrix<S: BitSink>(
+    s: &mut S,
+    g: usize,
+    n: usize,
+    q: &[i32],
+    valid: Option<&[bool]>,
+    hide_signs: bool,
+) {
     let is_valid = |k: usize| valid.is_none_or(|v| v[k]);
     let nonzero = q.iter().any(|&x| x != 0);
     s.bit(ctx(g, NONZERO), nonzero);
@@ -603,6 +618,9 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
             }
         }
         let mut seen = false;
+        // The block's first nonzero, when its sign is hidden or deferred: (row, column,
+        // value, sign context).
+        let mut first: Option<(usize, usize, i32, usize)> = None;
         for (idx, &(k, i, j)) in cells[..nc].iter().enumerate() {
             let a = rec.activity(i, j);
             let class = activity_class(a);
@@ -614,8 +632,13 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
             if v == 0 {
                 continue;
             }
+            let sign_ctx = SIGN + rec.sign_context(i, j);
+            if hide_signs && !seen {
+                first = Some((i, j, v, sign_ctx));
+            } else {
+                s.bit(ctx(g, sign_ctx), v < 0);
+            }
             seen = true;
-            s.bit(ctx(g, SIGN + rec.sign_context(i, j)), v < 0);
             let mag = v.unsigned_abs() - 1;
             let (kr, set) = rice(a, class, ring);
             let hi = mag >> kr;
@@ -639,9 +662,35 @@ pub fn write_matrix<S: BitSink>(s: &mut S, g: usize, n: usize, q: &[i32], valid:
             if kr > 0 {
                 s.bypass(mag, kr);
             }
+            // Until the block ends, a first sign that is hidden or deferred reads as +.
+            rec.set(
+                i,
+                j,
+                if first.is_some_and(|f| (f.0, f.1) == (i, j)) {
+                    v.unsigned_abs().min(i32::MAX as u32) as i32
+                } else {
+                    v
+                },
+            );
+        }
+        if let Some((i, j, v, sign_ctx)) = first {
+            let nonzero = cells[..nc].iter().filter(|c| q[c.0] != 0).count();
+            if nonzero < HIDDEN_SIGN_MIN {
+                s.bit(ctx(g, sign_ctx), v < 0);
+            } else {
+                debug_assert_eq!(block_parity(q, &cells[..nc]), v < 0, "hidden sign parity");
+            }
             rec.set(i, j, v);
         }
     }
+}
+
+/// Whether the magnitudes of a block's cells sum to an odd number.
+fn block_parity(q: &[i32], cells: &[(usize, usize, usize)]) -> bool {
+    cells
+        .iter()
+        .fold(0u32, |acc, c| acc ^ (q[c.0].unsigned_abs() & 1))
+        == 1
 }
 
 /// Reads one quantised detail matrix written by [`write_matrix`] into `q` (`n x n`).
@@ -651,6 +700,7 @@ pub fn read_matrix(
     n: usize,
     q: &mut [i32],
     valid: Option<&[bool]>,
+    hide_signs: bool,
 ) -> Result<(), EntropyError> {
     q.iter_mut().for_each(|x| *x = 0);
     if !d.bit(ctx(g, NONZERO)) {
@@ -731,6 +781,10 @@ pub fn read_matrix(
             }
         }
         let mut seen = false;
+        // The block's first nonzero, when its sign is hidden or deferred: (index, row,
+        // column, sign context).
+        let mut first: Option<(usize, usize, usize, usize, i64)> = None;
+        let mut count = 0;
         for (idx, &(k, i, j)) in cells[..nc].iter().enumerate() {
             let a = rec.activity(i, j);
             let class = activity_class(a);
@@ -743,8 +797,11 @@ pub fn read_matrix(
             if !nonzero {
                 continue;
             }
+            count += 1;
+            let sign_ctx = SIGN + rec.sign_context(i, j);
+            let hidden = hide_signs && !seen;
+            let negative = !hidden && d.bit(ctx(g, sign_ctx));
             seen = true;
-            let negative = d.bit(ctx(g, SIGN + rec.sign_context(i, j)));
             let (kr, set) = rice(a, class, ring);
             let mut hi = 0u32;
             while (hi as usize) < MAG_BINS && d.bit(ctx(g, MAG + set * MAG_BINS + hi as usize)) {
@@ -773,6 +830,24 @@ pub fn read_matrix(
             } else {
                 m.min(i32::MAX as i64) as i32
             };
+            if hidden {
+                first = Some((k, i, j, sign_ctx, m));
+            }
+            rec.set(i, j, q[k]);
+        }
+        if let Some((k, i, j, sign_ctx, m)) = first {
+            let negative = if count < HIDDEN_SIGN_MIN {
+                d.bit(ctx(g, sign_ctx))
+            } else {
+                // The magnitudes' parity, the first one's as coded (`2^31` is held as
+                // `2^31 - 1` until its sign is known).
+                block_parity(q, &cells[..nc]) ^ (i64::from(q[k]) != m)
+            };
+            q[k] = if negative {
+                (-m) as i32
+            } else {
+                m.min(i32::MAX as i64) as i32
+            };
             rec.set(i, j, q[k]);
         }
         if d.dec.consumed() > d.len + 64 {
@@ -788,17 +863,111 @@ mod tests {
     use super::*;
 
     fn round_trip(n: usize, q: &[i32], valid: Option<&[bool]>, model: &CodecModel) -> usize {
+        round_trip_hiding(n, q, valid, model, false)
+    }
+
+    fn round_trip_hiding(
+        n: usize,
+        q: &[i32],
+        valid: Option<&[bool]>,
+        model: &CodecModel,
+        hide: bool,
+    ) -> usize {
         let mut e = ModelEncoder::new(model);
         write_gammas(&mut e, 2, &[0, 5, 63, 7 | NO_DATA, NO_DATA]);
-        write_matrix(&mut e, 2, n, q, valid);
+        write_matrix(&mut e, 2, n, q, valid, hide);
         let bytes = e.finish();
         let mut d = ModelDecoder::new(model, &bytes);
         // The flag travels with nonzero classes; class 0 never carries it.
         assert_eq!(read_gammas(&mut d, 2, 5), vec![0, 5, 63, 7 | NO_DATA, 0]);
         let mut out = vec![7; n * n];
-        read_matrix(&mut d, 2, n, &mut out, valid).unwrap();
+        read_matrix(&mut d, 2, n, &mut out, valid, hide).unwrap();
         assert_eq!(out, q);
         bytes.len()
+    }
+
+    /// Makes every 4x4 block with at least [`HIDDEN_SIGN_MIN`] nonzeros obey the parity
+    /// rule, like the encoder: by moving one magnitude (here the last nonzero's) by one.
+    fn obey_parity(n: usize, q: &mut [i32]) {
+        for bi in (0..n).step_by(4) {
+            for bj in (0..n).step_by(4) {
+                let cells: Vec<usize> = (bi..bi + 4)
+                    .flat_map(|i| (bj..bj + 4).map(move |j| i * n + j))
+                    .filter(|&k| q[k] != 0)
+                    .collect();
+                if cells.len() >= HIDDEN_SIGN_MIN {
+                    let odd = cells.iter().fold(0, |a, &k| a ^ (q[k].unsigned_abs() & 1)) == 1;
+                    if odd != (q[cells[0]] < 0) {
+                        let last = cells[cells.len() - 1];
+                        q[last] += q[last].signum();
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn hidden_signs_round_trip_and_save_bits() {
+        let model = CodecModel::default();
+        let mut seed = 5u64;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            seed >> 33
+        };
+        for density in [2u64, 5, 9, 16] {
+            let mut q: Vec<i32> = (0..32 * 32)
+                .map(|_| {
+                    let r = next();
+                    if r % 16 < density {
+                        ((r >> 8) % 40) as i32 - 20
+                    } else {
+                        0
+                    }
+                })
+                .collect();
+            // Extreme magnitudes as a block's first nonzero, hidden and not.
+            q[0] = i32::MIN;
+            q[4] = i32::MAX;
+            obey_parity(32, &mut q);
+            let plain = round_trip_hiding(32, &q, None, &model, false);
+            let hidden = round_trip_hiding(32, &q, None, &model, true);
+            if density >= 9 {
+                assert!(hidden < plain, "density {density}: {hidden} >= {plain}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_block_that_breaks_the_parity_rule_decodes_to_another_sign() {
+        // The rule is the format: a writer that ignores it gets the other sign back.
+        let model = CodecModel::default();
+        let mut q = vec![0; 16];
+        q[..8].copy_from_slice(&[3, 1, 1, 1, 1, 1, 1, 1]); // sum 10: even, first positive
+        round_trip_hiding(4, &q, None, &model, true);
+        q[1] = 2; // sum 11: odd, so the first must be negative
+        let mut e = ModelEncoder::new(&model);
+        write_gammas(&mut e, 2, &[]);
+        write_matrix(
+            &mut e,
+            2,
+            4,
+            &{
+                let mut ok = q.clone();
+                ok[0] = -3;
+                ok
+            },
+            None,
+            true,
+        );
+        let bytes = e.finish();
+        let mut d = ModelDecoder::new(&model, &bytes);
+        read_gammas(&mut d, 2, 0);
+        let mut out = vec![0; 16];
+        read_matrix(&mut d, 2, 4, &mut out, None, true).unwrap();
+        assert_eq!(out[0], -3);
+        assert_eq!(&out[1..], &q[1..]);
     }
 
     #[test]
@@ -946,12 +1115,27 @@ mod tests {
         let mut q = vec![0; 16];
         // 17 prefix zeros, 17 one bits: e = 2^18 - 1, |q| - 1 = e - 1 + 14.
         let bytes = escape_stream(17);
-        read_matrix(&mut ModelDecoder::new(&model, &bytes), 0, 4, &mut q, None).unwrap();
+        read_matrix(
+            &mut ModelDecoder::new(&model, &bytes),
+            0,
+            4,
+            &mut q,
+            None,
+            false,
+        )
+        .unwrap();
         assert_eq!(q[0], (1 << 18) + 13);
         assert!(q[1..].iter().all(|&x| x == 0));
         for zeros in [31, 32, 40] {
             let bytes = escape_stream(zeros);
-            let got = read_matrix(&mut ModelDecoder::new(&model, &bytes), 0, 4, &mut q, None);
+            let got = read_matrix(
+                &mut ModelDecoder::new(&model, &bytes),
+                0,
+                4,
+                &mut q,
+                None,
+                false,
+            );
             assert_eq!(
                 got,
                 Err(EntropyError::EscapeTooLong),
@@ -963,7 +1147,7 @@ mod tests {
     #[test]
     fn an_all_zero_matrix_costs_at_most_a_byte() {
         let mut e = ModelEncoder::new(&CodecModel::default());
-        write_matrix(&mut e, 0, 32, &[0; 1024], None);
+        write_matrix(&mut e, 0, 32, &[0; 1024], None, false);
         assert!(e.finish().len() <= 1);
     }
 

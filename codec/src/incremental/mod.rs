@@ -299,7 +299,9 @@ pub(crate) fn decode_details<I: Copy>(
     next: impl Fn(usize) -> Option<I>,
 ) -> Result<Details<I>, RefineError> {
     let mut q = Vec::with_capacity(ctx.n * ctx.n);
-    let classes = blob::decode_into(blob, ctx, model, &mut q)?;
+    // The level's step decides sign hiding.
+    let ctx = crate::blob::BlobContext { step, ..*ctx };
+    let classes = blob::decode_into(blob, &ctx, model, &mut q)?;
     let h = q.iter().map(|&x| dequantize(x, step)).collect();
     let mut child_classes = Vec::with_capacity(classes.len());
     let mut empty_children = Vec::new();
