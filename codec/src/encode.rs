@@ -588,17 +588,19 @@ const HIDING_LAMBDA: f64 = 0.1;
 ///   keeps the block's first nonzero and its qualification. korea: RMS 1 m -0.9 %, 9 m
 ///   -1.0 %, 3 m -0.7 % (docs/codec.md).
 fn prune_block(q: &mut [i32], details: &[i32], s: u32) {
-    let mut count = 0;
-    let mut first = None;
-    let mut odd = false;
+    // Without branches on the data (which indices are zero is noise to a predictor).
+    let mut nonzero = 0u32;
+    let mut parity = 0i32;
     for (k, &v) in q.iter().enumerate() {
-        if v != 0 {
-            count += 1;
-            first.get_or_insert(k);
-            odd ^= v & 1 != 0;
-        }
+        nonzero |= u32::from(v != 0) << k;
+        parity ^= v;
     }
-    let Some(f) = first else { return };
+    if nonzero == 0 {
+        return;
+    }
+    let count = nonzero.count_ones() as usize;
+    let f = nonzero.trailing_zeros() as usize;
+    let odd = parity & 1 != 0;
     if count == 1 && q[f].unsigned_abs() == 1 {
         q[f] = 0;
         return;
@@ -609,35 +611,37 @@ fn prune_block(q: &mut [i32], details: &[i32], s: u32) {
     // Exact integer costs: moving the reconstruction of `x` from `a` to `b` adds
     // `(x - b)^2 - (x - a)^2 = (a - b)(2x - a - b)` (magnitudes: the sign never changes).
     let lambda = (HIDING_LAMBDA * (f64::from(s) / 256.0).powi(2)).round() as i64;
-    let level = |m: u32| i64::from(dequantize(m.min(i32::MAX as u32) as i32, s));
-    let mut best: Option<(i64, usize, i32)> = None;
+    // `dequantize` of a magnitude, in `i64` (indices of quantised levels stay far below
+    // 2^31, and the result is clamped below).
+    let level = |m: i64| (m * i64::from(s) + 128) >> 8;
+    let (mut best_cost, mut best_k, mut best_to) = (i64::MAX, usize::MAX, 0i64);
     for (k, &v) in q.iter().enumerate() {
-        let x = i64::from(details[k].unsigned_abs());
-        let m = v.unsigned_abs();
+        let m = i64::from(v.unsigned_abs());
         if m == 0 && (k < f || details[k] == 0) {
             continue;
         }
+        let x2 = 2 * i64::from(details[k].unsigned_abs());
         let a = level(m);
-        let moves = [
-            (m < i32::MAX as u32).then_some((m + 1, lambda)),
-            (m >= 2 || (m == 1 && k != f && count > entropy::HIDDEN_SIGN_MIN))
-                .then(|| (m - 1, -lambda)),
-        ];
-        for (to, rate) in moves.into_iter().flatten() {
-            let b = level(to);
-            let cost = (a - b) * (2 * x - a - b) + rate;
-            if best.is_none_or(|best| cost < best.0) {
-                let sign = if v != 0 {
-                    v.signum()
-                } else {
-                    details[k].signum()
-                };
-                best = Some((cost, k, sign * to as i32));
+        let up = level(m + 1);
+        let cost = (a - up) * (x2 - a - up) + lambda;
+        if cost < best_cost {
+            (best_cost, best_k, best_to) = (cost, k, m + 1);
+        }
+        if m >= 2 || (m == 1 && k != f && count > entropy::HIDDEN_SIGN_MIN) {
+            let down = level(m - 1);
+            let cost = (a - down) * (x2 - a - down) - lambda;
+            if cost < best_cost {
+                (best_cost, best_k, best_to) = (cost, k, m - 1);
             }
         }
     }
-    if let Some((_, k, v)) = best {
-        q[k] = v;
+    if best_k < q.len() {
+        let sign = if q[best_k] != 0 {
+            q[best_k].signum()
+        } else {
+            details[best_k].signum()
+        };
+        q[best_k] = sign * best_to.min(i64::from(i32::MAX)) as i32;
     }
 }
 
