@@ -586,7 +586,7 @@ const HIDING_LAMBDA: f64 = 0.1;
 ///   nonzero to `+-1`): the move that adds the least squared error plus
 ///   [`HIDING_LAMBDA`] step² per bit it spends. Every such move flips the parity and
 ///   keeps the block's first nonzero and its qualification. korea: RMS 1 m -0.9 %, 9 m
-///   -1.0 %, 3 m -0.7 % (docs/codec.md).
+///   -0.8 %, 3 m -0.7 % (docs/codec.md).
 fn prune_block(q: &mut [i32], details: &[i32], s: u32) {
     // Without branches on the data (which indices are zero is noise to a predictor).
     let mut nonzero = 0u32;
@@ -791,8 +791,8 @@ type Attempt = (f64, Vec<u32>, Vec<Vec<Measure>>, (f64, f64));
 /// error as independent and ignores the pruning of isolated ones, both of which grow
 /// with the tolerance. Measured on korea_srtm3_4097 (blob version 4 with sign hiding,
 /// gain exponent 0.65): 1.0685, 1.0762, 1.111, 1.2375 and 1.346 at 0.5, 1, 3, 9 and 20
-/// quanta; interpolated
-/// linearly in `log(quanta)` between them, flat below, `sqrt`-like above. A guess within
+/// quanta; interpolated linearly in `log(quanta)` between them, flat below, `sqrt`-like
+/// above. A guess within
 /// about 0.2 % lets the first real decode end the search; later attempts correct it.
 fn initial_ratio(quanta: f64) -> f64 {
     const FIT: [(f64, f64); 5] = [
