@@ -37,10 +37,13 @@ pub fn lat_lon(p: [i64; 3]) -> (f64, f64) {
 
 /// Latitude and longitude (degrees) of a unit vector.
 fn degrees(q: [f64; 3]) -> (f64, f64) {
-    (
-        q[2].clamp(-1.0, 1.0).asin().to_degrees(),
-        q[1].atan2(q[0]).to_degrees(),
-    )
+    (lat_of_sine(q[2]), lon_of(q))
+}
+
+/// Latitude (degrees) whose sine is `z`.
+#[inline(always)]
+fn lat_of_sine(z: f64) -> f64 {
+    z.clamp(-1.0, 1.0).asin().to_degrees()
 }
 
 /// The face and fractional chart coordinates `(u, v)` in `[0, face_side]` of a
@@ -359,7 +362,7 @@ impl CubeAngles {
                 mirror_sign * out[last - u].0
             } else {
                 let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt();
-                (q[2] / norm).clamp(-1.0, 1.0).asin().to_degrees()
+                lat_of_sine(q[2] / norm)
             };
             let lon = match (row_lon, columns) {
                 (Some(l), _) => l,
