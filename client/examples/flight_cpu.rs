@@ -86,6 +86,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             n: 32,
             mode: RateMode::RmsM(2.0),
             sparse: false,
+            rdo: Default::default(),
         },
     )?);
     let refiner = Arc::new(PlanarRefiner::from_encoded(&enc)?);

@@ -786,6 +786,7 @@ mod tests {
             n,
             mode: RateMode::Lossless,
             sparse: false,
+            rdo: Default::default(),
         }
     }
 

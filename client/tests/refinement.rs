@@ -45,6 +45,7 @@ fn korea() -> Arc<Encoded> {
             n: 32,
             mode: RateMode::RmsM(2.0),
             sparse: false,
+            rdo: Default::default(),
         };
         Arc::new(encode(&grid, opts).unwrap())
     })

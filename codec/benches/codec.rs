@@ -71,6 +71,7 @@ fn codec(c: &mut Criterion) {
                         n: N,
                         mode,
                         sparse: false,
+                        rdo: Default::default(),
                     },
                 )
                 .unwrap()
@@ -88,6 +89,7 @@ fn codec(c: &mut Criterion) {
                 n: N,
                 mode,
                 sparse: false,
+                rdo: Default::default(),
             },
         )
         .unwrap();

@@ -46,6 +46,7 @@ fn run() -> Result<(), String> {
             n,
             mode,
             sparse: false,
+            rdo: Default::default(),
         },
     )
     .map_err(|e| e.to_string())?;

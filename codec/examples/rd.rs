@@ -1,17 +1,18 @@
 //! Rate/distortion of the codec on a raw grid with a JSON sidecar.
 //!
 //! ```text
-//! cargo run --release -p quincunx-codec --example rd -- <grid.json> [--lossless | --rms-m X | --max-error-m X] [--n 32] [--json]
+//! cargo run --release -p quincunx-codec --example rd -- <grid.json> [--lossless | --rms-m X | --max-error-m X] [--rdo auto|on|off] [--n 32] [--json]
 //! ```
 //! Encodes and decodes the grid and prints `samples`, `bits_per_sample`, `rms_m`,
-//! `max_abs_m`, `encode_msamples_per_s`, `decode_msamples_per_s`. Decode is entropy
+//! `max_abs_m`, `encode_msamples_per_s`, `decode_msamples_per_s` (and whether the
+//! rate-distortion quantiser ran, `rdo`; `--rdo` overrides the automatic choice). Decode is entropy
 //! decoding plus synthesis of the whole grid to full resolution on one thread, into one
 //! output buffer reused by every run (median of `--decode-runs`, default 3).
 
 use std::path::PathBuf;
 use std::time::Instant;
 
-use quincunx_codec::encode::{self, EncodeOptions, RateMode};
+use quincunx_codec::encode::{self, EncodeOptions, RateMode, RdoMode};
 use quincunx_codec::raster::RasterGeometry;
 
 // The sidecar reader shared with the tests and benches (the codec itself does no I/O).
@@ -32,6 +33,7 @@ fn run() -> Result<(), String> {
     let mut json = false;
     let mut n = 32;
     let mut decode_runs = 3;
+    let mut rdo = RdoMode::Auto;
     while let Some(a) = args.next() {
         let mut num = |name: &str| -> Result<f64, String> {
             args.next()
@@ -44,10 +46,18 @@ fn run() -> Result<(), String> {
             "--max-error-m" => mode = RateMode::MaxErrorM(num("--max-error-m")?),
             "--n" => n = num("--n")? as usize,
             "--decode-runs" => decode_runs = num("--decode-runs")? as usize,
+            "--rdo" => {
+                rdo = match args.next().as_deref() {
+                    Some("auto") => RdoMode::Auto,
+                    Some("on") => RdoMode::On,
+                    Some("off") => RdoMode::Off,
+                    _ => return Err("--rdo needs auto, on or off".into()),
+                }
+            }
             "--json" => json = true,
             "-h" | "--help" => {
                 println!(
-                    "usage: rd <grid.json> [--lossless | --rms-m X | --max-error-m X] [--n 32] [--json]"
+                    "usage: rd <grid.json> [--lossless | --rms-m X | --max-error-m X] [--rdo auto|on|off] [--n 32] [--json]"
                 );
                 return Ok(());
             }
@@ -56,7 +66,7 @@ fn run() -> Result<(), String> {
         }
     }
     let path = path.ok_or(
-        "usage: rd <grid.json> [--lossless | --rms-m X | --max-error-m X] [--n 32] [--json]",
+        "usage: rd <grid.json> [--lossless | --rms-m X | --max-error-m X] [--rdo auto|on|off] [--n 32] [--json]",
     )?;
     let grid = common::load_grid(&path)?;
     let t0 = Instant::now();
@@ -66,6 +76,7 @@ fn run() -> Result<(), String> {
             n,
             mode,
             sparse: false,
+            rdo,
         },
     )
     .map_err(|e| e.to_string())?;
@@ -111,6 +122,7 @@ fn run() -> Result<(), String> {
         "blob_bytes": r.blob_bytes,
         "root_bytes": r.root_bytes,
         "model_bytes": r.model_bytes,
+        "rdo": r.rdo,
         "encode_threads": rayon::current_num_threads(),
     });
     if json {

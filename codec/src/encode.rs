@@ -142,6 +142,22 @@ pub struct EncodeOptions {
     /// blobs) instead of being filled and coded; the output carries the [`Coverage`].
     /// `false` (dense) fills every nodata sample.
     pub sparse: bool,
+    /// Rate-distortion quantisation in the RMS mode (ignored by the exact modes).
+    pub rdo: RdoMode,
+}
+
+/// Whether the RMS mode chooses detail indices by rate and distortion
+/// ([`entropy::rdo`]: fewer bits at the same RMS, a slower encode) or by rounding.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum RdoMode {
+    /// Where it pays: when most indices are zero (see `RDO_AUTO_MAX_NONZERO`; korea:
+    /// from about RMS 3 m up).
+    #[default]
+    Auto,
+    /// Always (best rate).
+    On,
+    /// Never (fastest encode).
+    Off,
 }
 
 /// Why a grid could not be encoded.
@@ -227,6 +243,8 @@ pub struct EncodeReport {
     pub rms_m: f64,
     /// Largest absolute error over valid samples, metres.
     pub max_abs_m: f64,
+    /// Whether the rate-distortion quantiser chose the indices ([`RdoMode`]).
+    pub rdo: bool,
 }
 
 /// A planet to encode: a cube raster of heights (see [`crate::sphere_raster`]).
@@ -306,13 +324,28 @@ pub fn rounding_offset(_tolerance_quanta: f64) -> u64 {
 }
 
 /// Exponent of the synthesis gain in the per-level step `q / G^e` (0.5 is the high-rate
-/// MSE optimum for orthogonal transforms).
+/// MSE optimum for orthogonal transforms), for the plain or the rate-distortion
+/// quantiser (`rdo`).
 /// Measured like [`rounding_offset`]: with blob version 3, 0.65 is at least as good as
 /// 0.5-0.7 at every korea tolerance from 0.5 to 20 m (version 2 had wanted 0.5 below 4
-/// quanta); the tolerance argument is kept so the choice can depend on it again.
-pub fn gain_exponent(_tolerance_quanta: f64) -> f64 {
-    0.65
+/// quanta). With the rate-distortion quantiser 0.5-0.55 is best at 9 m (0.45: +0.3 %,
+/// 0.6: +0.5 %, 0.65: +0.8 %; docs/codec.md); the tolerance argument is kept so the
+/// choice can depend on it again.
+pub fn gain_exponent(_tolerance_quanta: f64, rdo: bool) -> f64 {
+    if rdo { 0.55 } else { 0.65 }
 }
+
+/// Rate weight of the rate-distortion quantiser, in squared steps per bit (korea RMS 9 m:
+/// 0.09-0.11 best, 0.07 and 0.13 each +0.3-0.6 %; 1 m: 0.1-0.15).
+const RDO_LAMBDA: f32 = 0.1;
+
+/// [`RdoMode::Auto`] runs the rate-distortion quantiser when, at the plain quantiser's
+/// first guess, fewer than this fraction of the detail indices are nonzero. Measured on
+/// korea_srtm3_4097 (fraction -> the quantiser's rate change at the same RMS): 0.01 ->
+/// -4.2 %, 0.06 -> -3.7 %, 0.24 -> -3.2 %, 0.35 -> -1.9 %, 0.42 -> -1.2 %, 0.50 ->
+/// -0.7 %; etopo5_global at RMS 9 m, 0.31 -> -0.6 %. Its cost grows with the nonzero
+/// blocks (encode: -11 % at 0.06, -30-40 % at 0.5).
+const RDO_AUTO_MAX_NONZERO: f64 = 0.25;
 
 /// Quantises a detail with step `s` (1/256 units) and decision offset [`rounding_offset`].
 #[inline]
@@ -544,7 +577,7 @@ fn integerise<G: Layout>(
 
 /// Quantises a matrix of details with pruning and sign hiding (the RMS mode's quantised
 /// levels), one 4x4 block at a time (see [`prune_block`]).
-fn quantize_pruned(n: usize, h: &mut [i32], quantizer: &Quantizer, s: u32) {
+pub(crate) fn quantize_pruned(n: usize, h: &mut [i32], quantizer: &Quantizer, s: u32) {
     let b = n.min(4);
     let mut at = [0usize; 16];
     let mut details = [0i32; 16];
@@ -605,6 +638,34 @@ fn prune_block(q: &mut [i32], details: &[i32], s: u32) {
         q[f] = 0;
         return;
     }
+    fix_parity_with(q, details, s, count, f, odd);
+}
+
+/// The sign-hiding half of [`prune_block`]: where a block with at least
+/// [`entropy::HIDDEN_SIGN_MIN`] nonzero indices has the wrong parity, the cheapest move
+/// of one index by one fixes it.
+pub(crate) fn fix_parity(q: &mut [i32], details: &[i32], s: u32) {
+    let mut nonzero = 0u32;
+    let mut parity = 0i32;
+    for (k, &v) in q.iter().enumerate() {
+        nonzero |= u32::from(v != 0) << k;
+        parity ^= v;
+    }
+    if nonzero == 0 {
+        return;
+    }
+    let count = nonzero.count_ones() as usize;
+    fix_parity_with(
+        q,
+        details,
+        s,
+        count,
+        nonzero.trailing_zeros() as usize,
+        parity & 1 != 0,
+    );
+}
+
+fn fix_parity_with(q: &mut [i32], details: &[i32], s: u32, count: usize, f: usize, odd: bool) {
     if count < entropy::HIDDEN_SIGN_MIN || odd == (q[f] < 0) {
         return;
     }
@@ -783,37 +844,49 @@ pub(crate) fn trains_on(level_len: usize, index: usize) -> bool {
 /// Subsampling of large levels for model training (see [`trains_on`]).
 const TRAIN_STRIDE: usize = 8;
 
-/// One rate-control attempt: scale, steps, quantised details, measures, `(rms, max)`.
-type Attempt = (f64, Vec<u32>, Vec<Vec<Measure>>, (f64, f64));
+/// The nonzero quantised matrices of one rate-control attempt, per level and diamond.
+type Kept = Vec<Vec<OnceLock<Box<[i32]>>>>;
+
+/// One rate-control attempt: scale, steps, measures, `(rms, max)`, quantised details.
+type Attempt = (f64, Vec<u32>, Vec<Vec<Measure>>, (f64, f64), Kept);
 
 /// The first guess of the ratio of a real decode's RMS to the open-loop estimate, for a
-/// tolerance of `quanta` value quanta. The estimate treats every level's quantisation
-/// error as independent and ignores the pruning of isolated ones, both of which grow
-/// with the tolerance. Measured on korea_srtm3_4097 (blob version 4 with sign hiding,
-/// gain exponent 0.65): 1.0685, 1.0762, 1.111, 1.2375 and 1.346 at 0.5, 1, 3, 9 and 20
-/// quanta; interpolated linearly in `log(quanta)` between them, flat below, `sqrt`-like
-/// above. A guess within
-/// about 0.2 % lets the first real decode end the search; later attempts correct it.
-fn initial_ratio(quanta: f64) -> f64 {
-    const FIT: [(f64, f64); 5] = [
+/// tolerance of `quanta` value quanta, with the plain or the rate-distortion quantiser
+/// (`rdo`). The estimate treats every level's quantisation error as independent,
+/// measures each level's synthesis gain at one cell (the diamond's centre, whose gain is
+/// among the lowest) and ignores pruning and rate-distortion choices, all of which grow
+/// with the tolerance. Measured on korea_srtm3_4097 (blob version 4 with sign hiding;
+/// plain: gain exponent 0.65, rate-distortion: 0.55) and interpolated linearly in
+/// `log(quanta)` between them, flat below, `sqrt`-like above. A guess within about
+/// 0.2 % lets the first real decode end the search; later attempts correct it.
+fn initial_ratio(quanta: f64, rdo: bool) -> f64 {
+    const PLAIN: [(f64, f64); 5] = [
         (0.5, 1.0685),
         (1.0, 1.0762),
         (3.0, 1.111),
         (9.0, 1.2375),
         (20.0, 1.346),
     ];
+    const RDO: [(f64, f64); 5] = [
+        (0.5, 1.0702),
+        (1.0, 1.0935),
+        (3.0, 1.1755),
+        (9.0, 1.3015),
+        (20.0, 1.4064),
+    ];
+    let fit: &[(f64, f64)] = if rdo { &RDO } else { &PLAIN };
     let quanta = if quanta.is_finite() { quanta } else { 1.0 };
-    if quanta <= FIT[0].0 {
-        return FIT[0].1;
+    if quanta <= fit[0].0 {
+        return fit[0].1;
     }
-    for w in FIT.windows(2) {
+    for w in fit.windows(2) {
         let ((q0, r0), (q1, r1)) = (w[0], w[1]);
         if quanta <= q1 {
             let t = (quanta / q0).ln() / (q1 / q0).ln();
             return r0 + t * (r1 - r0);
         }
     }
-    let (q_last, r_last) = FIT[FIT.len() - 1];
+    let (q_last, r_last) = fit[fit.len() - 1];
     1.0 + (r_last - 1.0) * (quanta / q_last).sqrt()
 }
 
@@ -1181,64 +1254,94 @@ fn encode_layout<G: Layout>(
     let mut steps = vec![256u32; levels];
     let quantized: Vec<Vec<Vec<i32>>>;
     let measures;
-    let (offset, exponent) = match opts.mode {
-        RateMode::RmsM(t) => {
-            let quanta = t / quantum_m.unwrap_or(scale);
-            (rounding_offset(quanta), gain_exponent(quanta))
-        }
-        _ => (128, 0.5),
+    let offset = match opts.mode {
+        RateMode::RmsM(t) => rounding_offset(t / quantum_m.unwrap_or(scale)),
+        _ => 128,
     };
     // Only the RMS mode trades individual details for rate; the other modes are exact.
     let prune = matches!(opts.mode, RateMode::RmsM(_));
-    // Quantises one diamond's details in place.
-    let quantize_matrix = |steps: &[u32], l: usize, h: &mut [i32]| {
-        let quantizer = Quantizer::new(steps[l], offset);
-        if prune && steps[l] > 256 {
-            quantize_pruned(n, h, &quantizer, steps[l]);
-        } else {
-            for x in h.iter_mut() {
-                *x = quantizer.apply(*x);
+    // Quantises one diamond's details in place: by rate and distortion under
+    // `cost_model` when one is given, else by rounding (pruned and sign-hiding on
+    // quantised RMS levels).
+    let quantize_matrix =
+        |cost_model: Option<&CodecModel>, steps: &[u32], l: usize, i: usize, h: &mut [i32]| {
+            let s = steps[l];
+            let quantizer = Quantizer::new(s, offset);
+            if !prune || s <= 256 {
+                for x in h.iter_mut() {
+                    *x = quantizer.apply(*x);
+                }
+            } else if let Some(model) = cost_model {
+                let ctx = geom.blob_context(l, i);
+                let d = h.to_vec();
+                let step_units = s as f32 / 256.0;
+                entropy::rdo::quantize_matrix(
+                    model,
+                    &entropy::rdo::Matrix {
+                        group: ctx.group,
+                        n,
+                        valid: ctx.mask.map(crate::lifting::DiamondMask::cells),
+                        step: s,
+                        lambda: RDO_LAMBDA * step_units * step_units,
+                    },
+                    &d,
+                    h,
+                    |q, dd| fix_parity(q, dd, s),
+                );
+            } else {
+                quantize_pruned(n, h, &quantizer, s);
             }
-        }
-    };
-    // Decodes the details quantised with `steps` into `out` (reused between attempts)
-    // and measures every diamond. Quantising on the fly keeps no quantised copy of the
-    // details: the attempt finally kept is quantised once, in place, at the end.
-    let decode_measure =
-        |steps: &[u32], out: &mut Vec<i32>| -> Result<Vec<Vec<Measure>>, EncodeError> {
-            out.clear();
-            out.resize(geom.raster_len(), 0);
-            geom.scatter_roots(&roots, out)?;
-            Ok(synthesize_levels_par(
-                geom,
-                out,
-                |l, i, h| {
-                    h.copy_from_slice(&details[l][i]);
-                    quantize_matrix(steps, l, h);
-                    let mut any = false;
-                    for x in h.iter_mut() {
-                        any |= *x != 0;
-                        *x = dequantize(*x, steps[l]);
-                    }
-                    any
-                },
-                |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
-            )?)
         };
+    // Decodes the details quantised with `steps` into `out` (reused between attempts)
+    // and measures every diamond. Quantising on the fly keeps no quantised copy of all
+    // the details: `keep` receives the nonzero matrices, so the attempt finally kept
+    // needs no second quantisation.
+    let decode_measure = |cost_model: Option<&CodecModel>,
+                          steps: &[u32],
+                          out: &mut Vec<i32>,
+                          keep: &Kept|
+     -> Result<Vec<Vec<Measure>>, EncodeError> {
+        out.clear();
+        out.resize(geom.raster_len(), 0);
+        geom.scatter_roots(&roots, out)?;
+        Ok(synthesize_levels_par(
+            geom,
+            out,
+            |l, i, h| {
+                h.copy_from_slice(&details[l][i]);
+                quantize_matrix(cost_model, steps, l, i, h);
+                let any = h.iter().any(|&x| x != 0);
+                if any {
+                    let _ = keep[l][i].set(h.into());
+                }
+                for x in h.iter_mut() {
+                    *x = dequantize(*x, steps[l]);
+                }
+                any
+            },
+            |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
+        )?)
+    };
+    let new_kept = || -> Kept {
+        (0..levels)
+            .map(|l| (0..level_len(l)).map(|_| OnceLock::new()).collect())
+            .collect()
+    };
 
     let (rms_m, max_abs_m);
+    let mut rdo_used = false;
     if let RateMode::RmsM(target) = opts.mode {
         let gains = synthesis_gains(n, levels);
-        let step_of = |q: f64, l: usize| -> u32 {
+        let step_of = |q: f64, l: usize, exponent: f64| -> u32 {
             let g = gains[levels - 1 - l].max(1e-6);
             ((q / g.powf(exponent)) * 256.0).round().clamp(256.0, 1e9) as u32
         };
         // Histogram of |detail| per level for fast error estimates.
         let hist: Vec<Vec<(u32, u64)>> = details.iter().map(|ds| magnitude_histogram(ds)).collect();
-        let estimate = |q: f64| -> f64 {
+        let estimate = |q: f64, exponent: f64| -> f64 {
             let mut mse = 0.0;
             for (l, hl) in hist.iter().enumerate() {
-                let s = step_of(q, l);
+                let s = step_of(q, l, exponent);
                 let quantizer = Quantizer::new(s, offset);
                 let g = gains[levels - 1 - l];
                 let e: f64 = hl
@@ -1254,40 +1357,101 @@ fn encode_layout<G: Layout>(
             (mse / valid_count.max(1) as f64).sqrt() * scale
         };
         // The largest scale whose estimated RMS, times `ratio`, stays under `goal`.
-        let solve = |goal: f64, ratio: f64| largest_scale(|q| estimate(q) * ratio <= goal);
+        let solve = |goal: f64, ratio: f64, exponent: f64| {
+            largest_scale(|q| estimate(q, exponent) * ratio <= goal)
+        };
         let quanta = target / quantum_m.unwrap_or(scale);
         let mut search = ScaleSearch::new(target);
-        let mut q = solve(search.goal(), initial_ratio(quanta));
-        // The attempt kept: scale, steps, measures, errors.
+        // Whether the rate-distortion quantiser runs: by the option, or (auto) where the
+        // plain quantiser's first guess leaves most indices zero.
+        rdo_used = match opts.rdo {
+            RdoMode::On => true,
+            RdoMode::Off => false,
+            RdoMode::Auto => {
+                let e = gain_exponent(quanta, false);
+                let q = solve(search.goal(), initial_ratio(quanta, false), e);
+                let (mut nonzero, mut all) = (0u64, 0u64);
+                for (l, hl) in hist.iter().enumerate() {
+                    let quantizer = Quantizer::new(step_of(q, l, e), offset);
+                    for &(a, c) in hl {
+                        all += c;
+                        nonzero += c * u64::from(quantizer.apply(a as i32) != 0);
+                    }
+                }
+                (nonzero as f64) < RDO_AUTO_MAX_NONZERO * all as f64
+            }
+        };
+        let exponent = gain_exponent(quanta, rdo_used);
+        let mut q = solve(search.goal(), initial_ratio(quanta, rdo_used), exponent);
+        let steps_at =
+            |q: f64| -> Vec<u32> { (0..levels).map(|l| step_of(q, l, exponent)).collect() };
+        // The rate-distortion quantiser's probabilities: a model trained on the plain
+        // quantisation at the first guess's steps.
+        let cost_model = rdo_used.then(|| {
+            let st = steps_at(q);
+            let counts = (0..levels)
+                .into_par_iter()
+                .flat_map(|l| (0..level_len(l)).into_par_iter().map(move |i| (l, i)))
+                .filter(|&(l, i)| trains_on(level_len(l), i))
+                .fold(ContextCounts::default, |mut acc, (l, i)| {
+                    let ctx = geom.blob_context(l, i);
+                    let mut h = details[l][i].clone();
+                    quantize_matrix(None, &st, l, i, &mut h);
+                    entropy::write_matrix(
+                        &mut acc,
+                        ctx.group,
+                        n,
+                        &h,
+                        ctx.mask.map(crate::lifting::DiamondMask::cells),
+                        st[l] > 256,
+                    );
+                    acc
+                })
+                .reduce(ContextCounts::default, |mut a, b| {
+                    a.merge(&b);
+                    a
+                });
+            CodecModel::from_counts(&counts)
+        });
+        let cost_model = cost_model.as_ref();
+        // The attempt kept: scale, steps, measures, errors, indices.
         let mut best: Option<Attempt> = None;
         let mut raster = spare_raster.take().unwrap_or_default();
         for _ in 0..8 {
-            let st: Vec<u32> = (0..levels).map(|l| step_of(q, l)).collect();
-            let ms = decode_measure(&st, &mut raster)?;
+            let st = steps_at(q);
+            let kept = new_kept();
+            let ms = decode_measure(cost_model, &st, &mut raster, &kept)?;
             let (rms, max) = error_of(&raster);
-            let est = estimate(q);
+            let est = estimate(q, exponent);
             let improves = rms <= target && best.as_ref().is_none_or(|b| q > b.0);
             if improves {
-                best = Some((q, st, ms, (rms, max)));
+                best = Some((q, st, ms, (rms, max), kept));
             }
-            match search.next(q, rms, est, &solve) {
+            match search.next(q, rms, est, &|goal, ratio| solve(goal, ratio, exponent)) {
                 Some(next) => q = next,
                 None => break,
             }
         }
-        let (_, st, ms, errors) = match best {
+        let (_, st, ms, errors, kept) = match best {
             Some(b) => b,
             None => {
                 // Fall back to the finest steps (integer lossless) if nothing met the target.
                 let st = vec![256; levels];
-                let ms = decode_measure(&st, &mut raster)?;
+                let kept = new_kept();
+                let ms = decode_measure(None, &st, &mut raster, &kept)?;
                 let errors = error_of(&raster);
-                (0.0, st, ms, errors)
+                (0.0, st, ms, errors, kept)
             }
         };
         drop(raster);
-        for (l, ds) in details.iter_mut().enumerate() {
-            ds.par_iter_mut().for_each(|h| quantize_matrix(&st, l, h));
+        // The kept attempt's indices, as its verification decode quantised them.
+        for (ds, ks) in details.iter_mut().zip(kept) {
+            ds.par_iter_mut()
+                .zip(ks.into_par_iter())
+                .for_each(|(h, k)| match k.into_inner() {
+                    Some(q) => h.copy_from_slice(&q),
+                    None => h.iter_mut().for_each(|x| *x = 0),
+                });
         }
         steps = st;
         quantized = details;
@@ -1404,6 +1568,7 @@ fn encode_layout<G: Layout>(
         bits_per_sample: 8.0 * (blob_bytes + root_bytes + model_bytes) as f64 / samples as f64,
         rms_m,
         max_abs_m,
+        rdo: rdo_used,
     };
     let (width, height, root) = match domain {
         EncodedDomain::Planar { width, height } => {
@@ -1740,6 +1905,7 @@ mod tests {
                 n: 32,
                 mode: RateMode::Lossless,
                 sparse: false,
+                rdo: Default::default(),
             },
         )
         .unwrap();
@@ -1757,6 +1923,7 @@ mod tests {
                     n: 32,
                     mode: RateMode::MaxErrorM(e),
                     sparse: false,
+                    rdo: Default::default(),
                 },
             )
             .unwrap();
@@ -1780,6 +1947,7 @@ mod tests {
                     n: 32,
                     mode: RateMode::RmsM(t),
                     sparse: false,
+                    rdo: Default::default(),
                 },
             )
             .unwrap();
@@ -1849,6 +2017,7 @@ mod tests {
                 n: 16,
                 mode: RateMode::Lossless,
                 sparse: false,
+                rdo: Default::default(),
             },
         )
         .unwrap();

@@ -218,6 +218,7 @@ pub fn encode_streaming(
         bits_per_sample: 8.0 * (coded.bytes + root_bytes + model_bytes) as f64 / samples as f64,
         rms_m: (errors.sum2 / scan.valid as f64).sqrt(),
         max_abs_m: errors.max,
+        rdo: false,
     };
     Ok(StreamEncoded {
         width,

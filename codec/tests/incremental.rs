@@ -20,6 +20,7 @@ fn korea(mode: RateMode, n: usize) -> Encoded {
             n,
             mode,
             sparse: false,
+            rdo: Default::default(),
         },
     )
     .unwrap()

@@ -19,6 +19,7 @@ fn planet(face_side: usize, n: usize, mode: RateMode) -> Encoded {
             n,
             mode,
             sparse: false,
+            rdo: Default::default(),
         },
     )
     .unwrap()

@@ -18,6 +18,7 @@ fn options(n: usize, mode: RateMode) -> EncodeOptions {
         n,
         mode,
         sparse: false,
+        rdo: Default::default(),
     }
 }
 
@@ -252,6 +253,7 @@ fn procedural_levels_beyond_the_id_space_or_on_sparse_data_are_errors() {
             n: 32,
             mode: RateMode::MaxErrorM(2.0),
             sparse: true,
+            rdo: Default::default(),
         },
     )
     .unwrap();

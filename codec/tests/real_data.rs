@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use proptest::prelude::*;
 use quincunx_codec::blob::{self, BlobContext, DecodeError};
-use quincunx_codec::encode::{self, EncodeOptions, Encoded, Grid, RateMode};
+use quincunx_codec::encode::{self, EncodeOptions, Encoded, Grid, RateMode, RdoMode};
 use quincunx_codec::entropy::{self, CodecModel};
 use quincunx_codec::raster::RasterGeometry;
 
@@ -24,12 +24,17 @@ use common::{Errors, bundled_korea, errors, grid, shared_dir, shared_file};
 const N: usize = 32;
 
 fn encode_grid(g: &Grid, mode: RateMode) -> Encoded {
+    encode_grid_with(g, mode, RdoMode::Auto)
+}
+
+fn encode_grid_with(g: &Grid, mode: RateMode, rdo: RdoMode) -> Encoded {
     encode::encode(
         g,
         EncodeOptions {
             n: N,
             mode,
             sparse: false,
+            rdo,
         },
     )
     .unwrap_or_else(|e| panic!("encode {mode:?} failed: {e}"))
@@ -154,6 +159,43 @@ fn rms_mode_meets_its_target_on_the_bundled_crop() {
             "rms target {target} m, measured {} m",
             err.rms_m
         );
+    }
+}
+
+/// The rate-distortion quantiser on real terrain: at each RMS target, on and off both
+/// meet it, and on costs fewer bits wherever the automatic choice turns it on.
+#[test]
+fn rate_distortion_quantisation_lowers_the_rate_at_the_same_rms() {
+    let g = grid(&bundled_korea());
+    for target in [9.0, 3.0, 1.0] {
+        let run = |rdo| {
+            let enc = encode_grid_with(&g, RateMode::RmsM(target), rdo);
+            let err = errors(&g, &encode::decode(&enc).unwrap());
+            assert!(
+                err.rms_m <= target,
+                "{rdo:?} at {target} m: rms {}",
+                err.rms_m
+            );
+            enc.report
+        };
+        let (off, on, auto) = (run(RdoMode::Off), run(RdoMode::On), run(RdoMode::Auto));
+        println!(
+            "korea_srtm3_1025 rms {target} m: {:.4} bits/sample plain, {:.4} rate-distortion \
+             ({:+.2} %), auto chose {}",
+            off.bits_per_sample,
+            on.bits_per_sample,
+            100.0 * (on.bits_per_sample / off.bits_per_sample - 1.0),
+            if auto.rdo { "it" } else { "plain" }
+        );
+        assert!(!off.rdo && on.rdo);
+        if auto.rdo {
+            assert!(
+                on.bits_per_sample < 0.99 * off.bits_per_sample,
+                "at {target} m: {} against {}",
+                on.bits_per_sample,
+                off.bits_per_sample
+            );
+        }
     }
 }
 
@@ -348,11 +390,14 @@ fn golden_blobs_are_unchanged() {
     let bless = std::env::var("QUINCUNX_BLESS").is_ok_and(|v| v == "1");
     let g = golden_grid();
     let mut problems = Vec::new();
-    for (mode_name, mode) in [
-        ("lossless", RateMode::Lossless),
-        ("rms_2m", RateMode::RmsM(2.0)),
+    // The plain quantiser and the rate-distortion one each have their own golden files.
+    for (mode_name, mode, rdo) in [
+        ("lossless", RateMode::Lossless, RdoMode::Auto),
+        ("rms_2m", RateMode::RmsM(2.0), RdoMode::Off),
+        ("rms_2m_rdo", RateMode::RmsM(2.0), RdoMode::On),
     ] {
-        let enc = encode_grid(&g, mode);
+        let enc = encode_grid_with(&g, mode, rdo);
+        assert_eq!(enc.report.rdo, rdo == RdoMode::On, "{mode_name}");
         // The frozen encoding must also be right, or we would freeze a bug.
         let err = errors(&g, &encode::decode(&enc).unwrap());
         match mode {

@@ -16,13 +16,29 @@ use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::sphere_raster::SphereGeometry;
 
 fn encode_planet(g: &CubeGrid, n: usize, mode: RateMode, sparse: bool) -> Encoded {
-    encode::encode_sphere(g, EncodeOptions { n, mode, sparse })
-        .unwrap_or_else(|e| panic!("encode {mode:?} sparse={sparse} failed: {e}"))
+    encode::encode_sphere(
+        g,
+        EncodeOptions {
+            n,
+            mode,
+            sparse,
+            rdo: Default::default(),
+        },
+    )
+    .unwrap_or_else(|e| panic!("encode {mode:?} sparse={sparse} failed: {e}"))
 }
 
 fn encode_grid(g: &Grid, n: usize, mode: RateMode, sparse: bool) -> Encoded {
-    encode::encode(g, EncodeOptions { n, mode, sparse })
-        .unwrap_or_else(|e| panic!("encode {mode:?} sparse={sparse} failed: {e}"))
+    encode::encode(
+        g,
+        EncodeOptions {
+            n,
+            mode,
+            sparse,
+            rdo: Default::default(),
+        },
+    )
+    .unwrap_or_else(|e| panic!("encode {mode:?} sparse={sparse} failed: {e}"))
 }
 
 /// Unit direction of latitude/longitude in degrees (+Z north, +X = 0E, +Y = 90E).

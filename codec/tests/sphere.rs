@@ -29,6 +29,7 @@ fn encode_planet(g: &CubeGrid, n: usize, mode: RateMode) -> Encoded {
             n,
             mode,
             sparse: false,
+            rdo: Default::default(),
         },
     )
     .unwrap_or_else(|e| panic!("encode {mode:?} failed: {e}"))

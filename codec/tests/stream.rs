@@ -139,6 +139,7 @@ fn timed_in_memory_lossless(g: &Grid) -> (quincunx_codec::encode::Encoded, Durat
             n: 32,
             mode: RateMode::Lossless,
             sparse: false,
+            rdo: Default::default(),
         },
     )
     .unwrap();
@@ -251,6 +252,7 @@ fn streaming_without_nodata_matches_the_in_memory_encoder_blob_for_blob() {
             n: 32,
             mode: RateMode::Lossless,
             sparse: false,
+            rdo: Default::default(),
         },
     )
     .unwrap();

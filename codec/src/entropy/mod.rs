@@ -25,6 +25,7 @@
 //!   at korea RMS 1 m the escapes alone were 9 % of the bytes.)
 
 pub mod range;
+pub mod rdo;
 
 use range::{Decoder, Encoder, HALF, Prob};
 

@@ -19,7 +19,7 @@ pub type Prob = u16;
 pub const HALF: Prob = 1 << (PROB_BITS - 1);
 
 #[inline(always)]
-fn adapt(p: &mut Prob, bit: bool) {
+pub(crate) fn adapt(p: &mut Prob, bit: bool) {
     if bit {
         *p -= *p >> RATE;
     } else {
