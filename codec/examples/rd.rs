@@ -123,6 +123,7 @@ fn run() -> Result<(), String> {
         "root_bytes": r.root_bytes,
         "model_bytes": r.model_bytes,
         "rdo": r.rdo,
+        "verification_decodes": r.verification_decodes,
         "encode_threads": rayon::current_num_threads(),
     });
     if json {

@@ -23,6 +23,7 @@
 //! diamonds' masks). Nodata samples inside covered blocks are filled as in dense mode.
 
 use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, OnceLock};
 
 use rayon::prelude::*;
@@ -245,6 +246,8 @@ pub struct EncodeReport {
     pub max_abs_m: f64,
     /// Whether the rate-distortion quantiser chose the indices ([`RdoMode`]).
     pub rdo: bool,
+    /// Full decodes the RMS rate control made to find its steps (0 in the exact modes).
+    pub verification_decodes: usize,
 }
 
 /// A planet to encode: a cube raster of heights (see [`crate::sphere_raster`]).
@@ -847,47 +850,62 @@ const TRAIN_STRIDE: usize = 8;
 /// The nonzero quantised matrices of one rate-control attempt, per level and diamond.
 type Kept = Vec<Vec<OnceLock<Box<[i32]>>>>;
 
-/// One rate-control attempt: scale, steps, measures, `(rms, max)`, quantised details.
-type Attempt = (f64, Vec<u32>, Vec<Vec<Measure>>, (f64, f64), Kept);
+/// One rate-control attempt: scale, steps, measures, `(rms, max)`, quantised details
+/// (rate-distortion quantiser only).
+type Attempt = (f64, Vec<u32>, Vec<Vec<Measure>>, (f64, f64), Option<Kept>);
 
-/// The first guess of the ratio of a real decode's RMS to the open-loop estimate, for a
-/// tolerance of `quanta` value quanta, with the plain or the rate-distortion quantiser
-/// (`rdo`). The estimate treats every level's quantisation error as independent,
-/// measures each level's synthesis gain at one cell (the diamond's centre, whose gain is
-/// among the lowest) and ignores pruning and rate-distortion choices, all of which grow
-/// with the tolerance. Measured on korea_srtm3_4097 (blob version 4 with sign hiding;
-/// plain: gain exponent 0.65, rate-distortion: 0.55) and interpolated linearly in
-/// `log(quanta)` between them, flat below, `sqrt`-like above. A guess within about
-/// 0.2 % lets the first real decode end the search; later attempts correct it.
-fn initial_ratio(quanta: f64, rdo: bool) -> f64 {
-    const PLAIN: [(f64, f64); 5] = [
-        (0.5, 1.0685),
-        (1.0, 1.0762),
-        (3.0, 1.111),
-        (9.0, 1.2375),
-        (20.0, 1.346),
+/// The first guess of the ratio of a real decode's RMS to the open-loop estimate, for
+/// steps at which a fraction `nonzero` of the detail indices round to nonzero, with the
+/// plain or the rate-distortion quantiser (`rdo`). The estimate treats every level's
+/// quantisation error as independent, measures each level's synthesis gain at one cell
+/// (the diamond's centre, whose gain is among the lowest) and ignores pruning and
+/// rate-distortion choices; all of which matter more the sparser the indices, so the
+/// ratio follows the fraction of nonzero indices more closely than the tolerance (at
+/// RMS 9 m korea_srtm3_4097 has 6 % nonzero indices and a ratio of 1.24, etopo5_global
+/// 29 % and 1.13). Measured on korea_srtm3_4097 at 0.5-20 m (blob version 4; plain:
+/// gain exponent 0.65, rate-distortion: 0.55), below 1 % nonzero on
+/// fixture_colorado_ned_10m; interpolated linearly in `log(nonzero)`, flat outside. A
+/// guess within about 0.2 % lets the first real decode end the search; later attempts
+/// correct it.
+fn initial_ratio(nonzero: f64, rdo: bool) -> f64 {
+    // (nonzero fraction, ratio), sparsest last.
+    const PLAIN: [(f64, f64); 10] = [
+        (0.6186, 1.0683),
+        (0.5007, 1.0757),
+        (0.3460, 1.0906),
+        (0.2447, 1.1119),
+        (0.1358, 1.1690),
+        (0.0554, 1.2383),
+        (0.0120, 1.3449),
+        (0.0042, 1.481),
+        (0.0013, 1.532),
+        (0.00003, 1.655),
     ];
-    const RDO: [(f64, f64); 5] = [
-        (0.5, 1.0702),
-        (1.0, 1.0935),
-        (3.0, 1.1755),
-        (9.0, 1.3015),
-        (20.0, 1.4064),
+    const RDO: [(f64, f64); 10] = [
+        (0.6210, 1.0732),
+        (0.5088, 1.0934),
+        (0.3566, 1.1289),
+        (0.2628, 1.1742),
+        (0.1524, 1.2338),
+        (0.0621, 1.3015),
+        (0.0135, 1.4063),
+        (0.0050, 1.600),
+        (0.0015, 1.602),
+        (0.00007, 1.748),
     ];
     let fit: &[(f64, f64)] = if rdo { &RDO } else { &PLAIN };
-    let quanta = if quanta.is_finite() { quanta } else { 1.0 };
-    if quanta <= fit[0].0 {
+    let x = if nonzero.is_finite() { nonzero } else { 0.5 };
+    if x >= fit[0].0 {
         return fit[0].1;
     }
     for w in fit.windows(2) {
-        let ((q0, r0), (q1, r1)) = (w[0], w[1]);
-        if quanta <= q1 {
-            let t = (quanta / q0).ln() / (q1 / q0).ln();
+        let ((x0, r0), (x1, r1)) = (w[0], w[1]);
+        if x >= x1 {
+            let t = (x / x0).ln() / (x1 / x0).ln();
             return r0 + t * (r1 - r0);
         }
     }
-    let (q_last, r_last) = fit[fit.len() - 1];
-    1.0 + (r_last - 1.0) * (quanta / q_last).sqrt()
+    fit[fit.len() - 1].1
 }
 
 /// The largest quantisation scale in `[1e-3, 1e7]` for which `ok` holds (`ok` must be
@@ -912,13 +930,18 @@ const ACCEPT: f64 = 0.995;
 /// real decode narrows a bracket of scales (the largest that met the target, the smallest
 /// that did not), and the next scale comes from the closest decodes on both sides of the
 /// target (log-log secant) or, with one side only, from the open-loop estimate corrected
-/// by the last decode's ratio. It stops once a decode lands in `[ACCEPT, 1] x target`.
+/// by the last decode's ratio. When two decodes in a row land on the same side, the next
+/// scale bisects the bracket instead (the RMS is a staircase in the scale, since steps are
+/// integers, and a secant can creep along a flat stair). It stops once a decode lands in
+/// `[ACCEPT, 1] x target`.
 struct ScaleSearch {
     target: f64,
     /// `(scale, rms)` of the largest scale that met the target.
     met: Option<(f64, f64)>,
     /// `(scale, rms)` of the smallest scale that missed it.
     missed: Option<(f64, f64)>,
+    /// Whether the last decode met the target.
+    last_met: Option<bool>,
 }
 
 impl ScaleSearch {
@@ -927,6 +950,7 @@ impl ScaleSearch {
             target,
             met: None,
             missed: None,
+            last_met: None,
         }
     }
 
@@ -944,7 +968,10 @@ impl ScaleSearch {
         est: f64,
         solve: &impl Fn(f64, f64) -> f64,
     ) -> Option<f64> {
-        if rms <= self.target {
+        let met = rms <= self.target;
+        let same_side = self.last_met == Some(met);
+        self.last_met = Some(met);
+        if met {
             if self.met.is_none_or(|(m, _)| q > m) {
                 self.met = Some((q, rms));
             }
@@ -960,8 +987,12 @@ impl ScaleSearch {
                     return None;
                 }
                 // RMS is close to a power of the scale between two nearby decodes.
-                let t = (self.goal() / r0).ln() / (r1 / r0).ln();
-                (q0.ln() + t.clamp(0.05, 0.95) * (q1 / q0).ln()).exp()
+                let t = if same_side {
+                    0.5
+                } else {
+                    ((self.goal() / r0).ln() / (r1 / r0).ln()).clamp(0.05, 0.95)
+                };
+                (q0.ln() + t * (q1 / q0).ln()).exp()
             }
             _ if est > 0.0 && rms > 0.0 => solve(self.goal(), rms / est),
             _ => q * if rms > self.target { 0.9 } else { 1.1 },
@@ -1293,18 +1324,20 @@ fn encode_layout<G: Layout>(
             }
         };
     // Decodes the details quantised with `steps` into `out` (reused between attempts)
-    // and measures every diamond. Quantising on the fly keeps no quantised copy of all
-    // the details: `keep` receives the nonzero matrices, so the attempt finally kept
-    // needs no second quantisation.
+    // and measures every diamond; also says whether any index was nonzero. Quantising on
+    // the fly keeps no quantised copy of all the details; with the rate-distortion
+    // quantiser, whose second run would cost more than the memory, `keep` receives the
+    // nonzero matrices of the attempt.
     let decode_measure = |cost_model: Option<&CodecModel>,
                           steps: &[u32],
                           out: &mut Vec<i32>,
-                          keep: &Kept|
-     -> Result<Vec<Vec<Measure>>, EncodeError> {
+                          keep: Option<&Kept>|
+     -> Result<(Vec<Vec<Measure>>, bool), EncodeError> {
         out.clear();
         out.resize(geom.raster_len(), 0);
         geom.scatter_roots(&roots, out)?;
-        Ok(synthesize_levels_par(
+        let coded = AtomicBool::new(false);
+        let measures = synthesize_levels_par(
             geom,
             out,
             |l, i, h| {
@@ -1312,7 +1345,10 @@ fn encode_layout<G: Layout>(
                 quantize_matrix(cost_model, steps, l, i, h);
                 let any = h.iter().any(|&x| x != 0);
                 if any {
-                    let _ = keep[l][i].set(h.into());
+                    coded.store(true, Ordering::Relaxed);
+                    if let Some(keep) = keep {
+                        let _ = keep[l][i].set(h.into());
+                    }
                 }
                 for x in h.iter_mut() {
                     *x = dequantize(*x, steps[l]);
@@ -1320,16 +1356,20 @@ fn encode_layout<G: Layout>(
                 any
             },
             |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
-        )?)
+        )?;
+        Ok((measures, coded.into_inner()))
     };
-    let new_kept = || -> Kept {
-        (0..levels)
-            .map(|l| (0..level_len(l)).map(|_| OnceLock::new()).collect())
-            .collect()
+    let new_kept = |rdo: bool| -> Option<Kept> {
+        rdo.then(|| {
+            (0..levels)
+                .map(|l| (0..level_len(l)).map(|_| OnceLock::new()).collect())
+                .collect()
+        })
     };
 
     let (rms_m, max_abs_m);
     let mut rdo_used = false;
+    let mut decodes = 0;
     if let RateMode::RmsM(target) = opts.mode {
         let gains = synthesis_gains(n, levels);
         let step_of = |q: f64, l: usize, exponent: f64| -> u32 {
@@ -1364,25 +1404,36 @@ fn encode_layout<G: Layout>(
         let mut search = ScaleSearch::new(target);
         // Whether the rate-distortion quantiser runs: by the option, or (auto) where the
         // plain quantiser's first guess leaves most indices zero.
+        // The fraction of nonzero indices at scale `q` (plain rounding).
+        let nonzero_fraction = |q: f64, e: f64| -> f64 {
+            let (mut nonzero, mut all) = (0u64, 0u64);
+            for (l, hl) in hist.iter().enumerate() {
+                let quantizer = Quantizer::new(step_of(q, l, e), offset);
+                for &(a, c) in hl {
+                    all += c;
+                    nonzero += c * u64::from(quantizer.apply(a as i32) != 0);
+                }
+            }
+            nonzero as f64 / all.max(1) as f64
+        };
+        // The first guess: the largest scale whose estimate, times the ratio expected at
+        // its fraction of nonzero indices, meets the goal (the product grows with the
+        // scale).
+        let first_guess = |rdo: bool, e: f64| {
+            largest_scale(|q| {
+                estimate(q, e) * initial_ratio(nonzero_fraction(q, e), rdo) <= search.goal()
+            })
+        };
         rdo_used = match opts.rdo {
             RdoMode::On => true,
             RdoMode::Off => false,
             RdoMode::Auto => {
                 let e = gain_exponent(quanta, false);
-                let q = solve(search.goal(), initial_ratio(quanta, false), e);
-                let (mut nonzero, mut all) = (0u64, 0u64);
-                for (l, hl) in hist.iter().enumerate() {
-                    let quantizer = Quantizer::new(step_of(q, l, e), offset);
-                    for &(a, c) in hl {
-                        all += c;
-                        nonzero += c * u64::from(quantizer.apply(a as i32) != 0);
-                    }
-                }
-                (nonzero as f64) < RDO_AUTO_MAX_NONZERO * all as f64
+                nonzero_fraction(first_guess(false, e), e) < RDO_AUTO_MAX_NONZERO
             }
         };
         let exponent = gain_exponent(quanta, rdo_used);
-        let mut q = solve(search.goal(), initial_ratio(quanta, rdo_used), exponent);
+        let mut q = first_guess(rdo_used, exponent);
         let steps_at =
             |q: f64| -> Vec<u32> { (0..levels).map(|l| step_of(q, l, exponent)).collect() };
         // The rate-distortion quantiser's probabilities: a model trained on the plain
@@ -1419,13 +1470,19 @@ fn encode_layout<G: Layout>(
         let mut raster = spare_raster.take().unwrap_or_default();
         for _ in 0..8 {
             let st = steps_at(q);
-            let kept = new_kept();
-            let ms = decode_measure(cost_model, &st, &mut raster, &kept)?;
+            let kept = new_kept(rdo_used);
+            let (ms, coded) = decode_measure(cost_model, &st, &mut raster, kept.as_ref())?;
+            decodes += 1;
             let (rms, max) = error_of(&raster);
             let est = estimate(q, exponent);
             let improves = rms <= target && best.as_ref().is_none_or(|b| q > b.0);
             if improves {
                 best = Some((q, st, ms, (rms, max), kept));
+            }
+            // Nothing coded and the target met: coarser steps cannot change the result
+            // (a surface the root grids alone describe well enough).
+            if !coded && rms <= target {
+                break;
             }
             match search.next(q, rms, est, &|goal, ratio| solve(goal, ratio, exponent)) {
                 Some(next) => q = next,
@@ -1437,21 +1494,33 @@ fn encode_layout<G: Layout>(
             None => {
                 // Fall back to the finest steps (integer lossless) if nothing met the target.
                 let st = vec![256; levels];
-                let kept = new_kept();
-                let ms = decode_measure(None, &st, &mut raster, &kept)?;
+                let kept = None;
+                let (ms, _) = decode_measure(None, &st, &mut raster, None)?;
+                decodes += 1;
                 let errors = error_of(&raster);
                 (0.0, st, ms, errors, kept)
             }
         };
         drop(raster);
         // The kept attempt's indices, as its verification decode quantised them.
-        for (ds, ks) in details.iter_mut().zip(kept) {
-            ds.par_iter_mut()
-                .zip(ks.into_par_iter())
-                .for_each(|(h, k)| match k.into_inner() {
-                    Some(q) => h.copy_from_slice(&q),
-                    None => h.iter_mut().for_each(|x| *x = 0),
-                });
+        match kept {
+            Some(kept) => {
+                for (ds, ks) in details.iter_mut().zip(kept) {
+                    ds.par_iter_mut()
+                        .zip(ks.into_par_iter())
+                        .for_each(|(h, k)| match k.into_inner() {
+                            Some(q) => h.copy_from_slice(&q),
+                            None => h.iter_mut().for_each(|x| *x = 0),
+                        });
+                }
+            }
+            None => {
+                for (l, ds) in details.iter_mut().enumerate() {
+                    ds.par_iter_mut()
+                        .enumerate()
+                        .for_each(|(i, h)| quantize_matrix(None, &st, l, i, h));
+                }
+            }
         }
         steps = st;
         quantized = details;
@@ -1569,6 +1638,7 @@ fn encode_layout<G: Layout>(
         rms_m,
         max_abs_m,
         rdo: rdo_used,
+        verification_decodes: decodes,
     };
     let (width, height, root) = match domain {
         EncodedDomain::Planar { width, height } => {
@@ -2001,6 +2071,73 @@ mod tests {
                 assert!(best > 0.0, "{c} {drift} {target}: nothing met the target");
                 let r = rms(best) / target;
                 assert!((ACCEPT..=1.0).contains(&r), "{c} {drift} {target}: {r}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_scale_search_bisects_along_a_stair() {
+        // RMS is a staircase in the scale (steps are integers). Korea at 5 m (plain):
+        // 4.92 m at q = 21.65, 4.996 at 21.71, a stair at 5.004 from 21.78 to 21.91, 5.024
+        // at 22.01. Secants from the decode under the target kept landing on the stair,
+        // each about 10 % closer to its edge: 8 decodes. The model below has that shape;
+        // bisection reaches the window in 4.
+        for target in [1.0f64, 5.0, 9.0] {
+            let qa = 10.0 * target;
+            let rms = |q: f64| {
+                target
+                    * if q < qa {
+                        0.984
+                    } else if q < 1.003 * qa {
+                        0.9991
+                    } else if q < 1.009 * qa {
+                        1.0008
+                    } else {
+                        1.0047 * (q / (1.009 * qa)).powf(0.9)
+                    }
+            };
+            // The first guess (`search` solves with a ratio of 1.2) lands at 0.995 qa.
+            let est = |q: f64| target * GOAL / 1.2 * (q / (0.995 * qa)).powf(0.9);
+            let tried = search(target, rms, est);
+            let best = tried
+                .iter()
+                .copied()
+                .filter(|&q| rms(q) <= target)
+                .fold(0.0, f64::max);
+            assert!(tried.len() <= 4, "{target}: {tried:?}");
+            let r = rms(best) / target;
+            assert!((ACCEPT..=1.0).contains(&r), "{target}: {r} after {tried:?}");
+        }
+    }
+
+    #[test]
+    fn a_surface_the_root_grid_describes_takes_one_verification_decode() {
+        // A plane: no detail survives any of these tolerances, and coarser steps cannot
+        // change that, so the rate control stops after its first decode.
+        let (w, h) = (300usize, 200usize);
+        let values_m = (0..w * h)
+            .map(|k| (100.0 + 0.25 * (k % w) as f64 + 0.5 * (k / w) as f64).round())
+            .collect();
+        let g = Grid {
+            width: w,
+            height: h,
+            values_m,
+            quantum_m: Some(1.0),
+        };
+        for t in [2.0, 20.0] {
+            for rdo in [RdoMode::Off, RdoMode::On] {
+                let enc = encode(
+                    &g,
+                    EncodeOptions {
+                        n: 16,
+                        mode: RateMode::RmsM(t),
+                        sparse: false,
+                        rdo,
+                    },
+                )
+                .unwrap();
+                assert!(enc.report.rms_m <= t);
+                assert_eq!(enc.report.verification_decodes, 1, "{t} {rdo:?}");
             }
         }
     }

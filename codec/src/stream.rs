@@ -219,6 +219,7 @@ pub fn encode_streaming(
         rms_m: (errors.sum2 / scan.valid as f64).sqrt(),
         max_abs_m: errors.max,
         rdo: false,
+        verification_decodes: 0,
     };
     Ok(StreamEncoded {
         width,

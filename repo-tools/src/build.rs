@@ -476,8 +476,14 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
             let geom = planet_geometry(args, raster.georef.as_ref(), g.width, g.height, n)?;
             check_budget(args, geom.distinct_points() + g.width * g.height / 2, 1)?;
             let spin = progress::spinner("resampling");
+            let resample_started = Instant::now();
             let cube = planet::resample_heights(&raster, &geom)?;
             spin.finish_and_clear();
+            tracing::info!(
+                seconds = resample_started.elapsed().as_secs_f64(),
+                face_side = geom.face_side(),
+                "resampled onto the cube"
+            );
             encode_started = Instant::now();
             encode_planet(
                 raster,
@@ -495,10 +501,25 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         }
     };
     let encode_seconds = encode_started.elapsed().as_secs_f64();
+    tracing::info!(
+        seconds = encode_seconds,
+        since_start = started.elapsed().as_secs_f64(),
+        "encoded"
+    );
+    let write_started = Instant::now();
     let mut builder = RepositoryBuilder::create(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
     write_blobs(args, &mut builder, &coded)?;
+    tracing::info!(
+        seconds = write_started.elapsed().as_secs_f64(),
+        "blobs written"
+    );
+    let publish_started = Instant::now();
     let meta = publish(args, builder, &coded.desc, n, mode)?;
+    tracing::info!(
+        seconds = publish_started.elapsed().as_secs_f64(),
+        "published"
+    );
     summarise(args, &meta, &coded.desc, started, encode_seconds)
 }
 
