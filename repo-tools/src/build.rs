@@ -160,8 +160,14 @@ pub struct BuildSummary {
     pub output: String,
     /// `"elevation"` or `"colour"`.
     pub kind: String,
-    /// Input samples (pixels for colour), no padding.
+    /// Coded samples, no padding: the input's for planar builds, the cube raster's
+    /// distinct points (`6 (2S)^2 + 2`) for planets. `bits_per_sample` is per coded sample.
     pub samples: usize,
+    /// Samples (pixels for colour) of the input file: `samples` for planar builds, the
+    /// latitude/longitude grid's for planets.
+    pub source_samples: usize,
+    /// `source_samples / seconds / 1e6`: how fast the input is turned into a repository.
+    pub source_msamples_per_s: f64,
     /// Wall-clock seconds of the whole build (read, encode, write, publish).
     pub seconds: f64,
     /// `samples / seconds / 1e6`.
@@ -348,6 +354,7 @@ fn build_streaming(
         kind: "elevation",
         units,
         samples: enc.report.samples,
+        source_samples: enc.report.samples,
         nodata_count: enc.report.samples - enc.report.valid_samples,
         georef,
         channels: vec![ChannelCoding {
@@ -459,6 +466,7 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         if args.planet {
             coded.desc.radius_m = Some(radius_m(args)?);
         }
+        coded.desc.source_samples = image.width * image.height;
         coded
     } else {
         let raster = input::read_heights(&args.input)
@@ -532,6 +540,8 @@ struct Description {
     kind: &'static str,
     units: String,
     samples: usize,
+    /// Samples of the input file.
+    source_samples: usize,
     nodata_count: usize,
     georef: Option<Georef>,
     channels: Vec<ChannelCoding>,
@@ -558,6 +568,8 @@ fn summarise(
         output: args.output.display().to_string(),
         kind: d.kind.into(),
         samples: d.samples,
+        source_samples: d.source_samples,
+        source_msamples_per_s: d.source_samples as f64 / seconds / 1e6,
         seconds,
         msamples_per_s: d.samples as f64 / seconds / 1e6,
         encode_seconds,
@@ -614,6 +626,7 @@ fn elevation(
             kind: "elevation",
             units: raster.units,
             samples: enc.report.samples,
+            source_samples: raster.grid.width * raster.grid.height,
             nodata_count: raster.nodata_count,
             georef: raster.georef,
             channels: vec![layout::channel_coding("height", &enc, mode)],
@@ -770,6 +783,7 @@ fn encode_colour(
             kind: "colour",
             units: "srgb8".into(),
             samples: channels[0].1.report.samples,
+            source_samples: channels[0].1.report.samples,
             nodata_count: 0,
             georef,
             channels: channels

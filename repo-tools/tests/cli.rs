@@ -365,6 +365,33 @@ fn korea_at_rms_9m_meets_its_error_target() {
     println!("korea rms 9: build {built}\nverify {verified}");
 }
 
+#[test]
+fn rdo_is_chosen_by_the_option_and_recorded() {
+    // The bundled korea crop at 3 m: `auto` and `on` run the rate-distortion quantiser
+    // (few nonzero indices), `off` rounds; all meet the target, and the quantiser codes
+    // fewer bits.
+    let input = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.json");
+    let rate = ["--rms-m", "3"];
+    let mut bits = Vec::new();
+    for (choice, expect) in [("auto", true), ("on", true), ("off", false)] {
+        let (built, verified) = build_and_verify(&input, &rate, &["--rdo", choice]);
+        check_bound(&verified, &rate);
+        assert_eq!(built["rdo"], expect, "--rdo {choice}");
+        bits.push(built["bits_per_sample"].as_f64().unwrap());
+    }
+    assert_eq!(bits[0], bits[1]);
+    assert!(
+        bits[1] < 0.99 * bits[2],
+        "rdo {} against rounding {}",
+        bits[1],
+        bits[2]
+    );
+    // Lossless ignores it.
+    let (built, _) = build_and_verify(&input, &["--lossless"], &["--rdo", "on"]);
+    assert_eq!(built["rdo"], false);
+    assert_eq!(built["source_samples"], built["samples"]);
+}
+
 fn query(repo: &Path, points: &[(f64, f64)]) -> Vec<f64> {
     let mut cmd = bin();
     cmd.arg("query").arg(repo).arg("--json");
