@@ -624,19 +624,9 @@ const HIDING_LAMBDA: f64 = 0.1;
 ///   keeps the block's first nonzero and its qualification. korea: RMS 1 m -0.9 %, 9 m
 ///   -0.8 %, 3 m -0.7 % (docs/codec.md).
 fn prune_block(q: &mut [i32], details: &[i32], s: u32) {
-    // Without branches on the data (which indices are zero is noise to a predictor).
-    let mut nonzero = 0u32;
-    let mut parity = 0i32;
-    for (k, &v) in q.iter().enumerate() {
-        nonzero |= u32::from(v != 0) << k;
-        parity ^= v;
-    }
-    if nonzero == 0 {
+    let Some((count, f, odd)) = block_stats(q) else {
         return;
-    }
-    let count = nonzero.count_ones() as usize;
-    let f = nonzero.trailing_zeros() as usize;
-    let odd = parity & 1 != 0;
+    };
     if count == 1 && q[f].unsigned_abs() == 1 {
         q[f] = 0;
         return;
@@ -644,28 +634,32 @@ fn prune_block(q: &mut [i32], details: &[i32], s: u32) {
     fix_parity_with(q, details, s, count, f, odd);
 }
 
-/// The sign-hiding half of [`prune_block`]: where a block with at least
-/// [`entropy::HIDDEN_SIGN_MIN`] nonzero indices has the wrong parity, the cheapest move
-/// of one index by one fixes it.
-pub(crate) fn fix_parity(q: &mut [i32], details: &[i32], s: u32) {
+/// A block's number of nonzero indices, the position of the first and whether the
+/// magnitudes sum to an odd number; `None` for an empty block. Without branches on the
+/// data (which indices are zero is noise to a predictor).
+fn block_stats(q: &[i32]) -> Option<(usize, usize, bool)> {
     let mut nonzero = 0u32;
     let mut parity = 0i32;
     for (k, &v) in q.iter().enumerate() {
         nonzero |= u32::from(v != 0) << k;
         parity ^= v;
     }
-    if nonzero == 0 {
-        return;
+    (nonzero != 0).then(|| {
+        (
+            nonzero.count_ones() as usize,
+            nonzero.trailing_zeros() as usize,
+            parity & 1 != 0,
+        )
+    })
+}
+
+/// The sign-hiding half of [`prune_block`]: where a block with at least
+/// [`entropy::HIDDEN_SIGN_MIN`] nonzero indices has the wrong parity, the cheapest move
+/// of one index by one fixes it.
+pub(crate) fn fix_parity(q: &mut [i32], details: &[i32], s: u32) {
+    if let Some((count, f, odd)) = block_stats(q) {
+        fix_parity_with(q, details, s, count, f, odd);
     }
-    let count = nonzero.count_ones() as usize;
-    fix_parity_with(
-        q,
-        details,
-        s,
-        count,
-        nonzero.trailing_zeros() as usize,
-        parity & 1 != 0,
-    );
 }
 
 fn fix_parity_with(q: &mut [i32], details: &[i32], s: u32, count: usize, f: usize, odd: bool) {

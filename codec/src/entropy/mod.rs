@@ -640,29 +640,11 @@ pub fn write_matrix<S: BitSink>(
                 s.bit(ctx(g, sign_ctx), v < 0);
             }
             seen = true;
-            let mag = v.unsigned_abs() - 1;
             let (kr, set) = rice(a, class, ring);
-            let hi = mag >> kr;
-            let mut b = 0;
-            while b < MAG_BINS {
-                let more = hi > b as u32;
-                s.bit(ctx(g, MAG + set * MAG_BINS + b), more);
-                if !more {
-                    break;
-                }
-                b += 1;
-            }
-            if b == MAG_BINS {
-                let e = hi - MAG_BINS as u32 + 1;
-                let bits = 32 - e.leading_zeros();
-                for p in 0..bits as usize {
-                    s.bit(ctx(g, ESCAPE + p.min(ESCAPES - 1)), p + 1 == bits as usize);
-                }
-                s.bypass(e, bits - 1);
-            }
-            if kr > 0 {
-                s.bypass(mag, kr);
-            }
+            magnitude_decisions(set, kr, v.unsigned_abs() - 1, |d| match d {
+                Decision::Bit(c, bit) => s.bit(ctx(g, c), bit),
+                Decision::Bypass(value, count) => s.bypass(value, count),
+            });
             // Until the block ends, a first sign that is hidden or deferred reads as +.
             rec.set(
                 i,
@@ -683,6 +665,48 @@ pub fn write_matrix<S: BitSink>(
             }
             rec.set(i, j, v);
         }
+    }
+}
+
+/// One binary decision of a coded value.
+#[derive(Clone, Copy)]
+enum Decision {
+    /// A context-coded bit (context relative to the level group).
+    Bit(usize, bool),
+    /// `count` equiprobable bits of a value.
+    Bypass(u32, u32),
+}
+
+/// The decisions of magnitude `mag = |q| - 1` in magnitude context set `set` with
+/// Golomb-Rice parameter `kr`, in coding order: the high part `mag >> kr` in unary over
+/// [`MAG_BINS`] context-coded bins, past them an Exp-Golomb escape (context-coded prefix,
+/// bypass suffix), then the `kr` low bits in bypass. The coder and the rate-distortion
+/// quantiser's costs both walk this.
+#[inline(always)]
+fn magnitude_decisions(set: usize, kr: u32, mag: u32, mut emit: impl FnMut(Decision)) {
+    let hi = mag >> kr;
+    let mut b = 0;
+    while b < MAG_BINS {
+        let more = hi > b as u32;
+        emit(Decision::Bit(MAG + set * MAG_BINS + b, more));
+        if !more {
+            break;
+        }
+        b += 1;
+    }
+    if b == MAG_BINS {
+        let e = hi - MAG_BINS as u32 + 1;
+        let len = 32 - e.leading_zeros();
+        for p in 0..len as usize {
+            emit(Decision::Bit(
+                ESCAPE + p.min(ESCAPES - 1),
+                p + 1 == len as usize,
+            ));
+        }
+        emit(Decision::Bypass(e, len - 1));
+    }
+    if kr > 0 {
+        emit(Decision::Bypass(mag, kr));
     }
 }
 

@@ -13,8 +13,8 @@ use std::sync::OnceLock;
 
 use super::range::{Prob, adapt};
 use super::{
-    Causal, CodecModel, ESCAPE, ESCAPES, HIDDEN_SIGN_MIN, MAG, MAG_BINS, NONZERO, PER_GROUP, QUAD,
-    SIGN, activity_class, on_ring, rice, sig_ctx,
+    Causal, CodecModel, Decision, HIDDEN_SIGN_MIN, NONZERO, PER_GROUP, QUAD, SIGN, activity_class,
+    magnitude_decisions, on_ring, rice, sig_ctx,
 };
 
 /// Cost in bits of a decision whose probability is `p / 2^16`, by `p >> 4`.
@@ -67,36 +67,14 @@ impl Model<'_> {
     /// (coding it when `commit`).
     #[inline(always)]
     fn magnitude(&mut self, set: usize, kr: u32, mag: u32, commit: bool) -> f32 {
-        let hi = mag >> kr;
-        let mut bits = kr as f32;
-        let mut b = 0;
-        while b < MAG_BINS {
-            let more = hi > b as u32;
-            let c = MAG + set * MAG_BINS + b;
-            bits += if commit {
-                self.code(c, more)
-            } else {
-                self.cost(c, more)
-            };
-            if !more {
-                break;
+        let mut bits = 0.0;
+        magnitude_decisions(set, kr, mag, |d| {
+            bits += match d {
+                Decision::Bit(c, bit) if commit => self.code(c, bit),
+                Decision::Bit(c, bit) => self.cost(c, bit),
+                Decision::Bypass(_, count) => count as f32,
             }
-            b += 1;
-        }
-        if b == MAG_BINS {
-            let e = hi - MAG_BINS as u32 + 1;
-            let len = 32 - e.leading_zeros();
-            for p in 0..len as usize {
-                let c = ESCAPE + p.min(ESCAPES - 1);
-                let bit = p + 1 == len as usize;
-                bits += if commit {
-                    self.code(c, bit)
-                } else {
-                    self.cost(c, bit)
-                };
-            }
-            bits += (len - 1) as f32;
-        }
+        });
         bits
     }
 }
