@@ -2046,6 +2046,15 @@ mod tests {
         tried
     }
 
+    /// The largest scale tried whose RMS met the target (0 if none).
+    fn best_meeting(tried: &[f64], rms: impl Fn(f64) -> f64, target: f64) -> f64 {
+        tried
+            .iter()
+            .copied()
+            .filter(|&q| rms(q) <= target)
+            .fold(0.0, f64::max)
+    }
+
     #[test]
     fn the_scale_search_lands_just_under_the_target_in_few_decodes() {
         // Real RMS grows like q^0.9 and the estimate's error drifts by up to 15 % over
@@ -2056,11 +2065,7 @@ mod tests {
                 let rms = |q: f64| c * q.powf(0.9);
                 let est = |q: f64| rms(q) / (1.25 + drift * q.ln());
                 let tried = search(target, rms, est);
-                let best = tried
-                    .iter()
-                    .copied()
-                    .filter(|&q| rms(q) <= target)
-                    .fold(0.0, f64::max);
+                let best = best_meeting(&tried, rms, target);
                 assert!(tried.len() <= 5, "{c} {drift} {target}: {tried:?}");
                 assert!(best > 0.0, "{c} {drift} {target}: nothing met the target");
                 let r = rms(best) / target;
@@ -2093,11 +2098,7 @@ mod tests {
             // The first guess (`search` solves with a ratio of 1.2) lands at 0.995 qa.
             let est = |q: f64| target * GOAL / 1.2 * (q / (0.995 * qa)).powf(0.9);
             let tried = search(target, rms, est);
-            let best = tried
-                .iter()
-                .copied()
-                .filter(|&q| rms(q) <= target)
-                .fold(0.0, f64::max);
+            let best = best_meeting(&tried, rms, target);
             assert!(tried.len() <= 4, "{target}: {tried:?}");
             let r = rms(best) / target;
             assert!((ACCEPT..=1.0).contains(&r), "{target}: {r} after {tried:?}");
