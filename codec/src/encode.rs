@@ -383,15 +383,17 @@ impl Quantizer {
         if self.step == 256 {
             return h;
         }
-        let x = h.unsigned_abs() as u64 * 256 + self.bias;
-        let mut q = (x as f64 * self.inverse) as u64;
-        // `x < 2^41`: the estimate is within one of the exact quotient.
-        if q * self.step > x {
+        // In `i64`, whose conversions to and from `f64` are one instruction each (those
+        // of `u64` are not on x86-64). `x < 2^41`: the estimate is within one of the
+        // exact quotient.
+        let (step, bias) = (self.step as i64, self.bias as i64);
+        let x = i64::from(h.unsigned_abs()) * 256 + bias;
+        let mut q = (x as f64 * self.inverse) as i64;
+        if q * step > x {
             q -= 1;
-        } else if (q + 1) * self.step <= x {
+        } else if (q + 1) * step <= x {
             q += 1;
         }
-        let q = q as i64;
         (if h < 0 { -q } else { q }) as i32
     }
 }
@@ -1839,6 +1841,43 @@ mod tests {
             height: h,
             values_m,
             quantum_m: Some(1.0),
+        }
+    }
+
+    #[test]
+    fn the_quantizer_equals_exact_integer_division() {
+        let mut seed = 7u64;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            seed >> 16
+        };
+        let steps = [256u32, 257, 300, 999, 4096, 65_537, 1 << 20, 999_999_937, 1_000_000_000];
+        for &s in &steps {
+            for offset in [0u64, 96, 112, 128, 255] {
+                let quantizer = Quantizer::new(s, offset);
+                let bias = u64::from(s) * offset / 256;
+                let mut values = vec![0, 1, -1, 2, -2, i32::MAX, i32::MIN, i32::MIN + 1];
+                values.extend((0..2000).map(|_| next() as i32));
+                // Every decision threshold near a few multiples of the step.
+                for m in [1u64, 2, 3, 1000] {
+                    let t = (m * u64::from(s)).saturating_sub(bias) / 256;
+                    for d in 0..3 {
+                        values.push((t + d).min(i32::MAX as u64) as i32);
+                        values.push(-((t + d).min(i32::MAX as u64) as i32));
+                    }
+                }
+                for h in values {
+                    let exact = if s == 256 {
+                        i64::from(h)
+                    } else {
+                        let q = ((u64::from(h.unsigned_abs()) * 256 + bias) / u64::from(s)) as i64;
+                        if h < 0 { -q } else { q }
+                    };
+                    assert_eq!(i64::from(quantizer.apply(h)), exact, "h {h} s {s} offset {offset}");
+                }
+            }
         }
     }
 
