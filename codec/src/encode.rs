@@ -1245,13 +1245,7 @@ fn encode_layout<G: Layout>(
         std::borrow::Cow::Borrowed(&ints.valid)
     } else {
         let mut mask = ints.valid.clone();
-        mask.par_chunks_mut(PASS_CHUNK)
-            .enumerate()
-            .for_each(|(p, part)| {
-                for (k, ok) in part.iter_mut().enumerate() {
-                    *ok = *ok && geom.is_distinct(p * PASS_CHUNK + k);
-                }
-            });
+        geom.clear_duplicates(&mut mask);
         std::borrow::Cow::Owned(mask)
     };
     let counted = |k: usize| counted_mask[k];

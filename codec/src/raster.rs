@@ -517,8 +517,9 @@ pub(crate) trait Layout: Sync {
     fn gather_roots(&self, raster: &[i32]) -> Vec<Vec<i32>>;
     /// Writes the root vertex grids; errors if their number or sizes are wrong.
     fn scatter_roots(&self, roots: &[Vec<i32>], raster: &mut [i32]) -> Result<(), RasterError>;
-    /// Whether array entry `k` is the one copy of its point that error measurements count.
-    fn is_distinct(&self, k: usize) -> bool;
+    /// Clears `mask[k]` (a whole sample array) wherever entry `k` is not the one copy of
+    /// its point that error measurements count.
+    fn clear_duplicates(&self, mask: &mut [bool]);
     /// Number of distinct points.
     fn distinct_len(&self) -> usize;
     /// Writes `to_int(fill)` into `out[k]` wherever `valid[k]` is false, the fill being a
@@ -1050,9 +1051,7 @@ impl Layout for RasterGeometry {
         }
     }
 
-    fn is_distinct(&self, _k: usize) -> bool {
-        true
-    }
+    fn clear_duplicates(&self, _mask: &mut [bool]) {}
 
     fn distinct_len(&self) -> usize {
         self.width * self.height

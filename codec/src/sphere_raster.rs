@@ -769,8 +769,27 @@ impl Layout for SphereGeometry {
         SphereGeometry::scatter_roots(self, roots, raster)
     }
 
-    fn is_distinct(&self, k: usize) -> bool {
-        self.is_canonical(k)
+    fn clear_duplicates(&self, mask: &mut [bool]) {
+        // Only points on a face's border have other copies: per row, its two ends, or all
+        // of it on the face's first and last rows.
+        let w = self.width();
+        mask.par_chunks_mut(w)
+            .enumerate()
+            .for_each(|(row, entries)| {
+                let v = row % w;
+                let (start, last) = (row * w, entries.len() - 1);
+                let mut check = |u: usize| {
+                    if entries[u] && !self.is_canonical(start + u) {
+                        entries[u] = false;
+                    }
+                };
+                if v == 0 || v + 1 == w {
+                    (0..=last).for_each(&mut check);
+                } else {
+                    check(0);
+                    check(last);
+                }
+            });
     }
 
     fn distinct_len(&self) -> usize {
@@ -899,6 +918,22 @@ mod tests {
             }
         }
         assert_eq!(distinct, g.distinct_points());
+    }
+
+    #[test]
+    fn clearing_duplicates_keeps_exactly_the_canonical_copies() {
+        for (face_side, n) in [(8, 8), (32, 4), (64, 16)] {
+            let g = SphereGeometry::new(face_side, n).unwrap();
+            let mut mask = vec![true; g.cube_len()];
+            // Entries already cleared stay cleared.
+            mask[7] = false;
+            g.clear_duplicates(&mut mask);
+            for (k, &m) in mask.iter().enumerate() {
+                assert_eq!(m, k != 7 && g.is_canonical(k), "{face_side} {n}: entry {k}");
+            }
+            let kept = mask.iter().filter(|&&m| m).count();
+            assert_eq!(kept + usize::from(g.is_canonical(7)), g.distinct_points());
+        }
     }
 
     #[test]

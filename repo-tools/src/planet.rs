@@ -180,7 +180,8 @@ impl<'a> Equirect<'a> {
             at: [w0 + c0, w0 + c1, w1 + c0, w1 + c1],
             fr,
             fc,
-            nearest: row.round() as usize * self.width + (col.round() as usize % self.width),
+            row,
+            col,
         })
     }
 
@@ -214,7 +215,7 @@ impl<'a> Equirect<'a> {
             sum / weight
         } else {
             // Exactly on a nodata sample with zero-weight neighbours: nearest.
-            let v = self.values[b.nearest];
+            let v = self.values[b.nearest(self.width)];
             if v.is_finite() { v } else { f64::NAN }
         }
     }
@@ -234,15 +235,23 @@ impl<'a> Equirect<'a> {
 }
 
 /// Where a latitude/longitude falls in a source grid: the indices of the four samples
-/// around it (NW, NE, SW, SE), the fractions south and east, and the nearest sample.
+/// around it (NW, NE, SW, SE), the fractions south and east, and the fractional row and
+/// column (for the nearest sample, needed only where nodata leaves no weight).
 struct Bilinear {
     at: [usize; 4],
     fr: f64,
     fc: f64,
-    nearest: usize,
+    row: f64,
+    col: f64,
 }
 
 impl Bilinear {
+    /// Index of the source sample nearest to the point (in a grid `width` wide). Two
+    /// libm `round` calls and a division: off the common path.
+    fn nearest(&self, width: usize) -> usize {
+        self.row.round() as usize * width + (self.col.round() as usize % width)
+    }
+
     /// The bilinear mix of the four samples' values.
     #[inline]
     fn mix(&self, [a, b, c, d]: [f64; 4]) -> f64 {
