@@ -858,6 +858,29 @@ pub(crate) fn trains_on(level_len: usize, index: usize) -> bool {
     level_len < 1024 || index.is_multiple_of(TRAIN_STRIDE)
 }
 
+/// A model trained on the diamonds `(level, index)` that `include` accepts, among those
+/// [`trains_on`] samples, each diamond's decisions written into the counts by `count`.
+fn train_model<G: Layout>(
+    geom: &G,
+    include: impl Fn(usize, usize) -> bool + Sync,
+    count: impl Fn(&mut ContextCounts, usize, usize) + Sync,
+) -> CodecModel {
+    let level_len = |l: usize| geom.slot_levels()[l].len();
+    let counts = (0..geom.slot_levels().len())
+        .into_par_iter()
+        .flat_map(|l| (0..level_len(l)).into_par_iter().map(move |i| (l, i)))
+        .filter(|&(l, i)| include(l, i) && trains_on(level_len(l), i))
+        .fold(ContextCounts::default, |mut acc, (l, i)| {
+            count(&mut acc, l, i);
+            acc
+        })
+        .reduce(ContextCounts::default, |mut a, b| {
+            a.merge(&b);
+            a
+        });
+    CodecModel::from_counts(&counts)
+}
+
 /// Subsampling of large levels for model training (see [`trains_on`]).
 const TRAIN_STRIDE: usize = 8;
 
@@ -947,7 +970,8 @@ const ACCEPT: f64 = 0.995;
 /// by the last decode's ratio. When two decodes in a row land on the same side, the next
 /// scale bisects the bracket instead (the RMS is a staircase in the scale, since steps are
 /// integers, and a secant can creep along a flat stair). It stops once a decode lands in
-/// `[ACCEPT, 1] x target`.
+/// `[ACCEPT, 1] x target`, or meets the target without coding any index (coarser steps
+/// cannot change such a result: a surface the root grids alone describe well enough).
 struct ScaleSearch {
     target: f64,
     /// `(scale, rms)` of the largest scale that met the target.
@@ -973,13 +997,14 @@ impl ScaleSearch {
         self.target * GOAL
     }
 
-    /// Records a decode at scale `q` (real `rms`, open-loop estimate `est`); the next
-    /// scale to try, or `None` when done.
+    /// Records a decode at scale `q` (real `rms`, open-loop estimate `est`, whether it
+    /// `coded` any index); the next scale to try, or `None` when done.
     fn next(
         &mut self,
         q: f64,
         rms: f64,
         est: f64,
+        coded: bool,
         solve: &impl Fn(f64, f64) -> f64,
     ) -> Option<f64> {
         let met = rms <= self.target;
@@ -989,7 +1014,7 @@ impl ScaleSearch {
             if self.met.is_none_or(|(m, _)| q > m) {
                 self.met = Some((q, rms));
             }
-            if rms >= self.target * ACCEPT {
+            if rms >= self.target * ACCEPT || !coded {
                 return None;
             }
         } else if self.missed.is_none_or(|(m, _)| q < m) {
@@ -1299,36 +1324,46 @@ fn encode_layout<G: Layout>(
     };
     // Only the RMS mode trades individual details for rate; the other modes are exact.
     let prune = matches!(opts.mode, RateMode::RmsM(_));
-    // Quantises one diamond's details in place: by rate and distortion under
-    // `cost_model` when one is given, else by rounding (pruned and sign-hiding on
+    // Quantises one diamond's details in place by rounding (pruned and sign-hiding on
     // quantised RMS levels).
+    let round_matrix = |steps: &[u32], l: usize, h: &mut [i32]| {
+        let s = steps[l];
+        let quantizer = Quantizer::new(s, offset);
+        if prune && s > 256 {
+            quantize_pruned(n, h, &quantizer, s);
+        } else {
+            for x in h.iter_mut() {
+                *x = quantizer.apply(*x);
+            }
+        }
+    };
+    // Diamond `(l, i)`'s indices into `out`: by rate and distortion under `cost_model`
+    // on quantised RMS levels when one is given, else by rounding.
     let quantize_matrix =
-        |cost_model: Option<&CodecModel>, steps: &[u32], l: usize, i: usize, h: &mut [i32]| {
+        |cost_model: Option<&CodecModel>, steps: &[u32], l: usize, i: usize, out: &mut [i32]| {
             let s = steps[l];
-            let quantizer = Quantizer::new(s, offset);
-            if !prune || s <= 256 {
-                for x in h.iter_mut() {
-                    *x = quantizer.apply(*x);
+            match cost_model {
+                Some(model) if prune && s > 256 => {
+                    let ctx = geom.blob_context(l, i);
+                    let step_units = s as f32 / 256.0;
+                    entropy::rdo::quantize_matrix(
+                        model,
+                        &entropy::rdo::Matrix {
+                            group: ctx.group,
+                            n,
+                            valid: ctx.mask.map(crate::lifting::DiamondMask::cells),
+                            step: s,
+                            lambda: RDO_LAMBDA * step_units * step_units,
+                        },
+                        &details[l][i],
+                        out,
+                        |q, dd| fix_parity(q, dd, s),
+                    );
                 }
-            } else if let Some(model) = cost_model {
-                let ctx = geom.blob_context(l, i);
-                let d = h.to_vec();
-                let step_units = s as f32 / 256.0;
-                entropy::rdo::quantize_matrix(
-                    model,
-                    &entropy::rdo::Matrix {
-                        group: ctx.group,
-                        n,
-                        valid: ctx.mask.map(crate::lifting::DiamondMask::cells),
-                        step: s,
-                        lambda: RDO_LAMBDA * step_units * step_units,
-                    },
-                    &d,
-                    h,
-                    |q, dd| fix_parity(q, dd, s),
-                );
-            } else {
-                quantize_pruned(n, h, &quantizer, s);
+                _ => {
+                    out.copy_from_slice(&details[l][i]);
+                    round_matrix(steps, l, out);
+                }
             }
         };
     // Decodes the details quantised with `steps` into `out` (reused between attempts)
@@ -1349,7 +1384,6 @@ fn encode_layout<G: Layout>(
             geom,
             out,
             |l, i, h| {
-                h.copy_from_slice(&details[l][i]);
                 quantize_matrix(cost_model, steps, l, i, h);
                 let any = h.iter().any(|&x| x != 0);
                 if any {
@@ -1410,8 +1444,6 @@ fn encode_layout<G: Layout>(
         };
         let quanta = target / quantum_m.unwrap_or(scale);
         let mut search = ScaleSearch::new(target);
-        // Whether the rate-distortion quantiser runs: by the option, or (auto) where the
-        // plain quantiser's first guess leaves most indices zero.
         // The fraction of nonzero indices at scale `q` (plain rounding).
         let nonzero_fraction = |q: f64, e: f64| -> f64 {
             let (mut nonzero, mut all) = (0u64, 0u64);
@@ -1432,45 +1464,45 @@ fn encode_layout<G: Layout>(
                 estimate(q, e) * initial_ratio(nonzero_fraction(q, e), rdo) <= search.goal()
             })
         };
-        rdo_used = match opts.rdo {
-            RdoMode::On => true,
-            RdoMode::Off => false,
-            RdoMode::Auto => {
-                let e = gain_exponent(quanta, false);
-                nonzero_fraction(first_guess(false, e), e) < RDO_AUTO_MAX_NONZERO
-            }
+        // Whether the rate-distortion quantiser runs: by the option, or (auto) where the
+        // plain quantiser's first guess leaves most indices zero.
+        let plain_guess = (opts.rdo != RdoMode::On).then(|| {
+            let e = gain_exponent(quanta, false);
+            (first_guess(false, e), e)
+        });
+        rdo_used = match (opts.rdo, plain_guess) {
+            (RdoMode::On, _) => true,
+            (RdoMode::Auto, Some((q, e))) => nonzero_fraction(q, e) < RDO_AUTO_MAX_NONZERO,
+            _ => false,
         };
         let exponent = gain_exponent(quanta, rdo_used);
-        let mut q = first_guess(rdo_used, exponent);
+        let mut q = match plain_guess {
+            Some((q, _)) if !rdo_used => q,
+            _ => first_guess(rdo_used, exponent),
+        };
         let steps_at =
             |q: f64| -> Vec<u32> { (0..levels).map(|l| step_of(q, l, exponent)).collect() };
         // The rate-distortion quantiser's probabilities: a model trained on the plain
         // quantisation at the first guess's steps.
         let cost_model = rdo_used.then(|| {
             let st = steps_at(q);
-            let counts = (0..levels)
-                .into_par_iter()
-                .flat_map(|l| (0..level_len(l)).into_par_iter().map(move |i| (l, i)))
-                .filter(|&(l, i)| trains_on(level_len(l), i))
-                .fold(ContextCounts::default, |mut acc, (l, i)| {
+            train_model(
+                geom,
+                |_, _| true,
+                |acc, l, i| {
                     let ctx = geom.blob_context(l, i);
                     let mut h = details[l][i].clone();
-                    quantize_matrix(None, &st, l, i, &mut h);
+                    round_matrix(&st, l, &mut h);
                     entropy::write_matrix(
-                        &mut acc,
+                        acc,
                         ctx.group,
                         n,
                         &h,
                         ctx.mask.map(crate::lifting::DiamondMask::cells),
                         st[l] > 256,
                     );
-                    acc
-                })
-                .reduce(ContextCounts::default, |mut a, b| {
-                    a.merge(&b);
-                    a
-                });
-            CodecModel::from_counts(&counts)
+                },
+            )
         });
         let cost_model = cost_model.as_ref();
         // The attempt kept: scale, steps, measures, errors, indices.
@@ -1487,12 +1519,9 @@ fn encode_layout<G: Layout>(
             if improves {
                 best = Some((q, st, ms, (rms, max), kept));
             }
-            // Nothing coded and the target met: coarser steps cannot change the result
-            // (a surface the root grids alone describe well enough).
-            if !coded && rms <= target {
-                break;
-            }
-            match search.next(q, rms, est, &|goal, ratio| solve(goal, ratio, exponent)) {
+            match search.next(q, rms, est, coded, &|goal, ratio| {
+                solve(goal, ratio, exponent)
+            }) {
                 Some(next) => q = next,
                 None => break,
             }
@@ -1524,9 +1553,7 @@ fn encode_layout<G: Layout>(
             }
             None => {
                 for (l, ds) in details.iter_mut().enumerate() {
-                    ds.par_iter_mut()
-                        .enumerate()
-                        .for_each(|(i, h)| quantize_matrix(None, &st, l, i, h));
+                    ds.par_iter_mut().for_each(|h| round_matrix(&st, l, h));
                 }
             }
         }
@@ -1584,31 +1611,25 @@ fn encode_layout<G: Layout>(
             .collect()
     };
     // Train the model (on a subsample of the large levels, see `trains_on`), then code.
-    let counts = (0..levels)
-        .into_par_iter()
-        .flat_map(|l| (0..level_len(l)).into_par_iter().map(move |i| (l, i)))
-        .filter(|&(l, i)| has_data[l][i] && trains_on(level_len(l), i))
-        .fold(ContextCounts::default, |mut acc, (l, i)| {
+    let model = train_model(
+        geom,
+        |l, i| has_data[l][i],
+        |acc, l, i| {
             let ctx = BlobContext {
                 step: steps[l],
                 ..geom.blob_context(l, i)
             };
-            entropy::write_gammas(&mut acc, ctx.group, &classes_of(l, i));
+            entropy::write_gammas(acc, ctx.group, &classes_of(l, i));
             entropy::write_matrix(
-                &mut acc,
+                acc,
                 ctx.group,
                 n,
                 &quantized[l][i],
                 ctx.mask.map(crate::lifting::DiamondMask::cells),
                 ctx.hides_signs(),
             );
-            acc
-        })
-        .reduce(ContextCounts::default, |mut a, b| {
-            a.merge(&b);
-            a
-        });
-    let model = CodecModel::from_counts(&counts);
+        },
+    );
     let blobs: Vec<Vec<Option<Vec<u8>>>> = (0..levels)
         .map(|l| {
             (0..level_len(l))
@@ -2113,7 +2134,7 @@ mod tests {
         let mut q = solve(s.goal(), 1.2);
         let mut tried = vec![q];
         for _ in 0..8 {
-            match s.next(q, rms(q), est(q), &solve) {
+            match s.next(q, rms(q), est(q), true, &solve) {
                 Some(next) => {
                     q = next;
                     tried.push(q);

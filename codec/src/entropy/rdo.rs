@@ -16,6 +16,7 @@ use super::{
     Causal, CodecModel, Decision, HIDDEN_SIGN_MIN, NONZERO, PER_GROUP, QUAD, SIGN, activity_class,
     magnitude_decisions, on_ring, rice, sig_ctx,
 };
+use crate::encode::dequantize;
 
 /// Cost in bits of a decision whose probability is `p / 2^16`, by `p >> 4`.
 fn cost_table() -> &'static [f32; 4096] {
@@ -93,12 +94,6 @@ pub struct Matrix<'a> {
     pub step: u32,
     /// Squared error (detail units) that one bit is worth.
     pub lambda: f32,
-}
-
-/// Reconstruction of magnitude `m` at step `s` (as [`crate::encode::dequantize`]).
-#[inline(always)]
-fn level(m: u32, s: u32) -> i64 {
-    ((u64::from(m) * u64::from(s) + 128) >> 8) as i64
 }
 
 /// Quantises one matrix of `details` into `q` (both `n x n`), choosing each index among
@@ -209,7 +204,8 @@ pub fn quantize_matrix(
                 let (kr, set) = rice(a, class, ring);
                 let sign_ctx = SIGN + rec.sign_context(i, j);
                 let err = |c: u32| {
-                    let e = ad - level(c, s);
+                    // The decoder's reconstruction (`c` is at most `i32::MAX`).
+                    let e = ad - i64::from(dequantize(c as i32, s));
                     (e * e) as f32
                 };
                 let cand = if mh >= 3 {
@@ -315,7 +311,7 @@ pub fn quantize_matrix(
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
-    use crate::encode::{Quantizer, dequantize, fix_parity, quantize_pruned};
+    use crate::encode::{Quantizer, fix_parity, quantize_pruned};
     use crate::entropy::{ContextCounts, ModelDecoder, ModelEncoder, read_matrix, write_matrix};
 
     struct Rng(u64);
