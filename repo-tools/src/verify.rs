@@ -104,8 +104,8 @@ fn check_blobs(repo: &Repository, geom: &Geometry) -> Result<(u64, u64)> {
         let (key, bytes) = kv?;
         checked += 1;
         pb.inc(1);
-        let Some(&(level, i)) = index.get(key.as_ref()) else {
-            tracing::error!(key = ?key.as_ref(), "stored key belongs to no diamond of the repository");
+        let Some(&(level, i)) = index.get(&key) else {
+            tracing::error!(key = ?key, "stored key belongs to no diamond of the repository");
             errors += 1;
             continue;
         };

@@ -1,74 +1,62 @@
-//! The quincunx repository: one sled database (a directory) holding a metadata record and
-//! one opaque blob per non-empty diamond, keyed by the codec's locality key (spec:
-//! `docs/repository-format.md`).
+//! The quincunx repository: a directory holding one immutable file, `repository.pack`, with
+//! a metadata record and one opaque blob per non-empty diamond, keyed by the codec's
+//! locality key (spec: `docs/repository-format.md`).
 //!
-//! Layout (format 2): blobs are packed in key order into pages of a few KiB (see
-//! [`page`]), stored under their first key; runs of at most [`PAGES_PER_TREE`] consecutive
-//! pages form one sled tree named `p` ‖ first key. The default tree holds the metadata. Why:
-//! sled 0.34.7 writes a value once as a log fragment and again whenever it consolidates or
-//! splits the node holding it, and does not reclaim the stale copies of a database that is
-//! written once and then only read; a tree that receives fewer inserts than sled's
-//! consolidation threshold is written exactly once. Measured in `examples/sled_space.rs`
-//! and `docs/repository-format.md` ("Space overhead").
+//! Layout (format 6): blobs are packed in key order into pages of a few KiB (see [`page`]),
+//! the pages written back to back, followed by a page index (first key, length, blob count
+//! and CRC-32 of each page), the metadata record and a footer ([`pack`]). Readers open the
+//! file read-only, load the index and metadata, and read pages with positioned reads.
 //!
 //! Invariants:
 //! - Keys and blobs are bytes here: this crate never decodes a blob (the server depends on
 //!   it and must not depend on the codec).
-//! - A repository is immutable once built. [`RepositoryBuilder`] writes into a sibling
-//!   directory `<path>.partial`, writes the metadata record (with `complete = true` and the
-//!   content hash) last, flushes, and only then renames the directory to `<path>`. A build
-//!   that dies at any point leaves either nothing at `<path>` or the previous repository;
-//!   [`Repository::open`] refuses anything without a complete metadata record.
-//! - sled holds an exclusive lock on an open database, so one process at a time opens a
-//!   repository; serve copies (or `quincunx export`) to scale out.
+//! - Reading never writes: [`Repository::open`] opens one file read-only, takes no lock and
+//!   creates nothing, so any number of processes read a repository at once, from read-only
+//!   files and filesystems, and its bytes and times stay as they are.
+//! - A repository is immutable once built. [`RepositoryBuilder`] writes the file inside a
+//!   sibling directory `<path>.partial`, footer last, syncs it, and publishes it with one
+//!   rename: of the directory when nothing is at `<path>`, of the file onto
+//!   `<path>/repository.pack` when replacing a repository (`overwrite`). At every instant
+//!   `<path>` holds the old complete repository or the new one; processes that opened the
+//!   old one keep reading it (its inode) until they close it.
+//! - Every damage to the file is an error naming the repository: head, footer, index and
+//!   metadata are checked at open, each page's CRC when it is read.
 
 use std::collections::BTreeMap;
+use std::fs::File;
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
+use bytes::Bytes;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 pub mod answer;
 pub mod channels;
+pub mod pack;
 pub mod page;
 
-/// Version of the repository layout (metadata record + page trees) and of the blobs in
-/// it: 4 holds version-3 blobs and their compact model; 3 held version 2 (the no-data
-/// flags), format 2 version 1.
-pub const FORMAT_VERSION: u32 = 5;
+/// Version of the repository layout (the pack file) and of the blobs in it: 6 is the pack
+/// file with version-4 blobs; 5 held the same blobs in a sled database, 4 version-3 blobs.
+pub const FORMAT_VERSION: u32 = 6;
 
-const METADATA_KEY: &[u8] = b"metadata";
-
-/// Name prefix of the trees holding pages (the rest of the name is the tree's first key).
-const PAGE_TREE_PREFIX: u8 = b'p';
-
-/// Pages per sled tree. sled 0.34.7 consolidates a node (rewriting every value in it) when
-/// it links its tenth update (`PAGE_CONSOLIDATION_THRESHOLD`), and splits leaves beyond 16
-/// items: a fresh tree that receives nine inserts keeps each of them as the one copy
-/// written.
-pub const PAGES_PER_TREE: usize = 9;
-
-/// sled segment size of new repositories: small enough that a small repository does not
-/// round up to large segments (sled's log grows in whole segments), large enough that
-/// default-sized pages stay inline in the log (sled moves a value larger than a quarter
-/// segment to a file of its own).
-const SEGMENT_BYTES: usize = 64 << 10;
+/// The file in a repository directory that holds the repository.
+pub const PACK_FILE: &str = "repository.pack";
 
 /// Smallest target page size.
 const MIN_PAGE_BYTES: usize = 4 << 10;
 
 /// Largest target page size chosen automatically.
-const MAX_PAGE_BYTES: usize = 1 << 20;
+const MAX_PAGE_BYTES: usize = 64 << 10;
 
-/// Page trees aimed for: sled rewrites its whole tree directory (names and roots) each time a
-/// tree is created, so its write cost grows with the square of the tree count.
-const TARGET_TREES: usize = 256;
+/// Pages aimed for at most: the index is held in memory by every reader (about 20 bytes a
+/// page), so large repositories get larger pages.
+const TARGET_PAGES: u64 = 1 << 16;
 
-/// Target page size for `total_bytes` of blobs: at least [`MIN_PAGE_BYTES`], larger when
-/// that keeps the tree count near [`TARGET_TREES`].
+/// Target page size for `total_bytes` of blobs: 4 KiB (one filesystem block: a `get` reads
+/// one), larger when that keeps the index under [`TARGET_PAGES`] entries.
 fn default_page_bytes(total_bytes: u64) -> usize {
-    let per_page = total_bytes / (PAGES_PER_TREE * TARGET_TREES) as u64;
-    usize::try_from(per_page)
+    usize::try_from(total_bytes / TARGET_PAGES)
         .unwrap_or(MAX_PAGE_BYTES)
         .clamp(MIN_PAGE_BYTES, MAX_PAGE_BYTES)
 }
@@ -76,25 +64,33 @@ fn default_page_bytes(total_bytes: u64) -> usize {
 /// Why a repository could not be opened, read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
-    /// The database layer failed (I/O, corruption, lock held by another process).
-    #[error("sled at {path}: {source}")]
-    Sled {
-        /// Database directory.
-        path: PathBuf,
-        /// Cause.
-        source: sled::Error,
-    },
     /// No repository at the path.
     #[error("no repository at {0}")]
     Missing(PathBuf),
-    /// The directory is a database without a complete metadata record: an interrupted or
-    /// unfinished build.
-    #[error("{0} is not a complete repository (interrupted or unfinished build)")]
+    /// A directory, but no repository file in it.
+    #[error("{0} is a directory without a repository (no {PACK_FILE} in it)")]
+    NotARepository(PathBuf),
+    /// A repository of format 5 or older (a sled database directory).
+    #[error(
+        "{0} is a repository of format 5 or older (a sled database); this build reads format \
+         {FORMAT_VERSION}: rebuild it with `quincunx build`"
+    )]
+    Legacy(PathBuf),
+    /// The file is not a complete repository: an interrupted build or a truncated copy.
+    #[error("{0} is not a complete repository (interrupted build or truncated copy)")]
     Incomplete(PathBuf),
+    /// The repository file is damaged or not a repository file.
+    #[error("{path}: {source}")]
+    Pack {
+        /// The repository file.
+        path: PathBuf,
+        /// What is wrong.
+        source: pack::PackError,
+    },
     /// The metadata record is unreadable.
     #[error("metadata of {path} is malformed: {reason}")]
     BadMetadata {
-        /// Database directory.
+        /// Repository path.
         path: PathBuf,
         /// What is wrong.
         reason: String,
@@ -102,25 +98,33 @@ pub enum StoreError {
     /// The repository was written by an incompatible version.
     #[error("{path} has repository format {found}; this build reads format {FORMAT_VERSION}")]
     Version {
-        /// Database directory.
+        /// Repository path.
         path: PathBuf,
         /// Version found.
         found: u32,
     },
-    /// A stored page does not parse.
-    #[error("{path}: page at key {key:02x?}: {source}")]
+    /// A stored page is damaged.
+    #[error("{path}: page at key {key:02x?} (offset {offset}): {reason}")]
     Page {
-        /// Database directory.
+        /// The repository file.
         path: PathBuf,
-        /// The page's sled key.
+        /// The page's first key.
         key: Vec<u8>,
+        /// Its offset in the file.
+        offset: u64,
         /// What is wrong.
-        source: page::PageError,
+        reason: String,
     },
     /// Publishing would replace an existing repository and that was not asked for.
     #[error("{0} already exists (pass overwrite to replace it)")]
     Exists(PathBuf),
-    /// Filesystem operation around the database failed.
+    /// Publishing would put a repository into a directory that holds something else.
+    #[error("{0} exists and is not a repository: refusing to publish into it")]
+    Occupied(PathBuf),
+    /// Another build is writing the same repository.
+    #[error("another build is writing {0} (its {1} is locked)")]
+    Busy(PathBuf, PathBuf),
+    /// Filesystem operation failed.
     #[error("{context} {path}: {source}")]
     Io {
         /// What was being done.
@@ -239,13 +243,6 @@ pub struct LevelStats {
     pub bytes: u64,
 }
 
-fn sled_err(path: &Path) -> impl FnOnce(sled::Error) -> StoreError + '_ {
-    move |source| StoreError::Sled {
-        path: path.to_path_buf(),
-        source,
-    }
-}
-
 fn io_err<'a>(
     context: &'static str,
     path: &'a Path,
@@ -257,99 +254,116 @@ fn io_err<'a>(
     }
 }
 
-fn open_db(path: &Path, segment_bytes: usize) -> Result<sled::Db> {
-    sled::Config::new()
-        .path(path)
-        .mode(sled::Mode::LowSpace)
-        .segment_size(segment_bytes)
-        // No background flusher: it would also garbage-collect, rewriting pages of a
-        // repository that is written once (publish flushes explicitly) and then only read.
-        .flush_every_ms(None)
-        // Pages are cached by the page reader and blobs by the server; sled's own cache
-        // only needs the tree directory and recently read pages.
-        .cache_capacity(SLED_CACHE_BYTES)
-        .open()
-        .map_err(sled_err(path))
+/// Whether anything (even a dangling link) is at `path`; errors other than "not found"
+/// count as something being there.
+fn occupied(path: &Path) -> bool {
+    !matches!(std::fs::symlink_metadata(path), Err(e) if e.kind() == std::io::ErrorKind::NotFound)
 }
 
-/// sled's page cache per open repository (and per build).
-const SLED_CACHE_BYTES: u64 = 4 << 20;
-
-/// The segment size an existing database was created with (sled refuses to open it with
-/// another), read from its `conf`; the current default when that is unreadable (sled then
-/// reports what is wrong).
-fn stored_segment_bytes(path: &Path) -> usize {
-    std::fs::read(path.join("conf"))
-        .ok()
-        .and_then(|conf| {
-            String::from_utf8_lossy(&conf)
-                .lines()
-                .find_map(|line| line.strip_prefix("segment_size: ")?.trim().parse().ok())
-        })
-        .unwrap_or(SEGMENT_BYTES)
-}
-
-/// An open, complete repository. Read-only: there is no way to write through it.
+/// An open, complete repository. Read-only: there is no way to write through it, and
+/// opening it writes nothing.
 pub struct Repository {
     path: PathBuf,
-    db: sled::Db,
-    /// Page trees by first key, in key order.
-    trees: Vec<PageTree>,
+    file_path: PathBuf,
+    file: File,
+    /// The page index, in key order.
+    pages: Vec<pack::PageRef>,
     metadata: Metadata,
 }
 
-/// One tree of at most [`PAGES_PER_TREE`] pages.
-struct PageTree {
-    first_key: Vec<u8>,
-    tree: sled::Tree,
-    /// The tree's page keys, loaded on first use: a point `get` of a known key is cheaper
-    /// in sled than a reverse range scan.
-    page_keys: std::sync::OnceLock<Vec<sled::IVec>>,
-}
-
-impl PageTree {
-    fn page_keys(&self) -> sled::Result<&[sled::IVec]> {
-        if let Some(keys) = self.page_keys.get() {
-            return Ok(keys);
-        }
-        let keys = self.tree.iter().keys().collect::<sled::Result<Vec<_>>>()?;
-        Ok(self.page_keys.get_or_init(|| keys))
-    }
-}
-
 impl Repository {
-    /// [`Repository::open`] right after this process closed the database: sled's I/O
-    /// threads can hold the closed database's file lock for a moment, so lock conflicts
-    /// are retried for up to two seconds.
-    fn open_settling(path: &Path) -> Result<Repository> {
-        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(2);
-        loop {
-            match Repository::open(path) {
-                Err(StoreError::Sled {
-                    source: sled::Error::Io(e),
-                    ..
-                }) if e.to_string().contains("could not acquire lock")
-                    && std::time::Instant::now() < deadline =>
-                {
-                    std::thread::sleep(std::time::Duration::from_millis(10));
-                }
-                other => return other,
-            }
-        }
-    }
-
-    /// Opens a published repository. Fails with [`StoreError::Incomplete`] for anything an
-    /// interrupted build left behind.
+    /// Opens a published repository (the directory `path`). Reads the head, footer, index
+    /// and metadata and checks them; pages are checked when read.
     pub fn open(path: impl AsRef<Path>) -> Result<Repository> {
         let path = path.as_ref();
-        if !path.join("db").exists() && !path.join("conf").exists() {
-            return Err(StoreError::Missing(path.to_path_buf()));
+        let file_path = path.join(PACK_FILE);
+        let file = match File::open(&file_path) {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                return Err(match std::fs::metadata(path) {
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                        StoreError::Missing(path.to_path_buf())
+                    }
+                    Err(source) => StoreError::Io {
+                        context: "opening",
+                        path: path.to_path_buf(),
+                        source,
+                    },
+                    Ok(m) if !m.is_dir() => StoreError::NotARepository(path.to_path_buf()),
+                    Ok(_) if occupied(&path.join("db")) || occupied(&path.join("conf")) => {
+                        StoreError::Legacy(path.to_path_buf())
+                    }
+                    Ok(_) => StoreError::NotARepository(path.to_path_buf()),
+                });
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotADirectory => {
+                return Err(StoreError::NotARepository(path.to_path_buf()));
+            }
+            Err(source) => {
+                return Err(StoreError::Io {
+                    context: "opening",
+                    path: file_path,
+                    source,
+                });
+            }
+        };
+        let pack_err = |source| StoreError::Pack {
+            path: file_path.clone(),
+            source,
+        };
+        let meta = file.metadata().map_err(io_err("reading", &file_path))?;
+        if meta.is_dir() {
+            return Err(StoreError::NotARepository(path.to_path_buf()));
         }
-        let db = open_db(path, stored_segment_bytes(path))?;
-        let raw = db
-            .get(METADATA_KEY)
-            .map_err(sled_err(path))?
-            .ok_or_else(|| StoreError::Incomplete(path.to_path_buf()))?;
+        let file_len = meta.len();
+        let read = |at: u64, len: u64| -> Result<Vec<u8>> {
+            let mut buf = vec![0; usize::try_from(len).unwrap_or(usize::MAX)];
+            file.read_exact_at(&mut buf, at)
+                .map_err(io_err("reading", &file_path))?;
+            Ok(buf)
+        };
+        let head = read(0, pack::HEAD_BYTES.min(file_len))?;
+        if head.len() < pack::HEAD_BYTES as usize
+            && pack::HEAD_MAGIC.starts_with(&head[..head.len().min(pack::HEAD_MAGIC.len())])
+        {
+            return Err(StoreError::Incomplete(path.to_path_buf()));
+        }
+        let head_version = pack::parse_head(&head).map_err(pack_err)?;
+        if head_version != FORMAT_VERSION {
+            return Err(StoreError::Version {
+                path: path.to_path_buf(),
+                found: head_version,
+            });
+        }
+        if file_len < pack::HEAD_BYTES + pack::FOOTER_BYTES {
+            return Err(StoreError::Incomplete(path.to_path_buf()));
+        }
+        let footer_bytes = read(file_len - pack::FOOTER_BYTES, pack::FOOTER_BYTES)?;
+        let footer = match pack::Footer::parse(&footer_bytes, file_len) {
+            Err(pack::PackError::Incomplete(_)) => {
+                return Err(StoreError::Incomplete(path.to_path_buf()));
+            }
+            other => other.map_err(pack_err)?,
+        };
+        if footer.format_version != head_version {
+            return Err(pack_err(pack::PackError::Damaged(format!(
+                "head says format {head_version}, footer {}",
+                footer.format_version
+            ))));
+        }
+        let index = read(footer.index_offset, footer.index_len)?;
+        if crc32fast::hash(&index) != footer.index_crc {
+            return Err(pack_err(pack::PackError::Damaged(
+                "page index checksum mismatch".into(),
+            )));
+        }
+        let raw = read(footer.index_offset + footer.index_len, footer.metadata_len)?;
+        if crc32fast::hash(&raw) != footer.metadata_crc {
+            return Err(pack_err(pack::PackError::Damaged(
+                "metadata checksum mismatch".into(),
+            )));
+        }
+        let pages = pack::decode_index(&index, footer.index_offset).map_err(pack_err)?;
         let metadata: Metadata =
             serde_json::from_slice(&raw).map_err(|e| StoreError::BadMetadata {
                 path: path.to_path_buf(),
@@ -364,21 +378,11 @@ impl Repository {
         if !metadata.complete {
             return Err(StoreError::Incomplete(path.to_path_buf()));
         }
-        let mut trees = Vec::new();
-        for name in db.tree_names() {
-            if let Some((&PAGE_TREE_PREFIX, first_key)) = name.split_first() {
-                trees.push(PageTree {
-                    first_key: first_key.to_vec(),
-                    tree: db.open_tree(&name).map_err(sled_err(path))?,
-                    page_keys: std::sync::OnceLock::new(),
-                });
-            }
-        }
-        trees.sort_by(|a, b| a.first_key.cmp(&b.first_key));
         Ok(Repository {
             path: path.to_path_buf(),
-            db,
-            trees,
+            file_path,
+            file,
+            pages,
             metadata,
         })
     }
@@ -393,88 +397,81 @@ impl Repository {
         &self.path
     }
 
-    fn page_err(&self, key: &[u8]) -> impl FnOnce(page::PageError) -> StoreError + '_ {
-        let key = key.to_vec();
-        move |source| StoreError::Page {
-            path: self.path.clone(),
-            key,
-            source,
+    fn page_err(&self, page: &pack::PageRef, reason: String) -> StoreError {
+        StoreError::Page {
+            path: self.file_path.clone(),
+            key: page.first_key.to_vec(),
+            offset: page.offset,
+            reason,
         }
+    }
+
+    /// Reads a page and checks its CRC.
+    fn read_page(&self, page: &pack::PageRef) -> Result<Bytes> {
+        let mut buf = vec![0; page.len as usize];
+        self.file
+            .read_exact_at(&mut buf, page.offset)
+            .map_err(io_err("reading", &self.file_path))?;
+        if crc32fast::hash(&buf) != page.crc {
+            return Err(self.page_err(page, "checksum mismatch".into()));
+        }
+        Ok(Bytes::from(buf))
     }
 
     /// The blob stored under `key`, `None` when the diamond has no blob (a leaf). The bytes
-    /// are a view into the cached page (no copy).
-    pub fn get(&self, key: &[u8]) -> Result<Option<sled::IVec>> {
-        // The tree whose first key is the greatest one <= key, then the page likewise.
-        let floor = |after: usize| after.checked_sub(1);
-        let after = self
-            .trees
-            .partition_point(|t| t.first_key.as_slice() <= key);
-        let Some(tree) = floor(after).and_then(|i| self.trees.get(i)) else {
+    /// are a view into the page read (no copy).
+    pub fn get(&self, key: &[u8]) -> Result<Option<Bytes>> {
+        // The page whose first key is the greatest one <= key.
+        let after = self.pages.partition_point(|p| &*p.first_key <= key);
+        let Some(page_ref) = after.checked_sub(1).and_then(|i| self.pages.get(i)) else {
             return Ok(None);
         };
-        let page_keys = tree.page_keys().map_err(sled_err(&self.path))?;
-        let after = page_keys.partition_point(|k| k.as_ref() <= key);
-        let Some(page_key) = floor(after).and_then(|i| page_keys.get(i)) else {
-            return Ok(None);
-        };
-        let Some(page) = tree.tree.get(page_key).map_err(sled_err(&self.path))? else {
-            return Ok(None);
-        };
-        let found = page::find(page_key, &page, key).map_err(self.page_err(page_key))?;
-        Ok(found.map(|range| page.subslice(range.start, range.len())))
+        let page = self.read_page(page_ref)?;
+        let found = page::find(&page_ref.first_key, &page, key)
+            .map_err(|e| self.page_err(page_ref, e.to_string()))?;
+        Ok(found.map(|range| page.slice(range)))
     }
 
-    /// Every `(key, blob)` in key order (level-major, then space-filling curve).
-    pub fn blobs(&self) -> impl Iterator<Item = Result<(sled::IVec, sled::IVec)>> + '_ {
-        self.trees
+    /// Every `(key, blob)` in key order (level-major, then space-filling curve). Each page
+    /// is checked fully (checksum, lengths, key order, blob count); a damaged page is one
+    /// error, and the walk goes on with the next page.
+    pub fn blobs(&self) -> impl Iterator<Item = Result<(Vec<u8>, Bytes)>> + '_ {
+        self.pages
             .iter()
-            .flat_map(|t| t.tree.iter())
-            .flat_map(move |entry| match entry {
-                Ok((page_key, page)) => self.page_entries(&page_key, &page),
-                Err(e) => vec![Err(sled_err(&self.path)(e))],
+            .flat_map(move |p| match self.page_entries(p) {
+                Ok(entries) => entries.into_iter().map(Ok).collect::<Vec<_>>(),
+                Err(e) => vec![Err(e)],
             })
     }
 
-    /// The pairs of one page (a malformed page ends in one error).
-    fn page_entries(
-        &self,
-        page_key: &[u8],
-        page: &sled::IVec,
-    ) -> Vec<Result<(sled::IVec, sled::IVec)>> {
-        let mut out = Vec::new();
-        let reader = page::PageReader::new(page_key, page);
-        let result = reader.and_then(|mut reader| {
-            out.reserve(reader.remaining());
-            while let Some((key, value)) = reader.next_entry()? {
-                out.push(Ok((
-                    sled::IVec::from(key),
-                    page.subslice(value.start, value.len()),
-                )));
-            }
-            Ok(())
-        });
-        if let Err(e) = result {
-            out.push(Err(self.page_err(page_key)(e)));
+    /// The pairs of one page.
+    fn page_entries(&self, page_ref: &pack::PageRef) -> Result<Vec<(Vec<u8>, Bytes)>> {
+        let page = self.read_page(page_ref)?;
+        let bad = |e: page::PageError| self.page_err(page_ref, e.to_string());
+        let mut reader = page::PageReader::new(&page_ref.first_key, &page).map_err(bad)?;
+        if reader.remaining() != page_ref.blobs as usize {
+            return Err(self.page_err(
+                page_ref,
+                format!(
+                    "holds {} blobs, the index says {}",
+                    reader.remaining(),
+                    page_ref.blobs
+                ),
+            ));
         }
-        out
+        let mut out = Vec::with_capacity(reader.remaining());
+        while let Some((key, value)) = reader.next_entry().map_err(bad)? {
+            out.push((key.to_vec(), page.slice(value)));
+        }
+        Ok(out)
     }
 
-    /// Number of blobs.
+    /// Number of blobs (from the index: no page is read).
     pub fn blob_count(&self) -> usize {
-        // Counted from the page headers (no blob is touched); an unreadable page counts 0
-        // here and surfaces as an error from `get` or `blobs`.
-        self.trees
-            .iter()
-            .flat_map(|t| t.tree.iter())
-            .filter_map(|entry| {
-                let (page_key, page) = entry.ok()?;
-                Some(page::PageReader::new(&page_key, &page).ok()?.remaining())
-            })
-            .sum()
+        self.pages.iter().map(|p| p.blobs as usize).sum()
     }
 
-    /// Bytes the database occupies on disk (all files in its directory).
+    /// Bytes the repository occupies on disk (all files in its directory).
     pub fn size_on_disk(&self) -> Result<u64> {
         dir_size(&self.path)
     }
@@ -487,11 +484,6 @@ impl Repository {
             hash_pair(&mut h, &k, &v);
         }
         finish_hash(h, &self.metadata, &self.path)
-    }
-
-    /// sled's own opinion of its size (for the overhead report).
-    pub fn sled_size_on_disk(&self) -> Result<u64> {
-        self.db.size_on_disk().map_err(sled_err(&self.path))
     }
 }
 
@@ -537,12 +529,13 @@ pub fn dir_size(path: &Path) -> Result<u64> {
 ///
 /// Blobs are held in memory until [`RepositoryBuilder::publish`] (they are the compressed
 /// output, a fraction of the input) and written there in one pass, in key order, packed into
-/// pages; the partial database is created (and locked) at once so that a concurrent build
-/// into the same path fails early.
+/// pages; the partial repository file is created and locked at once, so a concurrent build
+/// into the same path fails early instead of deleting the running build's files.
 pub struct RepositoryBuilder {
     final_path: PathBuf,
     partial: PathBuf,
-    db: sled::Db,
+    /// The repository file being written (locked while this builder lives).
+    file: File,
     blobs: BTreeMap<Vec<u8>, Vec<u8>>,
     spill: Option<Spill>,
     stats: Vec<LevelStats>,
@@ -550,53 +543,121 @@ pub struct RepositoryBuilder {
 }
 
 /// Blobs held on disk instead of in memory until publication (out-of-core builds): an
-/// append-only file beside the partial database and an in-memory index of where each
+/// append-only file beside the partial repository and an in-memory index of where each
 /// key's blob is (about 40 bytes per blob).
 struct Spill {
     path: PathBuf,
-    file: std::fs::File,
+    file: File,
     end: u64,
     index: BTreeMap<Vec<u8>, (u64, usize)>,
 }
 
+/// `path` with `suffix` appended to its file name.
+fn sibling(path: &Path, suffix: &str) -> PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(suffix);
+    path.with_file_name(name)
+}
+
 /// Where an out-of-core build of `path` keeps its blobs until publication.
 pub fn spill_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().unwrap_or_default().to_os_string();
-    name.push(".spill");
-    path.with_file_name(name)
+    sibling(path, ".spill")
 }
 
 /// Where a partial build of `path` is written.
 pub fn partial_path(path: &Path) -> PathBuf {
-    let mut name = path.file_name().unwrap_or_default().to_os_string();
-    name.push(".partial");
-    path.with_file_name(name)
+    sibling(path, ".partial")
+}
+
+/// Files a repository of format 5 or older (a sled database) may hold.
+fn is_legacy_entry(name: &std::ffi::OsStr) -> bool {
+    let name = name.to_string_lossy();
+    matches!(name.as_ref(), "db" | "conf" | "blobs") || name.starts_with("snap.")
+}
+
+/// Whether `path` is a directory holding a repository, of this format or an older one.
+fn holds_repository(path: &Path) -> bool {
+    occupied(&path.join(PACK_FILE)) || occupied(&path.join("db")) || occupied(&path.join("conf"))
+}
+
+/// Test hook: `QUINCUNX_PUBLISH_ABORT_AT=<step>` aborts the process at that step of
+/// [`RepositoryBuilder::publish`] (`pages`, `synced`, `swapped`), as a kill there would,
+/// so tests can check what readers find after a crash at each step.
+fn abort_point(step: &str) {
+    if std::env::var_os("QUINCUNX_PUBLISH_ABORT_AT").is_some_and(|s| s == step) {
+        eprintln!("QUINCUNX_PUBLISH_ABORT_AT={step}: aborting");
+        std::process::abort();
+    }
+}
+
+/// Makes a rename in `dir` durable.
+fn sync_dir(dir: &Path) {
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    if let Ok(d) = File::open(dir) {
+        let _ = d.sync_all();
+    }
 }
 
 impl RepositoryBuilder {
     /// Starts a build of the repository at `path`. A stale `<path>.partial` left by an
-    /// interrupted build is removed; one held open by a running build is an error.
+    /// interrupted build is removed; one that a running build holds is an error
+    /// ([`StoreError::Busy`]).
     pub fn create(path: impl AsRef<Path>) -> Result<RepositoryBuilder> {
         let final_path = path.as_ref().to_path_buf();
         let partial = partial_path(&final_path);
-        if partial.exists() {
-            // Fails while another process holds the database lock.
-            drop(open_db(&partial, stored_segment_bytes(&partial))?);
+        let file_path = partial.join(PACK_FILE);
+        if occupied(&partial) {
+            if let Ok(f) = std::fs::OpenOptions::new().write(true).open(&file_path) {
+                match f.try_lock() {
+                    Ok(()) => {}
+                    Err(std::fs::TryLockError::WouldBlock) => {
+                        return Err(StoreError::Busy(final_path, file_path));
+                    }
+                    Err(std::fs::TryLockError::Error(e)) => {
+                        return Err(io_err("locking", &file_path)(e));
+                    }
+                }
+            }
             std::fs::remove_dir_all(&partial).map_err(io_err("removing", &partial))?;
         }
         if let Some(parent) = final_path.parent().filter(|p| !p.as_os_str().is_empty()) {
             std::fs::create_dir_all(parent).map_err(io_err("creating", parent))?;
         }
-        let db = open_db(&partial, SEGMENT_BYTES)?;
-        // Under the partial database's lock: a stale spill is ours to remove.
+        match std::fs::create_dir(&partial) {
+            Ok(()) => {}
+            // Another build created it since the check above.
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                return Err(StoreError::Busy(final_path, file_path));
+            }
+            Err(e) => return Err(io_err("creating", &partial)(e)),
+        }
+        let file = std::fs::OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .open(&file_path)
+            .map_err(io_err("creating", &file_path))?;
+        match file.try_lock() {
+            Ok(()) => {}
+            Err(std::fs::TryLockError::WouldBlock) => {
+                return Err(StoreError::Busy(final_path, file_path));
+            }
+            Err(std::fs::TryLockError::Error(e)) => {
+                return Err(io_err("locking", &file_path)(e));
+            }
+        }
+        // Under the partial file's lock: a stale spill is ours to remove.
         let spill = spill_path(&final_path);
-        if spill.exists() {
+        if occupied(&spill) {
             std::fs::remove_file(&spill).map_err(io_err("removing", &spill))?;
         }
         Ok(RepositoryBuilder {
             final_path,
             partial,
-            db,
+            file,
             blobs: BTreeMap::new(),
             spill: None,
             stats: Vec::new(),
@@ -628,9 +689,8 @@ impl RepositoryBuilder {
     }
 
     /// Sets the target page size in bytes (a page closes once it reaches it; a larger blob
-    /// gets a page of its own). The default grows with the repository from 4 KiB so that
-    /// the number of page trees stays near 256. For measurements; any value reads back the
-    /// same.
+    /// gets a page of its own). The default is 4 KiB, more for repositories of over 256 MB
+    /// (see [`TARGET_PAGES`]). For measurements; any value reads back the same.
     pub fn with_page_bytes(mut self, page_bytes: usize) -> RepositoryBuilder {
         self.page_bytes = Some(page_bytes.max(1));
         self
@@ -667,13 +727,27 @@ impl RepositoryBuilder {
         &self.stats
     }
 
-    /// Writes the pages, then the metadata record last, flushes, and renames the directory
-    /// into place. With `overwrite`, an existing repository at the path is replaced (it
-    /// stays intact until the new one is complete). Returns the published metadata.
-    pub fn publish(self, mut metadata: Metadata, overwrite: bool) -> Result<Metadata> {
-        if self.final_path.exists() && !overwrite {
-            return Err(StoreError::Exists(self.final_path.clone()));
+    /// Whether publishing would need `overwrite`, or could not publish at all: call before
+    /// starting work so a build is refused before it encodes anything.
+    pub fn check_destination(path: &Path, overwrite: bool) -> Result<()> {
+        if !occupied(path) {
+            return Ok(());
         }
+        if !path.is_dir() || !holds_repository(path) {
+            return Err(StoreError::Occupied(path.to_path_buf()));
+        }
+        if !overwrite {
+            return Err(StoreError::Exists(path.to_path_buf()));
+        }
+        Ok(())
+    }
+
+    /// Writes the pages, the index and the metadata record, then the footer, syncs, and
+    /// publishes with one rename. With `overwrite`, an existing repository at the path is
+    /// replaced: the new file is renamed onto the old one, so the path holds a complete
+    /// repository at every instant. Returns the published metadata.
+    pub fn publish(self, mut metadata: Metadata, overwrite: bool) -> Result<Metadata> {
+        RepositoryBuilder::check_destination(&self.final_path, overwrite)?;
         metadata.format_version = FORMAT_VERSION;
         metadata.level_stats = self.stats.clone();
         let mut h = Sha256::new();
@@ -689,48 +763,82 @@ impl RepositoryBuilder {
         })?;
         let total: u64 = self.stats.iter().map(|s| s.bytes).sum();
         let page_bytes = self.page_bytes.unwrap_or_else(|| default_page_bytes(total));
-        write_pages(&self.db, self.pending(), page_bytes, &self.partial)?;
+        let file_path = self.partial.join(PACK_FILE);
+        let write_err = io_err("writing", &file_path);
+        let out = std::io::BufWriter::with_capacity(1 << 20, &self.file);
+        let mut pack = pack::PackWriter::new(out, FORMAT_VERSION).map_err(write_err)?;
+        let mut writer = page::PageWriter::default();
+        let write_page =
+            |writer: &mut page::PageWriter, pack: &mut pack::PackWriter<_>| -> Result<()> {
+                let count = writer.count();
+                if let Some((first_key, page)) = writer.finish() {
+                    pack.page(&first_key, &page, count)
+                        .map_err(io_err("writing", &file_path))?;
+                }
+                Ok(())
+            };
+        for kv in self.pending() {
+            let (key, blob) = kv?;
+            writer.push(&key, &blob);
+            if writer.len() >= page_bytes {
+                write_page(&mut writer, &mut pack)?;
+            }
+        }
+        write_page(&mut writer, &mut pack)?;
+        abort_point("pages");
+        let out = pack.finish(&json).map_err(io_err("writing", &file_path))?;
+        out.into_inner()
+            .map_err(|e| io_err("writing", &file_path)(e.into_error()))?
+            .sync_all()
+            .map_err(io_err("syncing", &file_path))?;
+        // Read it back the way readers do: a file that does not open is never published.
+        let check = Repository::open(&self.partial)?;
+        if check.blob_count() as u64 != self.stats.iter().map(|s| s.blobs).sum::<u64>() {
+            return Err(StoreError::Page {
+                path: file_path.clone(),
+                key: Vec::new(),
+                offset: 0,
+                reason: "the written index does not count every blob".into(),
+            });
+        }
+        drop(check);
+        abort_point("synced");
         let RepositoryBuilder {
             final_path,
             partial,
-            db,
-            blobs,
+            file,
             spill,
             ..
         } = self;
-        drop(blobs);
+        let parent = final_path.parent().unwrap_or(Path::new(""));
+        if occupied(&final_path) {
+            // Replacing: the new file onto the old one, in one rename.
+            let target = final_path.join(PACK_FILE);
+            std::fs::rename(&file_path, &target).map_err(io_err("publishing", &target))?;
+            sync_dir(&final_path);
+            abort_point("swapped");
+            // What a sled repository (format 5 or older) held beside it.
+            let entries = std::fs::read_dir(&final_path).map_err(io_err("reading", &final_path))?;
+            for entry in entries.flatten() {
+                if is_legacy_entry(&entry.file_name()) {
+                    let p = entry.path();
+                    let removed = if p.is_dir() {
+                        std::fs::remove_dir_all(&p)
+                    } else {
+                        std::fs::remove_file(&p)
+                    };
+                    removed.map_err(io_err("removing", &p))?;
+                }
+            }
+            std::fs::remove_dir(&partial).map_err(io_err("removing", &partial))?;
+        } else {
+            std::fs::rename(&partial, &final_path).map_err(io_err("publishing", &final_path))?;
+        }
+        sync_dir(parent);
+        drop(file);
         if let Some(spill) = spill {
             drop(spill.file);
             std::fs::remove_file(&spill.path).map_err(io_err("removing", &spill.path))?;
-        }
-        db.insert(METADATA_KEY, json).map_err(sled_err(&partial))?;
-        db.flush().map_err(sled_err(&partial))?;
-        drop(db);
-        // Open and close it once the way readers do: recovery writes sled's snapshot and
-        // settles the log, so the published directory is the size it will stay (and a
-        // database that does not open is never published).
-        drop(Repository::open_settling(&partial)?);
-        let old = if final_path.exists() {
-            let mut name = final_path.file_name().unwrap_or_default().to_os_string();
-            name.push(".old");
-            let old = final_path.with_file_name(name);
-            if old.exists() {
-                std::fs::remove_dir_all(&old).map_err(io_err("removing", &old))?;
-            }
-            std::fs::rename(&final_path, &old).map_err(io_err("moving aside", &final_path))?;
-            Some(old)
-        } else {
-            None
-        };
-        std::fs::rename(&partial, &final_path).map_err(io_err("publishing", &final_path))?;
-        if let Some(parent) = final_path.parent().filter(|p| !p.as_os_str().is_empty()) {
-            // Make the rename durable.
-            if let Ok(dir) = std::fs::File::open(parent) {
-                let _ = dir.sync_all();
-            }
-        }
-        if let Some(old) = old {
-            std::fs::remove_dir_all(&old).map_err(io_err("removing", &old))?;
         }
         Ok(metadata)
     }
@@ -745,7 +853,6 @@ impl RepositoryBuilder {
         match &self.spill {
             None => Box::new(self.blobs.iter().map(|(k, v)| Ok((k.clone(), v.clone())))),
             Some(spill) => Box::new(spill.index.iter().map(|(k, &(at, len))| {
-                use std::os::unix::fs::FileExt;
                 let mut v = vec![0; len];
                 spill
                     .file
@@ -760,7 +867,6 @@ impl RepositoryBuilder {
 impl Spill {
     /// Appends a blob; returns the length of the blob it replaces, if any.
     fn insert(&mut self, key: Vec<u8>, blob: &[u8]) -> Result<Option<usize>> {
-        use std::os::unix::fs::FileExt;
         self.file
             .write_all_at(blob, self.end)
             .map_err(io_err("writing", &self.path))?;
@@ -768,50 +874,6 @@ impl Spill {
         self.end += blob.len() as u64;
         Ok(previous.map(|(_, len)| len))
     }
-}
-
-/// Packs `blobs` (in key order) into pages of about `page_bytes` and writes them,
-/// [`PAGES_PER_TREE`] to a fresh tree, each with a single insert.
-fn write_pages(
-    db: &sled::Db,
-    blobs: impl Iterator<Item = Result<KeyBlob>>,
-    page_bytes: usize,
-    path: &Path,
-) -> Result<()> {
-    let mut writer = page::PageWriter::default();
-    let mut pending: Vec<(Vec<u8>, Vec<u8>)> = Vec::with_capacity(PAGES_PER_TREE);
-    let write_tree = |pages: &mut Vec<(Vec<u8>, Vec<u8>)>| -> sled::Result<()> {
-        let Some((first, _)) = pages.first() else {
-            return Ok(());
-        };
-        let mut name = Vec::with_capacity(first.len() + 1);
-        name.push(PAGE_TREE_PREFIX);
-        name.extend_from_slice(first);
-        let tree = db.open_tree(name)?;
-        for (key, page) in pages.drain(..) {
-            tree.insert(key, page)?;
-        }
-        // Written pages stay in sled's buffers until flushed: flush per tree so a large
-        // repository's publication does not hold its pages in memory.
-        db.flush()?;
-        Ok(())
-    };
-    for kv in blobs {
-        let (key, blob) = kv?;
-        writer.push(&key, &blob);
-        if writer.len() >= page_bytes
-            && let Some(page) = writer.finish()
-        {
-            pending.push(page);
-            if pending.len() == PAGES_PER_TREE {
-                write_tree(&mut pending).map_err(sled_err(path))?;
-            }
-        }
-    }
-    if let Some(page) = writer.finish() {
-        pending.push(page);
-    }
-    write_tree(&mut pending).map_err(sled_err(path))
 }
 
 #[cfg(test)]
@@ -872,7 +934,7 @@ mod tests {
             let meta = b.publish(metadata(), false).unwrap();
             assert!(!spill_path(&path).exists());
             let repo = Repository::open(&path).unwrap();
-            assert_eq!(repo.get(b"\x00early").unwrap().unwrap(), b"kept");
+            assert_eq!(&repo.get(b"\x00early").unwrap().unwrap()[..], b"kept");
             for (k, v) in &pairs {
                 assert_eq!(repo.get(k).unwrap().unwrap(), v.as_slice());
             }
@@ -893,8 +955,8 @@ mod tests {
         assert!(!partial_path(&path).exists());
         let repo = Repository::open(&path).unwrap();
         assert_eq!(repo.metadata(), &meta);
-        assert_eq!(repo.get(b"\x00a").unwrap().unwrap(), b"one");
-        assert_eq!(repo.get(b"\x01b").unwrap().unwrap(), b"two");
+        assert_eq!(&repo.get(b"\x00a").unwrap().unwrap()[..], b"one");
+        assert_eq!(&repo.get(b"\x01b").unwrap().unwrap()[..], b"two");
         assert!(repo.get(b"\x01c").unwrap().is_none());
         assert_eq!(repo.blob_count(), 2);
         assert_eq!(meta.level_stats[1].blobs, 1);
@@ -945,7 +1007,7 @@ mod tests {
         let second = b.publish(metadata(), true).unwrap();
         assert_ne!(first.content_hash, second.content_hash);
         let repo = Repository::open(&path).unwrap();
-        assert_eq!(repo.get(b"k").unwrap().unwrap(), b"v2");
+        assert_eq!(&repo.get(b"k").unwrap().unwrap()[..], b"v2");
     }
 
     #[test]
@@ -1006,7 +1068,7 @@ mod tests {
             })
             .collect();
         let (meta, repo) = build(&path, &model, Some(100));
-        assert!(repo.trees.len() > 3, "spans several page trees");
+        assert!(repo.pages.len() > 3, "spans several pages");
         check_against_model(&repo, &meta, &model);
         for i in 0u32..402 {
             let key = [&[1u8][..], &(2 * i + 1).to_be_bytes()].concat();
@@ -1082,25 +1144,29 @@ mod tests {
     }
 
     #[test]
-    fn a_repository_of_another_format_version_is_refused() {
+    fn repositories_of_other_formats_are_refused_by_name() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("v1");
-        {
-            // Format 1: sled's default segment size, blobs in one tree.
-            let db = sled::Config::new().path(&path).open().unwrap();
-            db.open_tree("blobs").unwrap().insert("k", "v").unwrap();
-            let mut m = metadata();
-            m.format_version = 1;
-            m.complete = true;
-            db.insert(METADATA_KEY, serde_json::to_vec(&m).unwrap())
-                .unwrap();
-            db.flush().unwrap();
-        }
-        // sled's I/O threads may still hold the lock of the database just closed (seen
-        // under load in CI): the same settling open the builder uses.
+        // Format 5 and older: a sled database directory.
+        let legacy = dir.path().join("v5");
+        std::fs::create_dir_all(&legacy).unwrap();
+        std::fs::write(legacy.join("conf"), b"segment_size: 65536\n").unwrap();
+        std::fs::write(legacy.join("db"), [0u8; 64]).unwrap();
+        let err = Repository::open(&legacy).err().unwrap();
+        assert!(matches!(err, StoreError::Legacy(_)), "{err}");
+        assert!(err.to_string().contains("rebuild"), "{err}");
+        // A pack file of another version.
+        let path = dir.path().join("repo");
+        RepositoryBuilder::create(&path)
+            .unwrap()
+            .publish(metadata(), false)
+            .unwrap();
+        let file = path.join(PACK_FILE);
+        let mut bytes = std::fs::read(&file).unwrap();
+        bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
+        std::fs::write(&file, &bytes).unwrap();
         assert!(matches!(
-            Repository::open_settling(&path),
-            Err(StoreError::Version { found: 1, .. })
+            Repository::open(&path),
+            Err(StoreError::Version { found: 7, .. })
         ));
     }
 

@@ -1,11 +1,12 @@
-//! Pages: runs of consecutive `(key, blob)` pairs packed into one sled value.
+//! Pages: runs of consecutive `(key, blob)` pairs packed together (the repository file is a
+//! sequence of pages, [`crate::pack`]).
 //!
 //! ```text
 //! page  := count:varint entry{count}
 //! entry := shared:varint suffix_len:varint suffix value_len:varint value
 //! ```
 //! An entry's key is the first `shared` bytes of the previous key followed by `suffix`; the
-//! "previous key" of the first entry is the page's sled key, which is the first entry's key
+//! "previous key" of the first entry is the page's first key (kept in the page index), which is the first entry's key
 //! (so the first entry costs two bytes of key). Keys are strictly increasing. Varints are
 //! LEB128 (at most 10 bytes, values fit in `usize`).
 //!
@@ -76,12 +77,17 @@ impl PageWriter {
         varint_len(self.count) + self.body.len()
     }
 
+    /// Pairs pushed since the last [`PageWriter::finish`].
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
     /// `true` before the first [`PageWriter::push`].
     pub fn is_empty(&self) -> bool {
         self.count == 0
     }
 
-    /// The page's sled key (its first pair's key) and value; `None` when empty. Resets the
+    /// The page's first key and bytes; `None` when empty. Resets the
     /// writer.
     pub fn finish(&mut self) -> Option<(Vec<u8>, Vec<u8>)> {
         if self.count == 0 {
@@ -110,7 +116,7 @@ pub struct PageReader<'a> {
 }
 
 impl<'a> PageReader<'a> {
-    /// Starts reading `page` stored under sled key `page_key`.
+    /// Starts reading `page` whose first key is `page_key`.
     pub fn new(page_key: &[u8], page: &'a [u8]) -> Result<PageReader<'a>, PageError> {
         let mut reader = PageReader {
             page,

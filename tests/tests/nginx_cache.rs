@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{Response, copy_dir, get, metric, try_get, workspace_root};
+use common::{Response, get, metric, try_get, workspace_root};
 use quincunx_server::{RepoConfig, Server, ServerConfig};
 
 const REPO: &str = "korea";
@@ -31,14 +31,11 @@ fn nginx_caches_blobs_across_two_replicas_and_survives_losing_one() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
 
-    // One build, one copy per replica (sled locks a repository directory per open), and a
-    // third copy this test reads the expected blobs from.
+    // One build that both replicas serve and this test reads the expected blobs from, all
+    // at once (readers share a repository).
     let built = root.join("built").join(REPO);
     common::build_bundled_korea(&built);
-    for copy in ["repos-a", "repos-b", "expected"] {
-        copy_dir(&built, &root.join(copy).join(REPO));
-    }
-    let (version, blobs) = sample_blobs(&root.join("expected").join(REPO), 24);
+    let (version, blobs) = sample_blobs(&built, 24);
     assert!(blobs.len() >= 20, "only {} blobs", blobs.len());
 
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -46,8 +43,8 @@ fn nginx_caches_blobs_across_two_replicas_and_survives_losing_one() {
         .enable_all()
         .build()
         .unwrap();
-    let mut a = Replica::start(&runtime, &root.join("repos-a").join(REPO), &version);
-    let mut b = Replica::start(&runtime, &root.join("repos-b").join(REPO), &version);
+    let mut a = Replica::start(&runtime, &built, &version);
+    let mut b = Replica::start(&runtime, &built, &version);
 
     let proxy = Nginx::start(&nginx, &root.join("nginx"), [a.addr, b.addr]);
     let via = proxy.addr;

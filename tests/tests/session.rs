@@ -25,8 +25,8 @@ use quincunx_server::RepoConfig;
 
 const REPO: &str = "korea";
 
-/// Builds the bundled 1025 x 1025 SRTM crop at 2 m RMS into `dir/built/korea`, and a
-/// copy the test reads locally (sled locks a repository per open).
+/// Builds the bundled 1025 x 1025 SRTM crop at 2 m RMS into `dir/built/korea`, served and
+/// read locally at once.
 fn build_korea(dir: &Path) -> (PathBuf, PathBuf) {
     common::stream::built_and_local(dir, REPO, common::build_bundled_korea)
 }

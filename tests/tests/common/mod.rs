@@ -122,20 +122,6 @@ pub fn metric(metrics_text: &str, line_prefix: &str) -> u64 {
         .unwrap_or(0)
 }
 
-/// Copies a directory tree.
-pub fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap() {
-        let entry = entry.unwrap();
-        let target = to.join(entry.file_name());
-        if entry.file_type().unwrap().is_dir() {
-            copy_dir(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), &target).unwrap();
-        }
-    }
-}
-
 /// Builds the bundled 1025 x 1025 SRTM crop at 2 m RMS into `output` (what the end-to-end
 /// tests serve).
 pub fn build_bundled_korea(output: &Path) {

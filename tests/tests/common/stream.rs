@@ -77,14 +77,13 @@ impl Served {
     }
 }
 
-/// Builds repository `name` with `build` into `dir/built/name`, and copies it to
-/// `dir/local/name` for the test to read locally (sled locks a repository per open).
+/// Builds repository `name` with `build` into `dir/built/name`: the path to serve and the
+/// path the test reads locally at the same time, which are one (readers share a
+/// repository).
 pub fn built_and_local(dir: &Path, name: &str, build: impl FnOnce(&Path)) -> (PathBuf, PathBuf) {
     let built = dir.join("built").join(name);
     build(&built);
-    let local = dir.join("local").join(name);
-    super::copy_dir(&built, &local);
-    (built, local)
+    (built.clone(), built)
 }
 
 /// Details read and decoded straight from a local copy of the repository.
