@@ -811,3 +811,155 @@ fn a_corrupted_repository_fails_verification_without_panicking() {
         0
     );
 }
+
+/// Every entry of `dir`, by name (to show that a refused build left nothing behind).
+fn entries(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
+/// Runs `cmd` (a build with `--stall-after-blobs 1`, so one that reaches the store hangs)
+/// and returns its output, killing it and failing if it has not ended within 120 s.
+fn run_refused(cmd: &mut Command) -> Output {
+    let mut child = cmd
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    for _ in 0..1200 {
+        if child.try_wait().unwrap().is_some() {
+            let out = child.wait_with_output().unwrap();
+            let stderr = String::from_utf8_lossy(&out.stderr);
+            assert!(!stderr.contains("panicked"), "panic: {stderr}");
+            return out;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    panic!("the build was not refused before it started writing blobs");
+}
+
+#[test]
+fn a_build_refused_for_its_output_or_options_refuses_first_and_leaves_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let korea = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.json");
+    // An existing output without --overwrite: refused before the input is encoded (the
+    // stall hook would hang a build that got as far as storing a blob), left untouched.
+    let repo = dir.path().join("repo");
+    std::fs::create_dir(&repo).unwrap();
+    std::fs::write(repo.join("keep.txt"), b"mine").unwrap();
+    let out = run_refused(
+        bin()
+            .args([
+                "build",
+                "--max-error-m",
+                "2",
+                "--stall-after-blobs",
+                "1",
+                "-o",
+            ])
+            .arg(&repo)
+            .arg(&korea),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("already exists") && stderr.contains("--overwrite"),
+        "{stderr}"
+    );
+    assert_eq!(entries(dir.path()), ["repo"]);
+    assert_eq!(entries(&repo), ["keep.txt"]);
+    // --overwrite never replaces a file that is not a repository directory.
+    let file = dir.path().join("file");
+    std::fs::write(&file, b"not a repository").unwrap();
+    let out = run_refused(
+        bin()
+            .args(["build", "--overwrite", "--stall-after-blobs", "1", "-o"])
+            .arg(&file)
+            .arg(&korea),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("not a repository directory"), "{stderr}");
+    assert_eq!(std::fs::read(&file).unwrap(), b"not a repository");
+    // Memory budgets the out-of-core build cannot meet: no .partial, no .spill.
+    for budget in ["0", "5"] {
+        let fresh = tempfile::tempdir().unwrap();
+        let out = run_refused(
+            bin()
+                .args(["build", "--lossless", "--stall-after-blobs", "1"])
+                .args(["--memory-budget-mb", budget, "-o"])
+                .arg(fresh.path().join("repo"))
+                .arg(&korea),
+        );
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "budget {budget}: {stderr}");
+        assert!(stderr.contains("--memory-budget-mb"), "{stderr}");
+        assert!(
+            entries(fresh.path()).is_empty(),
+            "budget {budget}: {:?}",
+            entries(fresh.path())
+        );
+    }
+    // Options that only a planet build reads are checked first too.
+    let fresh = tempfile::tempdir().unwrap();
+    let out = run_refused(
+        bin()
+            .args([
+                "build",
+                "--planet",
+                "--body",
+                "pluto",
+                "--stall-after-blobs",
+                "1",
+                "-o",
+            ])
+            .arg(fresh.path().join("repo"))
+            .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/etopo20_global.json")),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("pluto"), "{stderr}");
+    assert!(entries(fresh.path()).is_empty());
+}
+
+#[test]
+fn build_threads_are_bounded_with_a_clear_error() {
+    for threads in ["0", "1025", "100000"] {
+        let dir = tempfile::tempdir().unwrap();
+        let out = run_refused(
+            bin()
+                .args([
+                    "build",
+                    "--threads",
+                    threads,
+                    "--stall-after-blobs",
+                    "1",
+                    "-o",
+                ])
+                .arg(dir.path().join("repo"))
+                .arg(fixture("jacksboro.json")),
+        );
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "--threads {threads}: {stderr}");
+        assert!(
+            stderr.contains(&format!("--threads {threads} is out of range"))
+                && stderr.contains("1 to 1024"),
+            "--threads {threads}: {stderr}"
+        );
+        assert!(entries(dir.path()).is_empty());
+    }
+    // The bound itself is accepted.
+    let dir = tempfile::tempdir().unwrap();
+    ok_json(
+        bin()
+            .args(["build", "--threads", "1024", "--json", "-o"])
+            .arg(dir.path().join("repo"))
+            .arg(fixture("jacksboro.json")),
+    );
+}
