@@ -75,9 +75,19 @@ pub struct FlyArgs {
     /// Seed of the `jump` places.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Check the cut for cracks every this many frames (0 = never).
+    /// Check the cut for cracks every this many frames (0 = never). The checks are kept
+    /// off the flight's clock and their cost reported separately (`check_ms_*`).
     #[arg(long, default_value_t = 1)]
     pub check_every: usize,
+    /// Seconds the metadata request may take in all, and a blob request may go without
+    /// progress.
+    #[arg(long, default_value_t = 10.0)]
+    pub timeout_s: f64,
+    /// Seconds a blob request may take in all, however steadily its bytes come (a
+    /// server trickling a byte at a time): then it fails, is counted as a timeout and
+    /// retried.
+    #[arg(long, default_value_t = 30.0)]
+    pub deadline_s: f64,
     /// One JSON object (the summary) on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -110,6 +120,8 @@ impl FlyArgs {
             spacing_m: None,
             seed: 1,
             check_every: 1,
+            timeout_s: 10.0,
+            deadline_s: 30.0,
             json: false,
             frames: false,
         }
@@ -168,6 +180,8 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
                 .map(|mb| (mb.max(0.0) * 1_048_576.0) as usize),
             ..Default::default()
         },
+        timeout: Duration::from_secs_f64(args.timeout_s),
+        request_deadline: Duration::from_secs_f64(args.deadline_s),
         ..SessionConfig::default()
     }
 }
@@ -217,6 +231,14 @@ pub fn start_link(url: &str, link: (f64, f64)) -> Result<(LinkProxy, String)> {
 pub fn run(args: &FlyArgs) -> Result<()> {
     if !(args.tolerance_px.is_finite() && args.tolerance_px > 0.0) {
         bail!("--tolerance-px must be positive");
+    }
+    for (name, v) in [
+        ("--timeout-s", args.timeout_s),
+        ("--deadline-s", args.deadline_s),
+    ] {
+        if !(v.is_finite() && v > 0.0 && v <= 86_400.0) {
+            bail!("{name} {v} is out of range: give more than 0 and at most 86400 seconds");
+        }
     }
     let link = args.link.map(|l| start_link(&args.url, l)).transpose()?;
     let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
@@ -277,12 +299,13 @@ fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) 
         outln!("{}", serde_json::to_string(&v)?);
     } else {
         outln!(
-            "flight {} over {} ({}), {:.1} s, {} frames",
+            "flight {} over {} ({}), {:.1} s, {} frames ({:.1} frames/s)",
             r.flight,
             args.repo,
             r.transport,
             r.seconds,
-            r.frames
+            r.frames,
+            r.frames_per_s
         );
         for j in &r.jumps {
             match j.time_to_full_quality_s {
@@ -295,12 +318,15 @@ fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) 
             }
         }
         outln!(
-            "fetched {} bytes, used {} bytes (waste {:.3}), {} requests, {} failures",
+            "fetched {} bytes, used {} bytes (waste {:.3}), {} requests, {} failures, \
+             {} fetch errors ({} timeouts)",
             r.bytes_fetched,
             r.bytes_in_final_cuts,
             r.fetch_waste,
             r.requests,
-            r.failures
+            r.failures,
+            r.fetch_errors,
+            r.fetch_timeouts
         );
         outln!(
             "diamonds per frame p50 {} max {}; refine ms p50 {:.3} p99 {:.3}",
@@ -310,10 +336,27 @@ fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) 
             r.refine_ms_p99
         );
         outln!(
-            "cracks {} and coverage errors {} over {} checked frames",
+            "cracks {} and coverage errors {} over {} checked frames; the checks took \
+             {:.1} s (median {:.1} ms, max {:.1} ms), not counted in the flight's {:.1} s \
+             ({:.1} s wall clock)",
             r.cracks,
             r.coverage_errors,
-            r.frames_checked
+            r.frames_checked,
+            r.check_ms_total / 1e3,
+            r.check_ms_p50,
+            r.check_ms_max,
+            r.seconds,
+            r.wall_seconds
+        );
+    }
+    if r.bytes_fetched == 0 && r.fetch_errors > 0 {
+        bail!(
+            "the flight fetched nothing: {} fetch errors ({} timeouts: no progress within \
+             --timeout-s {} or no whole answer within --deadline-s {})",
+            r.fetch_errors,
+            r.fetch_timeouts,
+            args.timeout_s,
+            args.deadline_s
         );
     }
     if r.cracks > 0 || r.coverage_errors > 0 {

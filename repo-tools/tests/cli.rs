@@ -963,3 +963,84 @@ fn build_threads_are_bounded_with_a_clear_error() {
             .arg(fixture("jacksboro.json")),
     );
 }
+
+#[test]
+fn bad_values_are_named_for_what_is_wrong_with_them() {
+    let stderr_of = |args: &[&str]| {
+        let out = run(bin().args(args));
+        assert!(!out.status.success(), "{args:?} succeeded");
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    // Query points: the coordinate that is wrong, and the range (checked before the
+    // repository is even opened).
+    let e = stderr_of(&["query", "/nonexistent", "--at", "91,0"]);
+    assert!(
+        e.contains("latitude 91 is out of range") && e.contains("-90 to 90"),
+        "{e}"
+    );
+    assert!(!e.contains("longitude"), "{e}");
+    let e = stderr_of(&["query", "/nonexistent", "--at", "-90.5,10"]);
+    assert!(e.contains("latitude -90.5 is out of range"), "{e}");
+    let e = stderr_of(&["query", "/nonexistent", "--at", "45,inf"]);
+    assert!(e.contains("longitude inf is not a finite number"), "{e}");
+    // Load test durations: too large is not "not positive".
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let url = format!("http://127.0.0.1:{port}");
+    let lt = |d: &str| {
+        stderr_of(&[
+            "loadtest",
+            "--url",
+            &url,
+            "--repo",
+            "korea",
+            "--duration-s",
+            d,
+        ])
+    };
+    let e = lt("1e300");
+    assert!(
+        e.contains("--duration-s 1e300 is too large") && e.contains("1e9"),
+        "{e}"
+    );
+    assert!(!e.contains("positive"), "{e}");
+    let e = lt("0");
+    assert!(
+        e.contains("--duration-s 0 must be more than 0 seconds"),
+        "{e}"
+    );
+    // A metadata request that times out says so, with the URL, not an OS error code.
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    let hold = std::thread::spawn(move || {
+        // Accept and never answer (keep the sockets open until the test ends).
+        let mut held = Vec::new();
+        listener.set_nonblocking(true).unwrap();
+        let until = std::time::Instant::now() + std::time::Duration::from_secs(30);
+        while std::time::Instant::now() < until && held.len() < 4 {
+            match listener.accept() {
+                Ok((s, _)) => held.push(s),
+                Err(_) => std::thread::sleep(std::time::Duration::from_millis(10)),
+            }
+        }
+        held
+    });
+    let e = stderr_of(&[
+        "fly",
+        "--url",
+        &format!("http://{addr}"),
+        "--repo",
+        "korea",
+        "--timeout-s",
+        "1",
+    ]);
+    let want = format!(
+        "timed out after 1 s fetching the metadata from http://{addr}/repos/korea/metadata.json"
+    );
+    assert!(e.contains(&want), "{e}");
+    assert!(!e.contains("os error"), "{e}");
+    drop(hold);
+}
