@@ -1044,3 +1044,97 @@ fn bad_values_are_named_for_what_is_wrong_with_them() {
     assert!(!e.contains("os error"), "{e}");
     drop(hold);
 }
+
+/// The bundled ETOPO20 grid (or the Blue Marble mosaic with `colour`) in `dir`, its
+/// sidecar's CRS text replaced by `crs`; returns the sidecar's path.
+fn with_crs(dir: &Path, name: &str, crs: &str, colour: bool) -> PathBuf {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data");
+    let (stem, ext) = if colour {
+        ("bmng_global_1080x540", "jpg")
+    } else {
+        ("etopo20_global", "i16")
+    };
+    let case = dir.join(name);
+    std::fs::create_dir_all(&case).unwrap();
+    let mut sidecar: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(data.join(format!("{stem}.json"))).unwrap()).unwrap();
+    if colour {
+        sidecar["georef"]["projection"] = crs.into();
+    } else {
+        sidecar["crs"] = crs.into();
+    }
+    std::fs::copy(
+        data.join(format!("{stem}.{ext}")),
+        case.join(format!("{stem}.{ext}")),
+    )
+    .unwrap();
+    let json = case.join(format!("{stem}.json"));
+    std::fs::write(&json, sidecar.to_string()).unwrap();
+    if colour {
+        case.join(format!("{stem}.{ext}"))
+    } else {
+        json
+    }
+}
+
+#[test]
+fn planet_builds_recognise_the_projection_not_its_wording() {
+    let dir = tempfile::tempdir().unwrap();
+    for (crs, colour) in [
+        ("Simple Cylindrical", false),
+        ("Simple Cylindrical", true),
+        ("equirectangular", true),
+        ("+proj=eqc +lat_ts=0 +R=6371000", false),
+        ("EPSG:4269", false),
+    ] {
+        let input = with_crs(dir.path(), &format!("ok{}", crs.len()), crs, colour);
+        let mut cmd = bin();
+        cmd.args(["build", "--planet", "--face-side", "64", "--json", "-o"])
+            .arg(dir.path().join(format!("repo-{}-{colour}", crs.len())))
+            .arg(&input);
+        if colour {
+            cmd.args(["--colour", "--max-error-m", "8"]);
+        } else {
+            cmd.args(["--max-error-m", "20"]);
+        }
+        let built = ok_json(&mut cmd);
+        assert_eq!(
+            built["kind"],
+            if colour { "colour" } else { "elevation" },
+            "{crs}"
+        );
+    }
+    for (crs, colour, named) in [
+        ("UTM zone 33N", false, "UTM"),
+        ("EPSG:32633", false, "UTM zone 33N"),
+        ("Mercator", true, "Mercator"),
+        ("+proj=eqc +lat_ts=30", false, "standard parallel 30"),
+        ("+proj=merc +R=3396190", false, "Mercator"),
+    ] {
+        let input = with_crs(dir.path(), &format!("bad{}", crs.len()), crs, colour);
+        let out_dir = dir.path().join(format!("refused-{}", crs.len()));
+        let mut cmd = bin();
+        cmd.args(["build", "--planet", "--face-side", "64", "-o"])
+            .arg(&out_dir)
+            .arg(&input);
+        if colour {
+            cmd.arg("--colour");
+        }
+        let out = run(&mut cmd);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{crs}: {stderr}");
+        assert!(
+            stderr.contains("latitude/longitude grid"),
+            "{crs}: {stderr}"
+        );
+        assert!(
+            stderr.contains(named),
+            "{crs}: {stderr} should name {named}"
+        );
+        assert!(
+            stderr.contains("Accepted") && stderr.contains("Simple"),
+            "{crs}: {stderr}"
+        );
+        assert!(!out_dir.exists());
+    }
+}
