@@ -383,6 +383,11 @@ pub struct FlyOptions {
     pub tolerance_px: f64,
     /// Check the cut for cracks and coverage every this many frames (0 = never).
     pub check_every: usize,
+    /// Largest share of the flight's time the checks may take: a frame due for a check
+    /// is skipped while the checks so far exceed `share x` the flight clock, so the run
+    /// takes at most about `1 + share` times the flight in wall-clock time. `None`: check
+    /// every due frame, whatever it costs (a korea cut at 1 px costs 0.2-0.4 s).
+    pub check_max_share: Option<f64>,
     /// Test hook: extra time each check takes (sleeps), to show that checks are kept off
     /// the flight's clock. Zero in real use.
     pub check_delay: Duration,
@@ -397,6 +402,7 @@ impl Default for FlyOptions {
             fov_y_rad: 60f64.to_radians(),
             tolerance_px: 1.0,
             check_every: 1,
+            check_max_share: None,
             check_delay: Duration::ZERO,
         }
     }
@@ -611,7 +617,10 @@ pub fn fly<R: Domain>(
                 window: fetch.window,
                 bandwidth_bit_s: fetch.bandwidth_bit_s,
             };
-            if opts.check_every > 0 && frame_no.is_multiple_of(opts.check_every) {
+            let within_share = opts.check_max_share.is_none_or(|share| {
+                checking.as_secs_f64() <= share * clock(checking).as_secs_f64()
+            });
+            if opts.check_every > 0 && frame_no.is_multiple_of(opts.check_every) && within_share {
                 let check_started = Instant::now();
                 let check = session.dag().check_cut();
                 if !opts.check_delay.is_zero() {

@@ -79,6 +79,11 @@ pub struct FlyArgs {
     /// off the flight's clock and their cost reported separately (`check_ms_*`).
     #[arg(long, default_value_t = 1)]
     pub check_every: usize,
+    /// Largest share of the flight's time the checks may take in wall-clock time: a
+    /// frame due for a check is skipped while they exceed it (`frames_checked` says how
+    /// many were). 0: no limit, every due frame is checked however long it takes.
+    #[arg(long, default_value_t = 0.25)]
+    pub check_max_share: f64,
     /// Seconds the metadata request may take in all, and a blob request may go without
     /// progress.
     #[arg(long, default_value_t = 10.0)]
@@ -120,6 +125,7 @@ impl FlyArgs {
             spacing_m: None,
             seed: 1,
             check_every: 1,
+            check_max_share: 0.25,
             timeout_s: 10.0,
             deadline_s: 30.0,
             json: false,
@@ -194,6 +200,7 @@ pub fn fly_options(args: &FlyArgs) -> FlyOptions {
         viewport_px: args.viewport,
         tolerance_px: args.tolerance_px,
         check_every: args.check_every,
+        check_max_share: (args.check_max_share > 0.0).then_some(args.check_max_share),
         ..FlyOptions::default()
     }
 }
@@ -231,6 +238,12 @@ pub fn start_link(url: &str, link: (f64, f64)) -> Result<(LinkProxy, String)> {
 pub fn run(args: &FlyArgs) -> Result<()> {
     if !(args.tolerance_px.is_finite() && args.tolerance_px > 0.0) {
         bail!("--tolerance-px must be positive");
+    }
+    if !(args.check_max_share.is_finite() && args.check_max_share >= 0.0) {
+        bail!(
+            "--check-max-share {} must be 0 (no limit) or a positive share",
+            args.check_max_share
+        );
     }
     for (name, v) in [
         ("--timeout-s", args.timeout_s),

@@ -385,6 +385,19 @@ fn the_runners_checks_are_kept_off_the_flight_clock_and_reported_apart() {
     assert!((report.wall_seconds - accounted).abs() < 0.05, "{report:?}");
     assert!(report.wall_seconds <= wall_s);
     assert!(report.frames_per_s > bound as f64 / leg_s);
+    // With a share, the checks stop where they would take more than it of the flight
+    // (one check past it at most), and the frames not checked are counted as such.
+    let capped = FlyOptions {
+        check_max_share: Some(0.25),
+        ..opts
+    };
+    let report = flight::fly(&mut session, &hold_flight(leg_s), &capped, |_| {}).unwrap();
+    let one_check_ms = report.check_ms_max;
+    assert!(
+        report.check_ms_total <= 0.25 * report.seconds * 1e3 + one_check_ms,
+        "{report:?}"
+    );
+    assert!(report.frames_checked > 0 && report.frames_checked < report.frames);
     server.kill();
 }
 
