@@ -19,6 +19,14 @@
 //! `{"legs": [{"duration_s": 5, "from": {"eye": [x, y, z], "target": [x, y, z]},
 //! "to": {...}, "jump": true, "settle_s": 0.5}]}` (world metres; `to` absent = hold;
 //! `settle_s`: end a jump leg that long after full quality).
+//!
+//! The runner's own crack and coverage checks (`FlyOptions::check_every`) are not part
+//! of what it measures: the flight runs on a clock that stops while a check runs (the
+//! camera, the frame schedule, leg durations and times to full quality all use it), and
+//! the checks' cost is reported on its own (`check_ms_*`, `wall_seconds`). The network
+//! thread does not stop during a check, so answers that arrive meanwhile are on hand at
+//! the next frame: on a link that is the bottleneck the flight clock is optimistic by up
+//! to the check time. `docs/streaming.md` has the figures.
 
 use std::time::{Duration, Instant};
 
@@ -375,6 +383,14 @@ pub struct FlyOptions {
     pub tolerance_px: f64,
     /// Check the cut for cracks and coverage every this many frames (0 = never).
     pub check_every: usize,
+    /// Largest share of the flight's time the checks may take: a frame due for a check
+    /// is skipped while the checks so far exceed `share x` the flight clock, so the run
+    /// takes at most about `1 + share` times the flight in wall-clock time. `None`: check
+    /// every due frame, whatever it costs (a korea cut at 1 px costs 0.2-0.4 s).
+    pub check_max_share: Option<f64>,
+    /// Test hook: extra time each check takes (sleeps), to show that checks are kept off
+    /// the flight's clock. Zero in real use.
+    pub check_delay: Duration,
 }
 
 impl Default for FlyOptions {
@@ -386,6 +402,8 @@ impl Default for FlyOptions {
             fov_y_rad: 60f64.to_radians(),
             tolerance_px: 1.0,
             check_every: 1,
+            check_max_share: None,
+            check_delay: Duration::ZERO,
         }
     }
 }
@@ -393,7 +411,7 @@ impl Default for FlyOptions {
 /// One frame of a flight.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct FrameRecord {
-    /// Seconds since the flight started.
+    /// Seconds since the flight started, on the flight clock (checks excluded).
     pub t_s: f64,
     /// Leg index.
     pub leg: usize,
@@ -423,6 +441,9 @@ pub struct FrameRecord {
     pub cracks: usize,
     /// Coverage errors (uncovered + overlapping probes) found (when checked).
     pub coverage_errors: usize,
+    /// Time the check of this frame took, milliseconds (0 when not checked); not on the
+    /// flight clock.
+    pub check_ms: f64,
     /// Body bytes fetched so far.
     pub bytes_fetched: u64,
     /// Requests outstanding, and how many the bandwidth estimate allows.
@@ -456,8 +477,12 @@ pub struct FlightReport {
     pub tolerance_px: f64,
     /// Frames run.
     pub frames: usize,
-    /// Seconds flown.
+    /// Seconds flown, on the flight clock: wall time less the runner's checks.
     pub seconds: f64,
+    /// `frames / seconds`: the frame rate the session kept up (checks excluded).
+    pub frames_per_s: f64,
+    /// Wall-clock seconds of the whole run, checks included.
+    pub wall_seconds: f64,
     /// Per jump leg.
     pub jumps: Vec<JumpResult>,
     /// Median and largest time to full quality over the jumps that reached it.
@@ -480,6 +505,9 @@ pub struct FlightReport {
     pub failures: u64,
     /// Errors counted by the network thread (each failed attempt).
     pub fetch_errors: u64,
+    /// Of those, attempts that timed out: no progress within the timeout, or no whole
+    /// answer within the request deadline.
+    pub fetch_timeouts: u64,
     /// Halves in the cut per frame: median and largest.
     pub diamonds_per_frame_p50: usize,
     /// Largest.
@@ -494,6 +522,13 @@ pub struct FlightReport {
     pub update_ms_p99: f64,
     /// Frames whose cut was checked.
     pub frames_checked: usize,
+    /// Time spent in the checks, milliseconds: in all (not on the flight clock), the
+    /// median and the largest per checked frame.
+    pub check_ms_total: f64,
+    /// Median per checked frame.
+    pub check_ms_p50: f64,
+    /// Largest.
+    pub check_ms_max: f64,
     /// Cracks over all checked frames (must be 0).
     pub cracks: usize,
     /// Uncovered or doubly covered probes over all checked frames (must be 0).
@@ -518,6 +553,10 @@ pub fn fly<R: Domain>(
     mut on_frame: impl FnMut(&FrameRecord),
 ) -> Result<FlightReport, SessionError> {
     let start = Instant::now();
+    // The flight clock: wall time since `start` less the time spent checking.
+    let mut checking = Duration::ZERO;
+    let clock = |checking: Duration| start.elapsed().saturating_sub(checking);
+    let mut check_ms = Vec::new();
     let period = Duration::from_secs_f64(1.0 / opts.fps.max(1.0));
     let mut report = FlightReport {
         flight: flight.name.clone(),
@@ -528,7 +567,7 @@ pub fn fly<R: Domain>(
     let (mut refine_ms, mut update_ms, mut halves) = (Vec::new(), Vec::new(), Vec::new());
     let mut frame_no = 0usize;
     for (li, leg) in flight.legs.iter().enumerate() {
-        let leg_start = start.elapsed();
+        let leg_start = clock(checking);
         let bytes_at_start = session.fetch_stats().bytes_fetched;
         let mut full_at: Option<Duration> = None;
         let mut jump = leg.jump.then_some(JumpResult {
@@ -537,7 +576,7 @@ pub fn fly<R: Domain>(
             bytes_fetched: 0,
         });
         loop {
-            let now = start.elapsed();
+            let now = clock(checking);
             let t_leg = now.saturating_sub(leg_start).as_secs_f64();
             if t_leg >= leg.duration_s {
                 break;
@@ -572,13 +611,25 @@ pub fn fly<R: Domain>(
                 full_quality: frame.refine.full_quality,
                 cracks: 0,
                 coverage_errors: 0,
+                check_ms: 0.0,
                 bytes_fetched: fetch.bytes_fetched,
                 in_flight: fetch.in_flight,
                 window: fetch.window,
                 bandwidth_bit_s: fetch.bandwidth_bit_s,
             };
-            if opts.check_every > 0 && frame_no.is_multiple_of(opts.check_every) {
+            let within_share = opts.check_max_share.is_none_or(|share| {
+                checking.as_secs_f64() <= share * clock(checking).as_secs_f64()
+            });
+            if opts.check_every > 0 && frame_no.is_multiple_of(opts.check_every) && within_share {
+                let check_started = Instant::now();
                 let check = session.dag().check_cut();
+                if !opts.check_delay.is_zero() {
+                    std::thread::sleep(opts.check_delay);
+                }
+                let took = check_started.elapsed();
+                checking += took;
+                rec.check_ms = took.as_secs_f64() * 1e3;
+                check_ms.push(rec.check_ms);
                 // Height and colour cracks alike.
                 rec.cracks = check.cracks + check.colour_cracks;
                 rec.coverage_errors = check.uncovered + check.overlaps;
@@ -614,7 +665,7 @@ pub fn fly<R: Domain>(
             }
             // The next frame: no earlier than one period after this one started.
             let next = now + period;
-            let after = start.elapsed();
+            let after = clock(checking);
             if next > after {
                 std::thread::sleep(next - after);
             }
@@ -629,7 +680,17 @@ pub fn fly<R: Domain>(
     }
     let fetch = session.fetch_stats();
     report.frames = frame_no;
-    report.seconds = start.elapsed().as_secs_f64();
+    report.wall_seconds = start.elapsed().as_secs_f64();
+    report.seconds = clock(checking).as_secs_f64();
+    report.frames_per_s = if report.seconds > 0.0 {
+        frame_no as f64 / report.seconds
+    } else {
+        0.0
+    };
+    report.check_ms_total = checking.as_secs_f64() * 1e3;
+    check_ms.sort_by(f64::total_cmp);
+    report.check_ms_p50 = percentile(&check_ms, 0.5);
+    report.check_ms_max = check_ms.last().copied().unwrap_or(0.0);
     report.bytes_fetched = fetch.bytes_fetched;
     report.bytes_in_final_cuts = session.bytes_used();
     report.fetch_waste = if report.bytes_in_final_cuts > 0 {
@@ -641,6 +702,7 @@ pub fn fly<R: Domain>(
     report.leaves = fetch.leaves;
     report.failures = session.failures();
     report.fetch_errors = fetch.errors.total();
+    report.fetch_timeouts = fetch.errors.timeout;
     let mut ttfq: Vec<f64> = report
         .jumps
         .iter()

@@ -141,8 +141,12 @@ pub struct SessionConfig {
     /// (latitude/longitude grids on a sphere of [`EARTH_RADIUS_M`]; projected grids in
     /// their units) and falls back to 1 m.
     pub spacing_m: Option<f64>,
-    /// Timeout of the metadata request and of each blob request.
+    /// Timeout of the metadata request (the whole exchange) and progress timeout of each
+    /// blob request ([`crate::fetch::FetchConfig::request_timeout`]).
     pub timeout: Duration,
+    /// Overall deadline of each blob request, however steadily its bytes come
+    /// ([`crate::fetch::FetchConfig::request_deadline`], default 30 s).
+    pub request_deadline: Duration,
     /// With a colour layer, the details made up below the shallower layer's finest level
     /// so the DAG refines to the deeper one's (zero: smooth interpolation).
     pub procedural: Procedural,
@@ -173,6 +177,7 @@ impl Default for SessionConfig {
             lookahead_min_blobs: 32.0,
             spacing_m: None,
             timeout: Duration::from_secs(10),
+            request_deadline: crate::fetch::DEFAULT_REQUEST_DEADLINE,
             procedural: Procedural::Zero,
             package_factor: Some(2.0),
         }
@@ -361,6 +366,7 @@ impl<T: Weigh + Send + Sync + 'static> Layer<T> {
         fetch.bandwidth_cap_bit_s = config.bandwidth_cap_bit_s;
         fetch.cache_bytes = config.cache_bytes;
         fetch.request_timeout = config.timeout;
+        fetch.request_deadline = config.request_deadline;
         let fetcher = Fetcher::spawn_unpacking(fetch, decode)?;
         Ok(Layer {
             name: remote.name.clone(),

@@ -199,3 +199,80 @@ fn an_unreachable_server_is_reported_per_key() {
         );
     }
 }
+
+/// A server that answers every request with a valid head announcing a 100 000-byte body,
+/// then trickles the body one byte every 50 ms: always making progress, done in 5000 s.
+fn start_trickler() -> std::net::SocketAddr {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    std::thread::spawn(move || {
+        for s in listener.incoming() {
+            let Ok(mut s) = s else { return };
+            std::thread::spawn(move || {
+                let mut buf = [0u8; 4096];
+                // Whatever was asked: one long answer, a byte at a time.
+                if s.read(&mut buf).unwrap_or(0) == 0 {
+                    return;
+                }
+                // The head at once (reqwest wants it within its read timeout), then the
+                // body a byte at a time.
+                if s.write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 100000\r\n\r\n")
+                    .is_err()
+                {
+                    return;
+                }
+                for _ in 0..100_000 {
+                    if s.write_all(b"x").is_err() {
+                        return;
+                    }
+                    std::thread::sleep(Duration::from_millis(50));
+                }
+            });
+        }
+    });
+    addr
+}
+
+#[test]
+fn a_trickling_server_meets_the_request_deadline_and_is_counted() {
+    let addr = start_trickler();
+    let fake = FakeServer::start(Fault::Good);
+    for transport in [Transport::Pipelined, Transport::Plain] {
+        let mut c = fake_config(&fake, transport);
+        let base = format!("http://{addr}");
+        c.remote.endpoint = quincunx_client::fetch::http1::Endpoint::from_url(&base).unwrap();
+        c.remote.base_url = base;
+        // A byte every 50 ms is progress: the 500 ms progress timeout never fires.
+        c.request_deadline = Duration::from_millis(1500);
+        c.max_attempts = 2;
+        let fetcher = Fetcher::spawn(c, raw()).unwrap();
+        let wants: Vec<_> = planar_wants().into_iter().take(4).collect();
+        // The answers would take 5000 s to trickle in: only the deadline ends them.
+        let (answers, _) = drive(&fetcher, &wants, Duration::from_secs(40), false);
+        assert_eq!(
+            answers.len(),
+            wants.len(),
+            "{transport:?}: every key reported"
+        );
+        for (k, r) in &answers {
+            match r {
+                Fetched::Failed(e) => {
+                    assert_eq!(e.kind(), ErrorKind::Timeout, "{transport:?} {k:?}: {e}");
+                    assert!(
+                        matches!(e, FetchError::Deadline(d) if *d == Duration::from_millis(1500)),
+                        "{transport:?} {k:?}: {e}"
+                    );
+                }
+                other => panic!("{transport:?} {k:?}: {other:?}"),
+            }
+        }
+        let stats = fetcher.stats();
+        assert!(
+            stats.errors.timeout >= wants.len() as u64,
+            "{transport:?}: {:?}",
+            stats.errors
+        );
+        assert_eq!(stats.bytes_fetched, 0, "{transport:?}");
+    }
+}

@@ -69,13 +69,14 @@ pub struct BuildArgs {
     /// 3 m RMS up; there 3-4 % fewer bits for about 10-30 % more encode time).
     #[arg(long, value_enum, default_value_t = Rdo::Auto)]
     pub rdo: Rdo,
-    /// Worker threads (default: all cores).
+    /// Worker threads, 1 to 1024 (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
     /// Memory budget in MB: the build refuses to start if its estimate exceeds it.
     #[arg(long)]
     pub memory_budget_mb: Option<u64>,
-    /// Replace an existing repository at the output path (atomically).
+    /// Replace an existing repository at the output path (atomically). Without it an
+    /// existing output is an error before anything is read or encoded.
     #[arg(long)]
     pub overwrite: bool,
     /// Print one JSON summary on stdout.
@@ -294,12 +295,6 @@ fn build_streaming(
     let units = rows.raw().units.clone();
     let georef = rows.raw().georef.clone();
     tracing::info!(width, height, budget_mb, "out-of-core build");
-    let mut builder = RepositoryBuilder::create(&args.output)
-        .and_then(RepositoryBuilder::spill_to_disk)
-        .with_context(|| format!("creating {}", args.output.display()))?;
-    let encode_started = Instant::now();
-    let spin = progress::spinner("streaming");
-    spin.set_message(format!("{width} x {height} in {budget_mb} MB"));
     // The budget covers the whole process: what is resident now (program, input
     // header), the per-diamond bookkeeping (geometry, side information and the spill
     // index: korea_srtm3_4097 at a 32 MB budget peaks at 23.8-26.8 MB in all, about 400
@@ -312,6 +307,9 @@ fn build_streaming(
     // measured size were not reproducible (the same command gave different content
     // hashes). The program is counted as `PROGRAM_BYTES` (7.8-7.9 MB resident here), or
     // as its measured size in whole MB if that is larger.
+    //
+    // Checked before the partial database and the spill are created, so a budget that
+    // is too small leaves nothing behind.
     let diamonds = 2 * width * height / (n * n) + 64;
     let program = layout::rss_bytes()
         .max(PROGRAM_BYTES)
@@ -330,47 +328,56 @@ fn build_streaming(
         mode,
         memory_budget_bytes: budget - reserve,
     };
-    let mut sink = StoreSink {
-        args,
-        builder: &mut builder,
-        stored: 0,
-        spin: spin.clone(),
-    };
-    let enc =
-        stream::encode_streaming(&mut rows, opts, &mut sink).context("encoding out of core")?;
-    spin.finish_and_clear();
-    let encode_seconds = encode_started.elapsed().as_secs_f64();
-    tracing::info!(
-        peak_buffer_bytes = enc.peak_buffer_bytes,
-        peak_rss_mb = layout::peak_rss_mb(),
-        "streamed"
-    );
-    let description = Description {
-        coverage: None,
-        geometry: Geometry::Planar(
-            RasterGeometry::new(width, height, n).context("raster geometry")?,
-        ),
-        radius_m: None,
-        kind: "elevation",
-        units,
-        samples: enc.report.samples,
-        source_samples: enc.report.samples,
-        nodata_count: enc.report.samples - enc.report.valid_samples,
-        georef,
-        channels: vec![ChannelCoding {
-            name: "height".into(),
-            value_scale: enc.value_scale_m,
-            value_offset: enc.value_offset_m,
-            steps: enc.steps.clone(),
-            model: enc.model.to_bytes(),
-            roots: vec![enc.root.clone()],
-            rate: layout::rate_label(mode),
-        }],
-        rms: enc.report.rms_m,
-        max_abs: enc.report.max_abs_m,
-        rdo_used: false,
-    };
-    let meta = publish(args, builder, &description, n, mode)?;
+    let (meta, description, encode_seconds) = with_builder(args, |builder| {
+        let mut builder = builder
+            .spill_to_disk()
+            .with_context(|| format!("creating {}", args.output.display()))?;
+        let encode_started = Instant::now();
+        let spin = progress::spinner("streaming");
+        spin.set_message(format!("{width} x {height} in {budget_mb} MB"));
+        let mut sink = StoreSink {
+            args,
+            builder: &mut builder,
+            stored: 0,
+            spin: spin.clone(),
+        };
+        let enc =
+            stream::encode_streaming(&mut rows, opts, &mut sink).context("encoding out of core")?;
+        spin.finish_and_clear();
+        let encode_seconds = encode_started.elapsed().as_secs_f64();
+        tracing::info!(
+            peak_buffer_bytes = enc.peak_buffer_bytes,
+            peak_rss_mb = layout::peak_rss_mb(),
+            "streamed"
+        );
+        let description = Description {
+            coverage: None,
+            geometry: Geometry::Planar(
+                RasterGeometry::new(width, height, n).context("raster geometry")?,
+            ),
+            radius_m: None,
+            kind: "elevation",
+            units,
+            samples: enc.report.samples,
+            source_samples: enc.report.samples,
+            nodata_count: enc.report.samples - enc.report.valid_samples,
+            georef,
+            channels: vec![ChannelCoding {
+                name: "height".into(),
+                value_scale: enc.value_scale_m,
+                value_offset: enc.value_offset_m,
+                steps: enc.steps.clone(),
+                model: enc.model.to_bytes(),
+                roots: vec![enc.root.clone()],
+                rate: layout::rate_label(mode),
+            }],
+            rms: enc.report.rms_m,
+            max_abs: enc.report.max_abs_m,
+            rdo_used: false,
+        };
+        let meta = publish(args, builder, &description, n, mode)?;
+        Ok((meta, description, encode_seconds))
+    })?;
     let mut summary = summarise(args, &meta, &description, started, encode_seconds)?;
     summary.out_of_core = true;
     Ok(summary)
@@ -380,7 +387,13 @@ fn build_streaming(
 pub fn run(args: &BuildArgs) -> Result<()> {
     let mut builder = rayon::ThreadPoolBuilder::new();
     if let Some(t) = args.threads {
-        builder = builder.num_threads(t.max(1));
+        // Before any thread starts (`check_args` repeats it for library callers).
+        if !(1..=MAX_THREADS).contains(&t) {
+            bail!(
+                "--threads {t} is out of range: give 1 to {MAX_THREADS} (or leave it out for all cores)"
+            );
+        }
+        builder = builder.num_threads(t);
     }
     let pool = builder.build().context("starting worker threads")?;
     let summary = pool.install(|| build(args))?;
@@ -412,10 +425,86 @@ struct Coded {
     encoded: Vec<Encoded>,
 }
 
-fn build(args: &BuildArgs) -> Result<BuildSummary> {
-    let started = Instant::now();
+/// Largest `--threads`: more threads than this only cost memory and start-up time (a
+/// request for 100 000 spent 50 s spawning threads before failing).
+pub const MAX_THREADS: usize = 1024;
+
+/// Checks every option and the output path before anything is read, encoded or created,
+/// so that a refused build leaves nothing behind (no `.partial`, no `.spill`).
+fn check_args(args: &BuildArgs) -> Result<(RateMode, usize)> {
+    if let Some(t) = args.threads
+        && !(1..=MAX_THREADS).contains(&t)
+    {
+        bail!(
+            "--threads {t} is out of range: give 1 to {MAX_THREADS} (or leave it out for all cores)"
+        );
+    }
     let mode = rate_mode(args)?;
     let n = diamond_n(args)?;
+    if args.planet {
+        radius_m(args)?;
+    }
+    if u32::try_from(args.inline_bytes).is_err() {
+        bail!(
+            "--inline-bytes {} is out of range: give 0 to {}",
+            args.inline_bytes,
+            u32::MAX
+        );
+    }
+    check_output(args)?;
+    Ok((mode, n))
+}
+
+/// The output must not exist unless `--overwrite` is given, and then it must be a
+/// directory (a repository to replace), never a file.
+fn check_output(args: &BuildArgs) -> Result<()> {
+    let out = &args.output;
+    match std::fs::symlink_metadata(out) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        Err(e) => Err(e).with_context(|| format!("checking the output path {}", out.display())),
+        Ok(_) if !args.overwrite => bail!(
+            "{} already exists (pass --overwrite to replace it)",
+            out.display()
+        ),
+        Ok(m) if !m.is_dir() => bail!(
+            "{} exists and is not a repository directory: not replacing it",
+            out.display()
+        ),
+        Ok(_) => Ok(()),
+    }
+}
+
+/// Creates the builder for the output, runs `f` with it, and removes what the failed
+/// build wrote (`<output>.partial`, `<output>.spill`) if `f` fails. A builder that cannot
+/// be created (another build holds the partial database) is left alone.
+fn with_builder<T>(args: &BuildArgs, f: impl FnOnce(RepositoryBuilder) -> Result<T>) -> Result<T> {
+    let builder = RepositoryBuilder::create(&args.output)
+        .with_context(|| format!("creating {}", args.output.display()))?;
+    let result = f(builder);
+    if result.is_err() {
+        // The builder is gone (consumed or dropped by `f`): its lock is released.
+        for path in [
+            quincunx_store::partial_path(&args.output),
+            quincunx_store::spill_path(&args.output),
+        ] {
+            let removed = if path.is_dir() {
+                std::fs::remove_dir_all(&path)
+            } else {
+                std::fs::remove_file(&path)
+            };
+            if let Err(e) = removed
+                && e.kind() != std::io::ErrorKind::NotFound
+            {
+                tracing::warn!(path = %path.display(), error = %e, "could not remove a failed build's files");
+            }
+        }
+    }
+    result
+}
+
+fn build(args: &BuildArgs) -> Result<BuildSummary> {
+    let started = Instant::now();
+    let (mode, n) = check_args(args)?;
     if let Some(budget_mb) = args.memory_budget_mb
         && !args.colour
         && !args.planet
@@ -515,19 +604,20 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         "encoded"
     );
     let write_started = Instant::now();
-    let mut builder = RepositoryBuilder::create(&args.output)
-        .with_context(|| format!("creating {}", args.output.display()))?;
-    write_blobs(args, &mut builder, &coded)?;
-    tracing::info!(
-        seconds = write_started.elapsed().as_secs_f64(),
-        "blobs written"
-    );
-    let publish_started = Instant::now();
-    let meta = publish(args, builder, &coded.desc, n, mode)?;
-    tracing::info!(
-        seconds = publish_started.elapsed().as_secs_f64(),
-        "published"
-    );
+    let meta = with_builder(args, |mut builder| {
+        write_blobs(args, &mut builder, &coded)?;
+        tracing::info!(
+            seconds = write_started.elapsed().as_secs_f64(),
+            "blobs written"
+        );
+        let publish_started = Instant::now();
+        let meta = publish(args, builder, &coded.desc, n, mode)?;
+        tracing::info!(
+            seconds = publish_started.elapsed().as_secs_f64(),
+            "published"
+        );
+        Ok(meta)
+    })?;
     summarise(args, &meta, &coded.desc, started, encode_seconds)
 }
 

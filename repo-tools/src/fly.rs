@@ -75,9 +75,24 @@ pub struct FlyArgs {
     /// Seed of the `jump` places.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Check the cut for cracks every this many frames (0 = never).
+    /// Check the cut for cracks every this many frames (0 = never). The checks are kept
+    /// off the flight's clock and their cost reported separately (`check_ms_*`).
     #[arg(long, default_value_t = 1)]
     pub check_every: usize,
+    /// Largest share of the flight's time the checks may take in wall-clock time: a
+    /// frame due for a check is skipped while they exceed it (`frames_checked` says how
+    /// many were). 0: no limit, every due frame is checked however long it takes.
+    #[arg(long, default_value_t = 0.25)]
+    pub check_max_share: f64,
+    /// Seconds the metadata request may take in all, and a blob request may go without
+    /// progress.
+    #[arg(long, default_value_t = 10.0)]
+    pub timeout_s: f64,
+    /// Seconds a blob request may take in all, however steadily its bytes come (a
+    /// server trickling a byte at a time): then it fails, is counted as a timeout and
+    /// retried.
+    #[arg(long, default_value_t = 30.0)]
+    pub deadline_s: f64,
     /// One JSON object (the summary) on stdout instead of text.
     #[arg(long)]
     pub json: bool,
@@ -110,6 +125,9 @@ impl FlyArgs {
             spacing_m: None,
             seed: 1,
             check_every: 1,
+            check_max_share: 0.25,
+            timeout_s: 10.0,
+            deadline_s: 30.0,
             json: false,
             frames: false,
         }
@@ -168,6 +186,8 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
                 .map(|mb| (mb.max(0.0) * 1_048_576.0) as usize),
             ..Default::default()
         },
+        timeout: Duration::from_secs_f64(args.timeout_s),
+        request_deadline: Duration::from_secs_f64(args.deadline_s),
         ..SessionConfig::default()
     }
 }
@@ -180,6 +200,7 @@ pub fn fly_options(args: &FlyArgs) -> FlyOptions {
         viewport_px: args.viewport,
         tolerance_px: args.tolerance_px,
         check_every: args.check_every,
+        check_max_share: (args.check_max_share > 0.0).then_some(args.check_max_share),
         ..FlyOptions::default()
     }
 }
@@ -217,6 +238,20 @@ pub fn start_link(url: &str, link: (f64, f64)) -> Result<(LinkProxy, String)> {
 pub fn run(args: &FlyArgs) -> Result<()> {
     if !(args.tolerance_px.is_finite() && args.tolerance_px > 0.0) {
         bail!("--tolerance-px must be positive");
+    }
+    if !(args.check_max_share.is_finite() && args.check_max_share >= 0.0) {
+        bail!(
+            "--check-max-share {} must be 0 (no limit) or a positive share",
+            args.check_max_share
+        );
+    }
+    for (name, v) in [
+        ("--timeout-s", args.timeout_s),
+        ("--deadline-s", args.deadline_s),
+    ] {
+        if !(v.is_finite() && v > 0.0 && v <= 86_400.0) {
+            bail!("{name} {v} is out of range: give more than 0 and at most 86400 seconds");
+        }
     }
     let link = args.link.map(|l| start_link(&args.url, l)).transpose()?;
     let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
@@ -277,12 +312,13 @@ fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) 
         outln!("{}", serde_json::to_string(&v)?);
     } else {
         outln!(
-            "flight {} over {} ({}), {:.1} s, {} frames",
+            "flight {} over {} ({}), {:.1} s, {} frames ({:.1} frames/s)",
             r.flight,
             args.repo,
             r.transport,
             r.seconds,
-            r.frames
+            r.frames,
+            r.frames_per_s
         );
         for j in &r.jumps {
             match j.time_to_full_quality_s {
@@ -295,12 +331,15 @@ fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) 
             }
         }
         outln!(
-            "fetched {} bytes, used {} bytes (waste {:.3}), {} requests, {} failures",
+            "fetched {} bytes, used {} bytes (waste {:.3}), {} requests, {} failures, \
+             {} fetch errors ({} timeouts)",
             r.bytes_fetched,
             r.bytes_in_final_cuts,
             r.fetch_waste,
             r.requests,
-            r.failures
+            r.failures,
+            r.fetch_errors,
+            r.fetch_timeouts
         );
         outln!(
             "diamonds per frame p50 {} max {}; refine ms p50 {:.3} p99 {:.3}",
@@ -310,10 +349,27 @@ fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) 
             r.refine_ms_p99
         );
         outln!(
-            "cracks {} and coverage errors {} over {} checked frames",
+            "cracks {} and coverage errors {} over {} checked frames; the checks took \
+             {:.1} s (median {:.1} ms, max {:.1} ms), not counted in the flight's {:.1} s \
+             ({:.1} s wall clock)",
             r.cracks,
             r.coverage_errors,
-            r.frames_checked
+            r.frames_checked,
+            r.check_ms_total / 1e3,
+            r.check_ms_p50,
+            r.check_ms_max,
+            r.seconds,
+            r.wall_seconds
+        );
+    }
+    if r.bytes_fetched == 0 && r.fetch_errors > 0 {
+        bail!(
+            "the flight fetched nothing: {} fetch errors ({} timeouts: no progress within \
+             --timeout-s {} or no whole answer within --deadline-s {})",
+            r.fetch_errors,
+            r.fetch_timeouts,
+            args.timeout_s,
+            args.deadline_s
         );
     }
     if r.cracks > 0 || r.coverage_errors > 0 {

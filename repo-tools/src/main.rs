@@ -92,7 +92,9 @@ fn parse_lat_lon(s: &str) -> Result<(f64, f64), String> {
         .split_once(',')
         .ok_or_else(|| format!("{s:?} is not LAT,LON"))?;
     let parse = |t: &str| t.trim().parse::<f64>().map_err(|e| format!("{t:?}: {e}"));
-    Ok((parse(lat)?, parse(lon)?))
+    let (lat, lon) = (parse(lat)?, parse(lon)?);
+    query::check_point(lat, lon)?;
+    Ok((lat, lon))
 }
 
 fn main() -> ExitCode {

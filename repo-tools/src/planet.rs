@@ -16,7 +16,7 @@ use quincunx_codec::encode::{CubeGrid, round};
 use quincunx_codec::sphere_raster::SphereGeometry;
 use rayon::prelude::*;
 
-use crate::input::{Georef, HeightRaster, Registration, RgbImage};
+use crate::input::{Georef, HeightRaster, Projection, Registration, RgbImage};
 
 /// Radius of a named body, metres.
 pub fn body_radius_m(body: &str) -> Option<f64> {
@@ -84,11 +84,15 @@ pub struct Equirect<'a> {
 impl<'a> Equirect<'a> {
     /// Describes `values` (`width x height`, row 0 north) placed by `georef` (degrees).
     pub fn new(width: usize, height: usize, values: &'a [f64], georef: &Georef) -> Result<Self> {
-        if let Some(crs) = &georef.crs
-            && !crs.contains("4326")
-            && !crs.to_ascii_lowercase().contains("lat")
+        let projection = georef.projection();
+        if let Some(p) = &projection
+            && !p.is_lat_lon_grid()
         {
-            bail!("planet builds need a latitude/longitude grid; the source CRS is {crs}");
+            bail!(
+                "planet builds need a latitude/longitude grid; the source's CRS is {p}. \
+                 Accepted: {}",
+                crate::input::projection::ACCEPTED
+            );
         }
         if georef.west < -180.5
             || georef.east > 360.5
@@ -96,11 +100,16 @@ impl<'a> Equirect<'a> {
             || georef.south < -90.0
         {
             bail!(
-                "the georeference ({}..{} E, {}..{} N) is not in degrees of latitude/longitude",
+                "the georeference ({}..{} E, {}..{} N) is not in degrees of latitude/longitude{}",
                 georef.west,
                 georef.east,
                 georef.south,
-                georef.north
+                georef.north,
+                match projection {
+                    Some(Projection::Equirectangular { .. }) =>
+                        " (an equirectangular grid's extent must be given in degrees, not metres)",
+                    _ => "",
+                }
             );
         }
         if width < 2 || height < 2 {
@@ -542,6 +551,7 @@ mod tests {
             north: 90.0,
             south: -90.0,
             registration: Registration::Node,
+            projection: None,
         };
         let e = Equirect::new(8, 5, &values, &g).unwrap();
         assert_eq!(e.sample(0.0, -180.0), 0.0);

@@ -8,8 +8,25 @@ use quincunx_store::Repository;
 use crate::layout::Geometry;
 use crate::{planet, verify};
 
+/// Checks a query point: the latitude within -90..=90 degrees, the longitude finite (any
+/// value: it wraps). The message names the coordinate that is wrong.
+pub fn check_point(lat: f64, lon: f64) -> Result<(), String> {
+    if !(-90.0..=90.0).contains(&lat) {
+        return Err(format!(
+            "latitude {lat} is out of range: give -90 to 90 degrees"
+        ));
+    }
+    if !lon.is_finite() {
+        return Err(format!("longitude {lon} is not a finite number of degrees"));
+    }
+    Ok(())
+}
+
 /// Runs `quincunx query`: one line (or JSON object) per point.
 pub fn run(repo: &Path, points: &[(f64, f64)], json: bool) -> Result<()> {
+    for &(lat, lon) in points {
+        check_point(lat, lon).map_err(anyhow::Error::msg)?;
+    }
     let repo = Repository::open(repo).with_context(|| format!("opening {}", repo.display()))?;
     let decoded = verify::decode_repository(&repo)?;
     let Geometry::Sphere(geom) = &decoded.geom else {
@@ -21,9 +38,6 @@ pub fn run(repo: &Path, points: &[(f64, f64)], json: bool) -> Result<()> {
     let units = &repo.metadata().attribute.units;
     let mut out = Vec::new();
     for &(lat, lon) in points {
-        if !(-90.0..=90.0).contains(&lat) || !lon.is_finite() {
-            bail!("latitude {lat} is outside -90..90 or longitude {lon} is not a number");
-        }
         let values: Vec<f64> = channels
             .iter()
             .map(|c| planet::query(geom, c, lat, lon))

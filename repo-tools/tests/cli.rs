@@ -811,3 +811,330 @@ fn a_corrupted_repository_fails_verification_without_panicking() {
         0
     );
 }
+
+/// Every entry of `dir`, by name (to show that a refused build left nothing behind).
+fn entries(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
+/// Runs `cmd` (a build with `--stall-after-blobs 1`, so one that reaches the store hangs)
+/// and returns its output, killing it and failing if it has not ended within 120 s.
+fn run_refused(cmd: &mut Command) -> Output {
+    let mut child = cmd
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    for _ in 0..1200 {
+        if child.try_wait().unwrap().is_some() {
+            let out = child.wait_with_output().unwrap();
+            let stderr = String::from_utf8_lossy(&out.stderr);
+            assert!(!stderr.contains("panicked"), "panic: {stderr}");
+            return out;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    panic!("the build was not refused before it started writing blobs");
+}
+
+#[test]
+fn a_build_refused_for_its_output_or_options_refuses_first_and_leaves_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let korea = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.json");
+    // An existing output without --overwrite: refused before the input is encoded (the
+    // stall hook would hang a build that got as far as storing a blob), left untouched.
+    let repo = dir.path().join("repo");
+    std::fs::create_dir(&repo).unwrap();
+    std::fs::write(repo.join("keep.txt"), b"mine").unwrap();
+    let out = run_refused(
+        bin()
+            .args([
+                "build",
+                "--max-error-m",
+                "2",
+                "--stall-after-blobs",
+                "1",
+                "-o",
+            ])
+            .arg(&repo)
+            .arg(&korea),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("already exists") && stderr.contains("--overwrite"),
+        "{stderr}"
+    );
+    assert_eq!(entries(dir.path()), ["repo"]);
+    assert_eq!(entries(&repo), ["keep.txt"]);
+    // --overwrite never replaces a file that is not a repository directory.
+    let file = dir.path().join("file");
+    std::fs::write(&file, b"not a repository").unwrap();
+    let out = run_refused(
+        bin()
+            .args(["build", "--overwrite", "--stall-after-blobs", "1", "-o"])
+            .arg(&file)
+            .arg(&korea),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("not a repository directory"), "{stderr}");
+    assert_eq!(std::fs::read(&file).unwrap(), b"not a repository");
+    // Memory budgets the out-of-core build cannot meet: no .partial, no .spill.
+    for budget in ["0", "5"] {
+        let fresh = tempfile::tempdir().unwrap();
+        let out = run_refused(
+            bin()
+                .args(["build", "--lossless", "--stall-after-blobs", "1"])
+                .args(["--memory-budget-mb", budget, "-o"])
+                .arg(fresh.path().join("repo"))
+                .arg(&korea),
+        );
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "budget {budget}: {stderr}");
+        assert!(stderr.contains("--memory-budget-mb"), "{stderr}");
+        assert!(
+            entries(fresh.path()).is_empty(),
+            "budget {budget}: {:?}",
+            entries(fresh.path())
+        );
+    }
+    // Options that only a planet build reads are checked first too.
+    let fresh = tempfile::tempdir().unwrap();
+    let out = run_refused(
+        bin()
+            .args([
+                "build",
+                "--planet",
+                "--body",
+                "pluto",
+                "--stall-after-blobs",
+                "1",
+                "-o",
+            ])
+            .arg(fresh.path().join("repo"))
+            .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/etopo20_global.json")),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("pluto"), "{stderr}");
+    assert!(entries(fresh.path()).is_empty());
+}
+
+#[test]
+fn build_threads_are_bounded_with_a_clear_error() {
+    for threads in ["0", "1025", "100000"] {
+        let dir = tempfile::tempdir().unwrap();
+        let out = run_refused(
+            bin()
+                .args([
+                    "build",
+                    "--threads",
+                    threads,
+                    "--stall-after-blobs",
+                    "1",
+                    "-o",
+                ])
+                .arg(dir.path().join("repo"))
+                .arg(fixture("jacksboro.json")),
+        );
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "--threads {threads}: {stderr}");
+        assert!(
+            stderr.contains(&format!("--threads {threads} is out of range"))
+                && stderr.contains("1 to 1024"),
+            "--threads {threads}: {stderr}"
+        );
+        assert!(entries(dir.path()).is_empty());
+    }
+    // The bound itself is accepted.
+    let dir = tempfile::tempdir().unwrap();
+    ok_json(
+        bin()
+            .args(["build", "--threads", "1024", "--json", "-o"])
+            .arg(dir.path().join("repo"))
+            .arg(fixture("jacksboro.json")),
+    );
+}
+
+#[test]
+fn bad_values_are_named_for_what_is_wrong_with_them() {
+    let stderr_of = |args: &[&str]| {
+        let out = run(bin().args(args));
+        assert!(!out.status.success(), "{args:?} succeeded");
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    // Query points: the coordinate that is wrong, and the range (checked before the
+    // repository is even opened).
+    let e = stderr_of(&["query", "/nonexistent", "--at", "91,0"]);
+    assert!(
+        e.contains("latitude 91 is out of range") && e.contains("-90 to 90"),
+        "{e}"
+    );
+    assert!(!e.contains("longitude"), "{e}");
+    let e = stderr_of(&["query", "/nonexistent", "--at", "-90.5,10"]);
+    assert!(e.contains("latitude -90.5 is out of range"), "{e}");
+    let e = stderr_of(&["query", "/nonexistent", "--at", "45,inf"]);
+    assert!(e.contains("longitude inf is not a finite number"), "{e}");
+    // Load test durations: too large is not "not positive".
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let url = format!("http://127.0.0.1:{port}");
+    let lt = |d: &str| {
+        stderr_of(&[
+            "loadtest",
+            "--url",
+            &url,
+            "--repo",
+            "korea",
+            "--duration-s",
+            d,
+        ])
+    };
+    let e = lt("1e300");
+    assert!(
+        e.contains("--duration-s 1e300 is too large") && e.contains("1e9"),
+        "{e}"
+    );
+    assert!(!e.contains("positive"), "{e}");
+    let e = lt("0");
+    assert!(
+        e.contains("--duration-s 0 must be more than 0 seconds"),
+        "{e}"
+    );
+    // A metadata request that times out says so, with the URL, not an OS error code.
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    let hold = std::thread::spawn(move || {
+        // Accept and never answer (keep the sockets open until the test ends).
+        let mut held = Vec::new();
+        listener.set_nonblocking(true).unwrap();
+        let until = std::time::Instant::now() + std::time::Duration::from_secs(30);
+        while std::time::Instant::now() < until && held.len() < 4 {
+            match listener.accept() {
+                Ok((s, _)) => held.push(s),
+                Err(_) => std::thread::sleep(std::time::Duration::from_millis(10)),
+            }
+        }
+        held
+    });
+    let e = stderr_of(&[
+        "fly",
+        "--url",
+        &format!("http://{addr}"),
+        "--repo",
+        "korea",
+        "--timeout-s",
+        "1",
+    ]);
+    let want = format!(
+        "timed out after 1 s fetching the metadata from http://{addr}/repos/korea/metadata.json"
+    );
+    assert!(e.contains(&want), "{e}");
+    assert!(!e.contains("os error"), "{e}");
+    drop(hold);
+}
+
+/// The bundled ETOPO20 grid (or the Blue Marble mosaic with `colour`) in `dir`, its
+/// sidecar's CRS text replaced by `crs`; returns the sidecar's path.
+fn with_crs(dir: &Path, name: &str, crs: &str, colour: bool) -> PathBuf {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data");
+    let (stem, ext) = if colour {
+        ("bmng_global_1080x540", "jpg")
+    } else {
+        ("etopo20_global", "i16")
+    };
+    let case = dir.join(name);
+    std::fs::create_dir_all(&case).unwrap();
+    let mut sidecar: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(data.join(format!("{stem}.json"))).unwrap()).unwrap();
+    if colour {
+        sidecar["georef"]["projection"] = crs.into();
+    } else {
+        sidecar["crs"] = crs.into();
+    }
+    std::fs::copy(
+        data.join(format!("{stem}.{ext}")),
+        case.join(format!("{stem}.{ext}")),
+    )
+    .unwrap();
+    let json = case.join(format!("{stem}.json"));
+    std::fs::write(&json, sidecar.to_string()).unwrap();
+    if colour {
+        case.join(format!("{stem}.{ext}"))
+    } else {
+        json
+    }
+}
+
+#[test]
+fn planet_builds_recognise_the_projection_not_its_wording() {
+    let dir = tempfile::tempdir().unwrap();
+    for (crs, colour) in [
+        ("Simple Cylindrical", false),
+        ("Simple Cylindrical", true),
+        ("equirectangular", true),
+        ("+proj=eqc +lat_ts=0 +R=6371000", false),
+        ("EPSG:4269", false),
+    ] {
+        let input = with_crs(dir.path(), &format!("ok{}", crs.len()), crs, colour);
+        let mut cmd = bin();
+        cmd.args(["build", "--planet", "--face-side", "64", "--json", "-o"])
+            .arg(dir.path().join(format!("repo-{}-{colour}", crs.len())))
+            .arg(&input);
+        if colour {
+            cmd.args(["--colour", "--max-error-m", "8"]);
+        } else {
+            cmd.args(["--max-error-m", "20"]);
+        }
+        let built = ok_json(&mut cmd);
+        assert_eq!(
+            built["kind"],
+            if colour { "colour" } else { "elevation" },
+            "{crs}"
+        );
+    }
+    for (crs, colour, named) in [
+        ("UTM zone 33N", false, "UTM"),
+        ("EPSG:32633", false, "UTM zone 33N"),
+        ("Mercator", true, "Mercator"),
+        ("+proj=eqc +lat_ts=30", false, "standard parallel 30"),
+        ("+proj=merc +R=3396190", false, "Mercator"),
+    ] {
+        let input = with_crs(dir.path(), &format!("bad{}", crs.len()), crs, colour);
+        let out_dir = dir.path().join(format!("refused-{}", crs.len()));
+        let mut cmd = bin();
+        cmd.args(["build", "--planet", "--face-side", "64", "-o"])
+            .arg(&out_dir)
+            .arg(&input);
+        if colour {
+            cmd.arg("--colour");
+        }
+        let out = run(&mut cmd);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{crs}: {stderr}");
+        assert!(
+            stderr.contains("latitude/longitude grid"),
+            "{crs}: {stderr}"
+        );
+        assert!(
+            stderr.contains(named),
+            "{crs}: {stderr} should name {named}"
+        );
+        assert!(
+            stderr.contains("Accepted") && stderr.contains("Simple"),
+            "{crs}: {stderr}"
+        );
+        assert!(!out_dir.exists());
+    }
+}

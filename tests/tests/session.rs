@@ -326,3 +326,154 @@ fn repositories_the_client_cannot_stream_are_refused_clearly() {
     }
     server.kill();
 }
+
+/// One hold leg of `duration_s` over the middle of the korea crop.
+fn hold_flight(duration_s: f64) -> Flight {
+    Flight::from_json(
+        "hold",
+        &format!(
+            r#"{{"legs": [{{"duration_s": {duration_s},
+                "from": {{"eye": [40000, 30000, 4000], "target": [50000, 40000, 0]}}}}]}}"#
+        ),
+    )
+    .unwrap()
+}
+
+#[test]
+fn the_runners_checks_are_kept_off_the_flight_clock_and_reported_apart() {
+    let dir = tempfile::tempdir().unwrap();
+    let (built, _local) = build_korea(dir.path());
+    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
+    let mut session =
+        Session::<PlanarRefiner>::open(&server.url(), REPO, SessionConfig::default()).unwrap();
+    // Every frame checked, and every check made 60 ms slower than it is: were the checks
+    // on the flight's clock, a 2 s leg would hold at most 2 / 0.06 = 33 frames.
+    let delay = Duration::from_millis(60);
+    let leg_s = 2.0;
+    let opts = FlyOptions {
+        check_every: 1,
+        check_delay: delay,
+        viewport_px: [1280, 720],
+        tolerance_px: 2.0,
+        ..FlyOptions::default()
+    };
+    let wall = Instant::now();
+    let mut last_t = 0.0f64;
+    let report = flight::fly(&mut session, &hold_flight(leg_s), &opts, |f| {
+        assert_eq!((f.cracks, f.coverage_errors), (0, 0), "{f:?}");
+        assert!(f.check_ms >= 60.0, "{f:?}");
+        last_t = last_t.max(f.t_s);
+    })
+    .unwrap();
+    let wall_s = wall.elapsed().as_secs_f64();
+    let bound = (leg_s / delay.as_secs_f64()).floor() as usize;
+    assert!(
+        report.frames > bound + 7,
+        "{} frames: the checks were counted in the flight's time ({report:?})",
+        report.frames
+    );
+    assert_eq!(report.frames_checked, report.frames);
+    // The flight's own clock ran for the leg; the checks' time is reported apart.
+    assert!(last_t < leg_s, "{last_t}");
+    assert!(report.seconds < leg_s + 1.0, "{report:?}");
+    assert!(
+        report.check_ms_total >= 60.0 * report.frames as f64,
+        "{report:?}"
+    );
+    assert!(report.check_ms_p50 >= 60.0 && report.check_ms_max >= report.check_ms_p50);
+    let accounted = report.seconds + report.check_ms_total / 1e3;
+    assert!((report.wall_seconds - accounted).abs() < 0.05, "{report:?}");
+    assert!(report.wall_seconds <= wall_s);
+    assert!(report.frames_per_s > bound as f64 / leg_s);
+    // With a share, the checks stop where they would take more than it of the flight
+    // (one check past it at most), and the frames not checked are counted as such.
+    let capped = FlyOptions {
+        check_max_share: Some(0.25),
+        ..opts
+    };
+    let report = flight::fly(&mut session, &hold_flight(leg_s), &capped, |_| {}).unwrap();
+    let one_check_ms = report.check_ms_max;
+    assert!(
+        report.check_ms_total <= 0.25 * report.seconds * 1e3 + one_check_ms,
+        "{report:?}"
+    );
+    assert!(report.frames_checked > 0 && report.frames_checked < report.frames);
+    server.kill();
+}
+
+/// A server that answers the metadata of `repo` from `upstream` at once and every other
+/// request with a head announcing 100 000 bytes and a body trickling a byte every 50 ms.
+fn start_trickler(upstream: std::net::SocketAddr, repo: &str) -> std::net::SocketAddr {
+    use std::io::{Read, Write};
+    let meta_path = format!("/repos/{repo}/metadata.json");
+    let meta = common::get(upstream, &meta_path, &[]).body;
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap();
+    std::thread::spawn(move || {
+        for s in listener.incoming() {
+            let Ok(mut s) = s else { return };
+            let (meta, meta_path) = (meta.clone(), meta_path.clone());
+            std::thread::spawn(move || {
+                let mut buf = [0u8; 8192];
+                let Ok(n) = s.read(&mut buf) else { return };
+                let head = String::from_utf8_lossy(&buf[..n]).into_owned();
+                if head.starts_with(&format!("GET {meta_path} ")) {
+                    let mut reply =
+                        format!("HTTP/1.1 200 OK\r\nContent-Length: {}\r\n\r\n", meta.len())
+                            .into_bytes();
+                    reply.extend_from_slice(&meta);
+                    let _ = s.write_all(&reply);
+                    return;
+                }
+                if s.write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 100000\r\n\r\n")
+                    .is_err()
+                {
+                    return;
+                }
+                for _ in 0..100_000 {
+                    if s.write_all(b"x").is_err() {
+                        return;
+                    }
+                    std::thread::sleep(Duration::from_millis(50));
+                }
+            });
+        }
+    });
+    addr
+}
+
+#[test]
+fn a_flight_against_a_trickling_server_reports_its_timeouts() {
+    let dir = tempfile::tempdir().unwrap();
+    let (built, _local) = build_korea(dir.path());
+    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
+    let trickler = start_trickler(server.addr, REPO);
+    let url = format!("http://{trickler}");
+    let config = SessionConfig {
+        request_deadline: Duration::from_secs(1),
+        ..SessionConfig::default()
+    };
+    let mut session = Session::<PlanarRefiner>::open(&url, REPO, config).unwrap();
+    let opts = FlyOptions {
+        viewport_px: [1280, 720],
+        tolerance_px: 2.0,
+        ..FlyOptions::default()
+    };
+    let report = flight::fly(&mut session, &hold_flight(4.0), &opts, |_| {}).unwrap();
+    assert_eq!(report.bytes_fetched, 0, "{report:?}");
+    assert!(report.fetch_timeouts > 0, "{report:?}");
+    assert!(report.fetch_errors >= report.fetch_timeouts, "{report:?}");
+    // `quincunx fly` says so instead of ending quietly.
+    let file = dir.path().join("hold.json");
+    std::fs::write(&file, serde_json::to_string(&hold_flight(4.0)).unwrap()).unwrap();
+    let args = FlyArgs {
+        deadline_s: 1.0,
+        ..fly_args(&url, file.to_str().unwrap())
+    };
+    let err = format!("{:#}", fly::run(&args).unwrap_err());
+    assert!(
+        err.contains("fetched nothing") && err.contains("timeouts"),
+        "{err}"
+    );
+    server.kill();
+}

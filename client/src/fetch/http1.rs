@@ -72,6 +72,9 @@ pub enum Http1Error {
     /// The URL is not `http://host[:port][/prefix]`.
     #[error("bad URL {0:?}: expected http://host[:port][/prefix]")]
     BadUrl(String),
+    /// No whole response within the time allowed ([`get_blocking`]).
+    #[error("timed out after {} s", .0.as_secs_f64())]
+    TimedOut(std::time::Duration),
 }
 
 /// Where requests go: a resolved address, the `Host` header value and a path prefix.
@@ -415,27 +418,42 @@ impl Connection {
 }
 
 /// Fetches one resource on a fresh connection, blocking (std sockets, usable inside or
-/// outside an async runtime): status and body. `timeout` bounds the connect and each read
-/// and write.
+/// outside an async runtime): status and body. `timeout` bounds the whole exchange
+/// (connect, write and every read together): [`Http1Error::TimedOut`] when it passes.
 pub fn get_blocking(
     endpoint: &Endpoint,
     path: &str,
     timeout: std::time::Duration,
 ) -> Result<(u16, Vec<u8>), Http1Error> {
-    use std::io::{Read, Write};
-    let mut stream = std::net::TcpStream::connect_timeout(&endpoint.addr, timeout)?;
-    stream.set_read_timeout(Some(timeout))?;
-    stream.set_write_timeout(Some(timeout))?;
+    use std::io::{ErrorKind, Read, Write};
+    let deadline = std::time::Instant::now() + timeout;
+    // A socket timeout surfaces as `WouldBlock` ("Resource temporarily unavailable") or
+    // `TimedOut`: say what it is.
+    let timed_out = |e: std::io::Error| match e.kind() {
+        ErrorKind::WouldBlock | ErrorKind::TimedOut => Http1Error::TimedOut(timeout),
+        _ => Http1Error::Io(e),
+    };
+    let remaining = || {
+        deadline
+            .checked_duration_since(std::time::Instant::now())
+            .filter(|d| !d.is_zero())
+            .ok_or(Http1Error::TimedOut(timeout))
+    };
+    let mut stream =
+        std::net::TcpStream::connect_timeout(&endpoint.addr, timeout).map_err(timed_out)?;
+    stream.set_write_timeout(Some(remaining()?))?;
     let mut req = Vec::new();
     write_get(&mut req, &endpoint.host, path.as_bytes());
-    stream.write_all(&req)?;
+    stream.write_all(&req).map_err(timed_out)?;
     let mut decoder = ResponseDecoder::new(Limits::default());
     loop {
         if let Some(resp) = decoder.decode()? {
             return Ok((resp.status, resp.body.to_vec()));
         }
         let spare = decoder.spare()?;
-        let n = stream.read(spare)?;
+        // The whole exchange within `timeout`, however slowly the bytes trickle in.
+        stream.set_read_timeout(Some(remaining()?))?;
+        let n = stream.read(spare).map_err(timed_out)?;
         if n == 0 {
             return Err(Http1Error::Closed);
         }

@@ -103,6 +103,10 @@ pub enum FetchError {
     /// No progress within the request timeout.
     #[error("no response within {0:?}")]
     Timeout(Duration),
+    /// The response did not complete within the request deadline, however steadily its
+    /// bytes came (a server trickling a byte at a time). Counted as a timeout.
+    #[error("no complete response within the {0:?} request deadline")]
+    Deadline(Duration),
     /// The decode function refused the blob.
     #[error("decode: {0}")]
     Decode(String),
@@ -128,7 +132,7 @@ pub enum ErrorKind {
     Connection,
     /// Malformed response (transient: a new connection may do better).
     Protocol,
-    /// Request timeout (transient).
+    /// Request timeout or deadline (transient).
     Timeout,
     /// Decode error (permanent).
     Decode,
@@ -146,7 +150,7 @@ impl FetchError {
             FetchError::Status(_) => ErrorKind::ServerStatus,
             FetchError::Connection(_) => ErrorKind::Connection,
             FetchError::Protocol(_) => ErrorKind::Protocol,
-            FetchError::Timeout(_) => ErrorKind::Timeout,
+            FetchError::Timeout(_) | FetchError::Deadline(_) => ErrorKind::Timeout,
             FetchError::Decode(_) => ErrorKind::Decode,
             FetchError::BadUrl(_) | FetchError::Metadata(_) | FetchError::Thread(_) => {
                 ErrorKind::Other
@@ -205,6 +209,9 @@ impl std::str::FromStr for Transport {
     }
 }
 
+/// Default [`FetchConfig::request_deadline`].
+pub const DEFAULT_REQUEST_DEADLINE: Duration = Duration::from_secs(30);
+
 /// Settings of a [`Fetcher`]. [`FetchConfig::new`] gives the defaults.
 #[derive(Clone, Debug)]
 pub struct FetchConfig {
@@ -224,6 +231,13 @@ pub struct FetchConfig {
     pub bandwidth_cap_bit_s: Option<f64>,
     /// A request (or connection) that makes no progress for this long fails.
     pub request_timeout: Duration,
+    /// A request whose whole response has not arrived this long after it was written
+    /// fails with [`FetchError::Deadline`], even if bytes keep coming: the progress
+    /// timeout alone never ends a server that trickles a byte every 50 ms. It is a
+    /// failed attempt like any timeout (counted in [`ErrorCounts::timeout`], retried,
+    /// then reported). Default 30 s: a 64-deep pipeline of 512-byte answers takes 0.07 s
+    /// at 4 Mbit/s, so only a broken server or link gets near it.
+    pub request_deadline: Duration,
     /// Transient failures in a row before a key is reported [`Fetched::Failed`].
     pub max_attempts: u32,
     /// Backoff before the third attempt (the second is immediate); doubles each time.
@@ -238,7 +252,8 @@ pub struct FetchConfig {
 
 impl FetchConfig {
     /// Defaults: pipelined, 2 connections, depth 64, at most 256 in flight (the bandwidth
-    /// window usually allows fewer), 10 s timeout, 4 attempts, 64 MiB cache.
+    /// window usually allows fewer), 10 s progress timeout, 30 s deadline per request,
+    /// 4 attempts, 64 MiB cache.
     ///
     /// Blobs are small (hundreds of bytes), so a 4 Mbit/s, 100 ms link holds about a
     /// hundred answers in flight: depth and in-flight limits are set well above that.
@@ -252,6 +267,7 @@ impl FetchConfig {
             initial_in_flight: 8,
             bandwidth_cap_bit_s: None,
             request_timeout: Duration::from_secs(10),
+            request_deadline: DEFAULT_REQUEST_DEADLINE,
             max_attempts: 4,
             retry_backoff: Duration::from_millis(50),
             max_backoff: Duration::from_secs(2),

@@ -38,8 +38,16 @@ impl Remote {
         let endpoint =
             Endpoint::from_url(base_url).map_err(|e| FetchError::BadUrl(e.to_string()))?;
         let path = format!("{}/repos/{name}/metadata.json", endpoint.prefix);
-        let (status, body) = http1::get_blocking(&endpoint, &path, timeout)
-            .map_err(|e| FetchError::Metadata(format!("GET {path}: {e}")))?;
+        let url = format!("http://{}{path}", endpoint.host);
+        let (status, body) = http1::get_blocking(&endpoint, &path, timeout).map_err(|e| {
+            FetchError::Metadata(match e {
+                http1::Http1Error::TimedOut(t) => format!(
+                    "timed out after {} s fetching the metadata from {url}",
+                    t.as_secs_f64()
+                ),
+                e => format!("GET {url}: {e}"),
+            })
+        })?;
         if status != 200 {
             return Err(FetchError::Metadata(format!("GET {path}: status {status}")));
         }

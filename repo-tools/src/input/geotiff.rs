@@ -4,7 +4,9 @@
 //! - Nodata: the GDAL_NODATA tag (42113, ASCII) when present; non-finite floats always.
 //! - Georeference: ModelPixelScale (33550) + ModelTiepoint (33922); GTRasterTypeGeoKey in
 //!   the GeoKeyDirectory (34735) says PixelIsArea (cell, the default) or PixelIsPoint
-//!   (node); the CRS is the projected or geographic EPSG code of the geokeys.
+//!   (node); the CRS is the projected or geographic EPSG code of the geokeys, and what
+//!   it is ([`Projection::from_geotiff`]) comes from GTModelTypeGeoKey, those codes, and
+//!   for a user-defined projection ProjCoordTransGeoKey and ProjStdParallel1GeoKey.
 //! - Memory: the decoded size is checked against what the file can hold (its length for
 //!   uncompressed data, 4096 times it for compressed data) before anything is allocated.
 
@@ -16,7 +18,7 @@ use tiff::decoder::{Decoder, DecodingResult, Limits};
 use tiff::tags::Tag;
 
 use super::{
-    Georef, HeightRaster, InputError, InputFormat, Registration, check_decoded_size,
+    Georef, HeightRaster, InputError, InputFormat, Projection, Registration, check_decoded_size,
     check_dimensions, file_len, height_raster, io_error,
 };
 
@@ -24,7 +26,12 @@ use super::{
 const COMPRESSED_MAX_RATIO: u64 = 4096;
 
 /// GeoKey ids (GeoTIFF 1.0, section 6.2).
+const GT_MODEL_TYPE: u16 = 1024;
 const GT_RASTER_TYPE: u16 = 1025;
+const PROJ_COORD_TRANS: u16 = 3075;
+const PROJ_STD_PARALLEL1: u16 = 3078;
+/// GeoDoubleParamsTag: where double-valued geokeys are.
+const GEO_DOUBLE_PARAMS: u16 = 34736;
 const GEOGRAPHIC_TYPE: u16 = 2048;
 const PROJECTED_CS_TYPE: u16 = 3072;
 
@@ -261,6 +268,7 @@ fn georef<R: std::io::Read + std::io::Seek>(
     };
     let scale = f64_tag(Tag::ModelPixelScaleTag)?;
     let tiepoint = f64_tag(Tag::ModelTiepointTag)?;
+    let doubles = f64_tag(Tag::Unknown(GEO_DOUBLE_PARAMS))?.unwrap_or_default();
     let keys: Vec<u16> = decoder
         .find_tag(Tag::GeoKeyDirectoryTag)
         .map_err(|e| tiff_error(path, e))?
@@ -296,6 +304,13 @@ fn georef<R: std::io::Read + std::io::Seek>(
         .filter_map(|&k| geokey(&keys, k))
         .find(|code| (1..32767).contains(code))
         .map(|code| format!("EPSG:{code}"));
+    let projection = Projection::from_geotiff(
+        geokey(&keys, GT_MODEL_TYPE),
+        geokey(&keys, GEOGRAPHIC_TYPE),
+        geokey(&keys, PROJECTED_CS_TYPE),
+        geokey(&keys, PROJ_COORD_TRANS),
+        double_geokey(&keys, &doubles, PROJ_STD_PARALLEL1),
+    );
     Ok(Some(Georef {
         crs,
         west,
@@ -303,7 +318,19 @@ fn georef<R: std::io::Read + std::io::Seek>(
         north,
         south: north - down * sy,
         registration,
+        projection,
     }))
+}
+
+/// A double GeoKey's value, stored in GeoDoubleParamsTag at the entry's offset.
+fn double_geokey(keys: &[u16], doubles: &[f64], id: u16) -> Option<f64> {
+    let count = usize::from(*keys.get(3)?);
+    let e = keys
+        .get(4..)?
+        .chunks_exact(4)
+        .take(count)
+        .find(|e| e[0] == id && e[1] == GEO_DOUBLE_PARAMS)?;
+    doubles.get(usize::from(e[3])).copied()
 }
 
 /// A short GeoKey's value stored inline in the GeoKeyDirectory.

@@ -52,6 +52,9 @@ pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
             north: f64::from(lat + 1),
             south: f64::from(lat),
             registration: Registration::Node,
+            projection: Some(super::Projection::Geographic {
+                name: "SRTM .hgt tile (WGS 84 latitude/longitude)".into(),
+            }),
         });
     if georef.is_none() {
         tracing::warn!(path = %path.display(), "no [NS]dd[EW]ddd tile name: reading without a georeference");

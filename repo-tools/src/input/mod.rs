@@ -21,6 +21,8 @@ pub use quincunx_codec::encode::Grid;
 mod geotiff;
 mod hgt;
 mod png16;
+pub mod projection;
+pub use projection::Projection;
 mod raw;
 pub use raw::{RawFile, RawRows};
 mod rgb;
@@ -59,6 +61,21 @@ pub struct Georef {
     pub south: f64,
     /// Whether the edges pass through the outer samples or the outer cell edges.
     pub registration: Registration,
+    /// What the reader recognised the CRS as (sidecar text or GeoTIFF geokeys), when it
+    /// said anything. Not stored in repositories (`crs` is); [`Georef::projection`]
+    /// parses `crs` when this is absent.
+    #[serde(skip)]
+    pub projection: Option<Projection>,
+}
+
+impl Georef {
+    /// The CRS as recognised by the reader, else parsed from `crs`; `None` when the
+    /// source names none.
+    pub fn projection(&self) -> Option<Projection> {
+        self.projection
+            .clone()
+            .or_else(|| self.crs.as_deref().map(Projection::parse))
+    }
 }
 
 /// The file format a [`HeightRaster`] was read from.

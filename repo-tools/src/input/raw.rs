@@ -14,8 +14,8 @@ use quincunx_codec::encode::{Grid, RawType};
 use serde_json::{Map, Value};
 
 use super::{
-    Georef, HeightRaster, InputError, InputFormat, Registration, check_dimensions, extension,
-    file_len, height_raster, io_error, read_exact_len,
+    Georef, HeightRaster, InputError, InputFormat, Projection, Registration, check_dimensions,
+    extension, file_len, height_raster, io_error, read_exact_len,
 };
 
 /// Sidecars are small; a larger file is not one.
@@ -498,14 +498,24 @@ fn parse_georef(obj: &Map<String, Value>, width: Option<u64>) -> Result<Option<G
     .find_map(|t| classify_registration(t))
     .or_else(|| registration_from_spacing(obj, west, east, width))
     .unwrap_or(Registration::Cell);
-    let crs = [
+    let texts = [
         text(obj.get("crs")),
         text(g.get("crs")),
         text(g.get("projection")),
-    ]
-    .iter()
-    .flatten()
-    .find_map(|t| normalise_crs(t));
+    ];
+    let crs = texts.iter().flatten().find_map(|t| normalise_crs(t));
+    // The first text that names a CRS these readers recognise, else the first given.
+    let parsed: Vec<Projection> = texts
+        .iter()
+        .flatten()
+        .filter(|t| !t.trim().is_empty())
+        .map(|t| Projection::parse(t))
+        .collect();
+    let projection = parsed
+        .iter()
+        .find(|p| !matches!(p, Projection::Unrecognised { .. }))
+        .or(parsed.first())
+        .cloned();
     Ok(Some(Georef {
         crs,
         west,
@@ -513,6 +523,7 @@ fn parse_georef(obj: &Map<String, Value>, width: Option<u64>) -> Result<Option<G
         north,
         south,
         registration,
+        projection,
     }))
 }
 

@@ -244,9 +244,7 @@ fn check_args(args: &LoadtestArgs) -> Result<()> {
         ("--duration-s", args.duration_s),
         ("--timeout-s", args.timeout_s),
     ] {
-        if !(v.is_finite() && v > 0.0 && v < 1e9) {
-            bail!("{name} must be a positive number of seconds");
-        }
+        check_seconds(name, v)?;
     }
     if args.threads == Some(0) || args.flights == 0 || args.max_stream == 0 {
         bail!("--threads, --flights and --max-stream must be at least 1");
@@ -259,6 +257,26 @@ fn check_args(args: &LoadtestArgs) -> Result<()> {
             .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
     {
         bail!("--repo {name:?} must be ASCII letters, digits, '-', '_' or '.'");
+    }
+    Ok(())
+}
+
+/// Largest `--duration-s` / `--timeout-s`: about 31 years.
+pub const MAX_SECONDS: f64 = 1e9;
+
+/// A number of seconds within `(0, MAX_SECONDS)`, each way out named as what it is.
+fn check_seconds(name: &str, v: f64) -> Result<()> {
+    if v.is_nan() {
+        bail!("{name} is not a number; give seconds between 0 and {MAX_SECONDS:e}");
+    }
+    if v <= 0.0 {
+        bail!("{name} {v} must be more than 0 seconds");
+    }
+    if v >= MAX_SECONDS {
+        // `1e300`, not three hundred digits.
+        bail!(
+            "{name} {v:e} is too large: give fewer than {MAX_SECONDS:e} seconds (about 31 years)"
+        );
     }
     Ok(())
 }

@@ -27,6 +27,7 @@ struct Settings {
     host: String,
     limits: Limits,
     timeout: Duration,
+    deadline: Duration,
 }
 
 struct Conn {
@@ -48,6 +49,7 @@ impl Pipelined {
             host: config.remote.endpoint.host.clone(),
             limits: config.limits,
             timeout: config.request_timeout,
+            deadline: config.request_deadline,
         });
         let conns = (0..config.connections.max(1))
             .map(|slot| {
@@ -192,13 +194,18 @@ async fn session(
         write_get(out, &s.host, r.path.as_bytes());
     }
     write_all(&mut wr, out, s.timeout).await?;
+    // When each outstanding request was written: the oldest must be answered within the
+    // request deadline (responses come in order, so it is the one at the front).
+    let mut written: VecDeque<Instant> = pending.iter().map(|_| Instant::now()).collect();
     // A connection with requests outstanding must make progress within the timeout.
     let mut deadline = Instant::now() + s.timeout;
     loop {
+        let oldest_due = written.front().map(|&t| t + s.deadline);
+        let wake = oldest_due.map_or(deadline, |due| due.min(deadline));
         let event = tokio::select! {
             r = rx.recv() => Event::Request(r),
             n = read_some(&mut rd, &mut decoder) => Event::Read(n),
-            () = tokio::time::sleep_until(deadline), if !pending.is_empty() => Event::Timeout,
+            () = tokio::time::sleep_until(wake), if !pending.is_empty() => Event::Timeout,
         };
         match event {
             Event::Request(None) => return Ok(()),
@@ -214,6 +221,8 @@ async fn session(
                     pending.push_back(r);
                 }
                 write_all(&mut wr, out, s.timeout).await?;
+                let now = Instant::now();
+                written.resize(pending.len(), now);
             }
             Event::Read(n) => {
                 if n? == 0 {
@@ -227,6 +236,7 @@ async fn session(
                     let Some(req) = pending.pop_front() else {
                         return Err(FetchError::Protocol("response to no request".into()));
                     };
+                    written.pop_front();
                     let close = resp.close;
                     let _ = done.send(Completion {
                         key: req.key,
@@ -240,7 +250,12 @@ async fn session(
                     }
                 }
             }
-            Event::Timeout => return Err(FetchError::Timeout(s.timeout)),
+            Event::Timeout => {
+                return Err(match oldest_due {
+                    Some(due) if Instant::now() >= due => FetchError::Deadline(s.deadline),
+                    _ => FetchError::Timeout(s.timeout),
+                });
+            }
         }
     }
 }

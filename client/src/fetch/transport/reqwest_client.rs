@@ -17,6 +17,7 @@ pub(crate) struct ReqwestDriver {
     in_flight: usize,
     max_body_bytes: usize,
     timeout: Duration,
+    deadline: Duration,
     done: UnboundedSender<Completion>,
 }
 
@@ -29,7 +30,9 @@ impl ReqwestDriver {
             .no_proxy()
             .tcp_nodelay(true)
             .connect_timeout(config.request_timeout)
-            .timeout(config.request_timeout);
+            // No progress for the timeout, or no whole response by the deadline.
+            .read_timeout(config.request_timeout)
+            .timeout(config.request_deadline);
         let (builder, slots) = match config.transport {
             // At most `connections` requests outstanding, so at most that many connections.
             Transport::Plain => (
@@ -50,6 +53,7 @@ impl ReqwestDriver {
             in_flight: 0,
             max_body_bytes: config.limits.max_body_bytes,
             timeout: config.request_timeout,
+            deadline: config.request_deadline,
             done,
         })
     }
@@ -67,11 +71,19 @@ impl ReqwestDriver {
         let get = self.client.get(url).send();
         let done = self.done.clone();
         let max_body = self.max_body_bytes;
-        let timeout = self.timeout;
+        let (timeout, deadline) = (self.timeout, self.deadline);
+        let started = std::time::Instant::now();
         tokio::spawn(async move {
             let result = match get.await {
                 Ok(resp) => read_body(resp, max_body, timeout).await,
                 Err(e) => Err(classify(&e, timeout)),
+            };
+            // reqwest says "timed out" for both: the total one is the deadline.
+            let result = match result {
+                Err(FetchError::Timeout(_)) if started.elapsed() >= deadline => {
+                    Err(FetchError::Deadline(deadline))
+                }
+                r => r,
             };
             let _ = done.send(Completion {
                 key: request.key,
