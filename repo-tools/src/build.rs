@@ -1,4 +1,4 @@
-//! `quincunx build`: source raster -> codec -> sled repository, published atomically.
+//! `quincunx build`: source raster -> codec -> repository file, published atomically.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -187,7 +187,8 @@ pub struct BuildSummary {
     pub bits_per_sample: f64,
     /// Bytes of the repository directory on disk.
     pub repository_bytes: u64,
-    /// `repository_bytes / (blob_bytes + side_bytes)`: what sled adds.
+    /// `repository_bytes / (blob_bytes + side_bytes)`: what the repository file adds (page
+    /// framing, index, metadata record).
     pub storage_overhead: f64,
     /// Achieved RMS error over valid samples (elevation: metres; colour: 8-bit levels, RGB).
     pub rms: f64,
@@ -456,21 +457,18 @@ fn check_args(args: &BuildArgs) -> Result<(RateMode, usize)> {
 }
 
 /// The output must not exist unless `--overwrite` is given, and then it must be a
-/// directory (a repository to replace), never a file.
+/// repository to replace, never a file or a directory holding anything else.
 fn check_output(args: &BuildArgs) -> Result<()> {
-    let out = &args.output;
-    match std::fs::symlink_metadata(out) {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
-        Err(e) => Err(e).with_context(|| format!("checking the output path {}", out.display())),
-        Ok(_) if !args.overwrite => bail!(
+    match RepositoryBuilder::check_destination(&args.output, args.overwrite) {
+        Err(quincunx_store::StoreError::Exists(p)) => bail!(
             "{} already exists (pass --overwrite to replace it)",
-            out.display()
+            p.display()
         ),
-        Ok(m) if !m.is_dir() => bail!(
+        Err(quincunx_store::StoreError::Occupied(p)) => bail!(
             "{} exists and is not a repository directory: not replacing it",
-            out.display()
+            p.display()
         ),
-        Ok(_) => Ok(()),
+        other => other.map_err(anyhow::Error::from),
     }
 }
 

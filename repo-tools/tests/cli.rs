@@ -852,7 +852,7 @@ fn a_build_refused_for_its_output_or_options_refuses_first_and_leaves_nothing() 
     // stall hook would hang a build that got as far as storing a blob), left untouched.
     let repo = dir.path().join("repo");
     std::fs::create_dir(&repo).unwrap();
-    std::fs::write(repo.join("keep.txt"), b"mine").unwrap();
+    std::fs::write(repo.join("repository.pack"), b"mine").unwrap();
     let out = run_refused(
         bin()
             .args([
@@ -873,7 +873,21 @@ fn a_build_refused_for_its_output_or_options_refuses_first_and_leaves_nothing() 
         "{stderr}"
     );
     assert_eq!(entries(dir.path()), ["repo"]);
-    assert_eq!(entries(&repo), ["keep.txt"]);
+    assert_eq!(entries(&repo), ["repository.pack"]);
+    // --overwrite never publishes into a directory that holds something else.
+    let home = dir.path().join("home");
+    std::fs::create_dir(&home).unwrap();
+    std::fs::write(home.join("keep.txt"), b"mine").unwrap();
+    let out = run_refused(
+        bin()
+            .args(["build", "--overwrite", "--stall-after-blobs", "1", "-o"])
+            .arg(&home)
+            .arg(&korea),
+    );
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("not a repository directory"), "{stderr}");
+    assert_eq!(entries(&home), ["keep.txt"]);
     // --overwrite never replaces a file that is not a repository directory.
     let file = dir.path().join("file");
     std::fs::write(&file, b"not a repository").unwrap();
