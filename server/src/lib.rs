@@ -99,8 +99,13 @@ impl Server {
         });
         let summary = tokio::spawn(summaries(self.state.clone()));
         let workers = match self.config.workers {
-            0 => std::thread::available_parallelism().map_or(1, usize::from),
+            0 => config::cores(),
             n => n,
+        };
+        // `Server::bind` checked the configuration.
+        let per_ip = match listener::PerIp::new(&self.config.limits) {
+            Ok(p) => std::sync::Arc::new(p),
+            Err(e) => return tracing::error!("{e}"),
         };
         let shared = std::sync::Arc::new(listener::Shared {
             app: router(self.state.clone()),
@@ -109,6 +114,7 @@ impl Server {
                 self.config.limits.max_connections,
             )),
             limits: self.config.limits.clone(),
+            per_ip,
             shutdown: stop_rx,
         });
         listener::serve(self.listener, workers, shared).await;
