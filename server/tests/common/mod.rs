@@ -199,3 +199,241 @@ pub fn read_to_close(stream: &mut TcpStream) -> (Vec<u8>, bool) {
         }
     }
 }
+
+/// Connects from source address `from` (any of 127.0.0.0/8 on Linux), with a small
+/// receive buffer if `recv_buffer` is given (set before connecting, so the window
+/// advertised from the start is small).
+pub fn connect_from(
+    from: std::net::IpAddr,
+    addr: SocketAddr,
+    recv_buffer: Option<usize>,
+) -> TcpStream {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let socket = Socket::new(Domain::IPV4, Type::STREAM, Some(Protocol::TCP)).unwrap();
+    if let Some(n) = recv_buffer {
+        socket.set_recv_buffer_size(n).unwrap();
+    }
+    socket.bind(&SocketAddr::new(from, 0).into()).unwrap();
+    socket.connect(&addr.into()).unwrap();
+    let s: TcpStream = socket.into();
+    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    s.set_nodelay(true).unwrap();
+    s
+}
+
+/// Waits up to `within` for the peer to close `stream` (reading and discarding what it
+/// sends); true if it did.
+pub fn closed_within(stream: &mut TcpStream, within: Duration) -> bool {
+    let deadline = std::time::Instant::now() + within;
+    let mut chunk = [0u8; 4096];
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        if left.is_zero() {
+            return false;
+        }
+        stream.set_read_timeout(Some(left)).unwrap();
+        match stream.read(&mut chunk) {
+            Ok(0) => return true,
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => return true,
+            Err(_) => return false,
+        }
+    }
+}
+
+/// A well-behaved client on its own keep-alive connection, making valid requests in a
+/// loop on a thread until stopped; [`WellBehaved::stop`] returns (ok, failed).
+pub struct WellBehaved {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<(u64, Vec<String>)>>,
+}
+
+impl WellBehaved {
+    pub fn start(addr: SocketAddr, path: String) -> WellBehaved {
+        use std::sync::atomic::Ordering::Relaxed;
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let stopping = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let mut ok = 0;
+            let mut failed = Vec::new();
+            let mut s = connect(addr);
+            let request = format!("GET {path} HTTP/1.1\r\nHost: t\r\n\r\n");
+            while !stopping.load(Relaxed) {
+                let sent = s.write_all(request.as_bytes());
+                let got = sent
+                    .map_err(|e| e.to_string())
+                    .and_then(|_| read_one(&mut s));
+                match got {
+                    Ok(200) => ok += 1,
+                    Ok(status) => failed.push(format!("status {status}")),
+                    Err(e) => {
+                        failed.push(e);
+                        s = connect(addr);
+                    }
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            (ok, failed)
+        });
+        WellBehaved {
+            stop,
+            thread: Some(thread),
+        }
+    }
+
+    /// Stops the client; asserts it made requests and every one succeeded.
+    pub fn stop(mut self) -> u64 {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        let (ok, failed) = self.thread.take().unwrap().join().unwrap();
+        assert!(
+            failed.is_empty(),
+            "the well-behaved client failed: {failed:?}"
+        );
+        assert!(ok > 0, "the well-behaved client made no request");
+        ok
+    }
+}
+
+/// Reads one response's status (its body read and discarded).
+fn read_one(s: &mut TcpStream) -> Result<u16, String> {
+    let mut buf = Vec::new();
+    let mut chunk = [0u8; 8192];
+    loop {
+        if let Some((r, _)) = parse_response(&buf, false)? {
+            return Ok(r.status);
+        }
+        let n = s.read(&mut chunk).map_err(|e| e.to_string())?;
+        if n == 0 {
+            return Err("closed".into());
+        }
+        buf.extend_from_slice(&chunk[..n]);
+    }
+}
+
+/// HTTP/2 framing for tests that misbehave on purpose.
+pub mod h2 {
+    use super::*;
+
+    pub const PREFACE: &[u8] = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n";
+    pub const DATA: u8 = 0;
+    pub const HEADERS: u8 = 1;
+    pub const RST_STREAM: u8 = 3;
+    pub const SETTINGS: u8 = 4;
+    pub const PING: u8 = 6;
+    pub const GOAWAY: u8 = 7;
+    pub const WINDOW_UPDATE: u8 = 8;
+    pub const CONTINUATION: u8 = 9;
+    pub const END_STREAM: u8 = 1;
+    pub const END_HEADERS: u8 = 4;
+    pub const ACK: u8 = 1;
+
+    pub fn frame(kind: u8, flags: u8, stream: u32, payload: &[u8]) -> Vec<u8> {
+        let len = payload.len() as u32;
+        let mut f = vec![(len >> 16) as u8, (len >> 8) as u8, len as u8, kind, flags];
+        f.extend_from_slice(&stream.to_be_bytes());
+        f.extend_from_slice(payload);
+        f
+    }
+
+    /// A SETTINGS frame with `(id, value)` pairs.
+    pub fn settings(pairs: &[(u16, u32)]) -> Vec<u8> {
+        let mut p = Vec::new();
+        for (id, v) in pairs {
+            p.extend_from_slice(&id.to_be_bytes());
+            p.extend_from_slice(&v.to_be_bytes());
+        }
+        frame(SETTINGS, 0, 0, &p)
+    }
+
+    /// The HPACK block of `GET path` on authority `t` (no Huffman, no indexing).
+    pub fn get_block(path: &str) -> Vec<u8> {
+        let mut b = vec![0x82, 0x86, 0x04, path.len() as u8];
+        b.extend_from_slice(path.as_bytes());
+        b.extend_from_slice(&[0x01, 0x01, b't']);
+        b
+    }
+
+    /// Preface, empty SETTINGS, and `GET path` on stream 1 (ended).
+    pub fn hello(path: &str) -> Vec<u8> {
+        let mut out = PREFACE.to_vec();
+        out.extend(settings(&[]));
+        out.extend(frame(
+            HEADERS,
+            END_HEADERS | END_STREAM,
+            1,
+            &get_block(path),
+        ));
+        out
+    }
+
+    /// What came back on a connection.
+    #[derive(Debug, Default)]
+    pub struct Seen {
+        /// Frame types in order (SETTINGS, acks, ...).
+        pub kinds: Vec<u8>,
+        /// The first byte of the HEADERS block per stream (0x88 = `:status 200`).
+        pub statuses: Vec<(u32, u8)>,
+        /// GOAWAY error code, if one came.
+        pub goaway: Option<u32>,
+        /// Streams reset, with their codes.
+        pub resets: Vec<(u32, u32)>,
+        pub closed: bool,
+    }
+
+    /// Reads frames until the peer closes, `within` passes or `stop` says enough.
+    pub fn read_frames(s: &mut TcpStream, within: Duration, stop: impl Fn(&Seen) -> bool) -> Seen {
+        let deadline = std::time::Instant::now() + within;
+        let mut seen = Seen::default();
+        let mut buf = Vec::new();
+        let mut chunk = [0u8; 16384];
+        loop {
+            while buf.len() >= 9 {
+                let len =
+                    (usize::from(buf[0]) << 16) | (usize::from(buf[1]) << 8) | usize::from(buf[2]);
+                if buf.len() < 9 + len {
+                    break;
+                }
+                let (kind, stream) = (
+                    buf[3],
+                    u32::from_be_bytes([buf[5], buf[6], buf[7], buf[8]]) & 0x7fff_ffff,
+                );
+                let payload = &buf[9..9 + len];
+                seen.kinds.push(kind);
+                match kind {
+                    HEADERS if !payload.is_empty() => seen.statuses.push((stream, payload[0])),
+                    GOAWAY if len >= 8 => {
+                        seen.goaway = Some(u32::from_be_bytes([
+                            payload[4], payload[5], payload[6], payload[7],
+                        ]))
+                    }
+                    RST_STREAM if len == 4 => seen.resets.push((
+                        stream,
+                        u32::from_be_bytes([payload[0], payload[1], payload[2], payload[3]]),
+                    )),
+                    _ => {}
+                }
+                buf.drain(..9 + len);
+            }
+            if stop(&seen) {
+                return seen;
+            }
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                return seen;
+            }
+            s.set_read_timeout(Some(left)).unwrap();
+            match s.read(&mut chunk) {
+                Ok(0) => {
+                    seen.closed = true;
+                    return seen;
+                }
+                Ok(n) => buf.extend_from_slice(&chunk[..n]),
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => {
+                    seen.closed = true;
+                    return seen;
+                }
+                Err(_) => return seen,
+            }
+        }
+    }
+}
