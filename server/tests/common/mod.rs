@@ -82,6 +82,11 @@ impl Running {
         }
     }
 
+    /// The directory of fixture repository `name`.
+    pub fn repo_dir(&self, name: &str) -> std::path::PathBuf {
+        self._dir.path().join(name)
+    }
+
     /// Starts graceful shutdown without waiting for it.
     pub fn begin_stop(&mut self) {
         if let Some(stop) = self.stop.take() {
