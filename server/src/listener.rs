@@ -16,7 +16,7 @@ use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
 
 use axum::Router;
-use axum::http::{HeaderValue, Request, Response, StatusCode, Version, header};
+use axum::http::{HeaderValue, Method, Request, Response, StatusCode, Version, header};
 use bytes::Bytes;
 use hyper::body::Incoming;
 use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
@@ -482,7 +482,7 @@ impl hyper::service::Service<Request<Incoming>> for Service {
 
     fn call(&self, request: Request<Incoming>) -> ServiceFuture {
         if self.http1 {
-            if let Err(reason) = check_host(&request) {
+            if let Err(reason) = check_host(&request).and_then(|()| check_framing(&request)) {
                 self.state
                     .metrics
                     .observe(Route::Other, 400, reason.len() as u64, Duration::ZERO);
@@ -521,6 +521,22 @@ fn check_host<B>(request: &Request<B>) -> Result<(), &'static str> {
         (Some(v), None) if valid_host(v.as_bytes()) => Ok(()),
         (Some(_), None) => Err("the Host header is not host[:port]\n"),
     }
+}
+
+/// HTTP/1 request rules hyper leaves to the server: the authority-form target is for
+/// `CONNECT` only (RFC 9112 3.2.3), and a request with both `Transfer-Encoding` and
+/// `Content-Length` is rejected (RFC 9112 6.3 allows it; such requests are the stuff of
+/// request smuggling), with the connection closed either way.
+fn check_framing<B>(request: &Request<B>) -> Result<(), &'static str> {
+    let uri = request.uri();
+    if uri.scheme().is_none() && uri.authority().is_some() && request.method() != Method::CONNECT {
+        return Err("the request target must start with '/'\n");
+    }
+    let h = request.headers();
+    if h.contains_key(header::TRANSFER_ENCODING) && h.contains_key(header::CONTENT_LENGTH) {
+        return Err("Transfer-Encoding and Content-Length together\n");
+    }
+    Ok(())
 }
 
 /// `uri-host [ ":" port ]` (RFC 9110 7.2, RFC 3986 3.2.2): a registered name (unreserved,

@@ -307,7 +307,7 @@ fn http2_trickled_headers_are_closed() {
             let seen = h2::read_frames(&mut s, Duration::from_secs(5), |seen| {
                 !seen.statuses.is_empty()
             });
-            assert_eq!(seen.statuses, [(1, 0x88)]);
+            assert_eq!(seen.statuses, [(1, 200)]);
         } else {
             s.write_all(h2::PREFACE).unwrap();
             s.write_all(&h2::settings(&[])).unwrap();
@@ -398,7 +398,7 @@ fn http2_half_open_and_stalled_streams_are_closed() {
             break;
         }
         let seen = h2::read_frames(&mut s, Duration::from_millis(200), |_| false);
-        answered |= seen.statuses.contains(&(1, 0x88));
+        answered |= seen.statuses.contains(&(1, 200));
         if seen.closed {
             closed = true;
             break;
@@ -420,7 +420,7 @@ fn an_idle_http2_connection_is_not_cut_by_the_head_timer() {
     let seen = h2::read_frames(&mut s, Duration::from_secs(5), |seen| {
         !seen.statuses.is_empty()
     });
-    assert_eq!(seen.statuses, [(1, 0x88)]);
+    assert_eq!(seen.statuses, [(1, 200)]);
     // A trailing frame, then silence for three head timeouts: an idle connection.
     s.write_all(&h2::frame(h2::WINDOW_UPDATE, 0, 0, &100u32.to_be_bytes()))
         .unwrap();
@@ -436,7 +436,7 @@ fn an_idle_http2_connection_is_not_cut_by_the_head_timer() {
     let seen = h2::read_frames(&mut s, Duration::from_secs(5), |seen| {
         !seen.statuses.is_empty()
     });
-    assert_eq!(seen.statuses, [(3, 0x88)], "{seen:?}");
+    assert_eq!(seen.statuses, [(3, 200)], "{seen:?}");
     assert_eq!(
         server
             .state

@@ -371,13 +371,60 @@ pub mod h2 {
         out
     }
 
+    /// The `:status` at the start of an HPACK block: indexed (`0x88` = 200, ... `0x8e` =
+    /// 500) or a literal with the `:status` name index (`0x48`, `0x08`), no Huffman.
+    pub fn status_of(block: &[u8]) -> u16 {
+        const STATIC: [u16; 7] = [200, 204, 206, 304, 400, 404, 500];
+        match block {
+            [b @ 0x88..=0x8e, ..] => STATIC[usize::from(b - 0x88)],
+            [0x48 | 0x08, 3, d @ ..] if d.len() >= 3 => std::str::from_utf8(&d[..3])
+                .ok()
+                .and_then(|s| s.parse().ok())
+                .unwrap_or(0),
+            [0x48 | 0x08, n, d @ ..] if n & 0x80 != 0 => {
+                let n = usize::from(n & 0x7f);
+                huffman_digits(d.get(..n).unwrap_or(&[]))
+            }
+            _ => 0,
+        }
+    }
+
+    /// Decodes a Huffman-coded string of decimal digits (RFC 7541 appendix B: '0'-'2'
+    /// are 5-bit codes 0-2, '3'-'9' 6-bit codes 0x19-0x1f); 0 if it is anything else.
+    fn huffman_digits(bytes: &[u8]) -> u16 {
+        let bits: Vec<u8> = bytes
+            .iter()
+            .flat_map(|b| (0..8).rev().map(move |i| (b >> i) & 1))
+            .collect();
+        let take = |at: usize, n: usize| {
+            bits.get(at..at + n)
+                .map(|b| b.iter().fold(0u8, |v, &x| v << 1 | x))
+        };
+        let (mut at, mut value, mut digits) = (0, 0u16, 0);
+        while digits < 3 {
+            match (take(at, 5), take(at, 6)) {
+                (Some(c), _) if c < 3 => {
+                    value = value * 10 + u16::from(c);
+                    at += 5;
+                }
+                (_, Some(c)) if (0x19..=0x1f).contains(&c) => {
+                    value = value * 10 + u16::from(c - 0x19 + 3);
+                    at += 6;
+                }
+                _ => return 0,
+            }
+            digits += 1;
+        }
+        value
+    }
+
     /// What came back on a connection.
     #[derive(Debug, Default)]
     pub struct Seen {
         /// Frame types in order (SETTINGS, acks, ...).
         pub kinds: Vec<u8>,
-        /// The first byte of the HEADERS block per stream (0x88 = `:status 200`).
-        pub statuses: Vec<(u32, u8)>,
+        /// The `:status` of each HEADERS block, by stream (0 if not understood).
+        pub statuses: Vec<(u32, u16)>,
         /// GOAWAY error code, if one came.
         pub goaway: Option<u32>,
         /// Streams reset, with their codes.
@@ -405,7 +452,9 @@ pub mod h2 {
                 let payload = &buf[9..9 + len];
                 seen.kinds.push(kind);
                 match kind {
-                    HEADERS if !payload.is_empty() => seen.statuses.push((stream, payload[0])),
+                    HEADERS if !payload.is_empty() => {
+                        seen.statuses.push((stream, status_of(payload)))
+                    }
                     GOAWAY if len >= 8 => {
                         seen.goaway = Some(u32::from_be_bytes([
                             payload[4], payload[5], payload[6], payload[7],
