@@ -7,7 +7,7 @@
 //! new connection) for `DURATION_S` (default 60) seconds. Prints one JSON line.
 //!
 //! `cargo run --release -p quincunx-server --example slow_clients`; environment:
-//! `DURATION_S`, `PER_IP` (max_connections_per_ip, default 100), `ATTACKERS` (per kind,
+//! `DURATION_S`, `PER_IP` (max_connections_per_ip, default the server's), `ATTACKERS` (per kind,
 //! default 1000). Loopback only; every loop is bounded by the duration.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -37,7 +37,8 @@ struct Counts {
 
 fn main() {
     let duration = Duration::from_secs(env("DURATION_S", 60));
-    let per_ip = env("PER_IP", 100) as usize;
+    let default_per_ip = quincunx_server::config::Limits::default().max_connections_per_ip;
+    let per_ip = env("PER_IP", default_per_ip as u64) as usize;
     let attackers = env("ATTACKERS", 1000) as usize;
     let _ = rlimit::increase_nofile_limit(20_000);
     let dir = tempfile::tempdir().unwrap();
@@ -148,6 +149,7 @@ fn main() {
         "empty_lines": m.connections_empty_lines.load(Relaxed),
         "rejected_per_ip_429": m.connections_rejected_per_ip.load(Relaxed),
         "rejected_full_503": m.connections_rejected.load(Relaxed),
+        "evicted": m.connections_evicted.load(Relaxed),
         "accepted": m.connections_accepted.load(Relaxed),
     });
     let _ = stop_tx.send(());

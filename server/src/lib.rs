@@ -115,6 +115,7 @@ impl Server {
             )),
             limits: self.config.limits.clone(),
             per_ip,
+            registry: std::sync::Arc::default(),
             shutdown: stop_rx,
         });
         listener::serve(self.listener, workers, shared).await;

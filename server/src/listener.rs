@@ -115,6 +115,59 @@ impl Drop for IpSlot {
     }
 }
 
+/// Every open connection's [`Clock`], so that a full server can close the least useful
+/// one to make room for a new connection.
+#[derive(Default)]
+pub(crate) struct Registry {
+    next: AtomicU64,
+    conns: Mutex<HashMap<u64, Arc<Clock>>>,
+}
+
+impl Registry {
+    fn insert(self: &Arc<Self>, clock: Arc<Clock>) -> Registered {
+        let id = self.next.fetch_add(1, Relaxed);
+        self.conns
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(id, clock);
+        Registered(self.clone(), id)
+    }
+
+    /// Tells the connection that has gone longest without completing a request or moving
+    /// a response to close, if that is at least `min_age_ms`; whether one was told.
+    fn evict_one(&self, now: u64, min_age_ms: u64) -> bool {
+        let conns = self.conns.lock().unwrap_or_else(|e| e.into_inner());
+        let victim = conns
+            .values()
+            .filter(|c| !c.evicted.load(Relaxed))
+            .min_by_key(|c| c.useful_ms.load(Relaxed));
+        match victim {
+            Some(c) if now.saturating_sub(c.useful_ms.load(Relaxed)) >= min_age_ms => {
+                c.evicted.store(true, Relaxed);
+                c.evict.notify_one();
+                true
+            }
+            _ => false,
+        }
+    }
+}
+
+/// A connection's entry in the [`Registry`], removed when dropped.
+struct Registered(Arc<Registry>, u64);
+
+impl Drop for Registered {
+    fn drop(&mut self) {
+        self.0
+            .conns
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(&self.1);
+    }
+}
+
+/// How long a new connection waits for the slot of the connection evicted for it.
+const EVICTION_WAIT: Duration = Duration::from_millis(500);
+
 /// What every worker shares.
 pub(crate) struct Shared {
     pub(crate) app: Router,
@@ -122,6 +175,7 @@ pub(crate) struct Shared {
     pub(crate) limits: Limits,
     pub(crate) permits: Arc<Semaphore>,
     pub(crate) per_ip: Arc<PerIp>,
+    pub(crate) registry: Arc<Registry>,
     pub(crate) shutdown: watch::Receiver<bool>,
 }
 
@@ -211,15 +265,36 @@ async fn accept_loop(listener: TcpListener, shared: &Arc<Shared>) {
             let _ = stream.try_write(BUSY_PER_IP);
             continue;
         };
-        let Ok(permit) = shared.permits.clone().try_acquire_owned() else {
+        // Full: the least useful connection (see "Slow clients" in docs/http-api.md) is
+        // closed to make room, if it has done nothing useful for a quarter of the header
+        // timeout; else the new one is refused.
+        let permit = shared.permits.clone().try_acquire_owned().ok();
+        let min_age_ms = shared.limits.header_timeout().as_millis() as u64 / 4;
+        if permit.is_none() && !shared.registry.evict_one(accepted_ms, min_age_ms) {
             metrics.connections_rejected.fetch_add(1, Relaxed);
             let _ = stream.try_write(BUSY);
             continue;
-        };
-        metrics.connections_accepted.fetch_add(1, Relaxed);
-        metrics.connections_open.fetch_add(1, Relaxed);
+        }
         let shared = shared.clone();
         tokio::spawn(async move {
+            let permit = match permit {
+                Some(p) => p,
+                None => {
+                    let freed = shared.permits.clone().acquire_owned();
+                    match tokio::time::timeout(EVICTION_WAIT, freed).await {
+                        Ok(Ok(p)) => p,
+                        _ => {
+                            let m = &shared.state.metrics;
+                            m.connections_rejected.fetch_add(1, Relaxed);
+                            let _ = stream.try_write(BUSY);
+                            return;
+                        }
+                    }
+                }
+            };
+            let m = &shared.state.metrics;
+            m.connections_accepted.fetch_add(1, Relaxed);
+            m.connections_open.fetch_add(1, Relaxed);
             connection(stream, accepted_ms, &shared).await;
             shared.state.metrics.connections_open.fetch_sub(1, Relaxed);
             drop(permit);
@@ -274,6 +349,13 @@ struct Clock {
     requested: AtomicBool,
     /// HTTP/2: since when bytes have been arriving with no request in flight.
     chatter_since_ms: AtomicU64,
+    /// When the connection last did something useful: completed a request or moved a
+    /// response (the accept until then). The least recent is evicted first.
+    useful_ms: AtomicU64,
+    /// Chosen for eviction.
+    evicted: AtomicBool,
+    /// Wakes the connection's task when it is evicted.
+    evict: tokio::sync::Notify,
 }
 
 impl Clock {
@@ -288,16 +370,32 @@ impl Clock {
             progress_ms: AtomicU64::new(accepted_ms),
             requested: AtomicBool::new(false),
             chatter_since_ms: AtomicU64::new(0),
+            useful_ms: AtomicU64::new(accepted_ms),
+            evicted: AtomicBool::new(false),
+            evict: tokio::sync::Notify::new(),
         }
+    }
+
+    fn useful(&self, now: u64) {
+        self.useful_ms.store(now, Relaxed);
     }
 }
 
 async fn connection(stream: TcpStream, accepted_ms: u64, shared: &Shared) {
     let (state, limits) = (&shared.state, &shared.limits);
     let _ = stream.set_nodelay(true);
+    let clock = Arc::new(Clock::new(accepted_ms));
+    let _registered = shared.registry.insert(clock.clone());
     let head_ms = limits.header_timeout().as_millis() as u64;
     let left = head_ms.saturating_sub(now_ms().saturating_sub(accepted_ms));
-    let protocol = match tokio::time::timeout(Duration::from_millis(left), detect(&stream)).await {
+    let detected = tokio::select! {
+        detected = tokio::time::timeout(Duration::from_millis(left), detect(&stream)) => detected,
+        _ = clock.evict.notified() => {
+            state.metrics.connections_evicted.fetch_add(1, Relaxed);
+            return;
+        }
+    };
+    let protocol = match detected {
         Ok(Ok(Some(p))) => p,
         Ok(Ok(None) | Err(_)) => return,
         Err(_) => {
@@ -309,7 +407,6 @@ async fn connection(stream: TcpStream, accepted_ms: u64, shared: &Shared) {
         }
     };
     let http1 = matches!(protocol, Protocol::Http1);
-    let clock = Arc::new(Clock::new(accepted_ms));
     let io = TokioIo::new(Tracked::new(stream, clock.clone(), state.clone(), http1));
     let service = Service {
         inner: TowerToHyperService::new(shared.app.clone()),
@@ -362,6 +459,8 @@ enum Verdict {
     Write,
     /// Nothing moved for the idle timeout.
     Idle,
+    /// Closed to make room for a new connection on a full server.
+    Evicted,
 }
 
 /// The rules of "Slow clients" in `docs/http-api.md`, applied to one connection at `now`.
@@ -450,12 +549,14 @@ where
                     break v;
                 }
             }
+            _ = clock.evict.notified() => break Verdict::Evicted,
         }
     };
     let counter = match verdict {
         Verdict::Head => &metrics.connections_header_timeout,
         Verdict::Write => &metrics.connections_write_timeout,
         Verdict::Idle => &metrics.connections_idle_closed,
+        Verdict::Evicted => &metrics.connections_evicted,
     };
     counter.fetch_add(1, Relaxed);
     if http2 {
@@ -497,6 +598,7 @@ impl hyper::service::Service<Request<Incoming>> for Service {
         }
         let c = &self.clock;
         let now = now_ms();
+        c.useful(now);
         c.streams.fetch_add(1, Relaxed);
         c.progress_ms.store(now, Relaxed);
         c.requested.store(true, Relaxed);
@@ -635,7 +737,9 @@ struct StreamGuard(Arc<Clock>);
 
 impl Drop for StreamGuard {
     fn drop(&mut self) {
-        self.0.progress_ms.store(now_ms(), Relaxed);
+        let now = now_ms();
+        self.0.progress_ms.store(now, Relaxed);
+        self.0.useful(now);
         self.0.streams.fetch_sub(1, Relaxed);
     }
 }
@@ -657,7 +761,9 @@ impl http_body::Body for TrackedBody {
         let this = self.get_mut();
         let poll = Pin::new(&mut this.body).poll_frame(cx);
         if let (Poll::Ready(_), Some(guard)) = (&poll, &this.stream) {
-            guard.0.progress_ms.store(now_ms(), Relaxed);
+            let now = now_ms();
+            guard.0.progress_ms.store(now, Relaxed);
+            guard.0.useful(now);
         }
         poll
     }
@@ -806,6 +912,10 @@ impl Tracked {
             self.clock.activity_ms.store(now, Relaxed);
             self.clock.write_ms.store(now, Relaxed);
             self.clock.blocked_since_ms.store(0, Relaxed);
+            if self.aggregate {
+                // HTTP/1 writes only responses (HTTP/2 also PING and SETTINGS acks).
+                self.clock.useful(now);
+            }
             let m = &self.state.metrics;
             m.socket_writes.fetch_add(1, Relaxed);
             m.socket_bytes_written.fetch_add(n as u64, Relaxed);
@@ -829,6 +939,7 @@ impl Tracked {
             if self.in_head {
                 self.in_head = false;
                 self.clock.head_since_ms.store(0, Relaxed);
+                self.clock.useful(now_ms());
             }
         } else if !self.in_head {
             self.in_head = true;

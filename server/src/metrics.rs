@@ -65,6 +65,8 @@ pub struct Metrics {
     pub connections_rejected_per_ip: AtomicU64,
     /// Connections closed because a response made no progress for `write_timeout_s`.
     pub connections_write_timeout: AtomicU64,
+    /// Connections closed to make room for a new one on a full server.
+    pub connections_evicted: AtomicU64,
     /// Connections closed for sending more empty lines than tolerated before a request.
     pub connections_empty_lines: AtomicU64,
     /// Requests answered 500 because the repository could not be read.
@@ -222,6 +224,11 @@ impl Metrics {
                 "quincunx_connections_write_timeout_total",
                 "Connections closed after a response made no progress for write_timeout_s.",
                 &self.connections_write_timeout,
+            ),
+            (
+                "quincunx_connections_evicted_total",
+                "Connections closed to make room on a full server (least useful first).",
+                &self.connections_evicted,
             ),
             (
                 "quincunx_connections_empty_lines_total",

@@ -446,3 +446,39 @@ fn an_idle_http2_connection_is_not_cut_by_the_head_timer() {
         0
     );
 }
+
+#[test]
+fn a_full_server_closes_its_least_useful_connection_to_admit_a_new_one() {
+    let server = Running::start(|c| {
+        c.limits.max_connections = 4;
+        c.limits.max_connections_per_ip = 0;
+        c.limits.header_timeout_s = 4.0; // connections idle for 1 s may be evicted
+    });
+    let m = &server.state.metrics;
+    let request = b"GET /healthz HTTP/1.1\r\nHost: t\r\n\r\n";
+    let mut active = connect(server.addr);
+    let mut silent: Vec<_> = (0..3).map(|_| connect(server.addr)).collect();
+    for _ in 0..100 {
+        if m.connections_open.load(Relaxed) == 4 {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    assert_eq!(m.connections_open.load(Relaxed), 4);
+    std::thread::sleep(Duration::from_millis(1200));
+    active.write_all(request).unwrap();
+    assert_eq!(read_responses(&mut active, 1)[0].status, 200);
+    // Full: a new client is admitted in place of a silent connection, not refused.
+    let mut new = connect(server.addr);
+    new.write_all(request).unwrap();
+    assert_eq!(read_responses(&mut new, 1)[0].status, 200);
+    assert_eq!(m.connections_evicted.load(Relaxed), 1);
+    assert_eq!(m.connections_rejected.load(Relaxed), 0);
+    let mut closed = 0;
+    for s in &mut silent {
+        closed += usize::from(closed_within(s, Duration::from_millis(300)));
+    }
+    assert_eq!(closed, 1, "exactly one silent connection makes room");
+    active.write_all(request).unwrap();
+    assert_eq!(read_responses(&mut active, 1)[0].status, 200);
+}
