@@ -120,7 +120,7 @@ fn main() {
             }));
             next_sample += Duration::from_secs(5);
         }
-        if n % 50 == 0 {
+        if n.is_multiple_of(50) {
             conn = None;
         }
         n += 1;

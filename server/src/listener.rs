@@ -133,16 +133,21 @@ impl Registry {
         Registered(self.clone(), id)
     }
 
-    /// Tells the connection that has gone longest without completing a request or moving
-    /// a response to close, if that is at least `min_age_ms`; whether one was told.
+    /// Tells the least useful connection to close: the oldest of those that never
+    /// completed a request head (HTTP/1) or moved a response (HTTP/2), else the one that
+    /// has gone longest without doing so, if that is at least `min_age_ms`. Whether one
+    /// was told.
     fn evict_one(&self, now: u64, min_age_ms: u64) -> bool {
         let conns = self.conns.lock().unwrap_or_else(|e| e.into_inner());
         let victim = conns
             .values()
             .filter(|c| !c.evicted.load(Relaxed))
-            .min_by_key(|c| c.useful_ms.load(Relaxed));
+            .min_by_key(|c| (c.productive.load(Relaxed), c.useful_ms.load(Relaxed)));
         match victim {
-            Some(c) if now.saturating_sub(c.useful_ms.load(Relaxed)) >= min_age_ms => {
+            Some(c)
+                if !c.productive.load(Relaxed)
+                    || now.saturating_sub(c.useful_ms.load(Relaxed)) >= min_age_ms =>
+            {
                 c.evicted.store(true, Relaxed);
                 c.evict.notify_one();
                 true
@@ -266,8 +271,8 @@ async fn accept_loop(listener: TcpListener, shared: &Arc<Shared>) {
             continue;
         };
         // Full: the least useful connection (see "Slow clients" in docs/http-api.md) is
-        // closed to make room, if it has done nothing useful for a quarter of the header
-        // timeout; else the new one is refused.
+        // closed to make room: one that never did anything useful, else one that did
+        // nothing useful for a quarter of the header timeout; else the new one is refused.
         let permit = shared.permits.clone().try_acquire_owned().ok();
         let min_age_ms = shared.limits.header_timeout().as_millis() as u64 / 4;
         if permit.is_none() && !shared.registry.evict_one(accepted_ms, min_age_ms) {
@@ -349,9 +354,11 @@ struct Clock {
     requested: AtomicBool,
     /// HTTP/2: since when bytes have been arriving with no request in flight.
     chatter_since_ms: AtomicU64,
-    /// When the connection last did something useful: completed a request or moved a
-    /// response (the accept until then). The least recent is evicted first.
+    /// When the connection last did something useful: HTTP/1 completed a request head or
+    /// wrote a response, HTTP/2 moved a response (the accept until then).
     useful_ms: AtomicU64,
+    /// Whether it ever did something useful.
+    productive: AtomicBool,
     /// Chosen for eviction.
     evicted: AtomicBool,
     /// Wakes the connection's task when it is evicted.
@@ -371,6 +378,7 @@ impl Clock {
             requested: AtomicBool::new(false),
             chatter_since_ms: AtomicU64::new(0),
             useful_ms: AtomicU64::new(accepted_ms),
+            productive: AtomicBool::new(false),
             evicted: AtomicBool::new(false),
             evict: tokio::sync::Notify::new(),
         }
@@ -378,6 +386,9 @@ impl Clock {
 
     fn useful(&self, now: u64) {
         self.useful_ms.store(now, Relaxed);
+        if !self.productive.load(Relaxed) {
+            self.productive.store(true, Relaxed);
+        }
     }
 }
 
@@ -598,7 +609,6 @@ impl hyper::service::Service<Request<Incoming>> for Service {
         }
         let c = &self.clock;
         let now = now_ms();
-        c.useful(now);
         c.streams.fetch_add(1, Relaxed);
         c.progress_ms.store(now, Relaxed);
         c.requested.store(true, Relaxed);
@@ -664,10 +674,10 @@ pub(crate) fn valid_host(v: &[u8]) -> bool {
             None => (v, None),
         }
     };
-    if let Some(port) = port {
-        if port.len() > 5 || !port.iter().all(u8::is_ascii_digit) {
-            return false;
-        }
+    if let Some(port) = port
+        && (port.len() > 5 || !port.iter().all(u8::is_ascii_digit))
+    {
+        return false;
     }
     let mut i = 0;
     while i < host.len() {
@@ -739,7 +749,6 @@ impl Drop for StreamGuard {
     fn drop(&mut self) {
         let now = now_ms();
         self.0.progress_ms.store(now, Relaxed);
-        self.0.useful(now);
         self.0.streams.fetch_sub(1, Relaxed);
     }
 }

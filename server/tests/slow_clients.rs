@@ -173,11 +173,11 @@ fn one_address_cannot_hold_more_than_its_connection_cap() {
         let mut s = connect_from(LOCAL, server.addr, None);
         let _ = s.write_all(request);
         let (bytes, _) = read_to_close_or_one(&mut s);
-        if let Ok(Some((r, _))) = parse_response(&bytes, false) {
-            if r.status == 200 {
-                served = true;
-                break;
-            }
+        if let Ok(Some((r, _))) = parse_response(&bytes, false)
+            && r.status == 200
+        {
+            served = true;
+            break;
         }
         std::thread::sleep(Duration::from_millis(20));
     }
@@ -452,11 +452,13 @@ fn a_full_server_closes_its_least_useful_connection_to_admit_a_new_one() {
     let server = Running::start(|c| {
         c.limits.max_connections = 4;
         c.limits.max_connections_per_ip = 0;
-        c.limits.header_timeout_s = 4.0; // connections idle for 1 s may be evicted
+        c.limits.header_timeout_s = 4.0; // productive connections idle for 1 s may go
     });
     let m = &server.state.metrics;
     let request = b"GET /healthz HTTP/1.1\r\nHost: t\r\n\r\n";
     let mut active = connect(server.addr);
+    active.write_all(request).unwrap();
+    assert_eq!(read_responses(&mut active, 1)[0].status, 200);
     let mut silent: Vec<_> = (0..3).map(|_| connect(server.addr)).collect();
     for _ in 0..100 {
         if m.connections_open.load(Relaxed) == 4 {
@@ -465,9 +467,10 @@ fn a_full_server_closes_its_least_useful_connection_to_admit_a_new_one() {
         std::thread::sleep(Duration::from_millis(10));
     }
     assert_eq!(m.connections_open.load(Relaxed), 4);
-    std::thread::sleep(Duration::from_millis(1200));
+    // Older than the silent ones, but it completed requests: never chosen before them.
     active.write_all(request).unwrap();
     assert_eq!(read_responses(&mut active, 1)[0].status, 200);
+    std::thread::sleep(Duration::from_millis(1200));
     // Full: a new client is admitted in place of a silent connection, not refused.
     let mut new = connect(server.addr);
     new.write_all(request).unwrap();
