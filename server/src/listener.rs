@@ -1,8 +1,9 @@
 //! Accepting and driving connections: one acceptor and event loop per worker thread
 //! (`SO_REUSEPORT` listeners, like nginx's worker processes: no work stealing, no
-//! cross-thread wake-ups), the connection limit, HTTP/1.1 (keep-alive, pipelining with
-//! aggregated writes) or HTTP/2 (prior knowledge) per connection, the slow-loris and
-//! idle timeouts, and graceful shutdown.
+//! cross-thread wake-ups), the connection limits (global, per address, eviction when
+//! full), HTTP/1.1 (keep-alive, pipelining with aggregated writes) or HTTP/2 (prior
+//! knowledge) per connection, the slow-client rules (`docs/http-api.md`, "Slow clients"),
+//! and graceful shutdown.
 
 use std::collections::HashMap;
 use std::convert::Infallible;
@@ -1156,6 +1157,87 @@ mod tests {
         assert!(s.feed(b"\r\n").is_err());
         let mut s = HeadScanner::default();
         assert!(s.feed(&b"\n".repeat(MAX_EMPTY_LINES as usize + 1)).is_err());
+    }
+
+    fn limits() -> Limits {
+        Limits {
+            header_timeout_s: 1.0,
+            write_timeout_s: 5.0,
+            idle_timeout_s: 100.0,
+            ..Limits::default()
+        }
+    }
+
+    #[test]
+    fn a_head_waiting_behind_blocked_writes_is_timed_by_write_progress() {
+        let l = limits();
+        // A pipelined head partly handed to hyper at t = 1 s, the server blocked writing
+        // answers to this client since 1.1 s.
+        let c = Clock::new(1000);
+        c.head_since_ms.store(1000, Relaxed);
+        c.blocked_since_ms.store(1100, Relaxed);
+        c.write_ms.store(1100, Relaxed);
+        c.activity_ms.store(1100, Relaxed);
+        assert_eq!(
+            verdict(&c, 4000, &l, false),
+            None,
+            "head timer charged while blocked"
+        );
+        assert_eq!(verdict(&c, 6100, &l, false), Some(Verdict::Write));
+        // Writes moving again: the head is due a header timeout after the last write.
+        c.blocked_since_ms.store(0, Relaxed);
+        c.write_ms.store(6000, Relaxed);
+        c.activity_ms.store(6000, Relaxed);
+        assert_eq!(verdict(&c, 6900, &l, false), None);
+        assert_eq!(verdict(&c, 7000, &l, false), Some(Verdict::Head));
+        // A connection's first head is due from the accept.
+        let fresh = Clock::new(1000);
+        assert_eq!(verdict(&fresh, 1999, &l, false), None);
+        assert_eq!(verdict(&fresh, 2000, &l, false), Some(Verdict::Head));
+    }
+
+    #[test]
+    fn http2_chatter_without_requests_is_a_slow_client_but_silence_is_idle() {
+        let l = limits();
+        let c = Clock::new(1000);
+        // No request yet: due from the accept whatever arrives.
+        c.read_ms.store(1900, Relaxed);
+        assert_eq!(verdict(&c, 2000, &l, true), Some(Verdict::Head));
+        c.requested.store(true, Relaxed);
+        // Frames since 3 s, the last at 3.9 s: still chatter at 4 s.
+        c.chatter_since_ms.store(3000, Relaxed);
+        c.read_ms.store(3900, Relaxed);
+        assert_eq!(verdict(&c, 4000, &l, true), Some(Verdict::Head));
+        // One frame at 3 s, then silence for the header timeout: idle, timer cleared.
+        c.read_ms.store(3000, Relaxed);
+        c.activity_ms.store(3000, Relaxed);
+        assert_eq!(verdict(&c, 4000, &l, true), None);
+        assert_eq!(c.chatter_since_ms.load(Relaxed), 0);
+        // A stream whose answer does not move is a write timeout, PINGs or not.
+        c.streams.store(1, Relaxed);
+        c.progress_ms.store(5000, Relaxed);
+        c.read_ms.store(9900, Relaxed);
+        c.activity_ms.store(9900, Relaxed);
+        assert_eq!(verdict(&c, 9999, &l, true), None);
+        assert_eq!(verdict(&c, 10_000, &l, true), Some(Verdict::Write));
+    }
+
+    #[test]
+    fn eviction_prefers_connections_that_never_did_anything_useful() {
+        let registry = Arc::new(Registry::default());
+        let busy = Arc::new(Clock::new(1000));
+        busy.useful(1500);
+        let idle_new = Arc::new(Clock::new(3000));
+        let _a = registry.insert(busy.clone());
+        let _b = registry.insert(idle_new.clone());
+        // The never-productive one goes first though it is younger, at any age.
+        assert!(registry.evict_one(3001, 250));
+        assert!(idle_new.evicted.load(Relaxed) && !busy.evicted.load(Relaxed));
+        // A productive one only after min_age without doing anything useful.
+        assert!(!registry.evict_one(1600, 250));
+        assert!(registry.evict_one(1750, 250));
+        assert!(busy.evicted.load(Relaxed));
+        assert!(!registry.evict_one(9999, 250), "nothing left to evict");
     }
 
     #[test]
