@@ -201,13 +201,18 @@ fn read_to_close_or_one(s: &mut std::net::TcpStream) -> (Vec<u8>, bool) {
 
 #[test]
 fn a_slow_but_steady_pipelined_reader_gets_every_answer() {
-    let server = Running::start(short_timeouts);
+    // A head timeout far below the time the server spends blocked on this reader.
+    let server = Running::start(|c| {
+        c.limits.header_timeout_s = 0.1;
+        c.limits.write_timeout_s = 5.0;
+        c.limits.idle_timeout_s = 30.0;
+    });
     let prefix = planar_prefix(&server.state);
     let centres: Vec<[i64; 3]> = planar_centres(PLANAR_M, PLANAR_LEVELS)
         .into_keys()
         .filter(|c| [c[0], c[1]] != [PLANAR_LEAF.x, PLANAR_LEAF.y])
         .collect();
-    let n = 2000;
+    let n = 5000;
     let mut s = connect_from(LOCAL, server.addr, Some(4096));
     let mut writer = s.try_clone().unwrap();
     let batch: String = (0..n)
@@ -217,10 +222,11 @@ fn a_slow_but_steady_pipelined_reader_gets_every_answer() {
         })
         .collect();
     let sender = std::thread::spawn(move || writer.write_all(batch.as_bytes()));
-    // Read 4 KiB at a time with a pause after each: about 2 MB of answers at well under
-    // 1 MB/s while the client never pauses for more than 20 ms. (Whether the server
-    // blocks on this client for long depends on how far the kernel grows its send
-    // buffer; the rule itself is tested on `verdict` in `listener.rs`.)
+    // Read 4 KiB at a time with a 10 ms pause after each: about 5 MB of answers at
+    // about 400 KB/s. That is more than the 4 MB the kernel lets the server's send
+    // buffer grow to, so the server ends up blocked on this client for many head
+    // timeouts in all, with request heads half read (the previous code cut this client
+    // after about 1,600 answers), while the client never pauses for more than 10 ms.
     let mut buf = Vec::new();
     let mut got = 0;
     let mut chunk = [0u8; 4096];
@@ -240,7 +246,7 @@ fn a_slow_but_steady_pipelined_reader_gets_every_answer() {
                 let k = s.read(&mut chunk).unwrap();
                 assert!(k > 0, "connection closed after {got} of {n} answers");
                 buf.extend_from_slice(&chunk[..k]);
-                std::thread::sleep(Duration::from_millis(20));
+                std::thread::sleep(Duration::from_millis(10));
             }
         }
     }
