@@ -34,7 +34,7 @@ sed -e "s|@PREFIX@|$prefix|g" -e "s|@ROOT@|$(cd "$work/www" && pwd)|g" -e "s|@PO
 "$nginx_bin" -p "$prefix" -c "$prefix/nginx.conf" -e "$prefix/error.log" &
 nginx_pid=$!
 "$bin/quincunx-server" --addr 127.0.0.1:18090 --repo "korea=$repo" --max-connections 19000 \
-    --idle-timeout-s 600 --log warn &
+    --max-connections-per-ip 0 --idle-timeout-s 600 --log warn &
 server_pid=$!
 trap 'kill $server_pid $nginx_pid 2>/dev/null; wait 2>/dev/null' EXIT
 for port in 18089 18090; do

@@ -1,7 +1,7 @@
 //! Server configuration: a TOML file, overridden by command-line flags and `QUINCUNX_*`
 //! environment variables (flags win over the environment, both over the file).
 
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -18,9 +18,10 @@ pub struct ServerConfig {
     /// Repositories to serve, by name.
     #[serde(rename = "repo")]
     pub repos: Vec<RepoConfig>,
-    /// Bytes of blobs kept in the in-memory hot cache in front of sled.
+    /// Bytes of blobs kept in the in-memory hot cache in front of the repository files.
     pub cache_bytes: u64,
-    /// Worker threads, each with its own listener and event loop (0 = one per core).
+    /// Worker threads, each with its own listener and event loop (0 = one per core; at
+    /// most [`max_workers`]).
     pub workers: usize,
     /// Connection and request limits.
     pub limits: Limits,
@@ -44,6 +45,12 @@ pub struct RepoConfig {
 pub struct Limits {
     /// Open connections at most; more are answered `503` and closed at once.
     pub max_connections: usize,
+    /// Open connections per client address at most (IPv6: per /64), 0 for no limit; more
+    /// are answered `429` and closed at once. Loopback is not exempt.
+    pub max_connections_per_ip: usize,
+    /// Client addresses (`10.0.0.5`) or networks (`10.0.0.0/8`, `fd00::/8`) exempt from
+    /// `max_connections_per_ip`, such as a reverse proxy in front of the server.
+    pub per_ip_exempt: Vec<String>,
     /// Bytes of a request head (request line + headers) at most; larger heads get `431`.
     /// HTTP/1 reads at most this many bytes ahead of the request being answered, which
     /// bounds the pipelined requests buffered per connection.
@@ -52,9 +59,16 @@ pub struct Limits {
     pub max_headers: usize,
     /// HTTP/2 streams in flight per connection at most.
     pub max_concurrent_streams: u32,
-    /// Seconds a client has to send a complete request head once it started one, and to
-    /// send the first bytes of a connection (slow-loris defence).
+    /// Seconds a client has to send a complete request (slow-loris defence): a new
+    /// connection's first request head (HTTP/2: preface, SETTINGS and a complete HEADERS
+    /// block) counts from the accept, later heads from their first byte. Empty lines do
+    /// not restart it; time the server spends blocked writing to the client does not
+    /// count. See `docs/http-api.md`, "Slow clients".
     pub header_timeout_s: f64,
+    /// Seconds a response may stay blocked without any of it moving (a client that stopped
+    /// reading, or an HTTP/2 stream that stopped making progress) before the connection
+    /// is closed.
+    pub write_timeout_s: f64,
     /// Seconds without any bytes moving in either direction before a connection is closed
     /// (idle keep-alive connections, and clients that stop reading their responses).
     pub idle_timeout_s: f64,
@@ -88,10 +102,13 @@ impl Default for Limits {
     fn default() -> Self {
         Limits {
             max_connections: 16_384,
+            max_connections_per_ip: 256,
+            per_ip_exempt: Vec::new(),
             max_header_bytes: 16 << 10,
             max_headers: 64,
             max_concurrent_streams: 128,
             header_timeout_s: 10.0,
+            write_timeout_s: 30.0,
             idle_timeout_s: 120.0,
             shutdown_grace_s: 10.0,
         }
@@ -110,6 +127,14 @@ impl Limits {
     /// [`Limits::header_timeout_s`] as a duration.
     pub fn header_timeout(&self) -> Duration {
         Duration::from_secs_f64(self.header_timeout_s)
+    }
+    /// [`Limits::write_timeout_s`] as a duration.
+    pub fn write_timeout(&self) -> Duration {
+        Duration::from_secs_f64(self.write_timeout_s)
+    }
+    /// [`Limits::per_ip_exempt`] parsed.
+    pub fn exempt_networks(&self) -> Result<Vec<IpNet>, ServeError> {
+        self.per_ip_exempt.iter().map(|s| IpNet::parse(s)).collect()
     }
     /// [`Limits::idle_timeout_s`] as a duration.
     pub fn idle_timeout(&self) -> Duration {
@@ -139,6 +164,12 @@ pub struct ServeArgs {
     /// Open connections at most.
     #[arg(long, env = "QUINCUNX_MAX_CONNECTIONS")]
     pub max_connections: Option<usize>,
+    /// Open connections per client address at most (0 = no limit).
+    #[arg(long, env = "QUINCUNX_MAX_CONNECTIONS_PER_IP")]
+    pub max_connections_per_ip: Option<usize>,
+    /// Seconds a blocked response may make no progress before the connection is closed.
+    #[arg(long, env = "QUINCUNX_WRITE_TIMEOUT_S")]
+    pub write_timeout_s: Option<f64>,
     /// Idle connection timeout in seconds.
     #[arg(long, env = "QUINCUNX_IDLE_TIMEOUT_S")]
     pub idle_timeout_s: Option<f64>,
@@ -148,7 +179,8 @@ pub struct ServeArgs {
     /// Allowed CORS origins, comma separated (`*` for any, empty for none).
     #[arg(long, env = "QUINCUNX_CORS")]
     pub cors: Option<String>,
-    /// Worker threads, each with its own listener and event loop (default: one per core).
+    /// Worker threads, each with its own listener and event loop (default: one per core;
+    /// at most 4 per core and 1024).
     #[arg(long, env = "QUINCUNX_THREADS")]
     pub threads: Option<usize>,
 }
@@ -194,6 +226,12 @@ impl ServerConfig {
         if let Some(n) = args.max_connections {
             config.limits.max_connections = n;
         }
+        if let Some(n) = args.max_connections_per_ip {
+            config.limits.max_connections_per_ip = n;
+        }
+        if let Some(s) = args.write_timeout_s {
+            config.limits.write_timeout_s = s;
+        }
         if let Some(s) = args.idle_timeout_s {
             config.limits.idle_timeout_s = s;
         }
@@ -229,7 +267,17 @@ impl ServerConfig {
                 return bad(format!("repository name {:?} is given twice", repo.name));
             }
         }
+        let most = max_workers();
+        if self.workers > most {
+            return bad(format!(
+                "workers (--threads) = {} is more than {most}: at most 4 per core ({} cores \
+                 here) and never more than {MAX_WORKERS}; 0 means one per core",
+                self.workers,
+                cores()
+            ));
+        }
         let l = &self.limits;
+        l.exempt_networks()?;
         if l.max_connections == 0 {
             return bad("limits.max_connections must be at least 1".into());
         }
@@ -241,6 +289,7 @@ impl ServerConfig {
         }
         for (name, s) in [
             ("header_timeout_s", l.header_timeout_s),
+            ("write_timeout_s", l.write_timeout_s),
             ("idle_timeout_s", l.idle_timeout_s),
             ("shutdown_grace_s", l.shutdown_grace_s),
         ] {
@@ -251,6 +300,80 @@ impl ServerConfig {
             }
         }
         Ok(())
+    }
+}
+
+/// Worker threads at most, whatever the core count.
+pub const MAX_WORKERS: usize = 1024;
+
+/// Cores available to this process (1 if unknown).
+pub fn cores() -> usize {
+    std::thread::available_parallelism().map_or(1, usize::from)
+}
+
+/// The most worker threads a configuration may ask for: 4 per core, at most
+/// [`MAX_WORKERS`]. More only adds threads that contend for the same cores.
+pub fn max_workers() -> usize {
+    (4 * cores()).min(MAX_WORKERS)
+}
+
+/// An address or network (`addr/prefix`), for [`Limits::per_ip_exempt`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct IpNet {
+    addr: IpAddr,
+    prefix: u8,
+}
+
+impl IpNet {
+    /// Parses `10.0.0.5`, `10.0.0.0/8`, `::1` or `fd00::/8`.
+    pub fn parse(s: &str) -> Result<IpNet, ServeError> {
+        let bad = || {
+            ServeError::Config(format!(
+                "limits.per_ip_exempt: {s:?} is not an address or addr/prefix"
+            ))
+        };
+        let (addr, prefix) = match s.split_once('/') {
+            Some((a, p)) => (a, Some(p)),
+            None => (s, None),
+        };
+        let addr: IpAddr = addr.trim().parse().map_err(|_| bad())?;
+        let max = if addr.is_ipv4() { 32 } else { 128 };
+        let prefix = match prefix {
+            Some(p) => p.trim().parse::<u8>().map_err(|_| bad())?,
+            None => max,
+        };
+        if prefix > max {
+            return Err(bad());
+        }
+        Ok(IpNet { addr, prefix })
+    }
+
+    /// Whether `ip` is in the network (IPv4-mapped IPv6 addresses count as IPv4).
+    pub fn contains(&self, ip: IpAddr) -> bool {
+        let ip = canonical_ip(ip);
+        match (self.addr, ip) {
+            (IpAddr::V4(net), IpAddr::V4(ip)) => {
+                let mask = u32::MAX
+                    .checked_shl(32 - u32::from(self.prefix))
+                    .unwrap_or(0);
+                u32::from(net) & mask == u32::from(ip) & mask
+            }
+            (IpAddr::V6(net), IpAddr::V6(ip)) => {
+                let mask = u128::MAX
+                    .checked_shl(128 - u32::from(self.prefix))
+                    .unwrap_or(0);
+                u128::from(net) & mask == u128::from(ip) & mask
+            }
+            _ => false,
+        }
+    }
+}
+
+/// `ip` with IPv4-mapped IPv6 addresses (`::ffff:a.b.c.d`) turned into IPv4.
+pub fn canonical_ip(ip: IpAddr) -> IpAddr {
+    match ip {
+        IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(ip, IpAddr::V4),
+        v4 => v4,
     }
 }
 
@@ -296,5 +419,62 @@ mod tests {
         assert!(ServerConfig::from_args(&args).is_err());
         assert!(parse_repo("noequals").is_err());
         assert!(ServerConfig::from_args(&ServeArgs::default()).is_err());
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod limit_tests {
+    use super::*;
+
+    #[test]
+    fn thread_counts_past_the_bound_are_rejected_with_the_bound_named() {
+        let repos = vec![parse_repo("a=/x").unwrap()];
+        let args = ServeArgs {
+            repos: repos.clone(),
+            threads: Some(100_000),
+            ..ServeArgs::default()
+        };
+        let err = ServerConfig::from_args(&args).unwrap_err().to_string();
+        assert!(
+            err.contains("100000") && err.contains(&max_workers().to_string()),
+            "{err}"
+        );
+        let config = ServerConfig {
+            repos: vec![RepoConfig {
+                name: "a".into(),
+                path: "/x".into(),
+            }],
+            workers: max_workers(),
+            ..ServerConfig::default()
+        };
+        config.check().unwrap();
+        let config = ServerConfig {
+            workers: max_workers() + 1,
+            ..config
+        };
+        assert!(config.check().is_err());
+    }
+
+    #[test]
+    fn exempt_networks_parse_and_match() {
+        let net = IpNet::parse("10.0.0.0/8").unwrap();
+        assert!(net.contains("10.200.3.4".parse().unwrap()));
+        assert!(net.contains("::ffff:10.1.1.1".parse().unwrap()));
+        assert!(!net.contains("11.0.0.1".parse().unwrap()));
+        let one = IpNet::parse("127.0.0.1").unwrap();
+        assert!(one.contains("127.0.0.1".parse().unwrap()));
+        assert!(!one.contains("127.0.0.2".parse().unwrap()));
+        let v6 = IpNet::parse("fd00::/8").unwrap();
+        assert!(v6.contains("fd12::1".parse().unwrap()));
+        assert!(!v6.contains("fe80::1".parse().unwrap()));
+        assert!(
+            IpNet::parse("0.0.0.0/0")
+                .unwrap()
+                .contains("1.2.3.4".parse().unwrap())
+        );
+        for bad in ["10.0.0.0/33", "nope", "::/129", "1.2.3.4/x"] {
+            assert!(IpNet::parse(bad).is_err(), "{bad}");
+        }
     }
 }

@@ -31,10 +31,15 @@ impl ApiError {
         }
     }
 
-    /// 500: a repository could not be read. Logged here (once); the client only learns
+    /// 500 for a failure that cannot recur per blob: logged here; the client only learns
     /// that it failed.
     pub fn internal(repo: &str, cause: &dyn std::fmt::Display) -> ApiError {
-        tracing::error!(repo, "reading repository failed: {cause}");
+        tracing::error!(repo, "serving failed: {cause}");
+        ApiError::unreadable()
+    }
+
+    /// 500: a repository could not be read (logged by the caller, once per blob).
+    pub fn unreadable() -> ApiError {
         ApiError {
             status: StatusCode::INTERNAL_SERVER_ERROR,
             reason: "the repository could not be read".into(),

@@ -3,7 +3,7 @@
 //! It never decodes a blob (this crate does not depend on the codec; CI checks it): a
 //! request is parsed, its id validated with `quincunx-diamond` (through
 //! `quincunx_store::answer::Domain`), and the blob's bytes come from the in-memory hot
-//! cache or the sled store; packages are framed from stored blobs
+//! cache or the repository file; packages are framed from stored blobs
 //! (`quincunx_store::answer`), never decoded. Blob URLs carry the repository's content
 //! hash, so responses are immutable and any HTTP cache or CDN can sit in front.
 //! The API is documented in `docs/http-api.md`.
@@ -99,8 +99,13 @@ impl Server {
         });
         let summary = tokio::spawn(summaries(self.state.clone()));
         let workers = match self.config.workers {
-            0 => std::thread::available_parallelism().map_or(1, usize::from),
+            0 => config::cores(),
             n => n,
+        };
+        // `Server::bind` checked the configuration.
+        let per_ip = match listener::PerIp::new(&self.config.limits) {
+            Ok(p) => std::sync::Arc::new(p),
+            Err(e) => return tracing::error!("{e}"),
         };
         let shared = std::sync::Arc::new(listener::Shared {
             app: router(self.state.clone()),
@@ -109,6 +114,8 @@ impl Server {
                 self.config.limits.max_connections,
             )),
             limits: self.config.limits.clone(),
+            per_ip,
+            registry: std::sync::Arc::default(),
             shutdown: stop_rx,
         });
         listener::serve(self.listener, workers, shared).await;

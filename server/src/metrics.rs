@@ -51,7 +51,7 @@ pub struct Metrics {
     latency_sum_ns: AtomicU64,
     /// Blob lookups answered from the hot cache.
     pub cache_hits: AtomicU64,
-    /// Blob lookups that went to sled.
+    /// Blob lookups that went to the repository file.
     pub cache_misses: AtomicU64,
     /// Connections accepted and served.
     pub connections_accepted: AtomicU64,
@@ -59,8 +59,18 @@ pub struct Metrics {
     pub connections_rejected: AtomicU64,
     /// Connections closed because nothing moved for `idle_timeout_s`.
     pub connections_idle_closed: AtomicU64,
-    /// Connections closed because no request started within `header_timeout_s`.
+    /// Connections closed because no complete request arrived within `header_timeout_s`.
     pub connections_header_timeout: AtomicU64,
+    /// Connections refused because their client had `max_connections_per_ip` open.
+    pub connections_rejected_per_ip: AtomicU64,
+    /// Connections closed because a response made no progress for `write_timeout_s`.
+    pub connections_write_timeout: AtomicU64,
+    /// Connections closed to make room for a new one on a full server.
+    pub connections_evicted: AtomicU64,
+    /// Connections closed for sending more empty lines than tolerated before a request.
+    pub connections_empty_lines: AtomicU64,
+    /// Requests answered 500 because the repository could not be read.
+    pub repository_read_errors: AtomicU64,
     /// Connections open now.
     pub connections_open: AtomicU64,
     /// HTTP/2 connections accepted.
@@ -202,8 +212,33 @@ impl Metrics {
             ),
             (
                 "quincunx_connections_header_timeout_total",
-                "Connections closed for sending no request in header_timeout_s.",
+                "Connections closed for sending no complete request in header_timeout_s.",
                 &self.connections_header_timeout,
+            ),
+            (
+                "quincunx_connections_rejected_per_ip_total",
+                "Connections refused at max_connections_per_ip (429).",
+                &self.connections_rejected_per_ip,
+            ),
+            (
+                "quincunx_connections_write_timeout_total",
+                "Connections closed after a response made no progress for write_timeout_s.",
+                &self.connections_write_timeout,
+            ),
+            (
+                "quincunx_connections_evicted_total",
+                "Connections closed to make room on a full server (least useful first).",
+                &self.connections_evicted,
+            ),
+            (
+                "quincunx_connections_empty_lines_total",
+                "Connections closed for too many empty lines before a request line.",
+                &self.connections_empty_lines,
+            ),
+            (
+                "quincunx_repository_read_errors_total",
+                "Blob or package reads that failed (answered 500; each blob logged once).",
+                &self.repository_read_errors,
             ),
             (
                 "quincunx_connections_h2_total",

@@ -1,8 +1,9 @@
 //! What the server holds: the open repositories, their precomputed JSON, the hot blob
 //! cache and the metrics.
 
-use std::collections::HashMap;
-use std::sync::Arc;
+use std::collections::{HashMap, HashSet};
+use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+use std::sync::{Arc, Mutex};
 
 use axum::http::HeaderValue;
 use bytes::Bytes;
@@ -23,6 +24,10 @@ pub struct Inner {
     repos: Vec<Served>,
     by_name: HashMap<String, usize>,
     cache: BlobCache,
+    /// Blobs whose read failure was logged (each is logged once).
+    failed: Mutex<HashSet<BlobKey>>,
+    /// Whether `failed` filled up and later failures went unlogged.
+    failed_overflow: AtomicBool,
     /// Request and connection counters.
     pub metrics: Metrics,
     /// CORS policy.
@@ -80,6 +85,9 @@ impl quick_cache::Weighter<BlobKey, CachedBlob> for BlobWeighter {
 /// `(repository index, centre, package?)`.
 type BlobKey = (u32, [i64; 3], bool);
 
+/// Failed blobs remembered so that each is logged once.
+const MAX_LOGGED_FAILURES: usize = 4096;
+
 /// The hot cache: blob or package by [`BlobKey`], bounded in bytes.
 type BlobCache = quick_cache::sync::Cache<BlobKey, CachedBlob, BlobWeighter>;
 
@@ -116,6 +124,8 @@ impl AppState {
                 config.cache_bytes.max(1),
                 BlobWeighter,
             ),
+            failed: Mutex::new(HashSet::new()),
+            failed_overflow: AtomicBool::new(false),
             metrics: Metrics::default(),
             cors: config.cors.clone(),
             listing: Bytes::from(listing),
@@ -130,7 +140,7 @@ impl AppState {
 
     /// The blob of the diamond centred at `c` in repository `index`, or with `packaged`
     /// its package (`quincunx_store::answer`): from the hot cache, else validated, read
-    /// from sled and cached. In-domain diamonds without a blob (leaves, holes of sparse
+    /// from the repository file and cached. In-domain diamonds without a blob (leaves, holes of sparse
     /// repositories, levels deeper than the repository) get an empty body.
     pub fn blob(&self, index: u32, c: [i64; 3], packaged: bool) -> Result<CachedBlob, ApiError> {
         if let Some(hit) = self.cache.get(&(index, c, packaged)) {
@@ -153,13 +163,13 @@ impl AppState {
             match served.repo.package(&served.domain, c) {
                 Ok(Some(answer)) => Bytes::from(answer),
                 Ok(None) => Bytes::new(),
-                Err(e) => return Err(ApiError::internal(&served.name, &e)),
+                Err(e) => return Err(self.read_failed((index, c, packaged), &e)),
             }
         } else {
             match served.repo.get(&key) {
-                Ok(Some(blob)) => Bytes::copy_from_slice(&blob),
+                Ok(Some(blob)) => blob,
                 Ok(None) => Bytes::new(),
-                Err(e) => return Err(ApiError::internal(&served.name, &e)),
+                Err(e) => return Err(self.read_failed((index, c, packaged), &e)),
             }
         };
         let kind = if packaged { "p." } else { "" };
@@ -175,6 +185,40 @@ impl AppState {
         };
         self.cache.insert((index, c, packaged), blob.clone());
         Ok(blob)
+    }
+
+    /// Counts a failed read of `key` and logs it if it is the first for that blob (or
+    /// package): a corrupt blob asked for by every client logs one line, not one per
+    /// request. At most [`MAX_LOGGED_FAILURES`] blobs are remembered; past that one more
+    /// line says further failures are only counted.
+    fn read_failed(&self, key: BlobKey, cause: &dyn std::fmt::Display) -> ApiError {
+        self.metrics.repository_read_errors.fetch_add(1, Relaxed);
+        let first = {
+            let mut failed = self.failed.lock().unwrap_or_else(|e| e.into_inner());
+            if failed.len() < MAX_LOGGED_FAILURES {
+                failed.insert(key)
+            } else {
+                if !failed.contains(&key) && !self.failed_overflow.swap(true, Relaxed) {
+                    tracing::error!(
+                        "{MAX_LOGGED_FAILURES} blobs failed to read; further failures are only \
+                         counted (quincunx_repository_read_errors_total)"
+                    );
+                }
+                false
+            }
+        };
+        if first {
+            let (index, c, packaged) = key;
+            let repo = &self.repos[index as usize].name;
+            let kind = if packaged { "package" } else { "blob" };
+            tracing::error!(
+                repo,
+                centre = ?c,
+                "reading the {kind} failed: {cause} (logged once per {kind}; \
+                 quincunx_repository_read_errors_total counts every failure)"
+            );
+        }
+        ApiError::unreadable()
     }
 
     /// Hot cache occupancy: bytes (as weighed) and entries.

@@ -82,6 +82,11 @@ impl Running {
         }
     }
 
+    /// The directory of fixture repository `name`.
+    pub fn repo_dir(&self, name: &str) -> std::path::PathBuf {
+        self._dir.path().join(name)
+    }
+
     /// Starts graceful shutdown without waiting for it.
     pub fn begin_stop(&mut self) {
         if let Some(stop) = self.stop.take() {
@@ -196,6 +201,293 @@ pub fn read_to_close(stream: &mut TcpStream) -> (Vec<u8>, bool) {
             Ok(n) => out.extend_from_slice(&chunk[..n]),
             Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => return (out, true),
             Err(_) => return (out, false),
+        }
+    }
+}
+
+/// Connects from source address `from` (any of 127.0.0.0/8 on Linux), with a small
+/// receive buffer if `recv_buffer` is given (set before connecting, so the window
+/// advertised from the start is small).
+pub fn connect_from(
+    from: std::net::IpAddr,
+    addr: SocketAddr,
+    recv_buffer: Option<usize>,
+) -> TcpStream {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let socket = Socket::new(Domain::IPV4, Type::STREAM, Some(Protocol::TCP)).unwrap();
+    if let Some(n) = recv_buffer {
+        socket.set_recv_buffer_size(n).unwrap();
+    }
+    socket.bind(&SocketAddr::new(from, 0).into()).unwrap();
+    socket.connect(&addr.into()).unwrap();
+    let s: TcpStream = socket.into();
+    s.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+    s.set_nodelay(true).unwrap();
+    s
+}
+
+/// Waits up to `within` for the peer to close `stream` (reading and discarding what it
+/// sends); true if it did.
+pub fn closed_within(stream: &mut TcpStream, within: Duration) -> bool {
+    let deadline = std::time::Instant::now() + within;
+    let mut chunk = [0u8; 4096];
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        if left.is_zero() {
+            return false;
+        }
+        stream.set_read_timeout(Some(left)).unwrap();
+        match stream.read(&mut chunk) {
+            Ok(0) => return true,
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => return true,
+            Err(_) => return false,
+        }
+    }
+}
+
+/// A well-behaved client on its own keep-alive connection, making valid requests in a
+/// loop on a thread until stopped; [`WellBehaved::stop`] returns (ok, failed).
+pub struct WellBehaved {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<(u64, Vec<String>)>>,
+}
+
+impl WellBehaved {
+    pub fn start(addr: SocketAddr, path: String) -> WellBehaved {
+        use std::sync::atomic::Ordering::Relaxed;
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let stopping = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let mut ok = 0;
+            let mut failed = Vec::new();
+            let mut s = connect(addr);
+            let request = format!("GET {path} HTTP/1.1\r\nHost: t\r\n\r\n");
+            while !stopping.load(Relaxed) {
+                let sent = s.write_all(request.as_bytes());
+                let got = sent
+                    .map_err(|e| e.to_string())
+                    .and_then(|_| read_one(&mut s));
+                match got {
+                    Ok(200) => ok += 1,
+                    Ok(status) => failed.push(format!("status {status}")),
+                    Err(e) => {
+                        failed.push(e);
+                        s = connect(addr);
+                    }
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            (ok, failed)
+        });
+        WellBehaved {
+            stop,
+            thread: Some(thread),
+        }
+    }
+
+    /// Stops the client; asserts it made requests and every one succeeded.
+    pub fn stop(mut self) -> u64 {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        let (ok, failed) = self.thread.take().unwrap().join().unwrap();
+        assert!(
+            failed.is_empty(),
+            "the well-behaved client failed: {failed:?}"
+        );
+        assert!(ok > 0, "the well-behaved client made no request");
+        ok
+    }
+}
+
+/// Reads one response's status (its body read and discarded).
+fn read_one(s: &mut TcpStream) -> Result<u16, String> {
+    let mut buf = Vec::new();
+    let mut chunk = [0u8; 8192];
+    loop {
+        if let Some((r, _)) = parse_response(&buf, false)? {
+            return Ok(r.status);
+        }
+        let n = s.read(&mut chunk).map_err(|e| e.to_string())?;
+        if n == 0 {
+            return Err("closed".into());
+        }
+        buf.extend_from_slice(&chunk[..n]);
+    }
+}
+
+/// HTTP/2 framing for tests that misbehave on purpose.
+pub mod h2 {
+    use super::*;
+
+    pub const PREFACE: &[u8] = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n";
+    pub const DATA: u8 = 0;
+    pub const HEADERS: u8 = 1;
+    pub const RST_STREAM: u8 = 3;
+    pub const SETTINGS: u8 = 4;
+    pub const PING: u8 = 6;
+    pub const GOAWAY: u8 = 7;
+    pub const WINDOW_UPDATE: u8 = 8;
+    pub const CONTINUATION: u8 = 9;
+    pub const END_STREAM: u8 = 1;
+    pub const END_HEADERS: u8 = 4;
+    pub const ACK: u8 = 1;
+
+    pub fn frame(kind: u8, flags: u8, stream: u32, payload: &[u8]) -> Vec<u8> {
+        let len = payload.len() as u32;
+        let mut f = vec![(len >> 16) as u8, (len >> 8) as u8, len as u8, kind, flags];
+        f.extend_from_slice(&stream.to_be_bytes());
+        f.extend_from_slice(payload);
+        f
+    }
+
+    /// A SETTINGS frame with `(id, value)` pairs.
+    pub fn settings(pairs: &[(u16, u32)]) -> Vec<u8> {
+        let mut p = Vec::new();
+        for (id, v) in pairs {
+            p.extend_from_slice(&id.to_be_bytes());
+            p.extend_from_slice(&v.to_be_bytes());
+        }
+        frame(SETTINGS, 0, 0, &p)
+    }
+
+    /// The HPACK block of `GET path` on authority `t` (no Huffman, no indexing).
+    pub fn get_block(path: &str) -> Vec<u8> {
+        let mut b = vec![0x82, 0x86, 0x04, path.len() as u8];
+        b.extend_from_slice(path.as_bytes());
+        b.extend_from_slice(&[0x01, 0x01, b't']);
+        b
+    }
+
+    /// Preface, empty SETTINGS, and `GET path` on stream 1 (ended).
+    pub fn hello(path: &str) -> Vec<u8> {
+        let mut out = PREFACE.to_vec();
+        out.extend(settings(&[]));
+        out.extend(frame(
+            HEADERS,
+            END_HEADERS | END_STREAM,
+            1,
+            &get_block(path),
+        ));
+        out
+    }
+
+    /// The `:status` at the start of an HPACK block: indexed (`0x88` = 200, ... `0x8e` =
+    /// 500) or a literal with the `:status` name index (`0x48`, `0x08`), no Huffman.
+    pub fn status_of(block: &[u8]) -> u16 {
+        const STATIC: [u16; 7] = [200, 204, 206, 304, 400, 404, 500];
+        match block {
+            [b @ 0x88..=0x8e, ..] => STATIC[usize::from(b - 0x88)],
+            [0x48 | 0x08, 3, d @ ..] if d.len() >= 3 => std::str::from_utf8(&d[..3])
+                .ok()
+                .and_then(|s| s.parse().ok())
+                .unwrap_or(0),
+            [0x48 | 0x08, n, d @ ..] if n & 0x80 != 0 => {
+                let n = usize::from(n & 0x7f);
+                huffman_digits(d.get(..n).unwrap_or(&[]))
+            }
+            _ => 0,
+        }
+    }
+
+    /// Decodes a Huffman-coded string of decimal digits (RFC 7541 appendix B: '0'-'2'
+    /// are 5-bit codes 0-2, '3'-'9' 6-bit codes 0x19-0x1f); 0 if it is anything else.
+    fn huffman_digits(bytes: &[u8]) -> u16 {
+        let bits: Vec<u8> = bytes
+            .iter()
+            .flat_map(|b| (0..8).rev().map(move |i| (b >> i) & 1))
+            .collect();
+        let take = |at: usize, n: usize| {
+            bits.get(at..at + n)
+                .map(|b| b.iter().fold(0u8, |v, &x| v << 1 | x))
+        };
+        let (mut at, mut value, mut digits) = (0, 0u16, 0);
+        while digits < 3 {
+            match (take(at, 5), take(at, 6)) {
+                (Some(c), _) if c < 3 => {
+                    value = value * 10 + u16::from(c);
+                    at += 5;
+                }
+                (_, Some(c)) if (0x19..=0x1f).contains(&c) => {
+                    value = value * 10 + u16::from(c - 0x19 + 3);
+                    at += 6;
+                }
+                _ => return 0,
+            }
+            digits += 1;
+        }
+        value
+    }
+
+    /// What came back on a connection.
+    #[derive(Debug, Default)]
+    pub struct Seen {
+        /// Frame types in order (SETTINGS, acks, ...).
+        pub kinds: Vec<u8>,
+        /// The `:status` of each HEADERS block, by stream (0 if not understood).
+        pub statuses: Vec<(u32, u16)>,
+        /// GOAWAY error code, if one came.
+        pub goaway: Option<u32>,
+        /// Streams reset, with their codes.
+        pub resets: Vec<(u32, u32)>,
+        pub closed: bool,
+    }
+
+    /// Reads frames until the peer closes, `within` passes or `stop` says enough.
+    pub fn read_frames(s: &mut TcpStream, within: Duration, stop: impl Fn(&Seen) -> bool) -> Seen {
+        let deadline = std::time::Instant::now() + within;
+        let mut seen = Seen::default();
+        let mut buf = Vec::new();
+        let mut chunk = [0u8; 16384];
+        loop {
+            while buf.len() >= 9 {
+                let len =
+                    (usize::from(buf[0]) << 16) | (usize::from(buf[1]) << 8) | usize::from(buf[2]);
+                if buf.len() < 9 + len {
+                    break;
+                }
+                let (kind, stream) = (
+                    buf[3],
+                    u32::from_be_bytes([buf[5], buf[6], buf[7], buf[8]]) & 0x7fff_ffff,
+                );
+                let payload = &buf[9..9 + len];
+                seen.kinds.push(kind);
+                match kind {
+                    HEADERS if !payload.is_empty() => {
+                        seen.statuses.push((stream, status_of(payload)))
+                    }
+                    GOAWAY if len >= 8 => {
+                        seen.goaway = Some(u32::from_be_bytes([
+                            payload[4], payload[5], payload[6], payload[7],
+                        ]))
+                    }
+                    RST_STREAM if len == 4 => seen.resets.push((
+                        stream,
+                        u32::from_be_bytes([payload[0], payload[1], payload[2], payload[3]]),
+                    )),
+                    _ => {}
+                }
+                buf.drain(..9 + len);
+            }
+            if stop(&seen) {
+                return seen;
+            }
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            if left.is_zero() {
+                return seen;
+            }
+            s.set_read_timeout(Some(left)).unwrap();
+            match s.read(&mut chunk) {
+                Ok(0) => {
+                    seen.closed = true;
+                    return seen;
+                }
+                Ok(n) => buf.extend_from_slice(&chunk[..n]),
+                Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => {
+                    seen.closed = true;
+                    return seen;
+                }
+                Err(_) => return seen,
+            }
         }
     }
 }
