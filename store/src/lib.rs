@@ -80,12 +80,12 @@ pub enum StoreError {
     #[error("{0} is not a complete repository (interrupted build or truncated copy)")]
     Incomplete(PathBuf),
     /// The repository file is damaged or not a repository file.
-    #[error("{path}: {source}")]
+    #[error("{path}: {reason}")]
     Pack {
         /// The repository file.
         path: PathBuf,
         /// What is wrong.
-        source: pack::PackError,
+        reason: pack::PackError,
     },
     /// The metadata record is unreadable.
     #[error("metadata of {path} is malformed: {reason}")]
@@ -125,14 +125,14 @@ pub enum StoreError {
     #[error("another build is writing {0} (its {1} is locked)")]
     Busy(PathBuf, PathBuf),
     /// Filesystem operation failed.
-    #[error("{context} {path}: {source}")]
+    #[error("{context} {path}: {cause}")]
     Io {
         /// What was being done.
         context: &'static str,
         /// Path involved.
         path: PathBuf,
-        /// Cause.
-        source: std::io::Error,
+        /// Cause (in the message, so not also a `source`: printed once in error chains).
+        cause: std::io::Error,
     },
 }
 
@@ -247,10 +247,10 @@ fn io_err<'a>(
     context: &'static str,
     path: &'a Path,
 ) -> impl FnOnce(std::io::Error) -> StoreError + 'a {
-    move |source| StoreError::Io {
+    move |cause| StoreError::Io {
         context,
         path: path.to_path_buf(),
-        source,
+        cause,
     }
 }
 
@@ -284,10 +284,10 @@ impl Repository {
                     Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
                         StoreError::Missing(path.to_path_buf())
                     }
-                    Err(source) => StoreError::Io {
+                    Err(cause) => StoreError::Io {
                         context: "opening",
                         path: path.to_path_buf(),
-                        source,
+                        cause,
                     },
                     Ok(m) if !m.is_dir() => StoreError::NotARepository(path.to_path_buf()),
                     Ok(_) if occupied(&path.join("db")) || occupied(&path.join("conf")) => {
@@ -299,17 +299,17 @@ impl Repository {
             Err(e) if e.kind() == std::io::ErrorKind::NotADirectory => {
                 return Err(StoreError::NotARepository(path.to_path_buf()));
             }
-            Err(source) => {
+            Err(cause) => {
                 return Err(StoreError::Io {
                     context: "opening",
                     path: file_path,
-                    source,
+                    cause,
                 });
             }
         };
-        let pack_err = |source| StoreError::Pack {
+        let pack_err = |reason| StoreError::Pack {
             path: file_path.clone(),
-            source,
+            reason,
         };
         let meta = file.metadata().map_err(io_err("reading", &file_path))?;
         if meta.is_dir() {
@@ -436,16 +436,21 @@ impl Repository {
     /// is checked fully (checksum, lengths, key order, blob count); a damaged page is one
     /// error, and the walk goes on with the next page.
     pub fn blobs(&self) -> impl Iterator<Item = Result<(Vec<u8>, Bytes)>> + '_ {
-        self.pages
-            .iter()
-            .flat_map(move |p| match self.page_entries(p) {
+        self.pages.iter().enumerate().flat_map(move |(i, p)| {
+            let next = self.pages.get(i + 1).map(|n| &*n.first_key);
+            match self.page_entries(p, next) {
                 Ok(entries) => entries.into_iter().map(Ok).collect::<Vec<_>>(),
                 Err(e) => vec![Err(e)],
-            })
+            }
+        })
     }
 
-    /// The pairs of one page.
-    fn page_entries(&self, page_ref: &pack::PageRef) -> Result<Vec<(Vec<u8>, Bytes)>> {
+    /// The pairs of one page, whose keys must stay below the next page's first key.
+    fn page_entries(
+        &self,
+        page_ref: &pack::PageRef,
+        next: Option<&[u8]>,
+    ) -> Result<Vec<(Vec<u8>, Bytes)>> {
         let page = self.read_page(page_ref)?;
         let bad = |e: page::PageError| self.page_err(page_ref, e.to_string());
         let mut reader = page::PageReader::new(&page_ref.first_key, &page).map_err(bad)?;
@@ -462,6 +467,11 @@ impl Repository {
         let mut out = Vec::with_capacity(reader.remaining());
         while let Some((key, value)) = reader.next_entry().map_err(bad)? {
             out.push((key.to_vec(), page.slice(value)));
+        }
+        if let (Some((last, _)), Some(next)) = (out.last(), next)
+            && last.as_slice() >= next
+        {
+            return Err(self.page_err(page_ref, "keys run past the next page's first key".into()));
         }
         Ok(out)
     }
@@ -1168,6 +1178,46 @@ mod tests {
             Repository::open(&path),
             Err(StoreError::Version { found: 7, .. })
         ));
+    }
+
+    #[test]
+    fn a_page_whose_keys_run_into_the_next_page_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("crafted");
+        std::fs::create_dir(&path).unwrap();
+        let page = |pairs: &[(&[u8], &[u8])]| {
+            let mut w = page::PageWriter::default();
+            for (k, v) in pairs {
+                w.push(k, v);
+            }
+            w.finish().unwrap()
+        };
+        let (k1, p1) = page(&[(b"a", b"1"), (b"c", b"3")]);
+        let (k2, p2) = page(&[(b"b", b"2")]);
+        let mut m = metadata();
+        m.format_version = FORMAT_VERSION;
+        m.complete = true;
+        let mut w = pack::PackWriter::new(Vec::new(), FORMAT_VERSION).unwrap();
+        w.page(&k1, &p1, 2).unwrap();
+        w.page(&k2, &p2, 1).unwrap();
+        let bytes = w.finish(&serde_json::to_vec(&m).unwrap()).unwrap();
+        std::fs::write(path.join(PACK_FILE), bytes).unwrap();
+        let repo = Repository::open(&path).unwrap();
+        let walk: Vec<_> = repo.blobs().collect();
+        assert_eq!(
+            walk.len(),
+            2,
+            "one error for the first page, one blob from the second"
+        );
+        assert!(
+            walk[0]
+                .as_ref()
+                .err()
+                .unwrap()
+                .to_string()
+                .contains("next page")
+        );
+        assert_eq!(&walk[1].as_ref().unwrap().1[..], b"2");
     }
 
     proptest::proptest! {
