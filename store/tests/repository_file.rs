@@ -135,6 +135,15 @@ fn walk(path: &Path) -> (Seen, Option<String>) {
     (Seen::Walk { ok, errors }, message)
 }
 
+/// A damage kind: name, file bytes (`None`: no file), what a reader must see, and words the
+/// error must say.
+type DamageCase = (
+    &'static str,
+    Option<Vec<u8>>,
+    fn(&Seen) -> bool,
+    &'static str,
+);
+
 #[test]
 fn every_kind_of_damage_is_one_clear_error() {
     let dir = tempfile::tempdir().unwrap();
@@ -154,7 +163,7 @@ fn every_kind_of_damage_is_one_clear_error() {
         b
     };
     // (name, file bytes or None for no file, what a reader must see, words the error says)
-    let cases: Vec<(&str, Option<Vec<u8>>, fn(&Seen) -> bool, &str)> = vec![
+    let cases: Vec<DamageCase> = vec![
         (
             "empty file",
             Some(vec![]),
