@@ -1067,7 +1067,7 @@ mod tests {
     }
 
     #[test]
-    fn every_key_is_found_across_pages_and_trees_and_gaps_are_none() {
+    fn every_key_is_found_across_pages_and_gaps_are_none() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("repo");
         // Even keys only, so every odd key is a gap: before, between and after pages.
