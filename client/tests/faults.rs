@@ -203,7 +203,7 @@ fn an_unreachable_server_is_reported_per_key() {
 /// A server that answers every request with a valid head announcing a 100 000-byte body,
 /// then trickles the body one byte every 50 ms: always making progress, done in 5000 s.
 fn start_trickler() -> std::net::SocketAddr {
-    use std::io::{Read, Write};
+    use std::io::Read;
     let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = listener.local_addr().unwrap();
     std::thread::spawn(move || {
@@ -217,17 +217,7 @@ fn start_trickler() -> std::net::SocketAddr {
                 }
                 // The head at once (reqwest wants it within its read timeout), then the
                 // body a byte at a time.
-                if s.write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 100000\r\n\r\n")
-                    .is_err()
-                {
-                    return;
-                }
-                for _ in 0..100_000 {
-                    if s.write_all(b"x").is_err() {
-                        return;
-                    }
-                    std::thread::sleep(Duration::from_millis(50));
-                }
+                quincunx_testkit::http::trickle_answer(&mut s);
             });
         }
     });

@@ -26,3 +26,21 @@ impl Response {
         String::from_utf8_lossy(&self.body).into_owned()
     }
 }
+
+/// Answers on `stream` with a 100,000-byte body sent one byte every 50 ms (the head at
+/// once): a server that is never idle long enough for a progress timeout, for testing
+/// overall request deadlines. Returns when the peer goes away.
+pub fn trickle_answer(stream: &mut impl std::io::Write) {
+    if stream
+        .write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 100000\r\n\r\n")
+        .is_err()
+    {
+        return;
+    }
+    for _ in 0..100_000 {
+        if stream.write_all(b"x").is_err() {
+            return;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}

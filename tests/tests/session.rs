@@ -425,17 +425,7 @@ fn start_trickler(upstream: std::net::SocketAddr, repo: &str) -> std::net::Socke
                     let _ = s.write_all(&reply);
                     return;
                 }
-                if s.write_all(b"HTTP/1.1 200 OK\r\nContent-Length: 100000\r\n\r\n")
-                    .is_err()
-                {
-                    return;
-                }
-                for _ in 0..100_000 {
-                    if s.write_all(b"x").is_err() {
-                        return;
-                    }
-                    std::thread::sleep(Duration::from_millis(50));
-                }
+                quincunx_testkit::http::trickle_answer(&mut s);
             });
         }
     });
