@@ -290,9 +290,7 @@ impl Repository {
                         cause,
                     },
                     Ok(m) if !m.is_dir() => StoreError::NotARepository(path.to_path_buf()),
-                    Ok(_) if occupied(&path.join("db")) || occupied(&path.join("conf")) => {
-                        StoreError::Legacy(path.to_path_buf())
-                    }
+                    Ok(_) if holds_sled_database(path) => StoreError::Legacy(path.to_path_buf()),
                     Ok(_) => StoreError::NotARepository(path.to_path_buf()),
                 });
             }
@@ -587,7 +585,12 @@ fn is_legacy_entry(name: &std::ffi::OsStr) -> bool {
 
 /// Whether `path` is a directory holding a repository, of this format or an older one.
 fn holds_repository(path: &Path) -> bool {
-    occupied(&path.join(PACK_FILE)) || occupied(&path.join("db")) || occupied(&path.join("conf"))
+    occupied(&path.join(PACK_FILE)) || holds_sled_database(path)
+}
+
+/// Whether `path` holds a sled database (a repository of format 5 or older).
+fn holds_sled_database(path: &Path) -> bool {
+    occupied(&path.join("db")) || occupied(&path.join("conf"))
 }
 
 /// Test hook: `QUINCUNX_PUBLISH_ABORT_AT=<step>` aborts the process at that step of
@@ -804,11 +807,11 @@ impl RepositoryBuilder {
         // Read it back the way readers do: a file that does not open is never published.
         let check = Repository::open(&self.partial)?;
         if check.blob_count() as u64 != self.stats.iter().map(|s| s.blobs).sum::<u64>() {
-            return Err(StoreError::Page {
+            return Err(StoreError::Pack {
                 path: file_path.clone(),
-                key: Vec::new(),
-                offset: 0,
-                reason: "the written index does not count every blob".into(),
+                reason: pack::PackError::Damaged(
+                    "the written index does not count every blob".into(),
+                ),
             });
         }
         drop(check);
