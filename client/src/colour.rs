@@ -267,13 +267,20 @@ impl<R: Domain> ColourLayer<R> {
     /// The sRGB colour of vertex `k` of a diamond's colour grids (YCoCg-R inverted,
     /// clamped to bytes); `None` when the grids have no vertex `k`.
     pub fn rgb(&self, grids: &[Vec<i32>], k: usize) -> Option<[u8; 3]> {
+        let [y, co, cg] = self.ycocg(grids, k)?;
+        let (r, g, b) = ycocg_r_to_rgb(y, co, cg);
+        Some([r, g, b].map(|x| x.clamp(0, 255) as u8))
+    }
+
+    /// The YCoCg-R integers `[Y, Co, Cg]` of vertex `k` (each channel's integers scaled
+    /// back to colour units): what a shader decodes with the inverse transform.
+    pub fn ycocg(&self, grids: &[Vec<i32>], k: usize) -> Option<[i32; 3]> {
         let v = |c: usize| {
             let (scale, offset) = *self.scales.get(c)?;
             let x = *grids.get(c)?.get(k)?;
             Some((offset + f64::from(x) * scale).round() as i32)
         };
-        let (r, g, b) = ycocg_r_to_rgb(v(0)?, v(1)?, v(2)?);
-        Some([r, g, b].map(|x| x.clamp(0, 255) as u8))
+        Some([v(0)?, v(1)?, v(2)?])
     }
 }
 

@@ -7,7 +7,8 @@
 //! that is when all its parents are refined (the 4-8 rule that keeps every cut free of
 //! cracks and T-junctions). The cut is the set of present halves of unrefined diamonds.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
+use std::hash::BuildHasherDefault;
 use std::sync::Arc;
 
 use quincunx_codec::diamond::PlanarId;
@@ -140,6 +141,30 @@ pub struct Dag<R: Domain = PlanarRefiner> {
     generations: u64,
     /// Diamonds holding a refined lattice.
     refined: usize,
+    /// Diamonds whose halves may have entered or left the cut since the last
+    /// [`Dag::take_cut_changes`].
+    touched: HashSet<R::Id, BuildHasherDefault<IdHasher>>,
+    /// The halves [`Dag::take_cut_changes`] has reported in the cut.
+    reported: HashSet<(R::Id, Half), BuildHasherDefault<IdHasher>>,
+}
+
+/// How the cut changed since the previous [`Dag::take_cut_changes`]: what a retained-mode
+/// renderer uploads and frees. A half's grid entries never change while it is in the cut
+/// (a half is written once when its parent refines and cleared when it leaves; adding or
+/// clearing the other half leaves its entries alone), so membership is all that changes.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct CutChanges<I> {
+    /// Halves that entered the cut, sorted.
+    pub entered: Vec<(I, Half)>,
+    /// Halves that left it, sorted.
+    pub left: Vec<(I, Half)>,
+}
+
+impl<I> CutChanges<I> {
+    /// Whether nothing changed.
+    pub fn is_empty(&self) -> bool {
+        self.entered.is_empty() && self.left.is_empty()
+    }
 }
 
 impl<R: Domain> Dag<R> {
@@ -175,13 +200,16 @@ impl<R: Domain> Dag<R> {
                 };
                 (root, node)
             })
-            .collect();
+            .collect::<IdMap<_, _>>();
+        let touched = nodes.keys().copied().collect();
         Dag {
             nodes,
             refiner,
             colour,
             generations: 1,
             refined: 0,
+            touched,
+            reported: HashSet::default(),
         }
     }
 
@@ -350,6 +378,7 @@ impl<R: Domain> Dag<R> {
         }
         // The lattices are not kept: a child's half never changes while this diamond
         // stays refined, and coarsening only clears it.
+        self.touched.insert(id);
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = Some(without_lattice(refined));
             if let Some(c) = node.colour.as_mut() {
@@ -366,6 +395,7 @@ impl<R: Domain> Dag<R> {
         if !self.is_coarsenable(id) {
             return Err(DagError::NotCoarsenable(format!("{id:?}")));
         }
+        self.touched.insert(id);
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = None;
             if let Some(c) = node.colour.as_mut() {
@@ -469,6 +499,7 @@ impl<R: Domain> Dag<R> {
         let Some(mut node) = self.nodes.remove(&child) else {
             return;
         };
+        self.touched.insert(child);
         node.present[h] = false;
         if !node.present.iter().any(|p| *p) {
             return;
@@ -500,7 +531,51 @@ impl<R: Domain> Dag<R> {
         self.generations += 1;
         node.generation = self.generations;
         node.z_range = z_range(&node.grid, self.refiner.n(), node.present);
+        self.touched.insert(node.id);
         self.nodes.insert(node.id, node);
+    }
+
+    /// Whether a half is in the cut: present in an unrefined diamond.
+    pub fn in_cut(&self, id: R::Id, half: Half) -> bool {
+        self.nodes
+            .get(&id)
+            .is_some_and(|n| n.refined.is_none() && n.has(half))
+    }
+
+    /// The halves that entered and left the cut since the previous call (the first call
+    /// reports the whole cut as entered). Costs O(diamonds changed), not O(cut): the DAG
+    /// notes each diamond it touches, and this compares just those with what it reported.
+    /// One consumer (a renderer) should call it; [`Dag::restart_cut_changes`] makes the
+    /// next call report the whole cut again.
+    pub fn take_cut_changes(&mut self) -> CutChanges<R::Id> {
+        let mut changes = CutChanges {
+            entered: Vec::new(),
+            left: Vec::new(),
+        };
+        let touched = std::mem::take(&mut self.touched);
+        for id in touched {
+            for half in Half::BOTH {
+                let now = self.in_cut(id, half);
+                let was = self.reported.contains(&(id, half));
+                if now && !was {
+                    self.reported.insert((id, half));
+                    changes.entered.push((id, half));
+                } else if was && !now {
+                    self.reported.remove(&(id, half));
+                    changes.left.push((id, half));
+                }
+            }
+        }
+        changes.entered.sort_unstable();
+        changes.left.sort_unstable();
+        changes
+    }
+
+    /// Makes the next [`Dag::take_cut_changes`] report the whole cut as entered and
+    /// nothing as left (for a consumer that dropped what it had).
+    pub fn restart_cut_changes(&mut self) {
+        self.reported.clear();
+        self.touched = self.nodes.keys().copied().collect();
     }
 
     /// Halves in the cut (without listing them).
@@ -850,6 +925,91 @@ mod tests {
             .unwrap();
         doubled.nodes.get_mut(&refined).unwrap().refined = None;
         assert!(doubled.check_cut().overlaps > 0);
+    }
+
+    /// Replays random refinements and coarsenings; after each batch, the cut built from
+    /// the reported changes equals the cut, and nothing is reported twice.
+    fn cut_changes_follow_the_cut<R: Domain>(mut dag: Dag<R>, seed: u64) {
+        use std::collections::BTreeSet;
+        let mut state = seed;
+        let mut next = move || {
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (state >> 33) as usize
+        };
+        let mut mirror: BTreeSet<(R::Id, Half)> = BTreeSet::new();
+        let mut changes_seen = 0;
+        for round in 0..60 {
+            for _ in 0..1 + next() % 6 {
+                let refinable: Vec<R::Id> = dag
+                    .nodes()
+                    .map(|n| n.id)
+                    .filter(|&id| dag.is_refinable(id))
+                    .collect();
+                let coarsenable: Vec<R::Id> = dag
+                    .nodes()
+                    .map(|n| n.id)
+                    .filter(|&id| dag.is_coarsenable(id))
+                    .collect();
+                let coarsen = round % 3 == 2 || refinable.is_empty() || dag.len() > 400;
+                if coarsen && !coarsenable.is_empty() {
+                    dag.coarsen(coarsenable[next() % coarsenable.len()])
+                        .unwrap();
+                } else if !refinable.is_empty() {
+                    dag.refine(refinable[next() % refinable.len()], None)
+                        .unwrap();
+                }
+            }
+            let changes = dag.take_cut_changes();
+            for key in &changes.left {
+                assert!(mirror.remove(key), "{key:?} left without having entered");
+            }
+            for key in &changes.entered {
+                assert!(mirror.insert(*key), "{key:?} entered twice");
+            }
+            changes_seen += changes.entered.len() + changes.left.len();
+            let cut: BTreeSet<(R::Id, Half)> = dag.cut().into_iter().collect();
+            assert_eq!(mirror, cut, "round {round}");
+            assert!(dag.take_cut_changes().is_empty());
+        }
+        assert!(changes_seen > 100, "{changes_seen} changes");
+        dag.restart_cut_changes();
+        let again = dag.take_cut_changes();
+        assert!(again.left.is_empty());
+        assert_eq!(again.entered, dag.cut());
+    }
+
+    #[test]
+    fn cut_changes_follow_the_cut_on_the_plane_and_a_planet() {
+        let (w, h) = (129, 97);
+        let grid = Grid {
+            width: w,
+            height: h,
+            values_m: (0..w * h)
+                .map(|k| height((k % w) as f64, (k / w) as f64))
+                .collect(),
+            quantum_m: Some(1.0),
+        };
+        let enc = encode(&grid, options(8)).unwrap();
+        let refiner = Arc::new(PlanarRefiner::from_encoded(&enc).unwrap());
+        for seed in 0..4 {
+            cut_changes_follow_the_cut(Dag::new(Arc::clone(&refiner)), seed);
+        }
+        let face_side = 32;
+        let w = face_side + 1;
+        let cube = CubeGrid {
+            face_side,
+            values_m: (0..6 * w * w)
+                .map(|k| height((k % w) as f64, (k / w) as f64))
+                .collect(),
+            quantum_m: Some(1.0),
+        };
+        let enc = encode_sphere(&cube, options(8)).unwrap();
+        let refiner = Arc::new(SphereRefiner::from_encoded(&enc).unwrap());
+        for seed in 0..4 {
+            cut_changes_follow_the_cut(Dag::new(Arc::clone(&refiner)), seed);
+        }
     }
 
     #[test]

@@ -236,6 +236,15 @@ pub struct Snapshot<I = PlanarId, W = PlanarWorld> {
     pub colour_n: usize,
 }
 
+/// What entered and left the cut since the previous [`Session::cut_changes`].
+#[derive(Clone, Debug)]
+pub struct PatchChanges<I = PlanarId> {
+    /// Patches that entered the cut, in a stable order.
+    pub entered: Vec<Patch<I>>,
+    /// Halves that left it.
+    pub left: Vec<(I, Half)>,
+}
+
 /// A colour layer and its data access.
 type ColourStream<R> = (
     Arc<ColourLayer<R>>,
@@ -716,17 +725,7 @@ impl<R: Domain> Session<R> {
             .dag
             .cut()
             .into_iter()
-            .filter_map(|(id, half)| {
-                let node = self.dag.node(id)?;
-                Some(Patch {
-                    id,
-                    half,
-                    corners: node.corners,
-                    grid: Arc::clone(&node.grid),
-                    generation: node.generation,
-                    colour: node.colour.as_ref().map(|c| Arc::clone(&c.grids)),
-                })
-            })
+            .filter_map(|(id, half)| self.patch(id, half))
             .collect();
         Snapshot {
             n: self.refiner.n(),
@@ -734,6 +733,39 @@ impl<R: Domain> Session<R> {
             patches,
             colour_n: self.dag.colour().map_or(0, ColourLayer::n),
         }
+    }
+
+    /// How the cut changed since the previous call, with the patches that entered (the
+    /// first call reports the whole cut): what a retained-mode renderer uploads and frees
+    /// each frame, in time proportional to the changes ([`Dag::take_cut_changes`]).
+    pub fn cut_changes(&mut self) -> PatchChanges<R::Id> {
+        let changes = self.dag.take_cut_changes();
+        let entered = changes
+            .entered
+            .into_iter()
+            .filter_map(|(id, half)| self.patch(id, half))
+            .collect();
+        PatchChanges {
+            entered,
+            left: changes.left,
+        }
+    }
+
+    /// Makes the next [`Session::cut_changes`] report the whole cut again.
+    pub fn restart_cut_changes(&mut self) {
+        self.dag.restart_cut_changes();
+    }
+
+    fn patch(&self, id: R::Id, half: Half) -> Option<Patch<R::Id>> {
+        let node = self.dag.node(id)?;
+        Some(Patch {
+            id,
+            half,
+            corners: node.corners,
+            grid: Arc::clone(&node.grid),
+            generation: node.generation,
+            colour: node.colour.as_ref().map(|c| Arc::clone(&c.grids)),
+        })
     }
 
     /// A conservative range of the surface's heights (metres): over the cut, each

@@ -153,7 +153,8 @@ fn parse_link(s: &str) -> Result<(f64, f64), String> {
     Ok((kbit, rtt))
 }
 
-fn parse_viewport(s: &str) -> Result<[u32; 2], String> {
+/// Parses `WxH` (each side 1..=16384).
+pub fn parse_viewport(s: &str) -> Result<[u32; 2], String> {
     let (w, h) = s
         .split_once('x')
         .ok_or_else(|| format!("{s:?} is not WIDTHxHEIGHT"))?;

@@ -30,4 +30,5 @@ pub mod planet;
 pub mod preview;
 pub mod progress;
 pub mod query;
+pub mod render;
 pub mod verify;

@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 use quincunx_repo_tools::{
-    build, demo, export, fly, info, loadtest, outln, preview, query, verify,
+    build, demo, export, fly, info, loadtest, outln, preview, query, render, verify,
 };
 
 /// Streams compressed multiresolution terrain: repository tools.
@@ -44,6 +44,9 @@ enum Command {
     /// Fly a camera path with a headless streaming client against a server, in real
     /// time (optionally through an emulated link), and measure it.
     Fly(fly::FlyArgs),
+    /// Stream a served repository to full quality for one camera and write the frame as
+    /// a PNG (rendered offscreen with wgpu; docs/rendering.md).
+    Render(render::RenderArgs),
     /// Check and decode every blob; with `--source`, reconstruct at full resolution and
     /// measure the error against the source.
     Verify(verify::VerifyArgs),
@@ -123,6 +126,7 @@ fn main() -> ExitCode {
         Command::Query { repo, at, json } => query::run(&repo, &at, json),
         Command::Loadtest(args) => loadtest::run(&args),
         Command::Fly(args) => fly::run(&args),
+        Command::Render(args) => render::run(&args),
         Command::Preview {
             repo,
             output,

@@ -1,0 +1,59 @@
+//! The quincunx renderer: draws the crack-free cut a [`quincunx_client`] session streams,
+//! retained-mode and batched, with wgpu, into an app's own device, queue and render pass
+//! (or offscreen, [`offscreen`]).
+//!
+//! - A patch (one half of a diamond in the cut) is uploaded once, when it enters the cut:
+//!   its `(N+1)^2` integer heights, its colour (YCoCg-R, decoded in the shader) and a
+//!   96-byte record of its exact affine map in integer *fine units*. Vertex positions are
+//!   rebuilt on the GPU from those integers; nothing moves per frame but one uniform
+//!   block and the draws that changed.
+//! - Slots are equal-sized and pooled under a byte budget ([`pool`]); patches that left
+//!   the cut stay cached (LRU) and come back without an upload.
+//! - One shared index buffer, one `multi_draw_indexed_indirect` for the whole cut.
+//! - Precision: the camera is split into integer limbs and a small remainder in f64 on
+//!   the host; the shader subtracts exact integers, so only camera-relative numbers
+//!   reach f32, and shared vertices come out bit-identical in neighbouring patches.
+//!   Reversed Z, infinite far plane, `Depth32Float`.
+//!
+//! The frame loop of an app (see `examples/embed.rs`):
+//!
+//! ```text
+//! session.update(&view, now, budget)?;          // the client refines its cut
+//! renderer.sync(&mut session)?;                 // O(changes): what entered and left
+//! renderer.prepare(&queue, &Camera::from_view(&view));
+//! // in the app's render pass (depth cleared to 0, Depth32Float):
+//! renderer.draw(&mut pass);
+//! ```
+
+pub mod camera;
+pub mod domain;
+pub mod ground;
+pub mod offscreen;
+pub mod pool;
+pub mod renderer;
+pub mod scene;
+
+pub use camera::{Camera, Lighting, Modes};
+pub use domain::{Geometry, RenderDomain, WorldFrame};
+pub use offscreen::{Gpu, Image, Offscreen};
+pub use renderer::{DEPTH_FORMAT, RenderFrameStats, RendererConfig, TerrainRenderer};
+
+/// Why rendering could not start or continue.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    /// No usable GPU adapter (or device).
+    #[error("no usable GPU adapter: {0}")]
+    NoAdapter(String),
+    /// A setting the renderer cannot honour.
+    #[error("renderer configuration: {0}")]
+    Config(String),
+    /// A patch whose geometry the renderer cannot express (a bug).
+    #[error("patch geometry: {0}")]
+    Geometry(String),
+    /// The GPU reported an error.
+    #[error("GPU: {0}")]
+    Gpu(String),
+    /// Reading or writing an image.
+    #[error("image: {0}")]
+    Io(String),
+}

@@ -1,0 +1,419 @@
+//! Headless rendering: a device without a window, an offscreen colour and depth target,
+//! read back to RGBA pixels and PNG files, with GPU timing where the adapter has
+//! timestamp queries.
+
+use std::path::Path;
+
+use crate::RenderError;
+use crate::renderer::DEPTH_FORMAT;
+
+/// The colour format of offscreen frames (PNG bytes as they are).
+pub const OFFSCREEN_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+
+/// A device and queue of a headless adapter.
+pub struct Gpu {
+    /// The adapter.
+    pub adapter: wgpu::Adapter,
+    /// The device.
+    pub device: wgpu::Device,
+    /// Its queue.
+    pub queue: wgpu::Queue,
+}
+
+impl Gpu {
+    /// A headless device on the first adapter the environment allows (`WGPU_BACKEND`,
+    /// `WGPU_ADAPTER_NAME` as substring, `WGPU_POWER_PREF`), with the adapter's own
+    /// limits (large storage bindings) and timestamp queries where it has them.
+    pub fn headless() -> Result<Gpu, RenderError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        Gpu::from_instance(&instance, None)
+    }
+
+    /// A device on an adapter of `instance` (compatible with `surface` when given).
+    pub fn from_instance(
+        instance: &wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+    ) -> Result<Gpu, RenderError> {
+        let adapter = match std::env::var("WGPU_ADAPTER_NAME") {
+            Ok(name) if !name.is_empty() => {
+                let want = name.to_lowercase();
+                let adapters =
+                    pollster::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+                adapters
+                    .into_iter()
+                    .find(|a| a.get_info().name.to_lowercase().contains(&want))
+                    .ok_or_else(|| {
+                        RenderError::NoAdapter(format!("no adapter named like {name:?}"))
+                    })?
+            }
+            _ => pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+                compatible_surface: surface,
+                ..Default::default()
+            }))
+            .map_err(|e| RenderError::NoAdapter(e.to_string()))?,
+        };
+        let downlevel = adapter.get_downlevel_capabilities();
+        if !downlevel
+            .flags
+            .contains(wgpu::DownlevelFlags::VERTEX_STORAGE)
+        {
+            return Err(RenderError::NoAdapter(format!(
+                "adapter {:?} cannot read storage buffers in vertex shaders",
+                adapter.get_info().name
+            )));
+        }
+        let features = adapter.features()
+            & (wgpu::Features::TIMESTAMP_QUERY
+                | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS
+                | wgpu::Features::VERTEX_WRITABLE_STORAGE);
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("quincunx"),
+            required_features: features,
+            required_limits: adapter.limits(),
+            ..Default::default()
+        }))
+        .map_err(|e| RenderError::NoAdapter(e.to_string()))?;
+        Ok(Gpu {
+            adapter,
+            device,
+            queue,
+        })
+    }
+
+    /// "name (backend, device type)".
+    pub fn describe(&self) -> String {
+        let info = self.adapter.get_info();
+        format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type)
+    }
+}
+
+/// A headless device for tests: `Ok(None)` (after printing `SKIP <test>: <reason>`)
+/// when there is none, unless `REQUIRE_GPU=1`, which turns that into an error.
+pub fn gpu_for_test(test: &str) -> Result<Option<Gpu>, RenderError> {
+    match Gpu::headless() {
+        Ok(gpu) => Ok(Some(gpu)),
+        Err(e) if std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1") => Err(e),
+        Err(e) => {
+            println!("SKIP {test}: no GPU adapter ({e})");
+            Ok(None)
+        }
+    }
+}
+
+/// An RGBA8 image.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Image {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+    /// Rows top to bottom, 4 bytes per pixel.
+    pub rgba: Vec<u8>,
+}
+
+impl Image {
+    /// The pixel at `(x, y)`.
+    pub fn pixel(&self, x: u32, y: u32) -> [u8; 4] {
+        let k = ((y * self.width + x) * 4) as usize;
+        [
+            self.rgba[k],
+            self.rgba[k + 1],
+            self.rgba[k + 2],
+            self.rgba[k + 3],
+        ]
+    }
+
+    /// Writes a PNG (RGB).
+    pub fn write_png(&self, path: &Path) -> Result<(), RenderError> {
+        let io = |e: std::io::Error| RenderError::Io(format!("{}: {e}", path.display()));
+        let file = std::fs::File::create(path).map_err(io)?;
+        let mut enc = png::Encoder::new(std::io::BufWriter::new(file), self.width, self.height);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut w = enc
+            .write_header()
+            .map_err(|e| RenderError::Io(format!("{}: {e}", path.display())))?;
+        let rgb: Vec<u8> = self
+            .rgba
+            .chunks_exact(4)
+            .flat_map(|p| [p[0], p[1], p[2]])
+            .collect();
+        w.write_image_data(&rgb)
+            .map_err(|e| RenderError::Io(format!("{}: {e}", path.display())))?;
+        w.finish()
+            .map_err(|e| RenderError::Io(format!("{}: {e}", path.display())))
+    }
+
+    /// Reads a PNG (RGB or RGBA, 8 bits).
+    pub fn read_png(path: &Path) -> Result<Image, RenderError> {
+        let err = |e: String| RenderError::Io(format!("{}: {e}", path.display()));
+        let file = std::fs::File::open(path).map_err(|e| err(e.to_string()))?;
+        let mut dec = png::Decoder::new(std::io::BufReader::new(file));
+        dec.set_transformations(png::Transformations::EXPAND);
+        let mut reader = dec.read_info().map_err(|e| err(e.to_string()))?;
+        let mut buf = vec![0; reader.output_buffer_size()];
+        let info = reader
+            .next_frame(&mut buf)
+            .map_err(|e| err(e.to_string()))?;
+        let px = (info.width * info.height) as usize;
+        let rgba = match info.color_type {
+            png::ColorType::Rgba => buf[..px * 4].to_vec(),
+            png::ColorType::Rgb => buf[..px * 3]
+                .chunks_exact(3)
+                .flat_map(|p| [p[0], p[1], p[2], 255])
+                .collect(),
+            other => return Err(err(format!("unsupported colour type {other:?}"))),
+        };
+        Ok(Image {
+            width: info.width,
+            height: info.height,
+            rgba,
+        })
+    }
+}
+
+/// An offscreen colour + depth target with a readback buffer.
+pub struct Offscreen {
+    /// Width, height.
+    pub size: [u32; 2],
+    colour: wgpu::Texture,
+    colour_view: wgpu::TextureView,
+    depth_view: wgpu::TextureView,
+    readback: wgpu::Buffer,
+    padded_row: u32,
+    timer: Option<(wgpu::QuerySet, wgpu::Buffer, wgpu::Buffer)>,
+}
+
+/// What one offscreen frame took on the GPU.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct GpuTiming {
+    /// Render pass time, ms (`None` without timestamp queries).
+    pub gpu_ms: Option<f64>,
+}
+
+impl Offscreen {
+    /// A target of `size` pixels.
+    pub fn new(gpu: &Gpu, size: [u32; 2]) -> Result<Offscreen, RenderError> {
+        let [w, h] = size;
+        let max = gpu.device.limits().max_texture_dimension_2d;
+        if w == 0 || h == 0 || w > max || h > max {
+            return Err(RenderError::Config(format!(
+                "image size {w}x{h}: each side must be 1..={max}"
+            )));
+        }
+        let extent = wgpu::Extent3d {
+            width: w,
+            height: h,
+            depth_or_array_layers: 1,
+        };
+        let texture = |format, usage, label| {
+            gpu.device.create_texture(&wgpu::TextureDescriptor {
+                label: Some(label),
+                size: extent,
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format,
+                usage,
+                view_formats: &[],
+            })
+        };
+        let colour = texture(
+            OFFSCREEN_FORMAT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            "quincunx offscreen colour",
+        );
+        let depth = texture(
+            DEPTH_FORMAT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT,
+            "quincunx offscreen depth",
+        );
+        let padded_row = (w * 4).div_ceil(256) * 256;
+        let readback = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("quincunx readback"),
+            size: u64::from(padded_row) * u64::from(h),
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        });
+        let timer = gpu
+            .device
+            .features()
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
+            .then(|| {
+                let set = gpu.device.create_query_set(&wgpu::QuerySetDescriptor {
+                    label: Some("quincunx timer"),
+                    ty: wgpu::QueryType::Timestamp,
+                    count: 2,
+                });
+                let resolve = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("quincunx timer resolve"),
+                    size: 16,
+                    usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                    mapped_at_creation: false,
+                });
+                let read = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("quincunx timer read"),
+                    size: 16,
+                    usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+                    mapped_at_creation: false,
+                });
+                (set, resolve, read)
+            });
+        Ok(Offscreen {
+            size,
+            colour_view: colour.create_view(&Default::default()),
+            colour,
+            depth_view: depth.create_view(&Default::default()),
+            readback,
+            padded_row,
+            timer,
+        })
+    }
+
+    /// Renders one frame: clears to `background` (sRGB bytes) and depth 0, lets `draw`
+    /// record into the pass, and waits for the GPU. Returns the pass's GPU time.
+    pub fn render(
+        &self,
+        gpu: &Gpu,
+        background: [u8; 3],
+        draw: impl FnOnce(&mut wgpu::RenderPass<'_>),
+    ) -> Result<GpuTiming, RenderError> {
+        let mut encoder = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        {
+            let timestamp_writes =
+                self.timer
+                    .as_ref()
+                    .map(|(set, _, _)| wgpu::RenderPassTimestampWrites {
+                        query_set: set,
+                        beginning_of_pass_write_index: Some(0),
+                        end_of_pass_write_index: Some(1),
+                    });
+            let c = background.map(|x| f64::from(x) / 255.0);
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("quincunx offscreen"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &self.colour_view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color {
+                            r: c[0],
+                            g: c[1],
+                            b: c[2],
+                            a: 1.0,
+                        }),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: &self.depth_view,
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(0.0),
+                        store: wgpu::StoreOp::Discard,
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            draw(&mut pass);
+        }
+        if let Some((set, resolve, read)) = &self.timer {
+            encoder.resolve_query_set(set, 0..2, resolve, 0);
+            encoder.copy_buffer_to_buffer(resolve, 0, read, 0, 16);
+        }
+        gpu.queue.submit([encoder.finish()]);
+        let gpu_ms = match &self.timer {
+            Some((_, _, read)) => {
+                let ticks = map_read(gpu, read, |b| {
+                    let t0 = u64::from_le_bytes(b[0..8].try_into().unwrap_or_default());
+                    let t1 = u64::from_le_bytes(b[8..16].try_into().unwrap_or_default());
+                    t1.saturating_sub(t0)
+                })?;
+                Some(ticks as f64 * f64::from(gpu.queue.get_timestamp_period()) / 1e6)
+            }
+            None => {
+                gpu.device
+                    .poll(wgpu::PollType::wait_indefinitely())
+                    .map_err(|e| RenderError::Gpu(e.to_string()))?;
+                None
+            }
+        };
+        Ok(GpuTiming { gpu_ms })
+    }
+
+    /// Reads the colour target back.
+    pub fn read(&self, gpu: &Gpu) -> Result<Image, RenderError> {
+        let [w, h] = self.size;
+        let mut encoder = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        encoder.copy_texture_to_buffer(
+            wgpu::TexelCopyTextureInfo {
+                texture: &self.colour,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::All,
+            },
+            wgpu::TexelCopyBufferInfo {
+                buffer: &self.readback,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(self.padded_row),
+                    rows_per_image: Some(h),
+                },
+            },
+            wgpu::Extent3d {
+                width: w,
+                height: h,
+                depth_or_array_layers: 1,
+            },
+        );
+        gpu.queue.submit([encoder.finish()]);
+        let row = (w * 4) as usize;
+        let padded = self.padded_row as usize;
+        let rgba = map_read(gpu, &self.readback, |b| {
+            let mut out = Vec::with_capacity(row * h as usize);
+            for y in 0..h as usize {
+                out.extend_from_slice(&b[y * padded..y * padded + row]);
+            }
+            out
+        })?;
+        Ok(Image {
+            width: w,
+            height: h,
+            rgba,
+        })
+    }
+}
+
+/// Maps a buffer for reading, waits, runs `f` on its bytes and unmaps.
+pub fn map_read<T>(
+    gpu: &Gpu,
+    buffer: &wgpu::Buffer,
+    f: impl FnOnce(&[u8]) -> T,
+) -> Result<T, RenderError> {
+    let slice = buffer.slice(..);
+    let (tx, rx) = std::sync::mpsc::channel();
+    slice.map_async(wgpu::MapMode::Read, move |r| {
+        let _ = tx.send(r);
+    });
+    gpu.device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .map_err(|e| RenderError::Gpu(e.to_string()))?;
+    rx.recv()
+        .map_err(|e| RenderError::Gpu(e.to_string()))?
+        .map_err(|e| RenderError::Gpu(e.to_string()))?;
+    let out = {
+        let view = slice
+            .get_mapped_range()
+            .map_err(|e| RenderError::Gpu(e.to_string()))?;
+        f(&view)
+    };
+    buffer.unmap();
+    Ok(out)
+}

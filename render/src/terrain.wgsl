@@ -1,0 +1,263 @@
+// quincunx terrain: one shader for planar and planet repositories.
+//
+// Every vertex is rebuilt from exact integers: its patch's affine map in fine units (the
+// repository's id units times N, 64-bit, split into 16-bit limbs `hi * 65536 + lo`), its
+// grid index and its integer height. The camera is split the same way once per frame.
+// A vertex's camera-relative position is a function of those integers and the frame
+// uniforms alone, computed with the same arithmetic in every patch, so two patches that
+// share a vertex produce the same bits (no cracks), and only small numbers ever reach f32
+// (no jitter near the camera). See docs/rendering.md, "Precision".
+
+struct Frame {
+    clip_from_rel: mat4x4<f32>,
+    // Camera anchor in fine units: integer limbs; w of cam_hi = kind (0 planar, 1 planet),
+    // w of cam_lo = N.
+    cam_hi: vec4<i32>,
+    cam_lo: vec4<i32>,
+    // Fractional part of the anchor; w = fractional part of the camera height (samples).
+    cam_frac: vec4<f32>,
+    // Planet: unit direction of the camera (G(c)); w = metres per fine unit (planar).
+    cam_dir: vec4<f32>,
+    // Planet: cos(a c_k); w = a = pi / (4 S), S = cube half side in fine units.
+    cos_ac: vec4<f32>,
+    // Planet: T(c) = tan(a c_k); w = |T(c)|.
+    tan_c: vec4<f32>,
+    // Light direction (world, towards the light); w = ambient share.
+    light: vec4<f32>,
+    // x = metres per height sample, y = radius + height offset (planet) or height offset
+    // (planar), z, w = tint range low, high (metres).
+    heights: vec4<f32>,
+    // x = integer part of the camera height (samples), y = Nc (colour grid size, 0 none),
+    // z = mode bits (1 wireframe, 2 colour by level, 4 sRGB target, 8 no colour layer),
+    // w = 1 to clip to the planar raster.
+    ints: vec4<i32>,
+    // Planar raster extent in fine units (x, y); z = height offset (metres); w unused.
+    raster: vec4<f32>,
+}
+
+struct PatchGpu {
+    base_hi: vec4<i32>, // w = level
+    base_lo: vec4<i32>, // w = flags (1 = has colour)
+    e1_hi: vec4<i32>,
+    e1_lo: vec4<i32>,
+    e2_hi: vec4<i32>,
+    e2_lo: vec4<i32>,
+}
+
+@group(0) @binding(0) var<uniform> frame: Frame;
+@group(0) @binding(1) var<storage, read> heights: array<i32>;
+@group(0) @binding(2) var<storage, read> patches: array<PatchGpu>;
+@group(0) @binding(3) var<storage, read> colours: array<u32>;
+
+struct VertexOut {
+    @builtin(position) @invariant clip: vec4<f32>,
+    @location(0) rel: vec3<f32>,
+    @location(1) grid: vec2<f32>,
+    @location(2) height_m: f32,
+    @location(3) plane: vec2<f32>,
+    @location(4) @interpolate(flat) slot: u32,
+}
+
+// sin(x) for |x| <= pi/2 with full relative precision for small x (driver sin() may only
+// promise an absolute error).
+fn sin_small(x: vec3<f32>) -> vec3<f32> {
+    let x2 = x * x;
+    let p = -2.5052108e-8 + x2 * 1.6059043e-10;
+    let q = 2.7557319e-6 + x2 * p;
+    let r = -1.9841270e-4 + x2 * q;
+    let s = 8.3333333e-3 + x2 * r;
+    let t = -1.6666667e-1 + x2 * s;
+    return x + x * x2 * t;
+}
+
+// cos(x) for |x| <= pi/4.
+fn cos_small(x: vec3<f32>) -> vec3<f32> {
+    let x2 = x * x;
+    let p = 2.4801587e-5 + x2 * (-2.7557319e-7 + x2 * 2.0876757e-9);
+    let q = -1.3888889e-3 + x2 * p;
+    let r = 4.1666667e-2 + x2 * q;
+    let s = -0.5 + x2 * r;
+    return 1.0 + x2 * s;
+}
+
+// Clip positions written by `vs_capture` (precision measurements read them back).
+@group(1) @binding(0) var<storage, read_write> captured: array<vec4<f32>>;
+
+@vertex
+fn vs_main(@builtin(vertex_index) vertex_index: u32) -> VertexOut {
+    return vertex(vertex_index);
+}
+
+// The same vertex computation, its clip position stored at the vertex's index: what the
+// rasteriser receives, read back instead of drawn.
+@vertex
+fn vs_capture(@builtin(vertex_index) vertex_index: u32) -> @builtin(position) vec4<f32> {
+    let out = vertex(vertex_index);
+    captured[vertex_index] = out.clip;
+    return vec4<f32>(2.0, 2.0, 0.5, 1.0);
+}
+
+fn vertex(vertex_index: u32) -> VertexOut {
+    let n = u32(frame.cam_lo.w);
+    let nv = n + 1u;
+    let per_slot = nv * nv;
+    let slot = vertex_index / per_slot;
+    let local = vertex_index - slot * per_slot;
+    let i = i32(local / nv);
+    let j = i32(local - (local / nv) * nv);
+    let v = heights[vertex_index];
+    let pr = patches[slot];
+
+    // The vertex in fine units, exactly: limbs normalised to lo in [0, 65536).
+    let lo_sum = pr.base_lo.xyz + i * pr.e1_lo.xyz + j * pr.e2_lo.xyz;
+    let hi = pr.base_hi.xyz + i * pr.e1_hi.xyz + j * pr.e2_hi.xyz + (lo_sum >> vec3<u32>(16u));
+    let lo = lo_sum & vec3<i32>(0xFFFF);
+    // Relative to the camera anchor: exact integers, then one rounding.
+    let d = vec3<f32>(hi - frame.cam_hi.xyz) * 65536.0 + vec3<f32>(lo - frame.cam_lo.xyz)
+        - frame.cam_frac.xyz;
+    let dh = (f32(v - frame.ints.x) - frame.cam_frac.w) * frame.heights.x;
+    let h = frame.heights.y + f32(v) * frame.heights.x;
+
+    var rel: vec3<f32>;
+    if frame.cam_hi.w == 0 {
+        let m = frame.cam_dir.w;
+        rel = vec3<f32>(d.x * m, d.y * m, dh);
+    } else {
+        // G(p) - G(c) for the equal-angle cube map G(p) = T(p) / |T(p)|,
+        // T_k = tan(a p_k), without cancellation:
+        // T(p) - T(c) = sin(a (p - c)) / (cos(a c) cos(a p)).
+        let a = frame.cos_ac.w;
+        let pf = vec3<f32>(hi) * 65536.0 + vec3<f32>(lo);
+        let dt = sin_small(a * d) / (frame.cos_ac.xyz * cos_small(a * pf));
+        let tc = frame.tan_c.xyz;
+        let ntc = frame.tan_c.w;
+        let tp = tc + dt;
+        let ntp = length(tp);
+        let grow = (2.0 * dot(tc, dt) + dot(dt, dt)) / (ntp + ntc);
+        let dg = dt / ntp - tc * (grow / (ntp * ntc));
+        rel = h * dg + dh * frame.cam_dir.xyz;
+    }
+
+    var out: VertexOut;
+    out.clip = frame.clip_from_rel * vec4<f32>(rel, 1.0);
+    out.rel = rel;
+    out.grid = vec2<f32>(f32(i), f32(j));
+    out.height_m = frame.raster.z + f32(v) * frame.heights.x;
+    out.plane = vec2<f32>(hi.xy) * 65536.0 + vec2<f32>(lo.xy);
+    out.slot = slot;
+    return out;
+}
+
+fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {
+    let lo = c / 12.92;
+    let hi = pow((c + 0.055) / 1.055, vec3<f32>(2.4));
+    return select(hi, lo, c <= vec3<f32>(0.04045));
+}
+
+// Elevation tint (display-referred): sea below 0, then green, ochre, brown, white.
+fn tint(h: f32) -> vec3<f32> {
+    if h <= 0.0 {
+        let t = clamp(-h / 6000.0, 0.0, 1.0);
+        return mix(vec3<f32>(0.36, 0.56, 0.74), vec3<f32>(0.07, 0.16, 0.36), sqrt(t));
+    }
+    let t = clamp((h - frame.heights.z) / max(frame.heights.w - frame.heights.z, 1.0), 0.0, 1.0);
+    let c0 = vec3<f32>(0.30, 0.52, 0.28);
+    let c1 = vec3<f32>(0.72, 0.68, 0.42);
+    let c2 = vec3<f32>(0.52, 0.38, 0.26);
+    let c3 = vec3<f32>(0.94, 0.94, 0.94);
+    if t < 0.35 {
+        return mix(c0, c1, t / 0.35);
+    } else if t < 0.75 {
+        return mix(c1, c2, (t - 0.35) / 0.4);
+    }
+    return mix(c2, c3, (t - 0.75) / 0.25);
+}
+
+fn unpack_rgb(word: u32) -> vec3<f32> {
+    // Three signed 10-bit fields Y, Co, Cg; the inverse YCoCg-R lifting in integers.
+    let w = bitcast<i32>(word);
+    let y = (w << 22u) >> 22u;
+    let co = (w << 12u) >> 22u;
+    let cg = (w << 2u) >> 22u;
+    let t = y - (cg >> 1u);
+    let g = cg + t;
+    let b = t - (co >> 1u);
+    let r = b + co;
+    return clamp(vec3<f32>(f32(r), f32(g), f32(b)) / 255.0, vec3<f32>(0.0), vec3<f32>(1.0));
+}
+
+fn colour_at(slot: u32, grid: vec2<f32>) -> vec3<f32> {
+    let nc = u32(frame.ints.y);
+    let n = f32(frame.cam_lo.w);
+    let ncf = f32(nc);
+    let x = clamp(grid.x * ncf / n, 0.0, ncf);
+    let y = clamp(grid.y * ncf / n, 0.0, ncf);
+    let ci = min(u32(floor(x)), nc - 1u);
+    let cj = min(u32(floor(y)), nc - 1u);
+    let fx = x - f32(ci);
+    let fy = y - f32(cj);
+    let ncv = nc + 1u;
+    let base = slot * ncv * ncv;
+    let c00 = unpack_rgb(colours[base + ci * ncv + cj]);
+    let c11 = unpack_rgb(colours[base + (ci + 1u) * ncv + cj + 1u]);
+    // The grid's triangles split each cell along i = j, as the geometry does.
+    if fx >= fy {
+        let c10 = unpack_rgb(colours[base + (ci + 1u) * ncv + cj]);
+        return c00 + fx * (c10 - c00) + fy * (c11 - c10);
+    }
+    let c01 = unpack_rgb(colours[base + ci * ncv + cj + 1u]);
+    return c00 + fy * (c01 - c00) + fx * (c11 - c01);
+}
+
+fn level_colour(level: i32) -> vec3<f32> {
+    let k = f32(level) * 0.618034;
+    let hue = k - floor(k);
+    let r = abs(hue * 6.0 - 3.0) - 1.0;
+    let g = 2.0 - abs(hue * 6.0 - 2.0);
+    let b = 2.0 - abs(hue * 6.0 - 4.0);
+    return mix(vec3<f32>(0.5), clamp(vec3<f32>(r, g, b), vec3<f32>(0.0), vec3<f32>(1.0)), 0.7);
+}
+
+@fragment
+fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
+    // Derivatives first, in uniform control flow. The face normal of each triangle comes
+    // from the same camera-relative positions the rasteriser used.
+    let dx = dpdx(in.rel);
+    let dy = dpdy(in.rel);
+    let g = in.grid;
+    let gw = fwidth(g);
+    let gd = fwidth(g.x - g.y);
+    if frame.ints.w == 1 {
+        let p = in.plane;
+        if p.x < 0.0 || p.y < 0.0 || p.x > frame.raster.x || p.y > frame.raster.y {
+            discard;
+        }
+    }
+    var nrm = normalize(cross(dx, dy));
+    if dot(nrm, in.rel) > 0.0 {
+        nrm = -nrm;
+    }
+    let pr = patches[in.slot];
+    let modes = frame.ints.z;
+    var base: vec3<f32>;
+    if (modes & 2) != 0 {
+        base = level_colour(pr.base_hi.w);
+    } else if (pr.base_lo.w & 1) != 0 && (modes & 8) == 0 && frame.ints.y > 0 {
+        base = colour_at(in.slot, g);
+    } else {
+        base = tint(in.height_m);
+    }
+    let ambient = frame.light.w;
+    let lit = ambient + (1.0 - ambient) * max(dot(nrm, frame.light.xyz), 0.0);
+    var c = base * lit;
+    if (modes & 1) != 0 {
+        let f = abs(g - round(g)) / max(gw, vec2<f32>(1e-6));
+        let e = abs((g.x - g.y) - round(g.x - g.y)) / max(gd, 1e-6);
+        let line = 1.0 - clamp(min(min(f.x, f.y), e), 0.0, 1.0);
+        c = mix(c, vec3<f32>(0.05, 0.05, 0.05), line * 0.8);
+    }
+    if (modes & 4) != 0 {
+        c = srgb_to_linear(c);
+    }
+    return vec4<f32>(c, 1.0);
+}
