@@ -20,6 +20,9 @@ use crate::pool::{Placement, Pool, PoolStats};
 /// A patch: a half of a diamond.
 pub type PatchKey<I> = (I, Half);
 
+/// A vertex's clip position as the GPU computed it: patch, grid index `(i, j)`, clip.
+pub type CapturedVertex<I> = (PatchKey<I>, usize, usize, [f32; 4]);
+
 /// Renderer settings.
 #[derive(Clone, Debug)]
 pub struct RendererConfig {
@@ -664,7 +667,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
     pub fn capture_clip_positions(
         &self,
         gpu: &crate::offscreen::Gpu,
-    ) -> Result<Vec<(PatchKey<R::Id>, usize, usize, [f32; 4])>, RenderError> {
+    ) -> Result<Vec<CapturedVertex<R::Id>>, RenderError> {
         let device = &gpu.device;
         if !device
             .features()
