@@ -552,6 +552,17 @@ pub fn fly<R: Domain>(
     opts: &FlyOptions,
     mut on_frame: impl FnMut(&FrameRecord),
 ) -> Result<FlightReport, SessionError> {
+    fly_with(session, flight, opts, |_, _, rec| on_frame(rec))
+}
+
+/// [`fly`] with the session and the frame's view handed to `on_frame` after each update
+/// (a renderer draws there; its time is on the flight clock, as a real frame's would be).
+pub fn fly_with<R: Domain>(
+    session: &mut Session<R>,
+    flight: &Flight,
+    opts: &FlyOptions,
+    mut on_frame: impl FnMut(&mut Session<R>, &View, &FrameRecord),
+) -> Result<FlightReport, SessionError> {
     let start = Instant::now();
     // The flight clock: wall time since `start` less the time spent checking.
     let mut checking = Duration::ZERO;
@@ -645,7 +656,7 @@ pub fn fly<R: Domain>(
             update_ms.push(rec.update_ms);
             halves.push(rec.cut_halves as f64);
             frame_no += 1;
-            on_frame(&rec);
+            on_frame(session, &view, &rec);
             if rec.full_quality {
                 let at = *full_at.get_or_insert(now);
                 if let Some(j) = jump.as_mut()

@@ -279,6 +279,86 @@ impl Offscreen {
         background: [u8; 3],
         draw: impl FnOnce(&mut wgpu::RenderPass<'_>),
     ) -> Result<GpuTiming, RenderError> {
+        self.render_then(gpu, background, draw, || {})
+    }
+
+    /// [`Offscreen::render`], storing in `cpu_ms` the milliseconds from `since` until the
+    /// commands are submitted (before waiting for the GPU): the host's share of a frame.
+    pub fn render_timed(
+        &self,
+        gpu: &Gpu,
+        background: [u8; 3],
+        draw: impl FnOnce(&mut wgpu::RenderPass<'_>),
+        cpu_ms: &mut f64,
+        since: std::time::Instant,
+    ) -> Result<GpuTiming, RenderError> {
+        self.render_then(gpu, background, draw, || {
+            *cpu_ms = since.elapsed().as_secs_f64() * 1e3;
+        })
+    }
+
+    /// Records the pass into a finished command buffer without submitting it (for
+    /// measuring what encoding costs the host).
+    pub fn encode(
+        &self,
+        gpu: &Gpu,
+        background: [u8; 3],
+        draw: impl FnOnce(&mut wgpu::RenderPass<'_>),
+    ) -> wgpu::CommandBuffer {
+        let mut encoder = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        {
+            let mut pass = self.begin(&mut encoder, background, None);
+            draw(&mut pass);
+        }
+        encoder.finish()
+    }
+
+    fn begin<'e>(
+        &'e self,
+        encoder: &'e mut wgpu::CommandEncoder,
+        background: [u8; 3],
+        timestamp_writes: Option<wgpu::RenderPassTimestampWrites<'e>>,
+    ) -> wgpu::RenderPass<'e> {
+        let c = background.map(|x| f64::from(x) / 255.0);
+        encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("quincunx offscreen"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: &self.colour_view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color {
+                        r: c[0],
+                        g: c[1],
+                        b: c[2],
+                        a: 1.0,
+                    }),
+                    store: wgpu::StoreOp::Store,
+                },
+            })],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &self.depth_view,
+                depth_ops: Some(wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(0.0),
+                    store: wgpu::StoreOp::Discard,
+                }),
+                stencil_ops: None,
+            }),
+            timestamp_writes,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        })
+    }
+
+    fn render_then(
+        &self,
+        gpu: &Gpu,
+        background: [u8; 3],
+        draw: impl FnOnce(&mut wgpu::RenderPass<'_>),
+        submitted: impl FnOnce(),
+    ) -> Result<GpuTiming, RenderError> {
         let mut encoder = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
@@ -291,35 +371,7 @@ impl Offscreen {
                         beginning_of_pass_write_index: Some(0),
                         end_of_pass_write_index: Some(1),
                     });
-            let c = background.map(|x| f64::from(x) / 255.0);
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("quincunx offscreen"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &self.colour_view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color {
-                            r: c[0],
-                            g: c[1],
-                            b: c[2],
-                            a: 1.0,
-                        }),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                    view: &self.depth_view,
-                    depth_ops: Some(wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(0.0),
-                        store: wgpu::StoreOp::Discard,
-                    }),
-                    stencil_ops: None,
-                }),
-                timestamp_writes,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
+            let mut pass = self.begin(&mut encoder, background, timestamp_writes);
             draw(&mut pass);
         }
         if let Some((set, resolve, read)) = &self.timer {
@@ -327,6 +379,7 @@ impl Offscreen {
             encoder.copy_buffer_to_buffer(resolve, 0, read, 0, 16);
         }
         gpu.queue.submit([encoder.finish()]);
+        submitted();
         let gpu_ms = match &self.timer {
             Some((_, _, read)) => {
                 let ticks = map_read(gpu, read, |b| {

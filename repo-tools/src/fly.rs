@@ -2,16 +2,22 @@
 //! real time, optionally through an emulated narrow link; per-frame stats and a summary.
 
 use std::path::Path;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use quincunx_client::fetch::Transport;
 use quincunx_client::fetch::http1::Endpoint;
 use quincunx_client::fetch::link::LinkProxy;
-use quincunx_client::flight::{self, BuiltinFlights, Flight, FlightReport, FlyOptions};
+use quincunx_client::flight::{
+    self, BuiltinFlights, Flight, FlightReport, FlyOptions, FrameRecord, percentile,
+};
 use quincunx_client::session::{AnySession, Session, SessionConfig};
+use quincunx_client::view::View;
 use quincunx_codec::incremental::Procedural;
+use quincunx_render::domain::RenderDomain;
+use quincunx_render::offscreen::{Gpu, Offscreen};
+use quincunx_render::{Camera, RendererConfig, TerrainRenderer};
 
 /// `quincunx fly` options.
 #[derive(Args, Debug, Clone)]
@@ -99,6 +105,18 @@ pub struct FlyArgs {
     /// Per-frame JSON lines on stderr.
     #[arg(long)]
     pub frames: bool,
+    /// Draw every frame offscreen with `quincunx-render` (lavapipe or a GPU) and report
+    /// the renderer's CPU time per frame (changes to submitted commands), upload bytes
+    /// and GPU memory (`render` in the JSON).
+    #[arg(long)]
+    pub render: bool,
+    /// With `--render`: the offscreen image size (default: the viewport; the cut is
+    /// always refined for the viewport).
+    #[arg(long, value_parser = parse_viewport)]
+    pub render_size: Option<[u32; 2]>,
+    /// With `--render`: GPU memory budget for patches, MB.
+    #[arg(long, default_value_t = 128.0)]
+    pub gpu_budget_mb: f64,
 }
 
 impl FlyArgs {
@@ -130,6 +148,9 @@ impl FlyArgs {
             deadline_s: 30.0,
             json: false,
             frames: false,
+            render: false,
+            render_size: None,
+            gpu_budget_mb: 128.0,
         }
     }
 }
@@ -262,30 +283,264 @@ pub fn run(args: &FlyArgs) -> Result<()> {
                 Some(c) => format!("opening {} with colour {c} at {}", args.repo, args.url),
                 None => format!("opening {} at {}", args.repo, args.url),
             })?;
-    let report = match session {
+    let (report, render) = match session {
         AnySession::Planar(s) => fly_session(s, args)?,
         AnySession::Planet(s) => fly_session(s, args)?,
     };
     let link_bytes = link.as_ref().map(|(p, _)| p.bytes_down());
-    print_report(&report, args, link_bytes)
+    print_report(&report, args, link_bytes, render.as_ref())
 }
 
-/// Loads and flies the flight of `args` with `session`.
-fn fly_session<R: BuiltinFlights>(mut session: Session<R>, args: &FlyArgs) -> Result<FlightReport> {
+/// Loads and flies the flight of `args` with `session` (rendering each frame with
+/// `--render`).
+fn fly_session<R: BuiltinFlights + RenderDomain>(
+    mut session: Session<R>,
+    args: &FlyArgs,
+) -> Result<(FlightReport, Option<RenderSummary>)> {
     let flight = load_flight(&args.path, &mut session, args.seed)?;
     let opts = fly_options(args);
     let per_frame = args.frames;
-    Ok(flight::fly(&mut session, &flight, &opts, |f| {
+    let log = |f: &FrameRecord| {
         if per_frame && let Ok(line) = serde_json::to_string(f) {
             eprintln!("{line}");
         }
-    })?)
+    };
+    if !args.render {
+        return Ok((flight::fly(&mut session, &flight, &opts, log)?, None));
+    }
+    if !(args.gpu_budget_mb.is_finite() && args.gpu_budget_mb > 0.0) {
+        bail!("--gpu-budget-mb must be positive");
+    }
+    let mut drawer = FrameDrawer::new(&session, args)?;
+    // The flight runs at its real pace and records each frame's cut changes (the time
+    // taking them is the first part of the renderer's frame); the renderer then replays
+    // them frame by frame with real uploads and submissions (see `FrameDrawer::replay`).
+    let mut frames = Vec::new();
+    let report = flight::fly_with(&mut session, &flight, &opts, |s, view, rec| {
+        log(rec);
+        let t = Instant::now();
+        let changes = s.cut_changes();
+        frames.push((changes, *view, t.elapsed().as_secs_f64() * 1e3));
+    })?;
+    let dag = session.dag();
+    for (k, (changes, view, take_ms)) in frames.into_iter().enumerate() {
+        drawer
+            .frame(dag.refiner(), dag.colour(), changes, &view, take_ms, k)
+            .context("rendering the flight")?;
+    }
+    Ok((report, Some(drawer.summary())))
 }
 
-fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) -> Result<()> {
+/// `quincunx fly --render`: the renderer's figures over the flight.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct RenderSummary {
+    /// Adapter.
+    pub adapter: String,
+    /// Frames drawn.
+    pub frames: usize,
+    /// Renderer CPU per frame (taking the cut changes, apply, prepare, encoding the pass,
+    /// submitting), ms.
+    pub cpu_ms_p50: f64,
+    /// 99th percentile.
+    pub cpu_ms_p99: f64,
+    /// Largest.
+    pub cpu_ms_max: f64,
+    /// GPU time per frame (timestamp queries), ms; `None` without them.
+    pub gpu_ms_p50: Option<f64>,
+    /// Bytes uploaded per frame: median.
+    pub upload_bytes_p50: f64,
+    /// 99th percentile.
+    pub upload_bytes_p99: f64,
+    /// Largest.
+    pub upload_bytes_max: f64,
+    /// Mean.
+    pub upload_bytes_mean: f64,
+    /// Patches uploaded per frame, median and largest.
+    pub uploads_p50: f64,
+    /// Largest.
+    pub uploads_max: f64,
+    /// Triangles per frame, median.
+    pub triangles_p50: f64,
+    /// Patches drawn per frame, median.
+    pub patches_p50: f64,
+    /// Draw calls per frame, largest.
+    pub draw_calls_max: usize,
+    /// Peak GPU bytes held by patches (drawn and cached).
+    pub gpu_bytes_peak: u64,
+    /// The pool's allocation (the budget in whole slots).
+    pub gpu_bytes_budget: u64,
+    /// Uploads, cache hits and evictions over the flight.
+    pub pool_uploads: u64,
+    /// Patches that re-entered the cut from the cache, without an upload.
+    pub pool_cache_hits: u64,
+    /// Cached patches evicted.
+    pub pool_evictions: u64,
+    /// Frames whose drawn cut lagged the client's (upload cap or budget).
+    pub frames_not_current: usize,
+    /// Frames rasterised (every `RASTER_EVERY`th; all are encoded and timed).
+    pub frames_rasterised: usize,
+    /// Image size.
+    pub size: [u32; 2],
+}
+
+/// Frames of `quincunx fly --render` rasterised and waited for (the others are encoded,
+/// flushed and timed the same way).
+pub const RASTER_EVERY: usize = 60;
+
+/// Draws each flight frame offscreen and keeps the figures.
+struct FrameDrawer<R: RenderDomain> {
+    gpu: Gpu,
+    offscreen: Offscreen,
+    renderer: TerrainRenderer<R>,
+    cpu_ms: Vec<f64>,
+    gpu_ms: Vec<f64>,
+    uploads: Vec<f64>,
+    upload_bytes: Vec<f64>,
+    triangles: Vec<f64>,
+    patches: Vec<f64>,
+    draw_calls_max: usize,
+    gpu_bytes_peak: u64,
+    gpu_bytes_budget: u64,
+    not_current: usize,
+    size: [u32; 2],
+}
+
+impl<R: RenderDomain> FrameDrawer<R> {
+    fn new(session: &Session<R>, args: &FlyArgs) -> Result<Self> {
+        let gpu = Gpu::headless().context("starting the renderer")?;
+        let size = args.render_size.unwrap_or(args.viewport);
+        let offscreen = Offscreen::new(&gpu, size)?;
+        let config = RendererConfig {
+            gpu_budget_bytes: (args.gpu_budget_mb * 1_048_576.0) as u64,
+            colour_format: quincunx_render::offscreen::OFFSCREEN_FORMAT,
+            ..RendererConfig::default()
+        };
+        let renderer = TerrainRenderer::for_session(&gpu.device, session, config)?;
+        Ok(FrameDrawer {
+            gpu,
+            offscreen,
+            renderer,
+            cpu_ms: Vec::new(),
+            gpu_ms: Vec::new(),
+            uploads: Vec::new(),
+            upload_bytes: Vec::new(),
+            triangles: Vec::new(),
+            patches: Vec::new(),
+            draw_calls_max: 0,
+            gpu_bytes_peak: 0,
+            gpu_bytes_budget: 0,
+            not_current: 0,
+            size,
+        })
+    }
+
+    /// One recorded frame through the renderer: applying its cut changes, preparing
+    /// (uploads, draws, uniforms), encoding the pass with the terrain draw and submitting
+    /// are timed, added to `take_ms` (taking the changes during the flight). Every
+    /// [`RASTER_EVERY`]th frame (and the first) the pass is submitted and rasterised, and
+    /// waited for untimed; on the others the encoded pass is dropped after `finish` and
+    /// an empty submission flushes the uploads, because lavapipe needs seconds per
+    /// flight frame to rasterise on two cores. What a frame costs the host is the same
+    /// either way: the device executes the commands.
+    fn frame(
+        &mut self,
+        domain: &R,
+        colour: Option<&quincunx_client::colour::ColourLayer<R>>,
+        changes: quincunx_client::session::PatchChanges<R::Id>,
+        view: &View,
+        take_ms: f64,
+        k: usize,
+    ) -> Result<()> {
+        let start = Instant::now();
+        self.renderer.apply(domain, colour, changes)?;
+        let stats = self
+            .renderer
+            .prepare(&self.gpu.queue, &Camera::from_view(view));
+        let renderer = &self.renderer;
+        let mut cpu_ms = 0.0;
+        if k.is_multiple_of(RASTER_EVERY) {
+            let timing = self.offscreen.render_timed(
+                &self.gpu,
+                [135, 170, 210],
+                |pass| renderer.draw(pass),
+                &mut cpu_ms,
+                start,
+            )?;
+            if let Some(g) = timing.gpu_ms {
+                self.gpu_ms.push(g);
+            }
+        } else {
+            let encoded = self.offscreen.encode(&self.gpu, [135, 170, 210], |pass| {
+                renderer.draw(pass);
+            });
+            self.gpu.queue.submit([]);
+            cpu_ms = start.elapsed().as_secs_f64() * 1e3;
+            drop(encoded);
+        }
+        self.cpu_ms.push(take_ms + cpu_ms);
+        self.uploads.push(stats.uploads as f64);
+        self.upload_bytes.push(stats.upload_bytes as f64);
+        self.triangles.push(stats.triangles as f64);
+        self.patches.push(stats.patches as f64);
+        self.draw_calls_max = self.draw_calls_max.max(stats.draw_calls);
+        self.gpu_bytes_peak = self.gpu_bytes_peak.max(stats.gpu_bytes_used);
+        self.gpu_bytes_budget = stats.gpu_bytes_allocated;
+        self.not_current += usize::from(!stats.current);
+        Ok(())
+    }
+
+    fn summary(&self) -> RenderSummary {
+        let sorted = |v: &[f64]| {
+            let mut v = v.to_vec();
+            v.sort_by(f64::total_cmp);
+            v
+        };
+        let (cpu, up, ups) = (
+            sorted(&self.cpu_ms),
+            sorted(&self.upload_bytes),
+            sorted(&self.uploads),
+        );
+        let pool = self.renderer.pool_stats();
+        RenderSummary {
+            adapter: self.gpu.describe(),
+            frames: cpu.len(),
+            cpu_ms_p50: percentile(&cpu, 0.5),
+            cpu_ms_p99: percentile(&cpu, 0.99),
+            cpu_ms_max: cpu.last().copied().unwrap_or(0.0),
+            gpu_ms_p50: (!self.gpu_ms.is_empty()).then(|| percentile(&sorted(&self.gpu_ms), 0.5)),
+            upload_bytes_p50: percentile(&up, 0.5),
+            upload_bytes_p99: percentile(&up, 0.99),
+            upload_bytes_max: up.last().copied().unwrap_or(0.0),
+            upload_bytes_mean: up.iter().sum::<f64>() / up.len().max(1) as f64,
+            uploads_p50: percentile(&ups, 0.5),
+            uploads_max: ups.last().copied().unwrap_or(0.0),
+            triangles_p50: percentile(&sorted(&self.triangles), 0.5),
+            patches_p50: percentile(&sorted(&self.patches), 0.5),
+            draw_calls_max: self.draw_calls_max,
+            gpu_bytes_peak: self.gpu_bytes_peak,
+            gpu_bytes_budget: self.gpu_bytes_budget,
+            pool_uploads: pool.uploads,
+            pool_cache_hits: pool.cache_hits,
+            pool_evictions: pool.evictions,
+            frames_not_current: self.not_current,
+            frames_rasterised: self.cpu_ms.len().div_ceil(RASTER_EVERY),
+            size: self.size,
+        }
+    }
+}
+
+fn print_report(
+    r: &FlightReport,
+    args: &FlyArgs,
+    link_bytes_down: Option<u64>,
+    render: Option<&RenderSummary>,
+) -> Result<()> {
     if args.json {
         let mut v = serde_json::to_value(r)?;
         if let Some(obj) = v.as_object_mut() {
+            if let Some(render) = render {
+                obj.insert("render".into(), serde_json::to_value(render)?);
+            }
             obj.insert("repo".into(), args.repo.clone().into());
             obj.insert("color".into(), args.color.clone().into());
             obj.insert(
@@ -349,6 +604,22 @@ fn print_report(r: &FlightReport, args: &FlyArgs, link_bytes_down: Option<u64>) 
             r.refine_ms_p50,
             r.refine_ms_p99
         );
+        if let Some(g) = render {
+            outln!(
+                "rendered {} frames ({}x{}, {}): renderer CPU ms p50 {:.3} p99 {:.3}, \
+                 uploads p50 {:.0} B max {:.0} B per frame, GPU memory peak {} of {} bytes",
+                g.frames,
+                g.size[0],
+                g.size[1],
+                g.adapter,
+                g.cpu_ms_p50,
+                g.cpu_ms_p99,
+                g.upload_bytes_p50,
+                g.upload_bytes_max,
+                g.gpu_bytes_peak,
+                g.gpu_bytes_budget
+            );
+        }
         outln!(
             "cracks {} and coverage errors {} over {} checked frames; the checks took \
              {:.1} s (median {:.1} ms, max {:.1} ms), not counted in the flight's {:.1} s \
