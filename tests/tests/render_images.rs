@@ -234,6 +234,10 @@ fn against_reference(name: &str, image: &Image) -> Result<String, String> {
         );
         return Err(save(why, Some(&d.image)));
     }
+    // Passing: images of an earlier failure are stale.
+    for stale in ["actual", "diff"] {
+        let _ = std::fs::remove_file(failures.join(format!("{name}.{stale}.png")));
+    }
     Ok(format!("{name}: {summary}"))
 }
 
