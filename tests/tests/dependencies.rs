@@ -38,3 +38,50 @@ fn server_does_not_depend_on_the_codec() {
         .collect();
     assert!(codec.is_empty(), "quincunx-server depends on {codec:?}");
 }
+
+/// `cargo tree` of `crate_name` (normal and build edges), one crate a line.
+fn tree_of(crate_name: &str) -> String {
+    let output = Command::new(env!("CARGO"))
+        .current_dir(common::workspace_root())
+        .args([
+            "tree",
+            "--offline",
+            "-p",
+            crate_name,
+            "-e",
+            "normal,build",
+            "--prefix",
+            "none",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "cargo tree -p {crate_name} failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout).into_owned()
+}
+
+fn wgpu_crates(tree: &str) -> Vec<&str> {
+    tree.lines().filter(|l| l.starts_with("wgpu")).collect()
+}
+
+#[test]
+fn client_and_server_do_not_depend_on_wgpu() {
+    // The renderer does: the filter finds wgpu where it is.
+    assert!(
+        !wgpu_crates(&tree_of("quincunx-render")).is_empty(),
+        "quincunx-render's tree lists no wgpu"
+    );
+    for (crate_name, known) in [
+        ("quincunx-client", "quincunx-codec "),
+        ("quincunx-server", "quincunx-store "),
+    ] {
+        let tree = tree_of(crate_name);
+        // A dependency it does have: an empty output would prove nothing.
+        assert!(tree.lines().any(|l| l.starts_with(known)), "{tree}");
+        let wgpu = wgpu_crates(&tree);
+        assert!(wgpu.is_empty(), "{crate_name} depends on {wgpu:?}");
+    }
+}
