@@ -134,8 +134,10 @@ pub struct Lighting {
     pub light_dir: Option<DVec3>,
     /// Share of ambient light.
     pub ambient: f64,
-    /// Height range the tint spans (metres above 0).
-    pub tint_m: (f64, f64),
+    /// Height range the tint spans (metres above 0); `None`: from 0 to the highest
+    /// height of the repository's roots ([`crate::TerrainRenderer::for_session`]), or
+    /// 3,000 m.
+    pub tint_m: Option<(f64, f64)>,
 }
 
 impl Default for Lighting {
@@ -143,7 +145,7 @@ impl Default for Lighting {
         Lighting {
             light_dir: None,
             ambient: 0.35,
-            tint_m: (0.0, 3000.0),
+            tint_m: None,
         }
     }
 }
@@ -249,8 +251,8 @@ pub fn frame_uniforms(
         heights: [
             scale as f32,
             heights_y as f32,
-            lighting.tint_m.0 as f32,
-            lighting.tint_m.1 as f32,
+            lighting.tint_m.unwrap_or((0.0, 3000.0)).0 as f32,
+            lighting.tint_m.unwrap_or((0.0, 3000.0)).1 as f32,
         ],
         ints: [vc_int as i32, world.colour_n as i32, mode_bits, clip],
         raster: [extent[0], extent[1], world.value_offset_m as f32, 0.0],

@@ -411,7 +411,11 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             .dag()
             .refiner()
             .world_frame(&session.world(), colour_n);
-        TerrainRenderer::new(device, world, config)
+        let mut renderer = TerrainRenderer::new(device, world, config)?;
+        // The tint spans the land heights the roots know of (one pass, here only).
+        let (_, hi) = session.height_range();
+        renderer.lighting.tint_m = Some((0.0, hi.max(50.0)));
+        Ok(renderer)
     }
 
     /// The repository geometry.

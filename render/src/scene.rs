@@ -275,7 +275,14 @@ pub fn picture<R: RenderDomain>(
         ..options.renderer.clone()
     };
     let mut renderer = TerrainRenderer::for_session(&gpu.device, session, config)?;
-    renderer.lighting = options.lighting;
+    if options.lighting.tint_m.is_none() {
+        renderer.lighting = Lighting {
+            tint_m: renderer.lighting.tint_m,
+            ..options.lighting
+        };
+    } else {
+        renderer.lighting = options.lighting;
+    }
     renderer.modes = options.modes;
     let (view, streamed) = stream_to(session, shot, wait, Some((&mut renderer, &gpu.queue)))?;
     let offscreen = Offscreen::new(gpu, shot.size)?;

@@ -155,11 +155,19 @@ fn srgb_to_linear(c: vec3<f32>) -> vec3<f32> {
 }
 
 // Elevation tint (display-referred): sea below 0, then green, ochre, brown, white.
+// Land fades in over the first 2 m above 0, so a lossy flat sea (values scattered around
+// 0) reads as shallow water rather than as blotches of land.
 fn tint(h: f32) -> vec3<f32> {
-    if h <= 0.0 {
-        let t = clamp(-h / 6000.0, 0.0, 1.0);
-        return mix(vec3<f32>(0.36, 0.56, 0.74), vec3<f32>(0.07, 0.16, 0.36), sqrt(t));
+    let t_sea = clamp(-h / 6000.0, 0.0, 1.0);
+    let sea = mix(vec3<f32>(0.36, 0.56, 0.74), vec3<f32>(0.07, 0.16, 0.36), sqrt(t_sea));
+    let shore = smoothstep(0.0, 2.0, h);
+    if shore <= 0.0 {
+        return sea;
     }
+    return mix(sea, land(h), shore);
+}
+
+fn land(h: f32) -> vec3<f32> {
     let t = clamp((h - frame.heights.z) / max(frame.heights.w - frame.heights.z, 1.0), 0.0, 1.0);
     let c0 = vec3<f32>(0.30, 0.52, 0.28);
     let c1 = vec3<f32>(0.72, 0.68, 0.42);
