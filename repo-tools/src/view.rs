@@ -223,8 +223,8 @@ fn run_app<R: RenderDomain>(
     Ok(())
 }
 
-const MIN_PITCH: f64 = -89.9 * std::f64::consts::PI / 180.0;
-const MAX_PITCH: f64 = -1.0 * std::f64::consts::PI / 180.0;
+const MIN_PITCH: f64 = -89.9_f64.to_radians();
+const MAX_PITCH: f64 = -1.0_f64.to_radians();
 /// The least height of the eye above the streamed ground, metres.
 const CLEARANCE_M: f64 = 2.0;
 
