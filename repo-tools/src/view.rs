@@ -130,7 +130,7 @@ pub fn run(args: &ViewArgs) -> Result<()> {
     let event_loop = EventLoop::new().map_err(|e| {
         anyhow!(
             "cannot open a window: {e} (no display? `quincunx view` needs X11 or Wayland; \
-             under a headless machine run it with `xvfb-run -a`)"
+             on a headless machine run it under `xvfb-run -a`)"
         )
     })?;
     let mut session = AnySession::open_with_colour(
