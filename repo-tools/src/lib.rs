@@ -32,3 +32,4 @@ pub mod progress;
 pub mod query;
 pub mod render;
 pub mod verify;
+pub mod view;

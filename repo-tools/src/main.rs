@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 use quincunx_repo_tools::{
-    build, demo, export, fly, info, loadtest, outln, preview, query, render, verify,
+    build, demo, export, fly, info, loadtest, outln, preview, query, render, verify, view,
 };
 
 /// Streams compressed multiresolution terrain: repository tools.
@@ -47,6 +47,9 @@ enum Command {
     /// Stream a served repository to full quality for one camera and write the frame as
     /// a PNG (rendered offscreen with wgpu; docs/rendering.md).
     Render(render::RenderArgs),
+    /// A window over a served repository: orbit, pan, zoom and fly while it streams,
+    /// with the live figures in the title (controls: `quincunx view --help`).
+    View(view::ViewArgs),
     /// Check and decode every blob; with `--source`, reconstruct at full resolution and
     /// measure the error against the source.
     Verify(verify::VerifyArgs),
@@ -127,6 +130,7 @@ fn main() -> ExitCode {
         Command::Loadtest(args) => loadtest::run(&args),
         Command::Fly(args) => fly::run(&args),
         Command::Render(args) => render::run(&args),
+        Command::View(args) => view::run(&args),
         Command::Preview {
             repo,
             output,

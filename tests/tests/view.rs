@@ -1,0 +1,174 @@
+//! `quincunx view`: the window under Xvfb saves a screenshot that shows terrain, and with
+//! no display the command fails cleanly.
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
+
+use std::collections::HashSet;
+use std::path::PathBuf;
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+use common::stream::Served;
+use quincunx_render::offscreen::Image;
+
+/// The viewer's clear colour (`repo-tools/src/view.rs`).
+const BACKGROUND: [u8; 3] = [135, 170, 210];
+
+/// The `quincunx` binary of this build, built first if needed (cargo builds only this
+/// package's own binaries for its tests).
+fn quincunx() -> PathBuf {
+    static BIN: OnceLock<PathBuf> = OnceLock::new();
+    BIN.get_or_init(build_quincunx).clone()
+}
+
+fn build_quincunx() -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    // target/<profile>/deps/view-<hash>
+    let profile_dir = exe.parent().and_then(|d| d.parent()).unwrap().to_path_buf();
+    let release = profile_dir.file_name().is_some_and(|n| n == "release");
+    let mut build = Command::new(env!("CARGO"));
+    build.current_dir(common::workspace_root()).args([
+        "build",
+        "-p",
+        "quincunx-repo-tools",
+        "--bin",
+        "quincunx",
+    ]);
+    if release {
+        build.arg("--release");
+    }
+    let status = build.status().expect("running cargo build");
+    assert!(status.success(), "cargo build of quincunx failed");
+    let bin = profile_dir.join("quincunx");
+    assert!(bin.exists(), "{} missing after the build", bin.display());
+    bin
+}
+
+fn show(out: &Output) -> String {
+    format!(
+        "status {:?}\nstdout:\n{}\nstderr:\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+fn has_xvfb_run() -> bool {
+    Command::new("sh")
+        .args(["-c", "command -v xvfb-run"])
+        .output()
+        .is_ok_and(|o| o.status.success())
+}
+
+#[test]
+fn view_under_xvfb_saves_a_screenshot_of_terrain() {
+    if !has_xvfb_run() {
+        let reason = "xvfb-run is not installed";
+        if std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1") {
+            panic!("view_under_xvfb: {reason} (REQUIRE_GPU=1)");
+        }
+        println!("SKIP view_under_xvfb: {reason}");
+        return;
+    }
+    // No adapter: SKIP, or fail with REQUIRE_GPU=1, like the other render tests.
+    if quincunx_render::offscreen::gpu_for_test("view_under_xvfb")
+        .unwrap()
+        .is_none()
+    {
+        return;
+    }
+    let bin = quincunx();
+    let dir = tempfile::tempdir().unwrap();
+    let repo = dir.path().join("korea");
+    common::build_bundled_korea(&repo);
+    let server = Served::one("127.0.0.1:0".parse().unwrap(), "korea", &repo);
+    let shot = dir.path().join("view.png");
+    let xdg = dir.path().join("xdg");
+    std::fs::create_dir(&xdg).unwrap();
+    let out = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1024x768x24"])
+        .arg(&bin)
+        .args([
+            "view",
+            "--url",
+            &server.url(),
+            "--repo",
+            "korea",
+            "--uv",
+            "0.5,0.5",
+            "--height-m",
+            "20000",
+            "--size",
+            "640x480",
+            "--frames",
+            "40",
+            "--screenshot",
+        ])
+        .arg(&shot)
+        .env("XDG_RUNTIME_DIR", &xdg)
+        .output()
+        .unwrap();
+    server.kill();
+    assert!(
+        out.status.success(),
+        "quincunx view failed:\n{}",
+        show(&out)
+    );
+    let image = Image::read_png(&shot).unwrap();
+    assert_eq!((image.width, image.height), (640, 480), "{}", show(&out));
+    let pixels: Vec<[u8; 3]> = image
+        .rgba
+        .chunks_exact(4)
+        .map(|p| [p[0], p[1], p[2]])
+        .collect();
+    let distinct: HashSet<[u8; 3]> = pixels.iter().copied().collect();
+    let background = pixels
+        .iter()
+        .filter(|p| p.iter().zip(BACKGROUND).all(|(&a, b)| a.abs_diff(b) <= 2))
+        .count();
+    let terrain_share = 1.0 - background as f64 / pixels.len() as f64;
+    println!(
+        "view_under_xvfb: {} distinct colours, {:.1}% not background",
+        distinct.len(),
+        100.0 * terrain_share
+    );
+    assert!(
+        distinct.len() >= 300,
+        "only {} distinct colours: a blank window?",
+        distinct.len()
+    );
+    assert!(
+        terrain_share > 0.9,
+        "{:.1}% of the pixels are terrain (straight down from 20 km, it should fill the frame)",
+        100.0 * terrain_share
+    );
+}
+
+#[test]
+fn view_without_a_display_exits_1_with_a_clear_message() {
+    let bin = quincunx();
+    let out = Command::new(&bin)
+        .args([
+            "view",
+            "--url",
+            "http://127.0.0.1:9",
+            "--repo",
+            "korea",
+            "--frames",
+            "1",
+        ])
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
+        .env_remove("WAYLAND_SOCKET")
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1), "{}", show(&out));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("error: cannot open a window") && stderr.contains("DISPLAY"),
+        "unclear message:\n{}",
+        show(&out)
+    );
+    assert!(!stderr.contains("panicked"), "{}", show(&out));
+}
