@@ -466,6 +466,42 @@ fn main() -> Result<(), Error> {
             left: changes.left,
         },
     )?;
+    // The same renderer drawing with a loop of `draw_indexed` instead of one indirect
+    // multi-draw: separates the cost of indirect draws from the vertex shader's.
+    let mut looped: TerrainRenderer<PlanarRefiner> = TerrainRenderer::new(
+        &gpu.device,
+        frame,
+        RendererConfig {
+            multi_draw: Some(false),
+            ..renderer.config().clone()
+        },
+    )?;
+    dag.restart_cut_changes();
+    let again = dag.take_cut_changes();
+    let entered_again = again
+        .entered
+        .iter()
+        .filter_map(|&(id, half)| {
+            let node = dag.node(id)?;
+            Some(Patch {
+                id,
+                half,
+                corners: node.corners,
+                grid: Arc::clone(&node.grid),
+                generation: node.generation,
+                colour: None,
+            })
+        })
+        .collect();
+    looped.apply(
+        &*refiner,
+        None,
+        PatchChanges {
+            entered: entered_again,
+            left: Vec::new(),
+        },
+    )?;
+    while looped.prepare(&gpu.queue, &camera).pending > 0 {}
     let mut stats = renderer.prepare(&gpu.queue, &camera);
     while stats.pending > 0 {
         stats = renderer.prepare(&gpu.queue, &camera);
@@ -486,16 +522,20 @@ fn main() -> Result<(), Error> {
     // Warm up both pipelines (shader compilation, first-use allocations).
     timed(&gpu, &offscreen, |p| renderer.draw(p))?;
     timed(&gpu, &offscreen, |p| raw.draw(p))?;
-    let (mut batched, mut raw_ms) = (Vec::new(), Vec::new());
+    timed(&gpu, &offscreen, |p| looped.draw(p))?;
+    let (mut batched, mut raw_ms, mut loop_ms) = (Vec::new(), Vec::new(), Vec::new());
     let mut gpu_timed = true;
     for _ in 0..rounds {
         let (b, tb) = timed(&gpu, &offscreen, |p| renderer.draw(p))?;
         let (r, tr) = timed(&gpu, &offscreen, |p| raw.draw(p))?;
-        gpu_timed &= tb && tr;
+        let (l, tl) = timed(&gpu, &offscreen, |p| looped.draw(p))?;
+        gpu_timed &= tb && tr && tl;
         batched.push(b);
         raw_ms.push(r);
+        loop_ms.push(l);
     }
     let (b, r) = (median(batched.clone()), median(raw_ms.clone()));
+    let l = median(loop_ms.clone());
     let tps = |ms: f64| triangles as f64 / (ms / 1e3);
     let ratio = tps(b) / tps(r);
     if json {
@@ -510,6 +550,8 @@ fn main() -> Result<(), Error> {
             "batched_triangles_per_s": tps(b),
             "raw_triangles_per_s": tps(r),
             "ratio": ratio,
+            "batched_loop_triangles_per_s": tps(l),
+            "indirect_validation": gpu_indirect_validation(),
             "rounds": rounds,
             "timing": if gpu_timed { "timestamp queries" } else { "wall time, submit to idle" },
             "size": SIZE,
@@ -565,4 +607,11 @@ fn utc_now() -> String {
         rem / 60 % 60,
         rem % 60
     )
+}
+
+/// Whether wgpu validates indirect draws (on unless `WGPU_VALIDATION_INDIRECT_CALL=0`).
+fn gpu_indirect_validation() -> bool {
+    wgpu::InstanceFlags::from_build_config()
+        .with_env()
+        .contains(wgpu::InstanceFlags::VALIDATION_INDIRECT_CALL)
 }

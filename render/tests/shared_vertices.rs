@@ -16,7 +16,7 @@ use quincunx_client::refine::{Availability, DetailSource};
 use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::encode::{EncodeOptions, Encoded, Grid, RateMode, encode};
-use quincunx_codec::incremental::{PlanarRefiner, Refiner};
+use quincunx_codec::incremental::PlanarRefiner;
 use quincunx_render::offscreen::gpu_for_test;
 use quincunx_render::{Camera, RenderDomain};
 
