@@ -739,7 +739,15 @@ impl<R: RenderDomain> TerrainRenderer<R> {
                 topology: wgpu::PrimitiveTopology::PointList,
                 ..Default::default()
             },
-            depth_stencil: None,
+            // A pipeline needs an attachment: a tiny depth target, never written (the
+            // points land outside the clip volume).
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: DEPTH_FORMAT,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(wgpu::CompareFunction::Always),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
             multisample: Default::default(),
             fragment: None,
             multiview_mask: None,
@@ -755,7 +763,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             mip_level_count: 1,
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
-            format: wgpu::TextureFormat::Rgba8Unorm,
+            format: DEPTH_FORMAT,
             usage: wgpu::TextureUsages::RENDER_ATTACHMENT,
             view_formats: &[],
         });
@@ -764,16 +772,15 @@ impl<R: RenderDomain> TerrainRenderer<R> {
         {
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("quincunx capture"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                color_attachments: &[],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                     view: &view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                    depth_ops: Some(wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(0.0),
                         store: wgpu::StoreOp::Discard,
-                    },
-                })],
-                depth_stencil_attachment: None,
+                    }),
+                    stencil_ops: None,
+                }),
                 timestamp_writes: None,
                 occlusion_query_set: None,
                 multiview_mask: None,
