@@ -6,7 +6,7 @@
 //! The cut: the bundled SRTM3 crop (`data/korea_srtm3_1025.i16`, 90 m), coded at 2 m RMS
 //! with N = 64, refined at 0.5 px for a low oblique view (1920x1080, 60 degrees).
 //!
-//! - *batched*: [`TerrainRenderer`] as apps use it: heights in a pooled storage buffer,
+//! - *batched*: [`TerrainRenderer`] as apps use it: heights in a pooled vertex buffer,
 //!   positions rebuilt in the vertex shader from exact integer limbs, one shared index
 //!   buffer, one `multi_draw_indexed_indirect` (or a loop of `draw_indexed` on GL).
 //! - *raw*: one vertex buffer of f32 camera-relative positions plus the height in metres
@@ -142,10 +142,16 @@ fn vs_main(@location(0) rel_h: vec4<f32>) -> VertexOut {
 }
 
 fn tint(h: f32) -> vec3<f32> {
-    if h <= 0.0 {
-        let t = clamp(-h / 6000.0, 0.0, 1.0);
-        return mix(vec3<f32>(0.36, 0.56, 0.74), vec3<f32>(0.07, 0.16, 0.36), sqrt(t));
+    let t_sea = clamp(-h / 6000.0, 0.0, 1.0);
+    let sea = mix(vec3<f32>(0.36, 0.56, 0.74), vec3<f32>(0.07, 0.16, 0.36), sqrt(t_sea));
+    let shore = smoothstep(0.0, 2.0, h);
+    if shore <= 0.0 {
+        return sea;
     }
+    return mix(sea, land(h), shore);
+}
+
+fn land(h: f32) -> vec3<f32> {
     let t = clamp((h - frame.tint.x) / max(frame.tint.y - frame.tint.x, 1.0), 0.0, 1.0);
     let c0 = vec3<f32>(0.30, 0.52, 0.28);
     let c1 = vec3<f32>(0.72, 0.68, 0.42);
@@ -253,8 +259,8 @@ impl Raw {
                 lighting.ambient as f32,
             ],
             tint: [
-                lighting.tint_m.0 as f32,
-                lighting.tint_m.1 as f32,
+                lighting.tint_m.unwrap_or((0.0, 3000.0)).0 as f32,
+                lighting.tint_m.unwrap_or((0.0, 3000.0)).1 as f32,
                 extent[0] as f32,
                 extent[1] as f32,
             ],

@@ -105,12 +105,14 @@ pub struct FrameUniforms {
     pub heights: [f32; 4],
     /// Camera height integer part, Nc, mode bits, raster clip.
     pub ints: [i32; 4],
-    /// Raster extent (fine units), height offset.
+    /// Height offset (z).
     pub raster: [f32; 4],
+    /// Planar raster bounds relative to the eye, metres (x0, y0, x1, y1).
+    pub rect: [f32; 4],
 }
 
-/// Drawing modes (the mode bits of the shader).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+/// Drawing modes (pipeline constants of the shader: one pipeline each).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
 pub struct Modes {
     /// Grid lines over the shading.
     pub wireframe: bool,
@@ -165,19 +167,29 @@ pub fn default_light(world: &WorldFrame, eye: DVec3) -> DVec3 {
 }
 
 /// The uniforms of one frame.
-pub fn frame_uniforms(
-    world: &WorldFrame,
-    camera: &Camera,
-    lighting: &Lighting,
-    modes: Modes,
-    srgb_target: bool,
-) -> FrameUniforms {
+pub fn frame_uniforms(world: &WorldFrame, camera: &Camera, lighting: &Lighting) -> FrameUniforms {
     let m = camera.clip_from_rel();
     let clip_from_rel: Mat4 = m.as_mat4();
     let anchor = world.anchor(camera.eye);
-    let cell = anchor.floor();
+    let narrow = world.narrow();
+    // Narrow planar repositories: the whole anchor in the high fields, clamped so that a
+    // difference with any fine point fits an i32 (a camera further out keeps the rest
+    // in the remainder, relative to its distance).
+    let cell = if narrow {
+        anchor
+            .floor()
+            .clamp(DVec3::splat(-1073741824.0), DVec3::splat(1073741824.0))
+    } else {
+        anchor.floor()
+    };
     let frac = anchor - cell;
-    let split = [cell.x, cell.y, cell.z].map(|c| limbs(c as i64));
+    let split = [cell.x, cell.y, cell.z].map(|c| {
+        if narrow {
+            (c as i32, 0)
+        } else {
+            limbs(c as i64)
+        }
+    });
     let scale = if world.value_scale_m != 0.0 {
         world.value_scale_m
     } else {
@@ -221,13 +233,23 @@ pub fn frame_uniforms(
         .light_dir
         .unwrap_or_else(|| default_light(world, camera.eye))
         .normalize_or(DVec3::Z);
-    let mode_bits = i32::from(modes.wireframe)
-        | (i32::from(modes.colour_by_level) << 1)
-        | (i32::from(srgb_target) << 2)
-        | (i32::from(modes.no_colour) << 3);
-    let (clip, extent) = match world.geometry {
-        Geometry::Planar { extent_fine, .. } => (1, extent_fine.map(|x| x as f32)),
-        Geometry::Planet { .. } => (0, [0.0, 0.0]),
+    let (clip, rect) = match world.geometry {
+        Geometry::Planar {
+            extent_fine,
+            metres_per_fine,
+        } => {
+            let e = extent_fine.map(|x| x as f64 * metres_per_fine);
+            (
+                1,
+                [
+                    (-camera.eye.x) as f32,
+                    (-camera.eye.y) as f32,
+                    (e[0] - camera.eye.x) as f32,
+                    (e[1] - camera.eye.y) as f32,
+                ],
+            )
+        }
+        Geometry::Planet { .. } => (0, [0.0; 4]),
     };
     FrameUniforms {
         clip_from_rel: clip_from_rel.to_cols_array_2d(),
@@ -254,15 +276,62 @@ pub fn frame_uniforms(
             lighting.tint_m.unwrap_or((0.0, 3000.0)).0 as f32,
             lighting.tint_m.unwrap_or((0.0, 3000.0)).1 as f32,
         ],
-        ints: [vc_int as i32, world.colour_n as i32, mode_bits, clip],
-        raster: [extent[0], extent[1], world.value_offset_m as f32, 0.0],
+        ints: [vc_int as i32, world.colour_n as i32, 0, clip],
+        raster: [0.0, 0.0, world.value_offset_m as f32, 0.0],
+        rect,
     }
+}
+
+/// The smallest distance step (metres) beyond `d` that changes the stored depth, with
+/// this module's projection and f32 arithmetic: the depth resolution at `d`. `gl`: as on
+/// wgpu's GL backend, which maps clip `z` to `2z - w` (no clip control) and stores
+/// `(z_ndc + 1) / 2`; otherwise Vulkan/Metal/DX12 (`z / w` stored as is).
+pub fn depth_resolution_m(d: f64, gl: bool) -> f64 {
+    let stored = |dist: f64| -> f32 {
+        // Clip z and w of a point straight ahead at `dist` (reversed Z, infinite far).
+        let (z, w) = (NEAR_M as f32, dist as f32);
+        if gl {
+            let z = 2.0 * z - w;
+            (z / w + 1.0) * 0.5
+        } else {
+            z / w
+        }
+    };
+    let at = stored(d);
+    // Double the step until the stored value changes, then bisect.
+    let mut step = d * 1e-9;
+    while stored(d + step) == at && step < d * 1e6 {
+        step *= 2.0;
+    }
+    let (mut lo, mut hi) = (step / 2.0, step);
+    for _ in 0..40 {
+        let mid = (lo + hi) / 2.0;
+        if stored(d + mid) == at {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    hi
 }
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn reversed_z_resolution_is_relative_and_gl_loses_it_with_distance() {
+        for d in [1.0, 100.0, 1e4, 1e6, 1e8] {
+            let r = depth_resolution_m(d, false);
+            // A float step of near/d is relative: about 2^-23 of d, never worse than 2^-22.
+            assert!(r <= d * 2.5e-7 && r > d * 1e-8, "{d}: {r}");
+        }
+        // Without clip control the step is absolute in depth: about 6e-8 d^2 / near.
+        let r = depth_resolution_m(1e3, true);
+        assert!(r > 0.5 && r < 3.0, "{r}");
+        assert!(depth_resolution_m(1e4, true) > 50.0 * depth_resolution_m(1e3, true));
+    }
 
     #[test]
     fn limbs_recombine_exactly_with_a_non_negative_low_part() {

@@ -46,6 +46,17 @@ pub struct WorldFrame {
 }
 
 impl WorldFrame {
+    /// Whether every fine point (and every difference of two) fits an i32: planar
+    /// extents below 2^30 fine units. The shader then skips the 16-bit limbs.
+    pub fn narrow(&self) -> bool {
+        match self.geometry {
+            Geometry::Planar { extent_fine, .. } => {
+                extent_fine.iter().all(|&e| (0..(1i64 << 30)).contains(&e))
+            }
+            Geometry::Planet { .. } => false,
+        }
+    }
+
     /// World position (metres, f64) of a fine-unit point at integer height `v`.
     pub fn point(&self, p: [i64; 3], v: i32) -> DVec3 {
         let h = self.value_offset_m + f64::from(v) * self.value_scale_m;

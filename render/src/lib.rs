@@ -4,7 +4,7 @@
 //!
 //! - A patch (one half of a diamond in the cut) is uploaded once, when it enters the cut:
 //!   its `(N+1)^2` integer heights, its colour (YCoCg-R, decoded in the shader) and a
-//!   96-byte record of its exact affine map in integer *fine units*. Vertex positions are
+//!   80-byte record of its exact affine map in integer *fine units*. Vertex positions are
 //!   rebuilt on the GPU from those integers; nothing moves per frame but one uniform
 //!   block and the draws that changed.
 //! - Slots are equal-sized and pooled under a byte budget ([`pool`]); patches that left

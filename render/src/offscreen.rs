@@ -66,7 +66,8 @@ impl Gpu {
         let features = adapter.features()
             & (wgpu::Features::TIMESTAMP_QUERY
                 | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS
-                | wgpu::Features::VERTEX_WRITABLE_STORAGE);
+                | wgpu::Features::VERTEX_WRITABLE_STORAGE
+                | wgpu::Features::INDIRECT_FIRST_INSTANCE);
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("quincunx"),
             required_features: features,

@@ -89,12 +89,11 @@ pub struct RenderFrameStats {
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 struct PatchGpu {
-    base_hi: [i32; 4],
-    base_lo: [i32; 4],
-    e1_hi: [i32; 4],
-    e1_lo: [i32; 4],
-    e2_hi: [i32; 4],
-    e2_lo: [i32; 4],
+    xy: [i32; 4],
+    e1: [i32; 4],
+    e2: [i32; 4],
+    z: [i32; 4],
+    zi: [i32; 4],
 }
 
 #[repr(C)]
@@ -174,7 +173,9 @@ impl<K: std::hash::Hash + Eq + Clone> DrawList<K> {
 pub struct TerrainRenderer<R: RenderDomain> {
     world: WorldFrame,
     config: RendererConfig,
-    pipeline: wgpu::RenderPipeline,
+    /// One pipeline per drawing mode used so far.
+    pipelines: HashMap<Modes, wgpu::RenderPipeline>,
+    pipeline_layout: wgpu::PipelineLayout,
     shader: wgpu::ShaderModule,
     layout: wgpu::BindGroupLayout,
     bind_group: wgpu::BindGroup,
@@ -194,10 +195,9 @@ pub struct TerrainRenderer<R: RenderDomain> {
     leaving: HashSet<PatchKey<R::Id>>,
     cpu_s: f64,
     srgb: bool,
-    /// Lighting and drawing modes.
+    /// Lighting.
     pub lighting: Lighting,
-    /// Drawing modes.
-    pub modes: Modes,
+    modes: Modes,
 }
 
 impl<R: RenderDomain> TerrainRenderer<R> {
@@ -227,7 +227,9 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             .max_storage_buffer_binding_size
             .min(limits.max_buffer_size);
         let by_budget = config.gpu_budget_bytes / slot_bytes;
-        let by_heights = max_binding / (nv2 * 4);
+        // Heights and records are vertex buffers (one buffer each); colour is a storage
+        // binding.
+        let by_heights = limits.max_buffer_size / (nv2 * 4);
         let by_colour = if ncv2 > 0 {
             max_binding / (ncv2 * 4)
         } else {
@@ -241,13 +243,19 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             )));
         }
         // Indirect execution is native on Vulkan (lavapipe too), Metal and DX12; on GL
-        // wgpu emulates it, and WebGL2 has none: draw in a loop there.
-        let multi_draw = config.multi_draw.unwrap_or_else(|| {
-            !matches!(
-                device.adapter_info().backend,
-                wgpu::Backend::Gl | wgpu::Backend::BrowserWebGpu
-            )
-        });
+        // wgpu emulates it, and WebGL2 has none: draw in a loop there. Each draw names
+        // its slot as its first instance, which indirect draws allow only with
+        // INDIRECT_FIRST_INSTANCE.
+        let first_instance = device
+            .features()
+            .contains(wgpu::Features::INDIRECT_FIRST_INSTANCE);
+        let multi_draw = first_instance
+            && config.multi_draw.unwrap_or_else(|| {
+                !matches!(
+                    device.adapter_info().backend,
+                    wgpu::Backend::Gl | wgpu::Backend::BrowserWebGpu
+                )
+            });
         let cap = u64::from(capacity);
         let storage = |label: &str, size: u64, usage: wgpu::BufferUsages| {
             device.create_buffer(&wgpu::BufferDescriptor {
@@ -260,12 +268,12 @@ impl<R: RenderDomain> TerrainRenderer<R> {
         let heights = storage(
             "quincunx heights",
             cap * nv2 * 4,
-            wgpu::BufferUsages::STORAGE,
+            wgpu::BufferUsages::VERTEX,
         );
         let patches = storage(
             "quincunx patches",
             cap * std::mem::size_of::<PatchGpu>() as u64,
-            wgpu::BufferUsages::STORAGE,
+            wgpu::BufferUsages::VERTEX,
         );
         let colours = storage(
             "quincunx colours",
@@ -306,9 +314,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             label: Some("quincunx terrain"),
             entries: &[
                 entry(0, wgpu::BufferBindingType::Uniform, both),
-                entry(1, ro, wgpu::ShaderStages::VERTEX),
-                entry(2, ro, both),
-                entry(3, ro, wgpu::ShaderStages::FRAGMENT),
+                entry(1, ro, wgpu::ShaderStages::FRAGMENT),
             ],
         });
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -321,14 +327,6 @@ impl<R: RenderDomain> TerrainRenderer<R> {
                 },
                 wgpu::BindGroupEntry {
                     binding: 1,
-                    resource: heights.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: patches.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
                     resource: colours.as_entire_binding(),
                 },
             ],
@@ -338,45 +336,23 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
-        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("quincunx terrain"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &shader,
-                entry_point: Some("vs_main"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: wgpu::PrimitiveState {
-                topology: wgpu::PrimitiveTopology::TriangleList,
-                cull_mode: None,
-                ..Default::default()
-            },
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: DEPTH_FORMAT,
-                depth_write_enabled: Some(true),
-                depth_compare: Some(wgpu::CompareFunction::Greater),
-                stencil: Default::default(),
-                bias: Default::default(),
-            }),
-            multisample: wgpu::MultisampleState {
-                count: config.sample_count,
-                ..Default::default()
-            },
-            fragment: Some(wgpu::FragmentState {
-                module: &shader,
-                entry_point: Some("fs_main"),
-                compilation_options: Default::default(),
-                targets: &[Some(config.colour_format.into())],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let modes = Modes::default();
+        let pipeline = terrain_pipeline(
+            device,
+            &shader,
+            &pipeline_layout,
+            &config,
+            is_planet(&world),
+            &pipeline_constants(&world, modes, config.colour_format.is_srgb()),
+        );
+        let mut pipelines = HashMap::new();
+        pipelines.insert(modes, pipeline);
         Ok(TerrainRenderer {
             srgb: config.colour_format.is_srgb(),
             world,
             config,
-            pipeline,
+            pipelines,
+            pipeline_layout,
             shader,
             layout,
             bind_group,
@@ -396,7 +372,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             leaving: HashSet::new(),
             cpu_s: 0.0,
             lighting: Lighting::default(),
-            modes: Modes::default(),
+            modes,
         })
     }
 
@@ -436,6 +412,31 @@ impl<R: RenderDomain> TerrainRenderer<R> {
     /// Pool counters (uploads, cache hits, evictions, refusals).
     pub fn pool_stats(&self) -> PoolStats {
         self.pool.stats()
+    }
+
+    /// The drawing modes.
+    pub fn modes(&self) -> Modes {
+        self.modes
+    }
+
+    /// Switches drawing modes (wireframe, colour by level, colour off). Each mode is its
+    /// own pipeline, compiled on first use: a constant branch costs nothing per
+    /// fragment, a uniform one does on some drivers (llvmpipe: about 40 % of the
+    /// fragment time).
+    pub fn set_modes(&mut self, device: &wgpu::Device, modes: Modes) {
+        if !self.pipelines.contains_key(&modes) {
+            let constants = pipeline_constants(&self.world, modes, self.srgb);
+            let pipeline = terrain_pipeline(
+                device,
+                &self.shader,
+                &self.pipeline_layout,
+                &self.config,
+                is_planet(&self.world),
+                &constants,
+            );
+            self.pipelines.insert(modes, pipeline);
+        }
+        self.modes = modes;
     }
 
     /// Whether draws go through `multi_draw_indexed_indirect`.
@@ -552,7 +553,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             let slot = u64::from(slot);
             let heights: &[i32] = &patch.grid;
             queue.write_buffer(&self.heights, slot * nv2 * 4, bytemuck::cast_slice(heights));
-            let record = patch_record(&p.affine, p.colour.is_some());
+            let record = patch_record(&p.affine, p.colour.is_some(), self.world.narrow());
             let rec_size = std::mem::size_of::<PatchGpu>() as u64;
             queue.write_buffer(&self.patches, slot * rec_size, bytemuck::bytes_of(&record));
             stats.upload_bytes += nv2 * 4 + rec_size;
@@ -591,7 +592,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
                             instance_count: 1,
                             first_index: first,
                             base_vertex: (u64::from(slot) * nv2) as i32,
-                            first_instance: 0,
+                            first_instance: slot,
                         },
                     );
                 }
@@ -610,7 +611,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
                 stats.upload_bytes += ((b - a) * 20) as u64;
             }
         }
-        let uniforms = frame_uniforms(&self.world, camera, &self.lighting, self.modes, self.srgb);
+        let uniforms = frame_uniforms(&self.world, camera, &self.lighting);
         queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&uniforms));
         stats.upload_bytes += std::mem::size_of::<FrameUniforms>() as u64;
         stats.patches = self.drawn.draws.len();
@@ -634,8 +635,13 @@ impl<R: RenderDomain> TerrainRenderer<R> {
         if count == 0 {
             return;
         }
-        pass.set_pipeline(&self.pipeline);
+        let Some(pipeline) = self.pipelines.get(&self.modes) else {
+            return;
+        };
+        pass.set_pipeline(pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
+        pass.set_vertex_buffer(0, self.heights.slice(..));
+        pass.set_vertex_buffer(1, self.patches.slice(..));
         pass.set_index_buffer(self.index.slice(..), wgpu::IndexFormat::Uint32);
         if self.multi_draw {
             pass.multi_draw_indexed_indirect(&self.indirect, 0, count);
@@ -644,7 +650,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
                 pass.draw_indexed(
                     d.first_index..d.first_index + d.index_count,
                     d.base_vertex,
-                    0..1,
+                    d.first_instance..d.first_instance + 1,
                 );
             }
         }
@@ -726,14 +732,22 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             bind_group_layouts: &[Some(&self.layout), Some(&layout1)],
             immediate_size: 0,
         });
+        let constants = pipeline_constants(&self.world, self.modes, self.srgb);
         let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("quincunx capture"),
             layout: Some(&layout),
             vertex: wgpu::VertexState {
                 module: &self.shader,
-                entry_point: Some("vs_capture"),
-                compilation_options: Default::default(),
-                buffers: &[],
+                entry_point: Some(if is_planet(&self.world) {
+                    "capture_planet"
+                } else {
+                    "capture_planar"
+                }),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    ..Default::default()
+                },
+                buffers: &vertex_layouts(is_planet(&self.world)),
             },
             primitive: wgpu::PrimitiveState {
                 topology: wgpu::PrimitiveTopology::PointList,
@@ -788,9 +802,11 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             pass.set_pipeline(&pipeline);
             pass.set_bind_group(0, &self.bind_group, &[]);
             pass.set_bind_group(1, &group1, &[]);
+            pass.set_vertex_buffer(0, self.heights.slice(..));
+            pass.set_vertex_buffer(1, self.patches.slice(..));
             for (_, slot) in &drawn {
                 let first = u64::from(*slot) * nv2;
-                pass.draw(first as u32..(first + nv2) as u32, 0..1);
+                pass.draw(first as u32..(first + nv2) as u32, *slot..*slot + 1);
             }
         }
         encoder.copy_buffer_to_buffer(&captured, 0, &read, 0, size);
@@ -812,23 +828,139 @@ impl<R: RenderDomain> TerrainRenderer<R> {
     }
 }
 
-/// The per-patch record: the affine map in limbs, level and flags.
-fn patch_record(a: &AffinePatch, has_colour: bool) -> PatchGpu {
-    let split = |v: [i64; 3], w: i32| {
-        let l = v.map(limbs);
-        ([l[0].0, l[1].0, l[2].0, w], [l[0].1, l[1].1, l[2].1, 0])
+/// Vertex inputs: the heights (one `i32` per grid vertex; `base_vertex` selects the
+/// slot) and the patch record (per instance; the first instance is the slot).
+fn vertex_layouts(planet: bool) -> [Option<wgpu::VertexBufferLayout<'static>>; 2] {
+    const HEIGHT: [wgpu::VertexAttribute; 1] = wgpu::vertex_attr_array![0 => Sint32];
+    const PLANET: [wgpu::VertexAttribute; 5] = wgpu::vertex_attr_array![
+        1 => Sint32x4, 2 => Sint32x4, 3 => Sint32x4, 4 => Sint32x4, 5 => Sint32x4
+    ];
+    // The plane skips the z limbs (location 4, offset 48).
+    const PLANAR: [wgpu::VertexAttribute; 4] = [
+        wgpu::VertexAttribute {
+            format: wgpu::VertexFormat::Sint32x4,
+            offset: 0,
+            shader_location: 1,
+        },
+        wgpu::VertexAttribute {
+            format: wgpu::VertexFormat::Sint32x4,
+            offset: 16,
+            shader_location: 2,
+        },
+        wgpu::VertexAttribute {
+            format: wgpu::VertexFormat::Sint32x4,
+            offset: 32,
+            shader_location: 3,
+        },
+        wgpu::VertexAttribute {
+            format: wgpu::VertexFormat::Sint32x4,
+            offset: 64,
+            shader_location: 5,
+        },
+    ];
+    [
+        Some(wgpu::VertexBufferLayout {
+            array_stride: 4,
+            step_mode: wgpu::VertexStepMode::Vertex,
+            attributes: &HEIGHT,
+        }),
+        Some(wgpu::VertexBufferLayout {
+            array_stride: std::mem::size_of::<PatchGpu>() as u64,
+            step_mode: wgpu::VertexStepMode::Instance,
+            attributes: if planet { &PLANET } else { &PLANAR },
+        }),
+    ]
+}
+
+/// Whether the repository is a planet (the shader's entry points and inputs differ).
+fn is_planet(world: &WorldFrame) -> bool {
+    matches!(world.geometry, crate::domain::Geometry::Planet { .. })
+}
+
+/// The shader's pipeline constants: the repository's domain, grid size and colour layer,
+/// the drawing modes and the target's encoding.
+fn pipeline_constants(world: &WorldFrame, modes: Modes, srgb: bool) -> [(&'static str, f64); 7] {
+    let planet = matches!(world.geometry, crate::domain::Geometry::Planet { .. });
+    let flag = |b: bool| f64::from(u8::from(b));
+    [
+        ("PLANET", flag(planet)),
+        ("GRID_N", f64::from(world.n)),
+        ("COLOUR", flag(world.colour_n > 0 && !modes.no_colour)),
+        ("LEVELS", flag(modes.colour_by_level)),
+        ("WIREFRAME", flag(modes.wireframe)),
+        ("SRGB", flag(srgb)),
+        ("NARROW", flag(world.narrow())),
+    ]
+}
+
+/// The terrain pipeline for one set of constants.
+fn terrain_pipeline(
+    device: &wgpu::Device,
+    shader: &wgpu::ShaderModule,
+    layout: &wgpu::PipelineLayout,
+    config: &RendererConfig,
+    planet: bool,
+    constants: &[(&str, f64)],
+) -> wgpu::RenderPipeline {
+    // The plain fragment stage where no mode needs the grid coordinates or the slot.
+    let on = |name: &str| constants.iter().any(|(k, v)| *k == name && *v != 0.0);
+    let fragment = if on("COLOUR") || on("LEVELS") || on("WIREFRAME") {
+        "fs_main"
+    } else {
+        "fs_plain"
     };
-    let (base_hi, mut base_lo) = split(a.base, a.level as i32);
-    base_lo[3] = i32::from(has_colour);
-    let (e1_hi, e1_lo) = split(a.e1, 0);
-    let (e2_hi, e2_lo) = split(a.e2, 0);
+    device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("quincunx terrain"),
+        layout: Some(layout),
+        vertex: wgpu::VertexState {
+            module: shader,
+            entry_point: Some(if planet { "vs_planet" } else { "vs_planar" }),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants,
+                ..Default::default()
+            },
+            buffers: &vertex_layouts(planet),
+        },
+        primitive: wgpu::PrimitiveState {
+            topology: wgpu::PrimitiveTopology::TriangleList,
+            cull_mode: None,
+            ..Default::default()
+        },
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: DEPTH_FORMAT,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::Greater),
+            stencil: Default::default(),
+            bias: Default::default(),
+        }),
+        multisample: wgpu::MultisampleState {
+            count: config.sample_count,
+            ..Default::default()
+        },
+        fragment: Some(wgpu::FragmentState {
+            module: shader,
+            entry_point: Some(fragment),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants,
+                ..Default::default()
+            },
+            targets: &[Some(config.colour_format.into())],
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
+/// The per-patch record: the affine map in limbs, level and flags.
+fn patch_record(a: &AffinePatch, has_colour: bool, narrow: bool) -> PatchGpu {
+    let split = |v: [i64; 3]| v.map(|x| if narrow { (x as i32, 0) } else { limbs(x) });
+    let (b, e1, e2) = (split(a.base), split(a.e1), split(a.e2));
     PatchGpu {
-        base_hi,
-        base_lo,
-        e1_hi,
-        e1_lo,
-        e2_hi,
-        e2_lo,
+        xy: [b[0].0, b[1].0, b[0].1, b[1].1],
+        e1: [e1[0].0, e1[1].0, e1[0].1, e1[1].1],
+        e2: [e2[0].0, e2[1].0, e2[0].1, e2[1].1],
+        z: [b[2].0, b[2].1, e1[2].0, e1[2].1],
+        zi: [e2[2].0, e2[2].1, a.level as i32, i32::from(has_colour)],
     }
 }
 

@@ -283,7 +283,7 @@ pub fn picture<R: RenderDomain>(
     } else {
         renderer.lighting = options.lighting;
     }
-    renderer.modes = options.modes;
+    renderer.set_modes(&gpu.device, options.modes);
     let (view, streamed) = stream_to(session, shot, wait, Some((&mut renderer, &gpu.queue)))?;
     let offscreen = Offscreen::new(gpu, shot.size)?;
     let camera = Camera::from_view(&view);

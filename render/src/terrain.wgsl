@@ -28,34 +28,85 @@ struct Frame {
     // (planar), z, w = tint range low, high (metres).
     heights: vec4<f32>,
     // x = integer part of the camera height (samples), y = Nc (colour grid size, 0 none),
-    // z = mode bits (1 wireframe, 2 colour by level, 4 sRGB target, 8 no colour layer),
-    // w = 1 to clip to the planar raster.
+    // z, w unused.
     ints: vec4<i32>,
-    // Planar raster extent in fine units (x, y); z = height offset (metres); w unused.
+    // z = height offset (metres); x, y, w unused.
     raster: vec4<f32>,
+    // Planar raster bounds relative to the eye (metres): x0, y0, x1, y1.
+    rect: vec4<f32>,
 }
 
-struct PatchGpu {
-    base_hi: vec4<i32>, // w = level
-    base_lo: vec4<i32>, // w = flags (1 = has colour)
-    e1_hi: vec4<i32>,
-    e1_lo: vec4<i32>,
-    e2_hi: vec4<i32>,
-    e2_lo: vec4<i32>,
-}
+
+// Pipeline constants: the domain and the grid size are fixed per renderer, so the
+// compiler drops the other domain's code and divides by a constant.
+override PLANET: bool = false;
+override GRID_N: u32 = 32u;
+// Drawing modes, one pipeline each (llvmpipe pays for untaken uniform branches): the
+// colour layer (compiled out without one, or when switched off), colour by level, grid
+// lines, and an sRGB target (linear output).
+override COLOUR: bool = false;
+override LEVELS: bool = false;
+override WIREFRAME: bool = false;
+override SRGB: bool = false;
+// Planar repositories whose fine extent is below 2^30 use plain i32 positions (the record
+// then holds whole values in the high fields and zeros in the low ones).
+override NARROW: bool = false;
 
 @group(0) @binding(0) var<uniform> frame: Frame;
-@group(0) @binding(1) var<storage, read> heights: array<i32>;
-@group(0) @binding(2) var<storage, read> patches: array<PatchGpu>;
-@group(0) @binding(3) var<storage, read> colours: array<u32>;
+@group(0) @binding(1) var<storage, read> colours: array<u32>;
+
+// Vertex inputs: the grid vertex's height, and its patch's record (per instance; the
+// instance index is the slot). The record holds the affine map in limbs: `xy` =
+// (base hi x, y, base lo x, y), `e1`, `e2` likewise, `z` = (base hi, base lo, e1 hi, e1 lo)
+// of z, `zi` = (e2 hi z, e2 lo z, level, flags). The plane reads no z.
+struct PlanarIn {
+    @builtin(vertex_index) vertex_index: u32,
+    @builtin(instance_index) slot: u32,
+    @location(0) v: i32,
+    @location(1) xy: vec4<i32>,
+    @location(2) e1: vec4<i32>,
+    @location(3) e2: vec4<i32>,
+    @location(5) zi: vec4<i32>,
+}
+
+struct PlanetIn {
+    @builtin(vertex_index) vertex_index: u32,
+    @builtin(instance_index) slot: u32,
+    @location(0) v: i32,
+    @location(1) xy: vec4<i32>,
+    @location(2) e1: vec4<i32>,
+    @location(3) e2: vec4<i32>,
+    @location(4) z: vec4<i32>,
+    @location(5) zi: vec4<i32>,
+}
+
+struct VertexIn {
+    vertex_index: u32,
+    slot: u32,
+    v: i32,
+    xy: vec4<i32>,
+    e1: vec4<i32>,
+    e2: vec4<i32>,
+    z: vec4<i32>,
+    zi: vec4<i32>,
+}
+
+fn planar_in(p: PlanarIn) -> VertexIn {
+    return VertexIn(p.vertex_index, p.slot, p.v, p.xy, p.e1, p.e2, vec4<i32>(0), p.zi);
+}
+
+fn planet_in(p: PlanetIn) -> VertexIn {
+    return VertexIn(p.vertex_index, p.slot, p.v, p.xy, p.e1, p.e2, p.z, p.zi);
+}
 
 struct VertexOut {
     @builtin(position) @invariant clip: vec4<f32>,
-    @location(0) rel: vec3<f32>,
+    // Camera-relative position (metres) and height (metres).
+    @location(0) rel_h: vec4<f32>,
     @location(1) grid: vec2<f32>,
-    @location(2) height_m: f32,
-    @location(3) plane: vec2<f32>,
-    @location(4) @interpolate(flat) slot: u32,
+    @location(2) @interpolate(flat) slot: u32,
+    // Level (bits 0-7) and flags (bit 8: has colour) of the patch.
+    @location(3) @interpolate(flat) info: u32,
 }
 
 // sin(x) for |x| <= pi/2 with full relative precision for small x (driver sin() may only
@@ -84,48 +135,60 @@ fn cos_small(x: vec3<f32>) -> vec3<f32> {
 @group(1) @binding(0) var<storage, read_write> captured: array<vec4<f32>>;
 
 @vertex
-fn vs_main(@builtin(vertex_index) vertex_index: u32) -> VertexOut {
-    return vertex(vertex_index);
+fn vs_planar(input: PlanarIn) -> VertexOut {
+    return vertex(planar_in(input));
+}
+
+@vertex
+fn vs_planet(input: PlanetIn) -> VertexOut {
+    return vertex(planet_in(input));
 }
 
 // The same vertex computation, its clip position stored at the vertex's index: what the
 // rasteriser receives, read back instead of drawn.
 @vertex
-fn vs_capture(@builtin(vertex_index) vertex_index: u32) -> @builtin(position) vec4<f32> {
-    let out = vertex(vertex_index);
-    captured[vertex_index] = out.clip;
+fn capture_planar(input: PlanarIn) -> @builtin(position) vec4<f32> {
+    let out = vertex(planar_in(input));
+    captured[input.vertex_index] = out.clip;
     return vec4<f32>(2.0, 2.0, 0.5, 1.0);
 }
 
-fn vertex(vertex_index: u32) -> VertexOut {
-    let n = u32(frame.cam_lo.w);
-    let nv = n + 1u;
-    let per_slot = nv * nv;
-    let slot = vertex_index / per_slot;
-    let local = vertex_index - slot * per_slot;
-    let i = i32(local / nv);
-    let j = i32(local - (local / nv) * nv);
-    let v = heights[vertex_index];
-    let pr = patches[slot];
+@vertex
+fn capture_planet(input: PlanetIn) -> @builtin(position) vec4<f32> {
+    let out = vertex(planet_in(input));
+    captured[input.vertex_index] = out.clip;
+    return vec4<f32>(2.0, 2.0, 0.5, 1.0);
+}
 
-    // The vertex in fine units, exactly: limbs normalised to lo in [0, 65536).
-    let lo_sum = pr.base_lo.xyz + i * pr.e1_lo.xyz + j * pr.e2_lo.xyz;
-    let hi = pr.base_hi.xyz + i * pr.e1_hi.xyz + j * pr.e2_hi.xyz + (lo_sum >> vec3<u32>(16u));
-    let lo = lo_sum & vec3<i32>(0xFFFF);
-    // Relative to the camera anchor: exact integers, then one rounding.
-    let d = vec3<f32>(hi - frame.cam_hi.xyz) * 65536.0 + vec3<f32>(lo - frame.cam_lo.xyz)
-        - frame.cam_frac.xyz;
+fn vertex(input: VertexIn) -> VertexOut {
+    let nv = GRID_N + 1u;
+    let slot = input.slot;
+    let local = input.vertex_index - slot * (nv * nv);
+    let row = local / nv;
+    let i = i32(row);
+    let j = i32(local - row * nv);
+    let v = input.v;
+
     let dh = (f32(v - frame.ints.x) - frame.cam_frac.w) * frame.heights.x;
-    let h = frame.heights.y + f32(v) * frame.heights.x;
-
     var rel: vec3<f32>;
-    if frame.cam_hi.w == 0 {
-        let m = frame.cam_dir.w;
-        rel = vec3<f32>(d.x * m, d.y * m, dh);
-    } else {
+    if PLANET {
+        // The vertex in fine units, exactly: limbs normalised to lo in [0, 65536).
+        let base_hi = vec3<i32>(input.xy.xy, input.z.x);
+        let base_lo = vec3<i32>(input.xy.zw, input.z.y);
+        let e1_hi = vec3<i32>(input.e1.xy, input.z.z);
+        let e1_lo = vec3<i32>(input.e1.zw, input.z.w);
+        let e2_hi = vec3<i32>(input.e2.xy, input.zi.x);
+        let e2_lo = vec3<i32>(input.e2.zw, input.zi.y);
+        let lo_sum = base_lo + i * e1_lo + j * e2_lo;
+        let hi = base_hi + i * e1_hi + j * e2_hi + (lo_sum >> vec3<u32>(16u));
+        let lo = lo_sum & vec3<i32>(0xFFFF);
+        // Relative to the camera anchor: exact integers, then one rounding.
+        let d = vec3<f32>(hi - frame.cam_hi.xyz) * 65536.0
+            + vec3<f32>(lo - frame.cam_lo.xyz) - frame.cam_frac.xyz;
         // G(p) - G(c) for the equal-angle cube map G(p) = T(p) / |T(p)|,
         // T_k = tan(a p_k), without cancellation:
         // T(p) - T(c) = sin(a (p - c)) / (cos(a c) cos(a p)).
+        let h = frame.heights.y + f32(v) * frame.heights.x;
         let a = frame.cos_ac.w;
         let pf = vec3<f32>(hi) * 65536.0 + vec3<f32>(lo);
         let dt = sin_small(a * d) / (frame.cos_ac.xyz * cos_small(a * pf));
@@ -136,15 +199,31 @@ fn vertex(vertex_index: u32) -> VertexOut {
         let grow = (2.0 * dot(tc, dt) + dot(dt, dt)) / (ntp + ntc);
         let dg = dt / ntp - tc * (grow / (ntp * ntc));
         rel = h * dg + dh * frame.cam_dir.xyz;
+    } else {
+        // The same on the plane, in two dimensions.
+        var d: vec2<f32>;
+        if NARROW {
+            // Exact in i32; the camera anchor is whole in cam_hi.
+            let p = input.xy.xy + i * input.e1.xy + j * input.e2.xy;
+            d = vec2<f32>(p - frame.cam_hi.xy) - frame.cam_frac.xy;
+        } else {
+            let lo_sum = input.xy.zw + i * input.e1.zw + j * input.e2.zw;
+            let hi = input.xy.xy + i * input.e1.xy + j * input.e2.xy
+                + (lo_sum >> vec2<u32>(16u));
+            let lo = lo_sum & vec2<i32>(0xFFFF);
+            d = vec2<f32>(hi - frame.cam_hi.xy) * 65536.0
+                + vec2<f32>(lo - frame.cam_lo.xy) - frame.cam_frac.xy;
+        }
+        let m = frame.cam_dir.w;
+        rel = vec3<f32>(d * m, dh);
     }
 
     var out: VertexOut;
     out.clip = frame.clip_from_rel * vec4<f32>(rel, 1.0);
-    out.rel = rel;
+    out.rel_h = vec4<f32>(rel, frame.raster.z + f32(v) * frame.heights.x);
     out.grid = vec2<f32>(f32(i), f32(j));
-    out.height_m = frame.raster.z + f32(v) * frame.heights.x;
-    out.plane = vec2<f32>(hi.xy) * 65536.0 + vec2<f32>(lo.xy);
     out.slot = slot;
+    out.info = (u32(input.zi.z) & 0xFFu) | ((u32(input.zi.w) & 1u) << 8u);
     return out;
 }
 
@@ -196,7 +275,7 @@ fn unpack_rgb(word: u32) -> vec3<f32> {
 
 fn colour_at(slot: u32, grid: vec2<f32>) -> vec3<f32> {
     let nc = u32(frame.ints.y);
-    let n = f32(frame.cam_lo.w);
+    let n = f32(GRID_N);
     let ncf = f32(nc);
     let x = clamp(grid.x * ncf / n, 0.0, ncf);
     let y = clamp(grid.y * ncf / n, 0.0, ncf);
@@ -226,46 +305,75 @@ fn level_colour(level: i32) -> vec3<f32> {
     return mix(vec3<f32>(0.5), clamp(vec3<f32>(r, g, b), vec3<f32>(0.0), vec3<f32>(1.0)), 0.7);
 }
 
+// What the plain mode reads (no colour layer, no wireframe, no level colours): fewer
+// varyings to interpolate, the others are dropped when the stages are linked.
+struct PlainIn {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) rel_h: vec4<f32>,
+}
+
+// Lit terrain at a camera-relative position with derivatives `dx`, `dy`.
+fn lit(rel: vec3<f32>, dx: vec3<f32>, dy: vec3<f32>, base: vec3<f32>) -> vec3<f32> {
+    var nrm = normalize(cross(dx, dy));
+    if dot(nrm, rel) > 0.0 {
+        nrm = -nrm;
+    }
+    let ambient = frame.light.w;
+    var c = base * (ambient + (1.0 - ambient) * max(dot(nrm, frame.light.xyz), 0.0));
+    if SRGB {
+        c = srgb_to_linear(c);
+    }
+    return c;
+}
+
+fn outside_raster(rel: vec3<f32>) -> bool {
+    let r = frame.rect;
+    return !PLANET && (rel.x < r.x || rel.y < r.y || rel.x > r.z || rel.y > r.w);
+}
+
+@fragment
+fn fs_plain(in: PlainIn) -> @location(0) vec4<f32> {
+    let rel = in.rel_h.xyz;
+    let dx = dpdx(rel);
+    let dy = dpdy(rel);
+    if outside_raster(rel) {
+        discard;
+    }
+    return vec4<f32>(lit(rel, dx, dy, tint(in.rel_h.w)), 1.0);
+}
+
 @fragment
 fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
     // Derivatives first, in uniform control flow. The face normal of each triangle comes
     // from the same camera-relative positions the rasteriser used.
-    let dx = dpdx(in.rel);
-    let dy = dpdy(in.rel);
+    let rel = in.rel_h.xyz;
+    let dx = dpdx(rel);
+    let dy = dpdy(rel);
     let g = in.grid;
-    let gw = fwidth(g);
-    let gd = fwidth(g.x - g.y);
-    if frame.ints.w == 1 {
-        let p = in.plane;
-        if p.x < 0.0 || p.y < 0.0 || p.x > frame.raster.x || p.y > frame.raster.y {
-            discard;
-        }
+    // Grid-line widths only for the wireframe (a constant branch: derivatives allowed).
+    var gw = vec2<f32>(1.0);
+    var gd = 1.0;
+    if WIREFRAME {
+        gw = fwidth(g);
+        gd = fwidth(g.x - g.y);
     }
-    var nrm = normalize(cross(dx, dy));
-    if dot(nrm, in.rel) > 0.0 {
-        nrm = -nrm;
+    if outside_raster(rel) {
+        discard;
     }
-    let pr = patches[in.slot];
-    let modes = frame.ints.z;
     var base: vec3<f32>;
-    if (modes & 2) != 0 {
-        base = level_colour(pr.base_hi.w);
-    } else if (pr.base_lo.w & 1) != 0 && (modes & 8) == 0 && frame.ints.y > 0 {
+    if LEVELS {
+        base = level_colour(i32(in.info & 0xFFu));
+    } else if COLOUR && (in.info & 256u) != 0u {
         base = colour_at(in.slot, g);
     } else {
-        base = tint(in.height_m);
+        base = tint(in.rel_h.w);
     }
-    let ambient = frame.light.w;
-    let lit = ambient + (1.0 - ambient) * max(dot(nrm, frame.light.xyz), 0.0);
-    var c = base * lit;
-    if (modes & 1) != 0 {
+    var c = lit(rel, dx, dy, base);
+    if WIREFRAME {
         let f = abs(g - round(g)) / max(gw, vec2<f32>(1e-6));
         let e = abs((g.x - g.y) - round(g.x - g.y)) / max(gd, 1e-6);
         let line = 1.0 - clamp(min(min(f.x, f.y), e), 0.0, 1.0);
         c = mix(c, vec3<f32>(0.05, 0.05, 0.05), line * 0.8);
-    }
-    if (modes & 4) != 0 {
-        c = srgb_to_linear(c);
     }
     return vec4<f32>(c, 1.0);
 }

@@ -507,12 +507,16 @@ impl<R: RenderDomain> App<R> {
             }
             KeyCode::KeyF => {
                 if let Some(g) = self.gfx.as_mut() {
-                    g.renderer.modes.wireframe = !g.renderer.modes.wireframe;
+                    let mut modes = g.renderer.modes();
+                    modes.wireframe = !modes.wireframe;
+                    g.renderer.set_modes(&g.gpu.device, modes);
                 }
             }
             KeyCode::KeyL => {
                 if let Some(g) = self.gfx.as_mut() {
-                    g.renderer.modes.colour_by_level = !g.renderer.modes.colour_by_level;
+                    let mut modes = g.renderer.modes();
+                    modes.colour_by_level = !modes.colour_by_level;
+                    g.renderer.set_modes(&g.gpu.device, modes);
                 }
             }
             _ => {}
@@ -681,10 +685,10 @@ impl<R: RenderDomain> App<R> {
                 self.view.tolerance_px,
                 human_bytes(rate)
             );
-            if g.renderer.modes.wireframe {
+            if g.renderer.modes().wireframe {
                 title.push_str(" | wireframe");
             }
-            if g.renderer.modes.colour_by_level {
+            if g.renderer.modes().colour_by_level {
                 title.push_str(" | levels");
             }
             g.window.set_title(&title);
