@@ -540,9 +540,20 @@ fn main() -> Result<(), Error> {
     let mut cases = Vec::new();
     for height_m in [1.0, 100.0, 10_000.0, 1_000_000.0, 100_000_000.0] {
         for place in places() {
-            for pitch_deg in [-90.0, -20.0] {
+            // Oblique views look towards the horizon; from 100,000 km the planet is about
+            // 7 degrees across, so the oblique view tilts by 5 degrees only to keep it in
+            // the frame.
+            let oblique = if height_m >= 1e7 { -85.0 } else { -20.0 };
+            for pitch_deg in [-90.0, oblique] {
                 let start = Instant::now();
                 let c = run_case(&gpu, &planet, &place, height_m, pitch_deg)?;
+                if c.vertices == 0 {
+                    return Err(format!(
+                        "{} m over {} at pitch {pitch_deg}: no vertex in view, nothing measured",
+                        height_m, c.place
+                    )
+                    .into());
+                }
                 if !json {
                     println!(
                         "{:>12} m  {:<12} pitch {:>4}  level {:>2}  spacing {:>12.4} m  {:>9} vertices  {:>5} patches  max error {:.4} px  ({:.1} s)",

@@ -388,9 +388,17 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             .refiner()
             .world_frame(&session.world(), colour_n);
         let mut renderer = TerrainRenderer::new(device, world, config)?;
-        // The tint spans the land heights the roots know of (one pass, here only).
-        let (_, hi) = session.height_range();
-        renderer.lighting.tint_m = Some((0.0, hi.max(50.0)));
+        // The tint spans the land heights the roots' grids reach: fixed by the
+        // repository, whatever the cut is when the renderer is made.
+        let top = session
+            .dag()
+            .refiner()
+            .roots()
+            .iter()
+            .flat_map(|(_, grid)| grid.iter())
+            .map(|&v| world.value_offset_m + f64::from(v) * world.value_scale_m)
+            .fold(f64::NEG_INFINITY, f64::max);
+        renderer.lighting.tint_m = Some((0.0, top.max(50.0)));
         Ok(renderer)
     }
 
