@@ -77,10 +77,28 @@ fn fixture() -> &'static Fixture {
             ..BuildArgs::new(data.join("bmng_global_1080x540.jpg"), &earth_colour)
         })
         .unwrap();
+        // The planar DEM + orthophoto pair (GSI, 256 x 256, no georeference: 1 m).
+        let gsi = dir.join("gsi");
+        build::run(&BuildArgs {
+            max_error_m: Some(0.2),
+            overwrite: true,
+            ..BuildArgs::new(data.join("fixture_gsi_dem_256.json"), &gsi)
+        })
+        .unwrap();
+        let gsi_colour = dir.join("gsi_colour");
+        build::run(&BuildArgs {
+            colour: true,
+            rms_m: Some(4.0),
+            overwrite: true,
+            ..BuildArgs::new(data.join("fixture_gsi_color_256.jpg"), &gsi_colour)
+        })
+        .unwrap();
         let repos = [
             ("korea", korea),
             ("earth", earth),
             ("earth_colour", earth_colour),
+            ("gsi", gsi),
+            ("gsi_colour", gsi_colour),
         ]
         .into_iter()
         .map(|(name, path)| RepoConfig {
@@ -102,6 +120,16 @@ fn target_dir() -> PathBuf {
 
 fn korea() -> Session {
     Session::open(&fixture().served.url(), "korea", SessionConfig::default()).unwrap()
+}
+
+fn gsi() -> Session {
+    Session::open_with_colour(
+        &fixture().served.url(),
+        "gsi",
+        "gsi_colour",
+        SessionConfig::default(),
+    )
+    .unwrap()
 }
 
 fn earth() -> PlanetSession {
@@ -254,6 +282,9 @@ fn frames_match_their_references() {
     ] {
         images.push((name, take(&gpu, &mut korea(), &s, sky).0.image));
     }
+    // A planar repository with colour: the GSI orthophoto on its DEM.
+    let s = shot(Place::Uv(0.5, 0.5), 200.0, -90.0);
+    images.push(("gsi_colour_down", take(&gpu, &mut gsi(), &s, sky).0.image));
     for (name, s) in [
         (
             "earth_whole",
