@@ -9,10 +9,11 @@
 //! cargo run --release -p quincunx-render --example embed -- http://127.0.0.1:8080 korea embed.png
 //! ```
 //!
-//! What the renderer needs from the app's device: `DownlevelFlags::VERTEX_STORAGE`
-//! (storage buffers in vertex shaders: every native backend), and storage bindings large
-//! enough for its pool (it sizes the pool to `min(budget, device limits)`). It draws into
-//! any colour format with a `Depth32Float` depth attachment cleared to 0 (reversed Z).
+//! What the renderer wants from the app's device: `Features::INDIRECT_FIRST_INSTANCE` for
+//! one indirect draw per frame (without it, one `draw_indexed` per patch), and buffer
+//! limits large enough for its pool (it sizes the pool to `min(budget, device limits)`).
+//! It draws into any colour format with a `Depth32Float` depth attachment cleared to 0
+//! (reversed Z).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use std::time::{Duration, Instant};
@@ -37,7 +38,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let adapter = pollster::block_on(instance.request_adapter(&Default::default()))?;
     let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
         label: Some("my app"),
-        // The adapter's own limits let the renderer's pool bind large storage buffers.
+        // One indirect draw for the whole cut needs first-instance indirect draws.
+        required_features: adapter.features() & wgpu::Features::INDIRECT_FIRST_INSTANCE,
+        // The adapter's own limits let the renderer's pool use large buffers.
         required_limits: adapter.limits(),
         ..Default::default()
     }))?;

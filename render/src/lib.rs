@@ -3,7 +3,7 @@
 //! (or offscreen, [`offscreen`]).
 //!
 //! - A patch (one half of a diamond in the cut) is uploaded once, when it enters the cut:
-//!   its `(N+1)^2` integer heights, its colour (YCoCg-R, decoded in the shader) and a
+//!   its `(N+1)^2` integer heights, its colour (YCoCg-R, decoded in the shader) and an
 //!   80-byte record of its exact affine map in integer *fine units*. Vertex positions are
 //!   rebuilt on the GPU from those integers; nothing moves per frame but one uniform
 //!   block and the draws that changed.
