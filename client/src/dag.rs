@@ -980,8 +980,8 @@ mod tests {
         assert_eq!(again.entered, dag.cut());
     }
 
-    #[test]
-    fn cut_changes_follow_the_cut_on_the_plane_and_a_planet() {
+    /// A 129 x 97 planar repository, N = 8, lossless.
+    fn planar_refiner() -> Arc<PlanarRefiner> {
         let (w, h) = (129, 97);
         let grid = Grid {
             width: w,
@@ -992,10 +992,11 @@ mod tests {
             quantum_m: Some(1.0),
         };
         let enc = encode(&grid, options(8)).unwrap();
-        let refiner = Arc::new(PlanarRefiner::from_encoded(&enc).unwrap());
-        for seed in 0..4 {
-            cut_changes_follow_the_cut(Dag::new(Arc::clone(&refiner)), seed);
-        }
+        Arc::new(PlanarRefiner::from_encoded(&enc).unwrap())
+    }
+
+    /// A planet of face side 32, N = 8, lossless.
+    fn sphere_refiner() -> Arc<SphereRefiner> {
         let face_side = 32;
         let w = face_side + 1;
         let cube = CubeGrid {
@@ -1006,41 +1007,25 @@ mod tests {
             quantum_m: Some(1.0),
         };
         let enc = encode_sphere(&cube, options(8)).unwrap();
-        let refiner = Arc::new(SphereRefiner::from_encoded(&enc).unwrap());
+        Arc::new(SphereRefiner::from_encoded(&enc).unwrap())
+    }
+
+    #[test]
+    fn cut_changes_follow_the_cut_on_the_plane_and_a_planet() {
+        let (planar, sphere) = (planar_refiner(), sphere_refiner());
         for seed in 0..4 {
-            cut_changes_follow_the_cut(Dag::new(Arc::clone(&refiner)), seed);
+            cut_changes_follow_the_cut(Dag::new(Arc::clone(&planar)), seed);
+            cut_changes_follow_the_cut(Dag::new(Arc::clone(&sphere)), seed);
         }
     }
 
     #[test]
     fn check_cut_finds_cracks_holes_and_overlaps_on_the_plane() {
-        let (w, h) = (129, 97);
-        let grid = Grid {
-            width: w,
-            height: h,
-            values_m: (0..w * h)
-                .map(|k| height((k % w) as f64, (k / w) as f64))
-                .collect(),
-            quantum_m: Some(1.0),
-        };
-        let enc = encode(&grid, options(8)).unwrap();
-        let refiner = Arc::new(PlanarRefiner::from_encoded(&enc).unwrap());
-        check_cut_finds_what_is_wrong(Dag::new(refiner));
+        check_cut_finds_what_is_wrong(Dag::new(planar_refiner()));
     }
 
     #[test]
     fn check_cut_finds_cracks_holes_and_overlaps_on_a_planet() {
-        let face_side = 32;
-        let w = face_side + 1;
-        let cube = CubeGrid {
-            face_side,
-            values_m: (0..6 * w * w)
-                .map(|k| height((k % w) as f64, (k / w) as f64))
-                .collect(),
-            quantum_m: Some(1.0),
-        };
-        let enc = encode_sphere(&cube, options(8)).unwrap();
-        let refiner = Arc::new(SphereRefiner::from_encoded(&enc).unwrap());
-        check_cut_finds_what_is_wrong(Dag::new(refiner));
+        check_cut_finds_what_is_wrong(Dag::new(sphere_refiner()));
     }
 }

@@ -71,7 +71,8 @@ pub struct RenderArgs {
     pub json: bool,
 }
 
-fn parse_pair(s: &str) -> Result<(f64, f64), String> {
+/// Parses `A,B` (two numbers): `--uv`, `--lat-lon`.
+pub fn parse_pair(s: &str) -> Result<(f64, f64), String> {
     let (a, b) = s
         .split_once(',')
         .ok_or_else(|| format!("{s:?} is not two numbers A,B"))?;

@@ -61,10 +61,10 @@ pub struct ViewArgs {
     #[arg(long, visible_alias = "color")]
     pub colour: Option<String>,
     /// Planet target: `LAT,LON` in degrees (default 0,0 on a planet).
-    #[arg(long, value_parser = parse_pair, allow_hyphen_values = true, conflicts_with = "uv")]
+    #[arg(long, value_parser = crate::render::parse_pair, allow_hyphen_values = true, conflicts_with = "uv")]
     pub lat_lon: Option<(f64, f64)>,
     /// Planar target: `U,V` fractions of the raster (0,0 = north-west; default 0.5,0.5).
-    #[arg(long, value_parser = parse_pair, allow_hyphen_values = true)]
+    #[arg(long, value_parser = crate::render::parse_pair, allow_hyphen_values = true)]
     pub uv: Option<(f64, f64)>,
     /// Metres above the streamed terrain (default: half the raster's width, or one and
     /// a half radii over a planet).
@@ -97,14 +97,6 @@ pub struct ViewArgs {
     /// With `--frames`: save the last frame's window image as a PNG.
     #[arg(long, requires = "frames")]
     pub screenshot: Option<PathBuf>,
-}
-
-fn parse_pair(s: &str) -> Result<(f64, f64), String> {
-    let (a, b) = s
-        .split_once(',')
-        .ok_or_else(|| format!("{s:?} is not two numbers A,B"))?;
-    let p = |t: &str| t.trim().parse::<f64>().map_err(|e| format!("{t:?}: {e}"));
-    Ok((p(a)?, p(b)?))
 }
 
 /// Runs `quincunx view`.
