@@ -39,7 +39,8 @@ pub struct RendererConfig {
     /// MSAA samples of the target.
     pub sample_count: u32,
     /// Use `multi_draw_indexed_indirect` (`None`: where the adapter executes indirect
-    /// draws; otherwise one `draw_indexed` per patch).
+    /// draws natively; otherwise, or without `Features::INDIRECT_FIRST_INSTANCE` on the
+    /// device, one `draw_indexed` per patch).
     pub multi_draw: Option<bool>,
 }
 
