@@ -571,6 +571,33 @@ impl<R: Domain> Dag<R> {
         changes
     }
 
+    /// A half of the cut as a renderer takes it (`None` when the diamond is not here).
+    pub fn patch(&self, id: R::Id, half: Half) -> Option<crate::session::Patch<R::Id>> {
+        let node = self.nodes.get(&id)?;
+        Some(crate::session::Patch {
+            id,
+            half,
+            corners: node.corners,
+            grid: Arc::clone(&node.grid),
+            generation: node.generation,
+            colour: node.colour.as_ref().map(|c| Arc::clone(&c.grids)),
+        })
+    }
+
+    /// [`Dag::take_cut_changes`] with the patches that entered.
+    pub fn take_patch_changes(&mut self) -> crate::session::PatchChanges<R::Id> {
+        let changes = self.take_cut_changes();
+        let entered = changes
+            .entered
+            .into_iter()
+            .filter_map(|(id, half)| self.patch(id, half))
+            .collect();
+        crate::session::PatchChanges {
+            entered,
+            left: changes.left,
+        }
+    }
+
     /// Makes the next [`Dag::take_cut_changes`] report the whole cut as entered and
     /// nothing as left (for a consumer that dropped what it had).
     pub fn restart_cut_changes(&mut self) {

@@ -725,7 +725,7 @@ impl<R: Domain> Session<R> {
             .dag
             .cut()
             .into_iter()
-            .filter_map(|(id, half)| self.patch(id, half))
+            .filter_map(|(id, half)| self.dag.patch(id, half))
             .collect();
         Snapshot {
             n: self.refiner.n(),
@@ -739,33 +739,12 @@ impl<R: Domain> Session<R> {
     /// first call reports the whole cut): what a retained-mode renderer uploads and frees
     /// each frame, in time proportional to the changes ([`Dag::take_cut_changes`]).
     pub fn cut_changes(&mut self) -> PatchChanges<R::Id> {
-        let changes = self.dag.take_cut_changes();
-        let entered = changes
-            .entered
-            .into_iter()
-            .filter_map(|(id, half)| self.patch(id, half))
-            .collect();
-        PatchChanges {
-            entered,
-            left: changes.left,
-        }
+        self.dag.take_patch_changes()
     }
 
     /// Makes the next [`Session::cut_changes`] report the whole cut again.
     pub fn restart_cut_changes(&mut self) {
         self.dag.restart_cut_changes();
-    }
-
-    fn patch(&self, id: R::Id, half: Half) -> Option<Patch<R::Id>> {
-        let node = self.dag.node(id)?;
-        Some(Patch {
-            id,
-            half,
-            corners: node.corners,
-            grid: Arc::clone(&node.grid),
-            generation: node.generation,
-            colour: node.colour.as_ref().map(|c| Arc::clone(&c.grids)),
-        })
     }
 
     /// A conservative range of the surface's heights (metres): over the cut, each

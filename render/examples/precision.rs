@@ -26,7 +26,7 @@ use glam::DVec3;
 use quincunx_client::dag::Dag;
 use quincunx_client::domain::Domain;
 use quincunx_client::refine::{Availability, DetailSource, Refinement, SystemClock};
-use quincunx_client::session::{Patch, PatchChanges};
+use quincunx_client::session::PatchChanges;
 use quincunx_client::view::{SphereWorld, View};
 use quincunx_codec::diamond::SphereId;
 use quincunx_codec::diamond::sphere::cube_to_unit_sphere;
@@ -310,26 +310,7 @@ pub fn ground_m(dag: &Dag<SphereRefiner>, frame: &WorldFrame, dir: DVec3) -> Opt
 
 /// The cut's changes as the renderer takes them.
 pub fn patch_changes<R: Domain>(dag: &mut Dag<R>) -> PatchChanges<R::Id> {
-    let changes = dag.take_cut_changes();
-    let entered = changes
-        .entered
-        .into_iter()
-        .filter_map(|(id, half)| {
-            let node = dag.node(id)?;
-            Some(Patch {
-                id,
-                half,
-                corners: node.corners,
-                grid: Arc::clone(&node.grid),
-                generation: node.generation,
-                colour: None,
-            })
-        })
-        .collect();
-    PatchChanges {
-        entered,
-        left: changes.left,
-    }
+    dag.take_patch_changes()
 }
 
 /// A converged cut as the GPU computed it.

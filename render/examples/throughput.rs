@@ -31,7 +31,6 @@ use bytemuck::{Pod, Zeroable};
 use glam::DVec3;
 use quincunx_client::dag::Dag;
 use quincunx_client::refine::{Availability, DetailSource, Refinement, SystemClock};
-use quincunx_client::session::{Patch, PatchChanges};
 use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::encode::{EncodeOptions, Encoded, Grid, RateMode, encode};
@@ -448,30 +447,7 @@ fn main() -> Result<(), Error> {
     };
     let mut renderer: TerrainRenderer<PlanarRefiner> =
         TerrainRenderer::new(&gpu.device, frame, config)?;
-    let changes = dag.take_cut_changes();
-    let entered = changes
-        .entered
-        .iter()
-        .filter_map(|&(id, half)| {
-            let node = dag.node(id)?;
-            Some(Patch {
-                id,
-                half,
-                corners: node.corners,
-                grid: Arc::clone(&node.grid),
-                generation: node.generation,
-                colour: None,
-            })
-        })
-        .collect();
-    renderer.apply(
-        &*refiner,
-        None,
-        PatchChanges {
-            entered,
-            left: changes.left,
-        },
-    )?;
+    renderer.apply(&*refiner, None, dag.take_patch_changes())?;
     // The same renderer drawing with a loop of `draw_indexed` instead of one indirect
     // multi-draw: separates the cost of indirect draws from the vertex shader's.
     let mut looped: TerrainRenderer<PlanarRefiner> = TerrainRenderer::new(
@@ -483,30 +459,7 @@ fn main() -> Result<(), Error> {
         },
     )?;
     dag.restart_cut_changes();
-    let again = dag.take_cut_changes();
-    let entered_again = again
-        .entered
-        .iter()
-        .filter_map(|&(id, half)| {
-            let node = dag.node(id)?;
-            Some(Patch {
-                id,
-                half,
-                corners: node.corners,
-                grid: Arc::clone(&node.grid),
-                generation: node.generation,
-                colour: None,
-            })
-        })
-        .collect();
-    looped.apply(
-        &*refiner,
-        None,
-        PatchChanges {
-            entered: entered_again,
-            left: Vec::new(),
-        },
-    )?;
+    looped.apply(&*refiner, None, dag.take_patch_changes())?;
     while looped.prepare(&gpu.queue, &camera).pending > 0 {}
     let mut stats = renderer.prepare(&gpu.queue, &camera);
     while stats.pending > 0 {
