@@ -36,7 +36,7 @@ use serde::{Deserialize, Serialize};
 use quincunx_codec::incremental::{PlanarRefiner, SphereRefiner};
 
 use crate::domain::{Domain, World};
-use crate::session::{Session, SessionError};
+use crate::session::{CutBlobs, Session, SessionError};
 use crate::view::{Aabb, View};
 
 /// Why a flight could not be made.
@@ -493,10 +493,21 @@ pub struct FlightReport {
     pub jumps_unfinished: usize,
     /// Body bytes fetched (prefetch included).
     pub bytes_fetched: u64,
-    /// Body bytes of the distinct blobs refinement used (the data the views needed).
+    /// Body bytes of the distinct blobs of the final cuts: the cut at the last frame of
+    /// each leg ([`Session::cut_blobs`]), united over the legs.
     pub bytes_in_final_cuts: u64,
+    /// Body bytes of the distinct blobs refinement used at any time of the flight (the
+    /// final cuts' and those of every cut on the way).
+    pub bytes_used_any_cut: u64,
     /// `bytes_fetched / bytes_in_final_cuts`.
     pub fetch_waste: f64,
+    /// The view of the last frame of each leg (in leg order; a leg that ran no frame has
+    /// none).
+    #[serde(skip)]
+    pub final_views: Vec<View>,
+    /// The final cuts' blobs, united.
+    #[serde(skip)]
+    pub final_blobs: CutBlobs,
     /// Requests written (retries included).
     pub requests: u64,
     /// Answers that were empty (diamonds without a blob).
@@ -578,6 +589,7 @@ pub fn fly_with<R: Domain>(
     let (mut refine_ms, mut update_ms, mut halves) = (Vec::new(), Vec::new(), Vec::new());
     let mut frame_no = 0usize;
     for (li, leg) in flight.legs.iter().enumerate() {
+        let mut last_view: Option<View> = None;
         let leg_start = clock(checking);
         let bytes_at_start = session.fetch_stats().bytes_fetched;
         let mut full_at: Option<Duration> = None;
@@ -656,6 +668,7 @@ pub fn fly_with<R: Domain>(
             update_ms.push(rec.update_ms);
             halves.push(rec.cut_halves as f64);
             frame_no += 1;
+            last_view = Some(view);
             on_frame(session, &view, &rec);
             if rec.full_quality {
                 let at = *full_at.get_or_insert(now);
@@ -681,6 +694,13 @@ pub fn fly_with<R: Domain>(
                 std::thread::sleep(next - after);
             }
         }
+        if let Some(view) = last_view {
+            // The leg's final cut: noted off the flight clock, like the checks.
+            let noting = Instant::now();
+            report.final_blobs.extend(&session.cut_blobs());
+            report.final_views.push(view);
+            checking += noting.elapsed();
+        }
         if let Some(mut j) = jump {
             if j.time_to_full_quality_s.is_none() {
                 j.bytes_fetched = session.fetch_stats().bytes_fetched - bytes_at_start;
@@ -703,7 +723,8 @@ pub fn fly_with<R: Domain>(
     report.check_ms_p50 = percentile(&check_ms, 0.5);
     report.check_ms_max = check_ms.last().copied().unwrap_or(0.0);
     report.bytes_fetched = fetch.bytes_fetched;
-    report.bytes_in_final_cuts = session.bytes_used();
+    report.bytes_in_final_cuts = session.blob_bytes(&report.final_blobs);
+    report.bytes_used_any_cut = session.bytes_used();
     report.fetch_waste = if report.bytes_in_final_cuts > 0 {
         report.bytes_fetched as f64 / report.bytes_in_final_cuts as f64
     } else {
@@ -733,6 +754,89 @@ pub fn fly_with<R: Domain>(
     report.diamonds_per_frame_max = halves.last().copied().unwrap_or(0.0) as usize;
     report.transport = session_transport(session);
     Ok(report)
+}
+
+/// What the views of a flight needed: see [`needed_for_views`].
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct NeededSet {
+    /// Body bytes of the union of the views' blob sets.
+    pub bytes: u64,
+    /// Blobs in the union.
+    pub blobs: usize,
+    /// Per view.
+    pub views: Vec<NeededView>,
+    /// The union.
+    #[serde(skip)]
+    pub set: CutBlobs,
+}
+
+/// One view's smallest cut that meets the tolerance.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct NeededView {
+    /// Whether the cut reached full quality (every visible diamond within the tolerance,
+    /// nothing waiting) before the timeout.
+    pub full_quality: bool,
+    /// Largest projected error of a visible diamond still wanting refinement (px).
+    pub max_error_px: f64,
+    /// Halves in the cut.
+    pub cut_halves: usize,
+    /// Blobs and their body bytes.
+    pub blobs: usize,
+    /// Body bytes.
+    pub bytes: u64,
+}
+
+/// The smallest set of blobs whose cuts meet the tolerance of each of `views`: for each
+/// view, a fresh session from `open` refines it until full quality (or `timeout`), and
+/// the blobs of its cut ([`Session::cut_blobs`]) are added to the union. Refinement
+/// refines a diamond only when its projected error is above the tolerance (and the 4-8
+/// rule asks for its parents first), so a fresh session's cut is the coarsest that meets
+/// the tolerance, and its blobs the fewest that can give it. Open the sessions without
+/// prefetch, look-ahead or packages (they would fetch more, not use more) and against
+/// the data without an emulated link: only what is used is counted, but time is wasted.
+pub fn needed_for_views<R: Domain>(
+    mut open: impl FnMut() -> Result<Session<R>, SessionError>,
+    views: &[View],
+    timeout: Duration,
+) -> Result<NeededSet, SessionError> {
+    let mut needed = NeededSet::default();
+    for view in views {
+        let mut session = open()?;
+        let start = Instant::now();
+        let frame = loop {
+            let frame = session.update(view, start.elapsed(), Duration::from_millis(50))?;
+            if frame.refine.full_quality || start.elapsed() >= timeout {
+                break frame;
+            }
+            if frame.refine.refined == 0 {
+                std::thread::sleep(Duration::from_millis(2));
+            }
+        };
+        let blobs = session.cut_blobs();
+        let new = CutBlobs {
+            elevation: blobs
+                .elevation
+                .difference(&needed.set.elevation)
+                .copied()
+                .collect(),
+            colour: blobs
+                .colour
+                .difference(&needed.set.colour)
+                .copied()
+                .collect(),
+        };
+        needed.bytes += session.blob_bytes(&new);
+        needed.set.extend(&blobs);
+        needed.views.push(NeededView {
+            full_quality: frame.refine.full_quality,
+            max_error_px: frame.refine.max_error_px,
+            cut_halves: frame.refine.cut_halves,
+            blobs: blobs.len(),
+            bytes: session.blob_bytes(&blobs),
+        });
+    }
+    needed.blobs = needed.set.len();
+    Ok(needed)
 }
 
 /// Domains with built-in flights.

@@ -525,6 +525,38 @@ impl<I: Send + Sync + 'static> Weigh for Details<I> {
     }
 }
 
+/// A set of blobs by layer (see [`Session::cut_blobs`]).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct CutBlobs {
+    /// Keys of elevation blobs.
+    pub elevation: HashSet<Key>,
+    /// Keys of colour blobs.
+    pub colour: HashSet<Key>,
+}
+
+impl CutBlobs {
+    /// Adds `other`'s blobs.
+    pub fn extend(&mut self, other: &CutBlobs) {
+        self.elevation.extend(other.elevation.iter().copied());
+        self.colour.extend(other.colour.iter().copied());
+    }
+
+    /// Blobs in all.
+    pub fn len(&self) -> usize {
+        self.elevation.len() + self.colour.len()
+    }
+
+    /// No blob.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Whether every blob of `other` is in this set.
+    pub fn contains_all(&self, other: &CutBlobs) -> bool {
+        other.elevation.is_subset(&self.elevation) && other.colour.is_subset(&self.colour)
+    }
+}
+
 /// A planet streamed from a server.
 pub type PlanetSession = Session<SphereRefiner>;
 
@@ -832,9 +864,41 @@ impl<R: Domain> Session<R> {
     }
 
     /// Body bytes of the distinct blobs that refinement has used so far (each counted
-    /// once, however often it was refined): the data the views needed.
+    /// once, however often it was refined), in every cut since the session opened.
     pub fn bytes_used(&self) -> u64 {
         self.elevation.bytes_used() + self.colour.as_ref().map_or(0, |(_, c)| c.bytes_used())
+    }
+
+    /// The blobs the current cut is built from: those of the diamonds refined now (each
+    /// refined diamond's elevation blob and the colour blob its refinement used). A
+    /// cut's patches are synthesised from exactly these, so they are what a client
+    /// must have fetched to show it.
+    pub fn cut_blobs(&self) -> CutBlobs {
+        let dag = &self.dag;
+        let mut blobs = CutBlobs::default();
+        for node in dag.nodes().filter(|n| n.refined.is_some()) {
+            blobs.elevation.insert(R::key_of(node.id));
+            if let Some(c) = dag.colour_blob_id(node.id) {
+                blobs.colour.insert(R::key_of(c));
+            }
+        }
+        blobs
+    }
+
+    /// Body bytes of `blobs` (as fetched; blobs this session never fetched, and
+    /// diamonds without a blob, count 0).
+    pub fn blob_bytes(&self, blobs: &CutBlobs) -> u64 {
+        let sum = |sizes: &Mutex<HashMap<Key, u32>>, keys: &HashSet<Key>| -> u64 {
+            let sizes = lock(sizes);
+            keys.iter()
+                .map(|k| u64::from(sizes.get(k).copied().unwrap_or(0)))
+                .sum()
+        };
+        sum(&self.elevation.blob_bytes, &blobs.elevation)
+            + self
+                .colour
+                .as_ref()
+                .map_or(0, |(_, c)| sum(&c.blob_bytes, &blobs.colour))
     }
 
     /// Runs one frame for `view` at time `now` (any monotonic origin, used for camera
