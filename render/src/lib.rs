@@ -35,7 +35,7 @@ pub mod scene;
 
 pub use camera::{Camera, Lighting, Modes};
 pub use domain::{Geometry, RenderDomain, WorldFrame};
-pub use offscreen::{Gpu, Image, Offscreen};
+pub use offscreen::{DepthImage, Gpu, Image, Offscreen};
 pub use renderer::{DEPTH_FORMAT, RenderFrameStats, RendererConfig, TerrainRenderer};
 
 /// Why rendering could not start or continue.
