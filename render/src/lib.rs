@@ -35,6 +35,7 @@ pub mod scene;
 
 pub use camera::{Camera, Lighting, Modes};
 pub use domain::{Geometry, RenderDomain, WorldFrame};
+pub use ground::SurfaceIndex;
 pub use offscreen::{DepthImage, Gpu, Image, Offscreen};
 pub use renderer::{DEPTH_FORMAT, RenderFrameStats, RendererConfig, TerrainRenderer};
 
