@@ -14,75 +14,60 @@ use crate::RenderError;
 use crate::domain::{AffinePatch, Geometry, RenderDomain, WorldFrame};
 
 /// Height (metres) of the current cut's surface below `eye` (along the up direction:
-/// `+z` on the plane, the radius on a planet), interpolated on the patch's grid triangles
-/// as they are drawn. `None` outside the data. Costs a pass over the cut.
+/// `+z` on the plane, the radius on a planet), where that line meets the patches' grid
+/// triangles as they are drawn (on a planet: flat chords between the vertices, not an
+/// interpolation in face coordinates). `None` outside the data (past the planar raster).
+/// Costs a pass over the cut; [`SurfaceIndex`] answers many queries.
 pub fn surface_height_m<R: RenderDomain>(session: &Session<R>, eye: DVec3) -> Option<f64> {
     let dag = session.dag();
     let world = dag.refiner().world_frame(&session.world(), 0);
-    let p = world.anchor(eye);
-    let n = world.n as usize;
+    if !eye.is_finite() {
+        return None;
+    }
+    let up = up_at(&world, eye);
+    let footprints = footprints(&world, eye);
+    let n = f64::from(world.n);
+    let mut near = Vec::new();
     for (id, half) in dag.cut() {
         let Some(node) = dag.node(id) else { continue };
         let Some(a) = dag.refiner().affine(id, &node.corners, half) else {
             continue;
         };
-        let Some((fi, fj)) = grid_coordinates(&world, &a, p) else {
+        let Some(p) = index_patch(&world, a, half, Arc::clone(&node.grid)) else {
             continue;
         };
-        let eps = 1e-9 * n as f64;
-        let inside = fi >= -eps
-            && fj >= -eps
-            && fi <= n as f64 + eps
-            && fj <= n as f64 + eps
-            && match half {
-                Half::Lower => fi >= fj - eps,
-                Half::Upper => fi <= fj + eps,
-            };
-        if !inside {
+        let Some(c) = footprints.on(p.face) else {
             continue;
+        };
+        let g = p.grid_of(c);
+        if p.contains(n, g, INSIDE_EPS)
+            && let Some((_, r)) = hit_cells(&world, &p, g, 0, eye, up)
+        {
+            return Some(height_m(&world, r));
         }
-        let (fi, fj) = (fi.clamp(0.0, n as f64), fj.clamp(0.0, n as f64));
-        let ci = (fi.floor() as usize).min(n - 1);
-        let cj = (fj.floor() as usize).min(n - 1);
-        let (x, y) = (fi - ci as f64, fj - cj as f64);
-        let g = |i: usize, j: usize| f64::from(node.grid[i * (n + 1) + j]);
-        let v = if x >= y {
-            g(ci, cj) + x * (g(ci + 1, cj) - g(ci, cj)) + y * (g(ci + 1, cj + 1) - g(ci + 1, cj))
-        } else {
-            g(ci, cj) + y * (g(ci, cj + 1) - g(ci, cj)) + x * (g(ci + 1, cj + 1) - g(ci, cj + 1))
-        };
-        return Some(world.value_offset_m + v * world.value_scale_m);
+        if p.contains(n, g, 1.0) {
+            near.push((p, g));
+        }
     }
-    None
+    near.iter()
+        .filter_map(|(p, g)| hit_cells(&world, p, *g, 1, eye, up))
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, r)| height_m(&world, r))
 }
 
-/// The grid coordinates `(i, j)` of fine point `p` in a patch's plane (`None` when `p`
-/// is on another cube face).
-fn grid_coordinates(world: &WorldFrame, a: &AffinePatch, p: DVec3) -> Option<(f64, f64)> {
-    let (u, v) = match world.geometry {
-        Geometry::Planar { .. } => (0, 1),
-        Geometry::Planet { half_side_fine, .. } => {
-            // The face: the axis along which the patch does not move, at +-S.
-            let axis = (0..3).find(|&k| a.e1[k] == 0 && a.e2[k] == 0)?;
-            let s = half_side_fine as f64;
-            if (p[axis] - a.base[axis] as f64).abs() > 1e-6 * s {
-                return None;
-            }
-            match axis {
-                0 => (1, 2),
-                1 => (0, 2),
-                _ => (0, 1),
-            }
-        }
-    };
-    let (a11, a12) = (a.e1[u] as f64, a.e2[u] as f64);
-    let (a21, a22) = (a.e1[v] as f64, a.e2[v] as f64);
-    let det = a11 * a22 - a12 * a21;
-    if det == 0.0 {
-        return None;
+/// Height above the datum (metres) of a surface point.
+fn height_m(world: &WorldFrame, r: DVec3) -> f64 {
+    match world.geometry {
+        Geometry::Planar { .. } => r.z,
+        Geometry::Planet { radius_m, .. } => r.length() - radius_m,
     }
-    let (bx, by) = (p[u] - a.base[u] as f64, p[v] - a.base[v] as f64);
-    Some(((bx * a22 - a12 * by) / det, (a11 * by - a21 * bx) / det))
+}
+
+fn up_at(world: &WorldFrame, x: DVec3) -> DVec3 {
+    match world.geometry {
+        Geometry::Planar { .. } => DVec3::Z,
+        Geometry::Planet { .. } => x.normalize_or(DVec3::Z),
+    }
 }
 
 /// A cut's surface exactly as the renderer draws it, in f64: every patch's `N^2`
@@ -189,9 +174,8 @@ impl SurfaceIndex {
             sizes: Default::default(),
             skipped: 0,
         };
-        let n = world.n as usize;
         for (affine, half, grid) in patches {
-            match index_patch(&world, affine, half, grid, n) {
+            match index_patch(&world, affine, half, grid) {
                 Some(p) => {
                     index.insert(p);
                 }
@@ -276,10 +260,7 @@ impl SurfaceIndex {
     /// The local up direction at `x` (unit): `+z` on the plane, radial from the planet's
     /// centre on a planet (`+z` at the centre itself).
     pub fn up(&self, x: DVec3) -> DVec3 {
-        match self.world.geometry {
-            Geometry::Planar { .. } => DVec3::Z,
-            Geometry::Planet { .. } => x.normalize_or(DVec3::Z),
-        }
+        up_at(&self.world, x)
     }
 
     /// The point where the line `x + s up` (`s` of either sign) meets the surface's
@@ -304,29 +285,29 @@ impl SurfaceIndex {
             return None;
         }
         let n = self.world.n as f64;
-        let footprints = self.footprints(x);
+        let footprints = footprints(&self.world, x);
         // The patch containing the footprint: its central cell.
         if let Some(h) = *hint
             && let Some(p) = self.patches.get(h as usize)
-            && let Some(c) = footprints.iter().find(|(f, _)| *f == p.face).map(|fc| fc.1)
+            && let Some(c) = footprints.on(p.face)
         {
             let g = p.grid_of(c);
             if p.contains(n, g, INSIDE_EPS)
-                && let Some((_, r)) = self.hit_cells(p, g, 0, x, up)
+                && let Some((_, r)) = hit_cells(&self.world, p, g, 0, x, up)
             {
                 return Some(r);
             }
         }
         let mut candidates = Vec::new();
         let mut best: Option<(f64, DVec3)> = None;
-        for (face, c) in footprints {
+        for &(face, c) in footprints.all() {
             candidates.clear();
             self.candidates(face, c, &mut candidates);
             for &k in &candidates {
                 let p = &self.patches[k as usize];
                 let g = p.grid_of(c);
                 if p.contains(n, g, INSIDE_EPS)
-                    && let Some((_, r)) = self.hit_cells(p, g, 0, x, up)
+                    && let Some((_, r)) = hit_cells(&self.world, p, g, 0, x, up)
                 {
                     *hint = Some(k);
                     return Some(r);
@@ -338,7 +319,7 @@ impl SurfaceIndex {
                 let p = &self.patches[k as usize];
                 let g = p.grid_of(c);
                 if p.contains(n, g, 1.0)
-                    && let Some((s, r)) = self.hit_cells(p, g, 1, x, up)
+                    && let Some((s, r)) = hit_cells(&self.world, p, g, 1, x, up)
                     && best.is_none_or(|(b, _)| s.abs() < b)
                 {
                     best = Some((s.abs(), r));
@@ -350,40 +331,6 @@ impl SurfaceIndex {
             }
         }
         best.map(|(_, r)| r)
-    }
-
-    /// The faces to look on and the footprint of `x` on each: the plane's `x, y` in fine
-    /// units; on a planet the face `x` points at (and, at a cube edge or corner, the
-    /// faces it ties with), in that face's fine coordinates.
-    fn footprints(&self, x: DVec3) -> Vec<(u8, [f64; 2])> {
-        match self.world.geometry {
-            Geometry::Planar {
-                metres_per_fine, ..
-            } => vec![(0, [x.x / metres_per_fine, x.y / metres_per_fine])],
-            Geometry::Planet { half_side_fine, .. } => {
-                let d = x.to_array();
-                let big = d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                if big == 0.0 {
-                    return Vec::new();
-                }
-                let s = half_side_fine as f64;
-                let mut out: Vec<(u8, [f64; 2])> = (0..3)
-                    .filter(|&k| d[k].abs() >= big * (1.0 - 1e-9))
-                    .map(|k| {
-                        let [u, v] = other_axes(k);
-                        let c = [u, v]
-                            .map(|a| (d[a] / d[k].abs()).atan() / std::f64::consts::FRAC_PI_4 * s);
-                        (face_of(k, d[k] > 0.0), c)
-                    })
-                    .collect();
-                // The largest coordinate's face first.
-                out.sort_by(|a, b| {
-                    let (ka, kb) = (usize::from(a.0 / 2), usize::from(b.0 / 2));
-                    d[kb].abs().total_cmp(&d[ka].abs())
-                });
-                out
-            }
-        }
     }
 
     fn candidates(&self, face: u8, c: [f64; 2], out: &mut Vec<u32>) {
@@ -400,61 +347,115 @@ impl SurfaceIndex {
             }
         }
     }
+}
 
-    /// The nearest intersection with the half's triangles in the cells within `reach`
-    /// of the cell of grid point `g`: `(|s|, point)`.
-    fn hit_cells(
-        &self,
-        p: &IndexedPatch,
-        g: (f64, f64),
-        reach: i64,
-        x: DVec3,
-        up: DVec3,
-    ) -> Option<(f64, DVec3)> {
-        let n = i64::from(self.world.n);
-        let ci = (g.0.floor() as i64).clamp(0, n - 1);
-        let cj = (g.1.floor() as i64).clamp(0, n - 1);
-        let mut best: Option<(f64, DVec3)> = None;
-        for i in (ci - reach).max(0)..=(ci + reach).min(n - 1) {
-            for j in (cj - reach).max(0)..=(cj + reach).min(n - 1) {
-                for tri in cell_triangles(p.half, i as usize, j as usize)
-                    .into_iter()
-                    .flatten()
+/// Up to three faces with the footprint of a point on each.
+struct Footprints {
+    items: [(u8, [f64; 2]); 3],
+    len: usize,
+}
+
+impl Footprints {
+    fn all(&self) -> &[(u8, [f64; 2])] {
+        &self.items[..self.len]
+    }
+
+    fn on(&self, face: u8) -> Option<[f64; 2]> {
+        self.all().iter().find(|(f, _)| *f == face).map(|fc| fc.1)
+    }
+}
+
+/// The faces to look on and the footprint of `x` on each: the plane's `x, y` in fine
+/// units; on a planet the face `x` points at first (then, at a cube edge or corner, the
+/// faces it ties with), in that face's fine coordinates (the inverse equal-angle map).
+fn footprints(world: &WorldFrame, x: DVec3) -> Footprints {
+    let mut out = Footprints {
+        items: [(0, [0.0; 2]); 3],
+        len: 0,
+    };
+    match world.geometry {
+        Geometry::Planar {
+            metres_per_fine, ..
+        } => {
+            out.items[0] = (0, [x.x / metres_per_fine, x.y / metres_per_fine]);
+            out.len = 1;
+        }
+        Geometry::Planet { half_side_fine, .. } => {
+            let d = x.to_array();
+            let big = d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            if big == 0.0 || !big.is_finite() {
+                return out;
+            }
+            let s = half_side_fine as f64;
+            let mut axes = [0usize, 1, 2];
+            axes.sort_by(|&a, &b| d[b].abs().total_cmp(&d[a].abs()));
+            for k in axes {
+                if d[k].abs() < big * (1.0 - 1e-9) {
+                    break;
+                }
+                let c = other_axes(k)
+                    .map(|a| (d[a] / d[k].abs()).atan() / std::f64::consts::FRAC_PI_4 * s);
+                out.items[out.len] = (face_of(k, d[k] > 0.0), c);
+                out.len += 1;
+            }
+        }
+    }
+    out
+}
+
+/// The nearest intersection of the line `x + s up` with the half's triangles in the
+/// cells within `reach` of the cell of grid point `g`: `(|s|, point)`.
+fn hit_cells(
+    world: &WorldFrame,
+    p: &IndexedPatch,
+    g: (f64, f64),
+    reach: i64,
+    x: DVec3,
+    up: DVec3,
+) -> Option<(f64, DVec3)> {
+    let n = i64::from(world.n);
+    let ci = (g.0.floor() as i64).clamp(0, n - 1);
+    let cj = (g.1.floor() as i64).clamp(0, n - 1);
+    let mut best: Option<(f64, DVec3)> = None;
+    for i in (ci - reach).max(0)..=(ci + reach).min(n - 1) {
+        for j in (cj - reach).max(0)..=(cj + reach).min(n - 1) {
+            for tri in cell_triangles(p.half, i as usize, j as usize)
+                .into_iter()
+                .flatten()
+            {
+                let v = tri.map(|(i, j)| vertex(world, p, i, j));
+                if let Some((s, r)) = line_triangle(x, up, v)
+                    && drawn(world, r)
+                    && best.is_none_or(|(b, _)| s.abs() < b)
                 {
-                    let v = tri.map(|(i, j)| self.vertex(p, i, j));
-                    if let Some((s, r)) = line_triangle(x, up, v)
-                        && self.drawn(r)
-                        && best.is_none_or(|(b, _)| s.abs() < b)
-                    {
-                        best = Some((s.abs(), r));
-                    }
+                    best = Some((s.abs(), r));
                 }
             }
         }
-        best
     }
+    best
+}
 
-    fn vertex(&self, p: &IndexedPatch, i: usize, j: usize) -> DVec3 {
-        let n = self.world.n as usize;
-        let v = p.grid.get(i * (n + 1) + j).copied().unwrap_or(0);
-        self.world.point(p.affine.at(i, j), v)
-    }
+fn vertex(world: &WorldFrame, p: &IndexedPatch, i: usize, j: usize) -> DVec3 {
+    let n = world.n as usize;
+    let v = p.grid.get(i * (n + 1) + j).copied().unwrap_or(0);
+    world.point(p.affine.at(i, j), v)
+}
 
-    /// Whether a surface point is drawn: inside the planar raster (the shader discards
-    /// fragments outside it, in f32: a relative slack of 1e-5 of its size); everywhere on a
-    /// planet.
-    fn drawn(&self, r: DVec3) -> bool {
-        match self.world.geometry {
-            Geometry::Planar {
-                metres_per_fine,
-                extent_fine,
-            } => {
-                let e = extent_fine.map(|v| v as f64 * metres_per_fine);
-                let slack = 1e-5 * e[0].max(e[1]).max(1.0);
-                r.x >= -slack && r.y >= -slack && r.x <= e[0] + slack && r.y <= e[1] + slack
-            }
-            Geometry::Planet { .. } => true,
+/// Whether a surface point is drawn: inside the planar raster (the shader discards
+/// fragments outside it, in f32: a relative slack of 1e-5 of its size); everywhere on a
+/// planet.
+fn drawn(world: &WorldFrame, r: DVec3) -> bool {
+    match world.geometry {
+        Geometry::Planar {
+            metres_per_fine,
+            extent_fine,
+        } => {
+            let e = extent_fine.map(|v| v as f64 * metres_per_fine);
+            let slack = 1e-5 * e[0].max(e[1]).max(1.0);
+            r.x >= -slack && r.y >= -slack && r.x <= e[0] + slack && r.y <= e[1] + slack
         }
+        Geometry::Planet { .. } => true,
     }
 }
 
@@ -476,8 +477,8 @@ fn index_patch(
     affine: AffinePatch,
     half: Half,
     grid: Arc<Vec<i32>>,
-    n: usize,
 ) -> Option<IndexedPatch> {
+    let n = world.n as usize;
     if n == 0 || grid.len() != (n + 1) * (n + 1) {
         return None;
     }
