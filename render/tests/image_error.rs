@@ -2,13 +2,27 @@
 //! depth made analytically, measured against the same plane raised by `delta` (every
 //! pixel's error is the pinhole projection of that vertical step, worked out here
 //! without the crate's camera code); PSNR of identical and of known-different images;
-//! `unproject` inverting `project` at pixel centres; bad input as errors. The measures
-//! on rendered cuts of the bundled repositories are in `tests/tests/image_error.rs`.
+//! `unproject` inverting `project` at pixel centres; bad input as errors. On the GPU: a
+//! frame of the in-memory planet of `examples/precision.rs` (deep levels, procedural
+//! detail, three cube faces in view) read back, its depth checked against its cut and
+//! measured against itself and its cut raised. The measures on rendered cuts of the
+//! bundled repositories, streamed from a server, are in `tests/tests/image_error.rs`.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+#[path = "../examples/precision.rs"]
+mod precision;
+
+use std::sync::Arc;
+
 use glam::DVec3;
-use quincunx_render::error::{error_map_with, geometric_error_with};
-use quincunx_render::{Camera, DepthImage, Image, psnr_db, unproject};
+use precision::{FACE_SIDE, MadeUp, N, Planet, converge, patch_changes, places, view_at};
+use quincunx_client::dag::Dag;
+use quincunx_render::error::{error_map, error_map_with, geometric_error_with};
+use quincunx_render::offscreen::{OFFSCREEN_FORMAT, gpu_for_test};
+use quincunx_render::{
+    Camera, DepthImage, Image, Offscreen, RendererConfig, SurfaceIndex, TerrainRenderer,
+    geometric_error, psnr_db, unproject,
+};
 
 const SIZE: [u32; 2] = [320, 200];
 
@@ -293,4 +307,121 @@ fn mismatched_inputs_are_errors() {
     ragged.data.pop();
     let e = geometric_error_with(&camera, &ragged, None, up).unwrap_err();
     assert!(e.to_string().contains("values"), "{e}");
+}
+
+#[test]
+fn a_planet_frame_reads_back_onto_its_cut_and_measures_zero_against_itself() {
+    let Some(gpu) =
+        gpu_for_test("a_planet_frame_reads_back_onto_its_cut_and_measures_zero_against_itself")
+            .unwrap()
+    else {
+        return;
+    };
+    const MAGENTA: [u8; 3] = [255, 0, 255];
+    let planet = Planet::new(FACE_SIDE, N).unwrap();
+    // 20 km over the cube corner, looking 30 degrees down: three faces, the horizon.
+    let corner = places()[3];
+    let mut view = view_at(&corner, 0.0, 20_000.0, -30.0);
+    view.viewport_px = [480, 270];
+    let mut dag = Dag::new(Arc::clone(&planet.refiner));
+    let mut source = MadeUp::new(Arc::clone(&planet.refiner));
+    converge(&mut dag, planet.world, &view, &mut source).unwrap();
+    let camera = Camera::from_view(&view);
+    let config = RendererConfig {
+        gpu_budget_bytes: 1 << 30,
+        max_uploads_per_frame: 1 << 16,
+        colour_format: OFFSCREEN_FORMAT,
+        ..Default::default()
+    };
+    let mut renderer = TerrainRenderer::new(&gpu.device, planet.frame, config).unwrap();
+    let changes = patch_changes(&mut dag);
+    renderer.apply(dag.refiner(), None, changes).unwrap();
+    let mut stats = renderer.prepare(&gpu.queue, &camera);
+    while stats.pending > 0 {
+        stats = renderer.prepare(&gpu.queue, &camera);
+    }
+    let offscreen = Offscreen::new(&gpu, view.viewport_px).unwrap();
+    offscreen
+        .render(&gpu, MAGENTA, |pass| renderer.draw(pass))
+        .unwrap();
+    let image = offscreen.read(&gpu).unwrap();
+    let depth = offscreen.read_depth(&gpu).unwrap();
+    let index = SurfaceIndex::from_dag(&dag, &planet.world);
+    assert_eq!((index.patches(), index.skipped()), (stats.patches, 0));
+
+    // Depth 0 exactly on the background; terrain pixels unproject onto the cut.
+    let [w, h] = view.viewport_px;
+    let (mut terrain, mut sky, mut off) = (0usize, 0usize, Vec::new());
+    let mut faces = std::collections::HashSet::new();
+    for y in 0..h {
+        for x in 0..w {
+            let d = depth.at(x, y).unwrap();
+            let background = image.pixel(x, y)[..3] == MAGENTA;
+            assert_eq!(d == 0.0, background, "({x}, {y}): depth {d}");
+            if background {
+                sky += 1;
+                continue;
+            }
+            terrain += 1;
+            let p = unproject(&camera, [w, h], x, y, d).unwrap();
+            let r = index.along(p, index.up(p)).unwrap();
+            off.push((p - r).length() / (p - camera.eye).length());
+            let a = p.abs();
+            faces.insert(if a.x >= a.y && a.x >= a.z {
+                0
+            } else if a.y >= a.z {
+                1
+            } else {
+                2
+            });
+        }
+    }
+    off.sort_by(f64::total_cmp);
+    let (p99, max) = (off[off.len() * 99 / 100], off[off.len() - 1]);
+    println!(
+        "{} patches, {terrain} terrain and {sky} sky pixels on {} faces; unprojected within \
+         {p99:.2e} (p99), {max:.2e} (max) of their distance from the cut",
+        stats.patches,
+        faces.len()
+    );
+    assert!(terrain > 50_000 && sky > 1_000 && faces.len() == 3);
+    // Depth quantisation leaves about 1e-7 of the distance; silhouette pixels more (see
+    // tests/tests/image_error.rs).
+    assert!(p99 < 1e-6 && max < 1e-3, "{p99:.3e} {max:.3e}");
+
+    let same = geometric_error(&camera, &depth, Some(&depth), &index).unwrap();
+    assert_eq!((same.pixels, same.max_px), (terrain, 0.0));
+    let quantised = geometric_error(&camera, &depth, None, &index).unwrap();
+    println!("without the reference depth: {quantised:?}");
+    assert_eq!(quantised.pixels, terrain);
+    assert!(quantised.p99_px < 1e-3, "{quantised:?}");
+
+    // Raised by 100 m: each pixel's error is the projection of its reference point
+    // raised by that much.
+    let raise_m = 100.0;
+    let map = error_map(
+        &camera,
+        &depth,
+        None,
+        &index.clone().with_offset_m(raise_m).unwrap(),
+    )
+    .unwrap();
+    let mut worst_rel = 0.0f64;
+    for y in 0..h {
+        for x in 0..w {
+            let k = (y * w + x) as usize;
+            let Some(p) = unproject(&camera, [w, h], x, y, depth.data[k]) else {
+                continue;
+            };
+            let up = index.up(p);
+            let r = index.along(p, up).unwrap() + up * raise_m;
+            let (a, b) = (camera.project(p).unwrap(), camera.project(r).unwrap());
+            let want = (a[0] - b[0]).hypot(a[1] - b[1]);
+            worst_rel = worst_rel.max((map.error_px[k] - want).abs() / want.max(0.01));
+        }
+    }
+    let s = map.summary();
+    println!("raised {raise_m} m: {s:?}, within {worst_rel:.2e} of the raised points");
+    assert!(s.pixels == terrain && s.p50_px > 0.5, "{s:?}");
+    assert!(worst_rel < 0.01, "{worst_rel:.3e}");
 }
