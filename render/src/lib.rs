@@ -14,6 +14,9 @@
 //!   the host; the shader subtracts exact integers, so only camera-relative numbers
 //!   reach f32, and shared vertices come out bit-identical in neighbouring patches.
 //!   Reversed Z, infinite far plane, `Depth32Float`.
+//! - Image error ([`error`]): PSNR, and a geometric error in screen pixels from a frame's
+//!   depth ([`Offscreen::read_depth`]) against a reference cut's surface as drawn
+//!   ([`SurfaceIndex`]), for speed/accuracy trade studies.
 //!
 //! The frame loop of an app (see `examples/embed.rs`):
 //!
@@ -27,6 +30,7 @@
 
 pub mod camera;
 pub mod domain;
+pub mod error;
 pub mod ground;
 pub mod offscreen;
 pub mod pool;
@@ -35,7 +39,9 @@ pub mod scene;
 
 pub use camera::{Camera, Lighting, Modes};
 pub use domain::{Geometry, RenderDomain, WorldFrame};
-pub use offscreen::{Gpu, Image, Offscreen};
+pub use error::{ErrorMap, GeometricError, geometric_error, psnr_db, unproject};
+pub use ground::SurfaceIndex;
+pub use offscreen::{DepthImage, Gpu, Image, Offscreen};
 pub use renderer::{DEPTH_FORMAT, RenderFrameStats, RendererConfig, TerrainRenderer};
 
 /// Why rendering could not start or continue.

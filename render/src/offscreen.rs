@@ -1,6 +1,6 @@
 //! Headless rendering: a device without a window, an offscreen colour and depth target,
-//! read back to RGBA pixels and PNG files, with GPU timing where the adapter has
-//! timestamp queries.
+//! read back to RGBA pixels (and PNG files) and to depth values, with GPU timing where
+//! the adapter has timestamp queries.
 
 use std::path::Path;
 
@@ -174,12 +174,52 @@ impl Image {
     }
 }
 
+/// The depth attachment of a frame, as stored: reversed Z with an infinite far plane
+/// (`NEAR_M / distance along the view axis`, 1 at the near plane), 0 where nothing was
+/// drawn (the clear value).
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthImage {
+    /// Width, pixels.
+    pub width: u32,
+    /// Height, pixels.
+    pub height: u32,
+    /// Rows top to bottom (as [`Image`]), one value per pixel.
+    pub data: Vec<f32>,
+}
+
+impl DepthImage {
+    /// The depth at `(x, y)` (`None` outside the image or when `data` is short).
+    pub fn at(&self, x: u32, y: u32) -> Option<f32> {
+        if x >= self.width || y >= self.height {
+            return None;
+        }
+        self.data
+            .get(y as usize * self.width as usize + x as usize)
+            .copied()
+    }
+
+    /// Checks that `data` holds `width * height` values.
+    pub fn validate(&self) -> Result<(), RenderError> {
+        let want = u64::from(self.width) * u64::from(self.height);
+        if self.data.len() as u64 != want {
+            return Err(RenderError::Config(format!(
+                "depth image {}x{} holds {} values, not {want}",
+                self.width,
+                self.height,
+                self.data.len()
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// An offscreen colour + depth target with a readback buffer.
 pub struct Offscreen {
     /// Width, height.
     pub size: [u32; 2],
     colour: wgpu::Texture,
     colour_view: wgpu::TextureView,
+    depth: wgpu::Texture,
     depth_view: wgpu::TextureView,
     readback: wgpu::Buffer,
     padded_row: u32,
@@ -227,7 +267,7 @@ impl Offscreen {
         );
         let depth = texture(
             DEPTH_FORMAT,
-            wgpu::TextureUsages::RENDER_ATTACHMENT,
+            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
             "quincunx offscreen depth",
         );
         let padded_row = (w * 4).div_ceil(256) * 256;
@@ -266,6 +306,7 @@ impl Offscreen {
             colour_view: colour.create_view(&Default::default()),
             colour,
             depth_view: depth.create_view(&Default::default()),
+            depth,
             readback,
             padded_row,
             timer,
@@ -343,7 +384,8 @@ impl Offscreen {
                 view: &self.depth_view,
                 depth_ops: Some(wgpu::Operations {
                     load: wgpu::LoadOp::Clear(0.0),
-                    store: wgpu::StoreOp::Discard,
+                    // Kept for `read_depth`.
+                    store: wgpu::StoreOp::Store,
                 }),
                 stencil_ops: None,
             }),
@@ -441,6 +483,64 @@ impl Offscreen {
             width: w,
             height: h,
             rgba,
+        })
+    }
+
+    /// Reads the depth attachment of the last frame back ([`DepthImage`]; 0 where nothing
+    /// was drawn). Allocates its own readback buffer (4 bytes a pixel, rows padded to 256
+    /// bytes) for the call.
+    pub fn read_depth(&self, gpu: &Gpu) -> Result<DepthImage, RenderError> {
+        let [w, h] = self.size;
+        let row = w as usize * 4;
+        let padded = (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("quincunx depth readback"),
+            size: u64::from(padded) * u64::from(h),
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        });
+        let mut encoder = gpu
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+        encoder.copy_texture_to_buffer(
+            wgpu::TexelCopyTextureInfo {
+                texture: &self.depth,
+                mip_level: 0,
+                origin: wgpu::Origin3d::ZERO,
+                aspect: wgpu::TextureAspect::DepthOnly,
+            },
+            wgpu::TexelCopyBufferInfo {
+                buffer: &buffer,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(padded),
+                    rows_per_image: Some(h),
+                },
+            },
+            wgpu::Extent3d {
+                width: w,
+                height: h,
+                depth_or_array_layers: 1,
+            },
+        );
+        gpu.queue.submit([encoder.finish()]);
+        let padded = padded as usize;
+        let data = map_read(gpu, &buffer, |b| {
+            let mut out = Vec::with_capacity(w as usize * h as usize);
+            for y in 0..h as usize {
+                out.extend(
+                    b[y * padded..y * padded + row]
+                        .chunks_exact(4)
+                        .map(|c| f32::from_ne_bytes([c[0], c[1], c[2], c[3]])),
+                );
+            }
+            out
+        })?;
+        Ok(DepthImage {
+            width: w,
+            height: h,
+            data,
         })
     }
 }
