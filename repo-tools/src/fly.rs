@@ -347,6 +347,8 @@ pub struct RenderSummary {
     pub cpu_ms_max: f64,
     /// GPU time per frame (timestamp queries), ms; `None` without them.
     pub gpu_ms_p50: Option<f64>,
+    /// 99th percentile.
+    pub gpu_ms_p99: Option<f64>,
     /// Bytes uploaded per frame: median.
     pub upload_bytes_p50: f64,
     /// 99th percentile.
@@ -361,8 +363,12 @@ pub struct RenderSummary {
     pub uploads_max: f64,
     /// Triangles per frame, median.
     pub triangles_p50: f64,
+    /// Largest.
+    pub triangles_max: f64,
     /// Patches drawn per frame, median.
     pub patches_p50: f64,
+    /// Largest.
+    pub patches_max: f64,
     /// Draw calls per frame, largest.
     pub draw_calls_max: usize,
     /// Peak GPU bytes held by patches (drawn and cached).
@@ -388,7 +394,7 @@ pub struct RenderSummary {
 pub const RASTER_EVERY: usize = 60;
 
 /// Draws each flight frame offscreen and keeps the figures.
-struct FrameDrawer<R: RenderDomain> {
+pub(crate) struct FrameDrawer<R: RenderDomain> {
     gpu: Gpu,
     offscreen: Offscreen,
     renderer: TerrainRenderer<R>,
@@ -406,7 +412,7 @@ struct FrameDrawer<R: RenderDomain> {
 }
 
 impl<R: RenderDomain> FrameDrawer<R> {
-    fn new(session: &Session<R>, args: &FlyArgs) -> Result<Self> {
+    pub(crate) fn new(session: &Session<R>, args: &FlyArgs) -> Result<Self> {
         let gpu = Gpu::headless().context("starting the renderer")?;
         let size = args.render_size.unwrap_or(args.viewport);
         let offscreen = Offscreen::new(&gpu, size)?;
@@ -442,7 +448,7 @@ impl<R: RenderDomain> FrameDrawer<R> {
     /// an empty submission flushes the uploads, because lavapipe needs seconds per
     /// flight frame to rasterise on two cores. What a frame costs the host is the same
     /// either way: the device executes the commands.
-    fn frame(
+    pub(crate) fn frame(
         &mut self,
         domain: &R,
         colour: Option<&quincunx_client::colour::ColourLayer<R>>,
@@ -489,7 +495,34 @@ impl<R: RenderDomain> FrameDrawer<R> {
         Ok(())
     }
 
-    fn summary(&self) -> RenderSummary {
+    /// The drawn cut for `view`, made current (capped uploads finished), rasterised
+    /// and read back: the frame's pixels and depth, and the renderer's figures (patches
+    /// the GPU budget left out are `missing`).
+    pub(crate) fn capture(
+        &mut self,
+        view: &View,
+        background: [u8; 3],
+    ) -> Result<(
+        quincunx_render::offscreen::Image,
+        quincunx_render::offscreen::DepthImage,
+        quincunx_render::RenderFrameStats,
+    )> {
+        let camera = Camera::from_view(view);
+        let mut stats = self.renderer.prepare(&self.gpu.queue, &camera);
+        while stats.pending > 0 {
+            stats = self.renderer.prepare(&self.gpu.queue, &camera);
+        }
+        let renderer = &self.renderer;
+        self.offscreen
+            .render(&self.gpu, background, |pass| renderer.draw(pass))?;
+        Ok((
+            self.offscreen.read(&self.gpu)?,
+            self.offscreen.read_depth(&self.gpu)?,
+            stats,
+        ))
+    }
+
+    pub(crate) fn summary(&self) -> RenderSummary {
         let sorted = |v: &[f64]| {
             let mut v = v.to_vec();
             v.sort_by(f64::total_cmp);
@@ -508,6 +541,7 @@ impl<R: RenderDomain> FrameDrawer<R> {
             cpu_ms_p99: percentile(&cpu, 0.99),
             cpu_ms_max: cpu.last().copied().unwrap_or(0.0),
             gpu_ms_p50: (!self.gpu_ms.is_empty()).then(|| percentile(&sorted(&self.gpu_ms), 0.5)),
+            gpu_ms_p99: (!self.gpu_ms.is_empty()).then(|| percentile(&sorted(&self.gpu_ms), 0.99)),
             upload_bytes_p50: percentile(&up, 0.5),
             upload_bytes_p99: percentile(&up, 0.99),
             upload_bytes_max: up.last().copied().unwrap_or(0.0),
@@ -515,6 +549,8 @@ impl<R: RenderDomain> FrameDrawer<R> {
             uploads_p50: percentile(&ups, 0.5),
             uploads_max: ups.last().copied().unwrap_or(0.0),
             triangles_p50: percentile(&sorted(&self.triangles), 0.5),
+            triangles_max: self.triangles.iter().copied().fold(0.0, f64::max),
+            patches_max: self.patches.iter().copied().fold(0.0, f64::max),
             patches_p50: percentile(&sorted(&self.patches), 0.5),
             draw_calls_max: self.draw_calls_max,
             gpu_bytes_peak: self.gpu_bytes_peak,

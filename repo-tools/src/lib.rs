@@ -32,5 +32,6 @@ pub mod preview;
 pub mod progress;
 pub mod query;
 pub mod render;
+pub mod trade;
 pub mod verify;
 pub mod view;

@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 use quincunx_repo_tools::{
-    build, demo, export, fly, info, loadtest, outln, preview, query, render, verify, view,
+    build, demo, export, fly, info, loadtest, outln, preview, query, render, trade, verify, view,
 };
 
 /// Streams compressed multiresolution terrain: repository tools.
@@ -44,6 +44,10 @@ enum Command {
     /// Fly a camera path with a headless streaming client against a server, in real
     /// time (optionally through an emulated link), and measure it.
     Fly(fly::FlyArgs),
+    /// The speed/accuracy trade: for each tolerance, fly the same path and render the
+    /// same views; triangles, ms, bytes, time to full quality and the image error
+    /// against a full-resolution reference (docs/trade.md).
+    Trade(trade::TradeArgs),
     /// Stream a served repository to full quality for one camera and write the frame as
     /// a PNG (rendered offscreen with wgpu; docs/rendering.md).
     Render(render::RenderArgs),
@@ -129,6 +133,7 @@ fn main() -> ExitCode {
         Command::Query { repo, at, json } => query::run(&repo, &at, json),
         Command::Loadtest(args) => loadtest::run(&args),
         Command::Fly(args) => fly::run(&args),
+        Command::Trade(args) => trade::run(&args),
         Command::Render(args) => render::run(&args),
         Command::View(args) => view::run(&args),
         Command::Preview {

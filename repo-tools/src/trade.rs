@@ -1,0 +1,1026 @@
+//! `quincunx trade`: what each screen-space tolerance costs (triangles, milliseconds,
+//! bytes, seconds to full quality) and what it buys (image error against a
+//! full-resolution reference of the same view), measured on the user's own data.
+//!
+//! For each tolerance a fresh client session flies the same path in real time through its
+//! own emulated link (`--link`, default 4 Mbit/s and 100 ms), checking its cut for cracks;
+//! the renderer then replays the flight frame by frame (as `quincunx fly --render` does)
+//! and, at the last frame of each chosen leg, rasterises the view and reads back its
+//! pixels and depth. Afterwards:
+//! - the *needed set* of each tolerance: for every leg's final view, a fresh session over
+//!   the server directly (no link, no prefetch, look-ahead or packages) refines the view
+//!   to full quality, and the blobs of its cut are united over the views
+//!   ([`quincunx_client::flight::needed_for_views`]); `fetched_over_needed` is the flight's
+//!   fetched bytes over that set's. The same is done ignoring the blobs' side
+//!   information (`flat_fraction` 0): what the side information saves on flat ground;
+//! - the *reference* of each view: a fresh session refines it at tolerance 0 (every
+//!   visible diamond down to the finest coded level; only frustum culling stays), drawn
+//!   with a large GPU budget. PSNR compares shaded frames; the geometric error
+//!   (`quincunx_render::error`) is, per pixel, the screen distance between the surface
+//!   point the pixel shows and the reference surface along the local vertical.
+//!
+//! `--path extremes` (planets): views 1 m above the ground (oblique and straight down),
+//! 100,000 km away, over the north pole and over a cube corner. Each view is also
+//! rendered with the camera moved 1 mm (`jitter_psnr_db`), and straight-down views that
+//! the ground fills are counted for background pixels (cracks).
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use quincunx_client::flight::{self, BuiltinFlights, Flight, Leg, NeededSet, Pose};
+use quincunx_client::refine::RefineConfig;
+use quincunx_client::session::{Session, SessionConfig, SessionError};
+use quincunx_client::view::View;
+use quincunx_codec::incremental::{PlanarRefiner, SphereRefiner};
+use quincunx_render::domain::RenderDomain;
+use quincunx_render::error::{error_map, psnr_db};
+use quincunx_render::ground::SurfaceIndex;
+use quincunx_render::offscreen::{DepthImage, Gpu, Image, OFFSCREEN_FORMAT, Offscreen};
+use quincunx_render::scene::{Place, Shot, stream_to};
+use quincunx_render::{Camera, RendererConfig, TerrainRenderer};
+use serde::{Deserialize, Serialize};
+
+use crate::fly::{FlyArgs, FrameDrawer, fly_options, parse_viewport, session_config, start_link};
+use crate::plot::{Chart, Series};
+
+/// The clear colour of every trade frame.
+const BACKGROUND: [u8; 3] = [135, 170, 210];
+
+/// `quincunx trade` options.
+#[derive(Args, Debug, Clone)]
+pub struct TradeArgs {
+    /// Server base URL, e.g. `http://127.0.0.1:8080`.
+    #[arg(long)]
+    pub url: String,
+    /// Elevation repository name.
+    #[arg(long)]
+    pub repo: String,
+    /// Colour repository matched to the elevation.
+    #[arg(long, visible_alias = "color")]
+    pub colour: Option<String>,
+    /// Tolerances to measure, pixels (0: the reference's refinement, every visible
+    /// diamond at the finest level).
+    #[arg(long, value_delimiter = ',', default_value = "0.5,1,2,4,8")]
+    pub tolerances: Vec<f64>,
+    /// `jump`, `approach`, `low-flight`, `extremes` (planets) or a JSON flight file.
+    #[arg(long, default_value = "jump")]
+    pub path: String,
+    /// Emulated link of each flight, `KBIT_S,RTT_MS`, or `none`.
+    #[arg(long, default_value = "4000,100")]
+    pub link: String,
+    /// Views compared with the reference: this many legs' final views, spread over the
+    /// flight (all legs when it has fewer).
+    #[arg(long, default_value_t = 6)]
+    pub views: usize,
+    /// Write the report as `<label>.json` into this directory and PNG charts of every
+    /// report there (one line per label).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Name of this repository's line in the charts (default: the repository's name,
+    /// `+colour` with a colour layer).
+    #[arg(long)]
+    pub label: Option<String>,
+    /// One JSON object on stdout instead of text.
+    #[arg(long)]
+    pub json: bool,
+    /// Viewport `WIDTHxHEIGHT` (refinement and images).
+    #[arg(long, default_value = "1920x1080", value_parser = parse_viewport)]
+    pub viewport: [u32; 2],
+    /// Seed of the `jump` places.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// GPU memory budget of the flights' renderer, MB.
+    #[arg(long, default_value_t = 128.0)]
+    pub gpu_budget_mb: f64,
+    /// GPU memory budget of the reference renders, MB.
+    #[arg(long, default_value_t = 4096.0)]
+    pub reference_gpu_budget_mb: f64,
+    /// Seconds a reference or needed-set view may take to reach full quality.
+    #[arg(long, default_value_t = 300.0)]
+    pub reference_wait_s: f64,
+    /// Check each flight's cut for cracks every this many frames (0 never).
+    #[arg(long, default_value_t = 10)]
+    pub check_every: usize,
+    /// Metres between samples (default: from the georeference).
+    #[arg(long)]
+    pub spacing_m: Option<f64>,
+}
+
+/// One tolerance's figures. Field names are those of `quincunx trade --json`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct TradePoint {
+    /// Tolerance, pixels.
+    pub tolerance_px: f64,
+    /// Triangles drawn per frame, median and largest.
+    pub triangles_median: f64,
+    /// Largest.
+    pub triangles_max: f64,
+    /// Patches (cut halves) drawn per frame, median and largest.
+    pub patches_median: f64,
+    /// Largest.
+    pub patches_max: f64,
+    /// Refinement time per frame, ms: median and 99th percentile.
+    pub refine_ms_median: f64,
+    /// 99th percentile.
+    pub refine_ms_p99: f64,
+    /// Renderer CPU per frame (cut changes, uploads, draws, encoding, submitting), ms.
+    pub render_ms_median: f64,
+    /// 99th percentile.
+    pub render_ms_p99: f64,
+    /// Rasterisation per frame on the device (timestamp queries on the rasterised
+    /// frames), ms; `None` without timestamps.
+    pub render_gpu_ms_median: Option<f64>,
+    /// 99th percentile.
+    pub render_gpu_ms_p99: Option<f64>,
+    /// Frames flown, and their rate.
+    pub frames: usize,
+    /// Frames per second the client kept.
+    pub frames_per_s: f64,
+    /// Body bytes fetched over the flight.
+    pub bytes_fetched: u64,
+    /// `bytes_fetched` over the flight's seconds.
+    pub bytes_per_s: f64,
+    /// Time to full quality after each jump: median and largest (s).
+    pub time_to_full_quality_s_median: Option<f64>,
+    /// Largest.
+    pub time_to_full_quality_s_max: Option<f64>,
+    /// Jumps whose leg ended before full quality.
+    pub jumps_unfinished: usize,
+    /// PSNR of the shaded views against the references, over all compared pixels
+    /// (`None`: every view identical, infinite).
+    pub psnr_db: Option<f64>,
+    /// Geometric error in pixels (see the module docs) over every measured pixel of
+    /// every view: median, 99th percentile (nearest rank) and largest.
+    pub geometric_error_px_p50: f64,
+    /// 99th percentile.
+    pub geometric_error_px_p99: f64,
+    /// Largest.
+    pub geometric_error_px_max: f64,
+    /// Pixels measured, and those with no reference surface on their vertical.
+    pub geometric_pixels: usize,
+    /// Pixels without a reference surface.
+    pub geometric_pixels_without_reference: usize,
+    /// Body bytes of the blobs of the final cuts (the cut at each leg's last frame).
+    pub bytes_in_final_cuts: u64,
+    /// Body bytes of the smallest blob set whose cuts meet the tolerance in the final
+    /// views.
+    pub bytes_needed: u64,
+    /// `bytes_fetched / bytes_needed`.
+    pub fetched_over_needed: f64,
+    /// Whether every needed-set view reached full quality.
+    pub needed_full_quality: bool,
+    /// Largest projected error left in a needed-set cut (px; within the tolerance).
+    pub needed_max_error_px: f64,
+    /// Cut halves of the needed-set views, summed.
+    pub needed_halves: usize,
+    /// The needed set refined ignoring the blobs' side information: bytes and halves.
+    pub needed_bytes_ignoring_side_info: u64,
+    /// Halves.
+    pub needed_halves_ignoring_side_info: usize,
+    /// `needed_halves_ignoring_side_info / needed_halves`: how much finer flat ground
+    /// is refined without the side information than its data needs.
+    pub side_info_halves_saved: f64,
+    /// Peak GPU bytes of the flight's renderer, and its budget.
+    pub gpu_bytes_peak: u64,
+    /// The budget (whole slots).
+    pub gpu_bytes_budget: u64,
+    /// Frames whose drawn cut lagged the client's (upload cap or GPU budget).
+    pub frames_not_current: usize,
+    /// Cracks and coverage errors over the flight's checked frames (must be 0).
+    pub cracks: usize,
+    /// Coverage errors.
+    pub coverage_errors: usize,
+    /// Per compared view.
+    pub views: Vec<ViewError>,
+}
+
+/// One view of one tolerance against its reference.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct ViewError {
+    /// Leg whose final view it is.
+    pub leg: usize,
+    /// PSNR (`None`: identical).
+    pub psnr_db: Option<f64>,
+    /// Geometric error: median, 99th percentile, largest (px).
+    pub geometric_error_px_p50: f64,
+    /// 99th percentile.
+    pub geometric_error_px_p99: f64,
+    /// Largest.
+    pub geometric_error_px_max: f64,
+    /// Pixels showing terrain.
+    pub pixels: usize,
+    /// Of them, pixels with no reference surface on their vertical.
+    pub pixels_without_reference: usize,
+    /// Background pixels (views that the ground fills: cracks; else the sky).
+    pub background_px: usize,
+    /// PSNR of the view against the same cut rendered with the camera moved 1 mm
+    /// (`None`: identical). Only with `--path extremes`.
+    pub jitter_psnr_db: Option<f64>,
+    /// Every depth and error value was finite.
+    pub finite: bool,
+    /// Patches of the cut the renderer's GPU budget left out (drawn as holes).
+    pub patches_missing: usize,
+}
+
+/// The reference of one view.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct ReferenceView {
+    /// Leg.
+    pub leg: usize,
+    /// Whether it reached full quality (every visible diamond at the finest level).
+    pub full_quality: bool,
+    /// Seconds it took.
+    pub seconds: f64,
+    /// Cut halves.
+    pub cut_halves: usize,
+    /// Triangles drawn.
+    pub triangles: u64,
+}
+
+/// What `quincunx trade --json` prints.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct TradeReport {
+    /// Line name in the charts.
+    pub label: String,
+    /// Elevation repository.
+    pub repo: String,
+    /// Colour repository.
+    pub colour: Option<String>,
+    /// Flight.
+    pub path: String,
+    /// Emulated link (`None`: none).
+    pub link: Option<[f64; 2]>,
+    /// Viewport.
+    pub viewport: [u32; 2],
+    /// Adapter of the renders.
+    pub adapter: String,
+    /// One per tolerance, in the order given.
+    pub points: Vec<TradePoint>,
+    /// The references.
+    pub references: Vec<ReferenceView>,
+    /// Wall-clock seconds of the whole study.
+    pub seconds: f64,
+}
+
+/// A view captured at the end of a leg.
+struct Capture {
+    leg: usize,
+    view: View,
+    image: Image,
+    depth: DepthImage,
+    jitter: Option<Image>,
+    missing: usize,
+}
+
+/// The domains a trade study runs on.
+pub trait TradeDomain: BuiltinFlights + RenderDomain {
+    /// Opens `repo` (and `colour`) at `url`.
+    fn open(
+        url: &str,
+        repo: &str,
+        colour: Option<&str>,
+        config: SessionConfig,
+    ) -> Result<Session<Self>, SessionError> {
+        match colour {
+            Some(c) => Session::open_with_colour(url, repo, c, config),
+            None => Session::open(url, repo, config),
+        }
+    }
+
+    /// The shots of `--path extremes`, or an error for this domain.
+    fn extremes(size: [u32; 2]) -> Result<Vec<Shot>>;
+}
+
+impl TradeDomain for PlanarRefiner {
+    fn extremes(_: [u32; 2]) -> Result<Vec<Shot>> {
+        bail!("--path extremes is for planets (a planar repository has no poles or cube corners)")
+    }
+}
+
+impl TradeDomain for SphereRefiner {
+    fn extremes(size: [u32; 2]) -> Result<Vec<Shot>> {
+        let shot = |lat, lon, height_m, pitch_deg| Shot {
+            place: Place::LatLon(lat, lon),
+            height_m,
+            heading_deg: 30.0,
+            pitch_deg,
+            size,
+            ..Shot::default()
+        };
+        // The cube corner (1, 1, 1): latitude asin(1/sqrt 3), longitude 45.
+        let corner = (1.0f64 / 3f64.sqrt()).asin().to_degrees();
+        Ok(vec![
+            shot(36.0, 128.0, 1.0, -20.0),
+            shot(36.0, 128.0, 1.0, -90.0),
+            shot(0.0, 0.0, 1e8, -90.0),
+            shot(90.0, 0.0, 2_000.0, -90.0),
+            shot(corner, 45.0, 2_000.0, -90.0),
+        ])
+    }
+}
+
+/// Runs `quincunx trade`.
+pub fn run(args: &TradeArgs) -> Result<()> {
+    if args.tolerances.is_empty() {
+        bail!("--tolerances: give at least one");
+    }
+    if let Some(t) = args
+        .tolerances
+        .iter()
+        .find(|t| !(t.is_finite() && **t >= 0.0))
+    {
+        bail!("--tolerances: {t} is not a tolerance (0 or more pixels)");
+    }
+    if args.views == 0 {
+        bail!("--views must be at least 1");
+    }
+    for (name, v) in [
+        ("--gpu-budget-mb", args.gpu_budget_mb),
+        ("--reference-gpu-budget-mb", args.reference_gpu_budget_mb),
+        ("--reference-wait-s", args.reference_wait_s),
+    ] {
+        if !(v.is_finite() && v > 0.0) {
+            bail!("{name} must be positive");
+        }
+    }
+    let link = parse_link_arg(&args.link)?;
+    let probe = quincunx_client::session::AnySession::open_with_colour(
+        &args.url,
+        &args.repo,
+        args.colour.as_deref(),
+        SessionConfig::default(),
+    )
+    .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
+    let report = match probe {
+        quincunx_client::session::AnySession::Planar(s) => study(s, args, link)?,
+        quincunx_client::session::AnySession::Planet(s) => study(s, args, link)?,
+    };
+    if let Some(dir) = &args.plot {
+        write_plots(dir, &report)?;
+    }
+    print(&report, args)
+}
+
+/// `KBIT_S,RTT_MS` or `none`.
+fn parse_link_arg(s: &str) -> Result<Option<(f64, f64)>> {
+    if s.eq_ignore_ascii_case("none") {
+        return Ok(None);
+    }
+    let (a, b) = s
+        .split_once(',')
+        .with_context(|| format!("--link {s:?} is not KBIT_S,RTT_MS or none"))?;
+    let p = |t: &str| -> Result<f64> {
+        let v: f64 = t
+            .trim()
+            .parse()
+            .with_context(|| format!("--link {s:?}: {t:?}"))?;
+        if !(v.is_finite() && v >= 0.0) {
+            bail!("--link {s:?}: {t:?} must be a non-negative number");
+        }
+        Ok(v)
+    };
+    let (kbit, rtt) = (p(a)?, p(b)?);
+    if kbit <= 0.0 {
+        bail!("--link {s:?}: the rate must be positive");
+    }
+    Ok(Some((kbit, rtt)))
+}
+
+/// The flight-like settings of one tolerance.
+fn fly_args(args: &TradeArgs, url: &str, tolerance_px: f64) -> FlyArgs {
+    FlyArgs {
+        color: args.colour.clone(),
+        tolerance_px,
+        viewport: args.viewport,
+        seed: args.seed,
+        check_every: args.check_every,
+        spacing_m: args.spacing_m,
+        render: true,
+        gpu_budget_mb: args.gpu_budget_mb,
+        ..FlyArgs::new(url, args.repo.clone(), args.path.clone())
+    }
+}
+
+/// Settings of the needed-set and reference sessions: the data without a link, and
+/// only what refinement asks for.
+fn exact_config(args: &TradeArgs, flat_fraction: Option<f64>) -> SessionConfig {
+    let mut refine = RefineConfig::default();
+    if let Some(f) = flat_fraction {
+        refine.flat_fraction = f;
+    }
+    SessionConfig {
+        prefetch_ahead: Duration::ZERO,
+        lookahead_levels: 0,
+        package_factor: None,
+        spacing_m: args.spacing_m,
+        refine,
+        ..SessionConfig::default()
+    }
+}
+
+/// The whole study over one domain.
+fn study<R: TradeDomain>(
+    mut probe: Session<R>,
+    args: &TradeArgs,
+    link: Option<(f64, f64)>,
+) -> Result<TradeReport> {
+    let started = Instant::now();
+    let extremes = args.path == "extremes";
+    // One flight for every tolerance.
+    let flight = if extremes {
+        extremes_flight(&mut probe, &R::extremes(args.viewport)?)?
+    } else {
+        crate::fly::load_flight(&args.path, &mut probe, args.seed)?
+    };
+    drop(probe);
+    let legs = flight.legs.len();
+    let chosen: Vec<usize> = if legs <= args.views {
+        (0..legs).collect()
+    } else {
+        (0..args.views)
+            .map(|k| (k * legs + legs / 2) / args.views)
+            .collect()
+    };
+    let mut points = Vec::new();
+    let mut captures: Vec<Vec<Capture>> = Vec::new();
+    let mut adapter = String::new();
+    for &t in &args.tolerances {
+        tracing::info!(tolerance_px = t, "flying");
+        let (point, caps, name) = fly_point::<R>(args, &flight, link, t, &chosen, extremes)
+            .with_context(|| format!("tolerance {t} px"))?;
+        adapter = name;
+        points.push(point);
+        captures.push(caps);
+    }
+    // References, one view at a time (each holds a full-resolution cut).
+    let gpu = Gpu::headless().context("starting the renderer")?;
+    let mut references = Vec::new();
+    let first = captures.first().map_or(&[][..], |c| c.as_slice());
+    let views: Vec<(usize, View)> = first.iter().map(|c| (c.leg, c.view)).collect();
+    let mut per_view: Vec<Vec<ViewError>> = vec![Vec::new(); points.len()];
+    let mut pooled: Vec<Vec<f32>> = vec![Vec::new(); points.len()];
+    for (vi, (leg, view)) in views.iter().enumerate() {
+        tracing::info!(leg, "reference");
+        let (reference, ref_image, ref_depth, index) = reference_view::<R>(args, &gpu, *leg, view)?;
+        references.push(reference);
+        for (pi, caps) in captures.iter().enumerate() {
+            let Some(cap) = caps.get(vi) else { continue };
+            let (v, errors) = compare(cap, &ref_image, &ref_depth, &index)?;
+            per_view[pi].push(v);
+            pooled[pi].extend(errors);
+        }
+    }
+    for ((point, views), errors) in points.iter_mut().zip(per_view).zip(pooled) {
+        aggregate(point, views, errors);
+    }
+    Ok(TradeReport {
+        label: args.label.clone().unwrap_or_else(|| match &args.colour {
+            Some(c) => format!("{}+{c}", args.repo),
+            None => args.repo.clone(),
+        }),
+        repo: args.repo.clone(),
+        colour: args.colour.clone(),
+        path: flight.name.clone(),
+        link: link.map(|(k, r)| [k, r]),
+        viewport: args.viewport,
+        adapter,
+        points,
+        references,
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}
+
+/// `--path extremes`: a hold leg per shot, the camera placed over the streamed terrain.
+fn extremes_flight<R: TradeDomain>(probe: &mut Session<R>, shots: &[Shot]) -> Result<Flight> {
+    let mut legs = Vec::new();
+    for shot in shots {
+        let (view, _) = stream_to(probe, shot, Duration::from_secs(60), None)?;
+        legs.push(Leg {
+            duration_s: 20.0,
+            from: Pose {
+                eye: view.eye.to_array(),
+                target: view.target.to_array(),
+            },
+            to: None,
+            jump: true,
+            settle_s: Some(0.5),
+        });
+    }
+    Ok(Flight {
+        name: "extremes".into(),
+        legs,
+    })
+}
+
+/// Flies one tolerance and captures the chosen legs' final views.
+fn fly_point<R: TradeDomain>(
+    args: &TradeArgs,
+    flight: &Flight,
+    link: Option<(f64, f64)>,
+    tolerance_px: f64,
+    chosen: &[usize],
+    jitter: bool,
+) -> Result<(TradePoint, Vec<Capture>, String)> {
+    let proxy = link.map(|l| start_link(&args.url, l)).transpose()?;
+    let url = proxy
+        .as_ref()
+        .map_or(args.url.as_str(), |(_, u)| u.as_str());
+    let fa = fly_args(args, url, tolerance_px);
+    let mut session = R::open(url, &args.repo, args.colour.as_deref(), session_config(&fa))?;
+    if !session.warm_up(Duration::from_secs(10))? {
+        tracing::warn!("the root did not arrive within 10 s");
+    }
+    let opts = fly_options(&fa);
+    let mut drawer = FrameDrawer::new(&session, &fa)?;
+    let mut frames = Vec::new();
+    let report = flight::fly_with(&mut session, flight, &opts, |s, view, rec| {
+        let t = Instant::now();
+        let changes = s.cut_changes();
+        frames.push((changes, *view, t.elapsed().as_secs_f64() * 1e3, rec.leg));
+    })?;
+    // The last frame of each chosen leg.
+    let last: Vec<usize> = (0..frames.len())
+        .filter(|&k| frames.get(k + 1).is_none_or(|f| f.3 != frames[k].3))
+        .filter(|&k| chosen.contains(&frames[k].3))
+        .collect();
+    let mut captures = Vec::new();
+    let dag = session.dag();
+    for (k, (changes, view, take_ms, leg)) in frames.into_iter().enumerate() {
+        drawer
+            .frame(dag.refiner(), dag.colour(), changes, &view, take_ms, k)
+            .context("rendering the flight")?;
+        if last.contains(&k) {
+            let (image, depth, stats) = drawer.capture(&view, BACKGROUND)?;
+            let jitter = if jitter {
+                // The same cut, the camera 1 mm along the view's right.
+                let right = (view.target - view.eye).cross(view.up).normalize_or_zero();
+                let moved = View {
+                    eye: view.eye + right * 1e-3,
+                    target: view.target + right * 1e-3,
+                    ..view
+                };
+                Some(drawer.capture(&moved, BACKGROUND)?.0)
+            } else {
+                None
+            };
+            captures.push(Capture {
+                leg,
+                view,
+                image,
+                depth,
+                jitter,
+                missing: stats.missing,
+            });
+        }
+    }
+    let render = drawer.summary();
+    drop(drawer);
+    drop(session);
+    // The needed set, with and without the side information.
+    let wait = Duration::from_secs_f64(args.reference_wait_s);
+    let needed = |flat: Option<f64>| -> Result<NeededSet> {
+        Ok(flight::needed_for_views(
+            || {
+                R::open(
+                    &args.url,
+                    &args.repo,
+                    args.colour.as_deref(),
+                    exact_config(args, flat),
+                )
+            },
+            &report.final_views,
+            wait,
+        )?)
+    };
+    let with = needed(None)?;
+    let without = needed(Some(0.0))?;
+    let needed_halves: usize = with.views.iter().map(|v| v.cut_halves).sum();
+    let halves_without: usize = without.views.iter().map(|v| v.cut_halves).sum();
+    let point = TradePoint {
+        tolerance_px,
+        triangles_median: render.triangles_p50,
+        triangles_max: render.triangles_max,
+        patches_median: render.patches_p50,
+        patches_max: render.patches_max,
+        refine_ms_median: report.refine_ms_p50,
+        refine_ms_p99: report.refine_ms_p99,
+        render_ms_median: render.cpu_ms_p50,
+        render_ms_p99: render.cpu_ms_p99,
+        render_gpu_ms_median: render.gpu_ms_p50,
+        render_gpu_ms_p99: render.gpu_ms_p99,
+        frames: report.frames,
+        frames_per_s: report.frames_per_s,
+        bytes_fetched: report.bytes_fetched,
+        bytes_per_s: if report.seconds > 0.0 {
+            report.bytes_fetched as f64 / report.seconds
+        } else {
+            0.0
+        },
+        time_to_full_quality_s_median: report.time_to_full_quality_s_p50,
+        time_to_full_quality_s_max: report.time_to_full_quality_s_max,
+        jumps_unfinished: report.jumps_unfinished,
+        bytes_in_final_cuts: report.bytes_in_final_cuts,
+        bytes_needed: with.bytes,
+        fetched_over_needed: if with.bytes > 0 {
+            report.bytes_fetched as f64 / with.bytes as f64
+        } else {
+            0.0
+        },
+        needed_full_quality: with.views.iter().all(|v| v.full_quality),
+        needed_max_error_px: with
+            .views
+            .iter()
+            .map(|v| v.max_error_px)
+            .fold(0.0, f64::max),
+        needed_halves,
+        needed_bytes_ignoring_side_info: without.bytes,
+        needed_halves_ignoring_side_info: halves_without,
+        side_info_halves_saved: if needed_halves > 0 {
+            halves_without as f64 / needed_halves as f64
+        } else {
+            0.0
+        },
+        gpu_bytes_peak: render.gpu_bytes_peak,
+        gpu_bytes_budget: render.gpu_bytes_budget,
+        frames_not_current: render.frames_not_current,
+        cracks: report.cracks,
+        coverage_errors: report.coverage_errors,
+        ..TradePoint::default()
+    };
+    Ok((point, captures, render.adapter))
+}
+
+/// The full-resolution reference of `view`: refined at tolerance 0, drawn, read back.
+fn reference_view<R: TradeDomain>(
+    args: &TradeArgs,
+    gpu: &Gpu,
+    leg: usize,
+    view: &View,
+) -> Result<(ReferenceView, Image, DepthImage, SurfaceIndex)> {
+    let mut session = R::open(
+        &args.url,
+        &args.repo,
+        args.colour.as_deref(),
+        exact_config(args, None),
+    )?;
+    let view = View {
+        tolerance_px: 0.0,
+        ..*view
+    };
+    let start = Instant::now();
+    let wait = Duration::from_secs_f64(args.reference_wait_s);
+    let frame = loop {
+        let frame = session.update(&view, start.elapsed(), Duration::from_millis(100))?;
+        if frame.refine.full_quality || start.elapsed() >= wait {
+            break frame;
+        }
+        if frame.refine.refined == 0 {
+            std::thread::sleep(Duration::from_millis(2));
+        }
+    };
+    if !frame.refine.full_quality {
+        tracing::warn!(
+            leg,
+            "the reference did not reach full quality within --reference-wait-s"
+        );
+    }
+    let seconds = start.elapsed().as_secs_f64();
+    let config = RendererConfig {
+        gpu_budget_bytes: (args.reference_gpu_budget_mb * 1_048_576.0) as u64,
+        colour_format: OFFSCREEN_FORMAT,
+        ..RendererConfig::default()
+    };
+    let mut renderer = TerrainRenderer::for_session(&gpu.device, &session, config)?;
+    renderer.sync(&mut session)?;
+    let camera = Camera::from_view(&view);
+    let mut stats = renderer.prepare(&gpu.queue, &camera);
+    while stats.pending > 0 {
+        stats = renderer.prepare(&gpu.queue, &camera);
+    }
+    if stats.missing > 0 {
+        bail!(
+            "the reference of leg {leg} needs more GPU memory than --reference-gpu-budget-mb {} \
+             ({} patches left out)",
+            args.reference_gpu_budget_mb,
+            stats.missing
+        );
+    }
+    let offscreen = Offscreen::new(gpu, view.viewport_px)?;
+    offscreen.render(gpu, BACKGROUND, |pass| renderer.draw(pass))?;
+    let image = offscreen.read(gpu)?;
+    let depth = offscreen.read_depth(gpu)?;
+    let index = SurfaceIndex::new(&session);
+    Ok((
+        ReferenceView {
+            leg,
+            full_quality: frame.refine.full_quality,
+            seconds,
+            cut_halves: frame.refine.cut_halves,
+            triangles: stats.triangles,
+        },
+        image,
+        depth,
+        index,
+    ))
+}
+
+/// One captured view against its reference, and its measured pixels' errors.
+fn compare(
+    cap: &Capture,
+    ref_image: &Image,
+    ref_depth: &DepthImage,
+    index: &SurfaceIndex,
+) -> Result<(ViewError, Vec<f32>)> {
+    let camera = Camera::from_view(&cap.view);
+    let map = error_map(&camera, &cap.depth, Some(ref_depth), index)?;
+    let g = map.summary();
+    let errors: Vec<f32> = map
+        .error_px
+        .iter()
+        .filter(|e| e.is_finite())
+        .map(|&e| e as f32)
+        .collect();
+    let finite_psnr = |v: f64| v.is_finite().then_some(v);
+    let psnr = psnr_db(&cap.image, ref_image)?;
+    let jitter = match &cap.jitter {
+        Some(j) => finite_psnr(psnr_db(&cap.image, j)?),
+        None => None,
+    };
+    let background_px = cap.depth.data.iter().filter(|d| **d == 0.0).count();
+    let finite = cap.depth.data.iter().all(|d| d.is_finite())
+        && g.p99_px.is_finite()
+        && g.max_px.is_finite();
+    Ok((
+        ViewError {
+            leg: cap.leg,
+            psnr_db: finite_psnr(psnr),
+            geometric_error_px_p50: g.p50_px,
+            geometric_error_px_p99: g.p99_px,
+            geometric_error_px_max: g.max_px,
+            pixels: g.pixels,
+            pixels_without_reference: g.pixels_without_reference,
+            background_px,
+            jitter_psnr_db: jitter,
+            finite,
+            patches_missing: cap.missing,
+        },
+        errors,
+    ))
+}
+
+/// A tolerance's image figures from its views and their measured pixels' errors.
+fn aggregate(point: &mut TradePoint, views: Vec<ViewError>, mut errors: Vec<f32>) {
+    // PSNR over all pixels: the views' mean squared errors, averaged.
+    let mse: Vec<f64> = views
+        .iter()
+        .map(|v| {
+            v.psnr_db
+                .map_or(0.0, |p| 255f64.powi(2) / 10f64.powf(p / 10.0))
+        })
+        .collect();
+    let mean = mse.iter().sum::<f64>() / mse.len().max(1) as f64;
+    point.psnr_db = (mean > 0.0).then(|| 10.0 * (255f64.powi(2) / mean).log10());
+    // Percentiles over every measured pixel of every view (nearest rank).
+    errors.sort_unstable_by(f32::total_cmp);
+    let rank = |p: usize| {
+        let n = errors.len();
+        if n == 0 {
+            0.0
+        } else {
+            f64::from(errors[(p * n).div_ceil(100).clamp(1, n) - 1])
+        }
+    };
+    point.geometric_error_px_p50 = rank(50);
+    point.geometric_error_px_p99 = rank(99);
+    point.geometric_error_px_max = views
+        .iter()
+        .map(|v| v.geometric_error_px_max)
+        .fold(0.0, f64::max);
+    point.geometric_pixels = views.iter().map(|v| v.pixels).sum();
+    point.geometric_pixels_without_reference =
+        views.iter().map(|v| v.pixels_without_reference).sum();
+    point.views = views;
+}
+
+fn print(report: &TradeReport, args: &TradeArgs) -> Result<()> {
+    if args.json {
+        outln!("{}", serde_json::to_string(report)?);
+    } else {
+        outln!(
+            "trade study of {} ({} flight, {} views, {}x{}, {})",
+            report.label,
+            report.path,
+            report.references.len(),
+            report.viewport[0],
+            report.viewport[1],
+            report.link.map_or("no link".to_string(), |[k, r]| format!(
+                "{k} kbit/s, {r} ms"
+            )),
+        );
+        outln!(
+            "{:>6} {:>10} {:>8} {:>8} {:>12} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            "tol px",
+            "triangles",
+            "refine",
+            "render",
+            "bytes",
+            "ttfq s",
+            "PSNR dB",
+            "geo p99",
+            "geo max",
+            "f/need"
+        );
+        for p in &report.points {
+            outln!(
+                "{:>6} {:>10.0} {:>8.3} {:>8.3} {:>12} {:>8} {:>8} {:>8.3} {:>8.3} {:>8.3}",
+                p.tolerance_px,
+                p.triangles_median,
+                p.refine_ms_median,
+                p.render_ms_median,
+                p.bytes_fetched,
+                p.time_to_full_quality_s_median
+                    .map_or("-".into(), |t| format!("{t:.2}")),
+                p.psnr_db.map_or("inf".into(), |v| format!("{v:.2}")),
+                p.geometric_error_px_p99,
+                p.geometric_error_px_max,
+                p.fetched_over_needed
+            );
+        }
+    }
+    let cracks: usize = report
+        .points
+        .iter()
+        .map(|p| p.cracks + p.coverage_errors)
+        .sum();
+    if cracks > 0 {
+        bail!("the flights' cuts were inconsistent: {cracks} cracks and coverage errors");
+    }
+    Ok(())
+}
+
+/// Writes `report` as `<label>.json` into `dir` and charts every report there.
+fn write_plots(dir: &Path, report: &TradeReport) -> Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let file = dir.join(format!("{}.json", sanitize(&report.label)));
+    std::fs::write(&file, serde_json::to_string_pretty(report)?)
+        .with_context(|| format!("writing {}", file.display()))?;
+    let mut reports = Vec::new();
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "json"))
+        .collect();
+    entries.sort();
+    for p in entries {
+        let text =
+            std::fs::read_to_string(&p).with_context(|| format!("reading {}", p.display()))?;
+        match serde_json::from_str::<TradeReport>(&text) {
+            Ok(r) if !r.points.is_empty() => reports.push(r),
+            _ => tracing::warn!(file = %p.display(), "not a trade report: left out of the charts"),
+        }
+    }
+    type Get = fn(&TradePoint) -> Option<f64>;
+    let charts: [(&str, &str, &str, bool, Get); 8] = [
+        (
+            "triangles",
+            "Triangles per frame (median)",
+            "triangles",
+            true,
+            |p| Some(p.triangles_median),
+        ),
+        (
+            "refine-ms",
+            "Refinement per frame (median)",
+            "ms",
+            true,
+            |p| Some(p.refine_ms_median),
+        ),
+        (
+            "render-ms",
+            "Renderer CPU per frame (median)",
+            "ms",
+            true,
+            |p| Some(p.render_ms_median),
+        ),
+        (
+            "render-gpu-ms",
+            "Rasterisation per frame (median, lavapipe)",
+            "ms",
+            true,
+            |p| p.render_gpu_ms_median,
+        ),
+        (
+            "bytes",
+            "Bytes fetched over the flight",
+            "bytes",
+            true,
+            |p| Some(p.bytes_fetched as f64),
+        ),
+        (
+            "ttfq",
+            "Time to full quality after a jump (median)",
+            "s",
+            true,
+            |p| p.time_to_full_quality_s_median,
+        ),
+        (
+            "psnr",
+            "PSNR against the full-resolution reference",
+            "dB",
+            false,
+            |p| p.psnr_db,
+        ),
+        (
+            "geometric",
+            "Geometric error, p99 over every pixel of the views",
+            "px",
+            true,
+            |p| Some(p.geometric_error_px_p99),
+        ),
+    ];
+    for (name, title, y_label, log_y, get) in charts {
+        let series: Vec<Series> = reports
+            .iter()
+            .map(|r| Series {
+                name: r.label.clone(),
+                points: r
+                    .points
+                    .iter()
+                    .filter(|p| p.tolerance_px > 0.0)
+                    .filter_map(|p| get(p).map(|y| (p.tolerance_px, y)))
+                    .collect(),
+            })
+            .filter(|s| !s.points.is_empty())
+            .collect();
+        if series.is_empty() {
+            continue;
+        }
+        let chart = Chart {
+            title,
+            x_label: "tolerance (px)",
+            y_label,
+            log_x: true,
+            log_y,
+            series: &series,
+        };
+        let out = dir.join(format!("trade-{name}.png"));
+        crate::plot::write_png(&out, &chart, (900, 600))
+            .with_context(|| format!("writing {}", out.display()))?;
+    }
+    Ok(())
+}
+
+/// A label as a file name.
+fn sanitize(label: &str) -> String {
+    label
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' || c == '+' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn links_parse_or_say_why() {
+        assert_eq!(parse_link_arg("none").unwrap(), None);
+        assert_eq!(parse_link_arg("4000,100").unwrap(), Some((4000.0, 100.0)));
+        for bad in ["", "4000", "0,100", "-1,5", "x,1", "1,inf"] {
+            assert!(parse_link_arg(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn aggregate_pools_psnr_and_takes_the_worst_view() {
+        let mut p = TradePoint::default();
+        let v = |psnr: Option<f64>, p99: f64| ViewError {
+            psnr_db: psnr,
+            geometric_error_px_p50: p99 / 2.0,
+            geometric_error_px_p99: p99,
+            geometric_error_px_max: 2.0 * p99,
+            pixels: 10,
+            ..ViewError::default()
+        };
+        // MSE 65.025 and 0 (identical): mean 32.5125, PSNR = 30 + 10 log10 2.
+        // 200 pixels: 0.01, 0.02, ..., 2.0; p99 = the 198th.
+        let errors: Vec<f32> = (1..=200).map(|k| k as f32 / 100.0).collect();
+        aggregate(&mut p, vec![v(Some(30.0), 1.0), v(None, 0.5)], errors);
+        assert!((p.psnr_db.unwrap() - (30.0 + 10.0 * 2f64.log10())).abs() < 1e-9);
+        assert!((p.geometric_error_px_p99 - 1.98).abs() < 1e-6);
+        assert!((p.geometric_error_px_p50 - 1.0).abs() < 1e-6);
+        assert_eq!((p.geometric_error_px_max, p.geometric_pixels), (2.0, 20));
+        let mut same = TradePoint::default();
+        aggregate(&mut same, vec![v(None, 0.0)], vec![0.0; 4]);
+        assert_eq!(same.psnr_db, None);
+    }
+}

@@ -1,0 +1,242 @@
+//! End to end: `quincunx trade` on the bundled repositories, served by `quincunx serve`
+//! over loopback and rendered on the GPU (lavapipe in CI). Skipped without a GPU unless
+//! `REQUIRE_GPU=1`.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use serde_json::Value;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_quincunx"))
+}
+
+fn data(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../data")
+        .join(name)
+}
+
+fn build(args: &[&str], input: &Path, out: &Path) {
+    let o = bin()
+        .arg("build")
+        .args(args)
+        .arg("--overwrite")
+        .arg("-o")
+        .arg(out)
+        .arg(input)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// `quincunx serve` on a free port; killed on drop.
+struct Server {
+    child: Child,
+    url: String,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn serve(repos: &[(&str, &Path)]) -> Server {
+    let mut cmd = bin();
+    cmd.args(["serve", "--addr", "127.0.0.1:0"]);
+    for (name, path) in repos {
+        cmd.arg("--repo").arg(format!("{name}={}", path.display()));
+    }
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    // "serving on http://127.0.0.1:PORT/  (...)"
+    let url = line
+        .split_whitespace()
+        .find(|w| w.starts_with("http://"))
+        .unwrap_or_else(|| panic!("no address in {line:?}"))
+        .trim_end_matches('/')
+        .to_string();
+    Server { child, url }
+}
+
+fn gpu_or_skip(test: &str) -> bool {
+    // Prints `SKIP` itself when there is no adapter; `REQUIRE_GPU=1` makes that fail.
+    quincunx_render::offscreen::gpu_for_test(test)
+        .unwrap()
+        .is_some()
+}
+
+fn trade(url: &str, extra: &[&str]) -> Value {
+    let o = bin()
+        .args([
+            "trade",
+            "--url",
+            url,
+            "--json",
+            "--viewport",
+            "480x270",
+            "--views",
+            "3",
+        ])
+        .args(extra)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(o.status.success(), "trade failed: {stderr}");
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+const FIELDS: [&str; 10] = [
+    "tolerance_px",
+    "triangles_median",
+    "refine_ms_median",
+    "render_ms_median",
+    "bytes_fetched",
+    "time_to_full_quality_s_median",
+    "psnr_db",
+    "geometric_error_px_p99",
+    "geometric_error_px_max",
+    "fetched_over_needed",
+];
+
+fn f(p: &Value, k: &str) -> f64 {
+    p[k].as_f64()
+        .unwrap_or_else(|| panic!("{k} is not a number: {p}"))
+}
+
+/// The properties every trade point must have.
+fn check_points(points: &[Value]) {
+    for p in points {
+        for k in FIELDS {
+            assert!(p.get(k).is_some(), "no {k} in {p}");
+        }
+        let t = f(p, "tolerance_px");
+        // What was fetched covers the smallest set that meets the tolerance...
+        assert!(f(p, "fetched_over_needed") >= 1.0, "{p}");
+        assert!(f(p, "bytes_needed") > 0.0, "{p}");
+        // ... and that set's cuts do meet it.
+        assert_eq!(p["needed_full_quality"], true, "{p}");
+        assert!(f(p, "needed_max_error_px") <= t, "{p}");
+        assert_eq!(f(p, "cracks") + f(p, "coverage_errors"), 0.0, "{p}");
+        assert!(f(p, "bytes_in_final_cuts") <= f(p, "bytes_fetched"), "{p}");
+        for v in p["views"].as_array().unwrap() {
+            assert_eq!(v["finite"], true, "{v}");
+        }
+    }
+}
+
+#[test]
+fn trade_on_the_bundled_korea_crop() {
+    if !gpu_or_skip("trade_on_the_bundled_korea_crop") {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let korea = dir.path().join("korea");
+    build(
+        &["--max-error-m", "2"],
+        &data("korea_srtm3_1025.json"),
+        &korea,
+    );
+    let server = serve(&[("korea", &korea)]);
+    let plots = dir.path().join("plots");
+    let r = trade(
+        &server.url,
+        &[
+            "--repo",
+            "korea",
+            "--tolerances",
+            "0,1,4",
+            "--plot",
+            plots.to_str().unwrap(),
+        ],
+    );
+    let points = r["points"].as_array().unwrap();
+    assert_eq!(points.len(), 3);
+    check_points(points);
+    let (zero, one, four) = (&points[0], &points[1], &points[2]);
+    // The reference's own refinement matches the reference exactly.
+    assert!(zero["psnr_db"].is_null(), "{zero}");
+    assert_eq!(f(zero, "geometric_error_px_max"), 0.0, "{zero}");
+    // Coarser tolerance: fewer triangles and bytes, more image error.
+    assert!(f(one, "triangles_median") > f(four, "triangles_median"));
+    assert!(f(one, "bytes_fetched") > f(four, "bytes_fetched"));
+    assert!(f(one, "psnr_db") > f(four, "psnr_db"));
+    assert!(f(one, "geometric_error_px_p99") <= f(four, "geometric_error_px_p99"));
+    // The charts and the report the charts came from.
+    for name in [
+        "trade-triangles.png",
+        "trade-psnr.png",
+        "trade-geometric.png",
+        "korea.json",
+    ] {
+        assert!(plots.join(name).is_file(), "no {name}");
+    }
+}
+
+#[test]
+fn trade_on_the_bundled_planet_with_colour_at_the_extremes() {
+    if !gpu_or_skip("trade_on_the_bundled_planet_with_colour_at_the_extremes") {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let earth = dir.path().join("earth");
+    let colour = dir.path().join("earth_colour");
+    build(
+        &["--planet", "--max-error-m", "2"],
+        &data("etopo20_global.json"),
+        &earth,
+    );
+    build(
+        &["--planet", "--colour", "--rms-m", "4"],
+        &data("bmng_global_1080x540.jpg"),
+        &colour,
+    );
+    let server = serve(&[("earth", &earth), ("earth_colour", &colour)]);
+    let r = trade(
+        &server.url,
+        &[
+            "--repo",
+            "earth",
+            "--colour",
+            "earth_colour",
+            "--tolerances",
+            "1,4",
+            "--path",
+            "extremes",
+            "--views",
+            "5",
+            "--link",
+            "none",
+        ],
+    );
+    let points = r["points"].as_array().unwrap();
+    check_points(points);
+    assert!(f(&points[0], "triangles_median") > f(&points[1], "triangles_median"));
+    for p in points {
+        let views = p["views"].as_array().unwrap();
+        assert_eq!(views.len(), 5, "{p}");
+        for (k, v) in views.iter().enumerate() {
+            // Straight down (all but the oblique view at 1 m and the 100,000 km one):
+            // the ground fills the frame, so a background pixel is a crack.
+            if ![0, 2].contains(&k) {
+                assert_eq!(f(v, "background_px"), 0.0, "view {k}: {v}");
+            }
+            // A millimetre's move changes the picture by little: no jitter.
+            let jitter = v["jitter_psnr_db"].as_f64().unwrap_or(f64::INFINITY);
+            assert!(jitter > 30.0, "view {k}: {v}");
+        }
+    }
+}
