@@ -110,6 +110,7 @@ pub struct TradeArgs {
 
 /// One tolerance's figures. Field names are those of `quincunx trade --json`.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(default)]
 pub struct TradePoint {
     /// Tolerance, pixels.
     pub tolerance_px: f64,
@@ -198,6 +199,7 @@ pub struct TradePoint {
 
 /// One view of one tolerance against its reference.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(default)]
 pub struct ViewError {
     /// Leg whose final view it is.
     pub leg: usize,
@@ -226,6 +228,7 @@ pub struct ViewError {
 
 /// The reference of one view.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(default)]
 pub struct ReferenceView {
     /// Leg.
     pub leg: usize,
@@ -241,6 +244,7 @@ pub struct ReferenceView {
 
 /// What `quincunx trade --json` prints.
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(default)]
 pub struct TradeReport {
     /// Line name in the charts.
     pub label: String,
@@ -357,10 +361,12 @@ pub fn run(args: &TradeArgs) -> Result<()> {
         quincunx_client::session::AnySession::Planar(s) => study(s, args, link)?,
         quincunx_client::session::AnySession::Planet(s) => study(s, args, link)?,
     };
+    // The report first: a chart that cannot be drawn must not lose it.
+    let printed = print(&report, args);
     if let Some(dir) = &args.plot {
         write_plots(dir, &report)?;
     }
-    print(&report, args)
+    printed
 }
 
 /// `KBIT_S,RTT_MS` or `none`.
@@ -529,9 +535,9 @@ fn fly_point<R: TradeDomain>(
         .map_or(args.url.as_str(), |(_, u)| u.as_str());
     let fa = fly_args(args, url, tolerance_px);
     let mut session = R::open(url, &args.repo, args.colour.as_deref(), session_config(&fa))?;
-    if !session.warm_up(Duration::from_secs(10))? {
-        tracing::warn!("the root did not arrive within 10 s");
-    }
+    // No warm-up (the flight is made already): the first jump starts from nothing, as
+    // a client that opens a repository and goes to a view does, and only what the views
+    // ask for is fetched.
     let opts = fly_options(&fa);
     let mut drawer = FrameDrawer::new(&session, &fa)?;
     let mut frames = Vec::new();
@@ -936,7 +942,7 @@ fn write_plots(dir: &Path, report: &TradeReport) -> Result<()> {
             "geometric",
             "Geometric error, p99 over every pixel of the views",
             "px",
-            true,
+            false,
             |p| Some(p.geometric_error_px_p99),
         ),
     ];
@@ -950,6 +956,7 @@ fn write_plots(dir: &Path, report: &TradeReport) -> Result<()> {
                     .iter()
                     .filter(|p| p.tolerance_px > 0.0)
                     .filter_map(|p| get(p).map(|y| (p.tolerance_px, y)))
+                    .filter(|&(_, y)| y.is_finite() && (!log_y || y > 0.0))
                     .collect(),
             })
             .filter(|s| !s.points.is_empty())
