@@ -27,6 +27,7 @@ pub mod input;
 pub mod layout;
 pub mod loadtest;
 pub mod planet;
+pub mod plot;
 pub mod preview;
 pub mod progress;
 pub mod query;
