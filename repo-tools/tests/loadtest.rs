@@ -461,7 +461,12 @@ fn a_fly_sweep_reports_every_point_through_a_link_per_client() {
         requests += p["requests"].as_u64().unwrap();
     }
     assert_eq!(requests, served.requests.load(Ordering::Relaxed));
-    for name in ["clients_ttfq.png", "clients_rps.png", "clients_cpu.png"] {
+    for name in [
+        "clients_ttfq.png",
+        "clients_rps.png",
+        "clients_cpu.png",
+        "clients_jumps.png",
+    ] {
         let file = std::fs::File::open(plots.join(name)).unwrap();
         let info = png::Decoder::new(file).read_info().unwrap().info().clone();
         assert_eq!((info.width, info.height), (1000, 600), "{name}");

@@ -121,7 +121,7 @@ pub struct LoadtestArgs {
     #[arg(long)]
     pub server_pid: Option<u32>,
     /// `--mode fly`: write charts of the points into this directory (`clients_ttfq.png`,
-    /// `clients_rps.png`, `clients_cpu.png`).
+    /// `clients_rps.png`, `clients_cpu.png`, `clients_jumps.png`).
     #[arg(long)]
     pub plot: Option<std::path::PathBuf>,
     /// One JSON object instead of text.

@@ -569,7 +569,8 @@ fn print_text(report: &FlyLoadReport) {
 /// Chart size, pixels.
 const CHART_PX: (u32, u32) = (1000, 600);
 
-/// `clients_ttfq.png`, `clients_rps.png` and `clients_cpu.png` in `dir`.
+/// `clients_ttfq.png`, `clients_rps.png`, `clients_cpu.png` and `clients_jumps.png` in
+/// `dir`.
 fn write_charts(dir: &Path, points: &[FlyLoadReport]) -> Result<()> {
     let series = |name: &str, f: &dyn Fn(&FlyLoadReport) -> Option<f64>| Series {
         name: name.to_string(),
@@ -583,10 +584,19 @@ fn write_charts(dir: &Path, points: &[FlyLoadReport]) -> Result<()> {
         None => String::new(),
     };
     let ttfq_title = format!("time to full quality after a jump{link}");
+    // Over the jumps that reached full quality: `clients_jumps.png` says how many did not.
     let ttfq = [
-        series("p50", &|p| p.time_to_full_quality_s_p50),
-        series("p95", &|p| p.time_to_full_quality_s_p95),
+        series("p50 (jumps that finished)", &|p| {
+            p.time_to_full_quality_s_p50
+        }),
+        series("p95 (jumps that finished)", &|p| {
+            p.time_to_full_quality_s_p95
+        }),
     ];
+    let unfinished = [series(
+        "jumps not at full quality when their leg ended",
+        &|p| (p.jumps > 0).then(|| 100.0 * p.jumps_unfinished as f64 / p.jumps as f64),
+    )];
     let rps = [series("requests/s", &|p| Some(p.rps))];
     let cores = points.first().map_or(1, |p| p.cores);
     let cpu = [
@@ -596,22 +606,37 @@ fn write_charts(dir: &Path, points: &[FlyLoadReport]) -> Result<()> {
             p.machine_cpu_share.map(|s| s * cores as f64)
         }),
     ];
+    // (file, title, y axis, series, of jumps)
     let charts = [
         (
             "clients_ttfq.png",
             ttfq_title.as_str(),
             "seconds",
             &ttfq[..],
+            true,
         ),
         (
             "clients_rps.png",
             "server requests per second",
             "requests/s",
             &rps[..],
+            false,
         ),
-        ("clients_cpu.png", "CPU used", "cores busy", &cpu[..]),
+        ("clients_cpu.png", "CPU used", "cores busy", &cpu[..], false),
+        (
+            "clients_jumps.png",
+            "unfinished jumps",
+            "% of jumps",
+            &unfinished[..],
+            true,
+        ),
     ];
-    for (file, title, y_label, series) in charts {
+    let any_jump = points.iter().any(|p| p.jumps > 0);
+    for (file, title, y_label, series, of_jumps) in charts {
+        if of_jumps && !any_jump {
+            eprintln!("--plot: {file} not drawn: the flight has no jumps");
+            continue;
+        }
         let path = dir.join(file);
         let chart = Chart {
             title,
