@@ -9,8 +9,8 @@
 #   benches/trade/clients.sh
 # Environment: REPO (default /work/data/korea9, built from SOURCE if absent), SOURCE
 # (default ../shared/data/korea_srtm3_4097.json), SWEEP (default 1,4,16,64,256), PORT
-# (18181), MIN_AVAILABLE_MB (2048: the run is stopped if free memory falls below it; a
-# 1 px korea client holds 60-95 MB).
+# (18181), PLOT_DIR (docs/images/trade), MIN_AVAILABLE_MB (2048: the run is stopped if
+# free memory falls below it; a 1 px korea client holds 60-95 MB).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 repo="${REPO:-/work/data/korea9}"
@@ -18,6 +18,7 @@ source_grid="${SOURCE:-../shared/data/korea_srtm3_4097.json}"
 sweep="${SWEEP:-1,4,16,64,256}"
 port="${PORT:-18181}"
 min_mb="${MIN_AVAILABLE_MB:-2048}"
+plot_dir="${PLOT_DIR:-docs/images/trade}"
 cargo build --release -q -p quincunx-repo-tools
 bin="${CARGO_TARGET_DIR:-target}/release/quincunx"
 while [ -e "$repo.building" ]; do
@@ -48,7 +49,7 @@ out="$(mktemp)"
 flags=(--mode fly --repo korea --path jump --link 4000,100 --sweep "$sweep"
     --check-every 30 --check-max-share 0.1)
 "$bin" loadtest --url "http://127.0.0.1:$port" "${flags[@]}" --server-pid "$server_pid" \
-    --json --plot docs/images/trade >"$out" &
+    --json --plot "$plot_dir" >"$out" &
 load_pid=$!
 while kill -0 "$load_pid" 2>/dev/null; do
     available=$(awk '/MemAvailable/ {print int($2 / 1024)}' /proc/meminfo)
