@@ -155,7 +155,8 @@ impl FlyArgs {
     }
 }
 
-fn parse_link(s: &str) -> Result<(f64, f64), String> {
+/// Parses `KBIT_S,RTT_MS` (a positive rate, a non-negative round trip).
+pub fn parse_link(s: &str) -> Result<(f64, f64), String> {
     let (a, b) = s
         .split_once(',')
         .ok_or_else(|| format!("{s:?} is not KBIT_S,RTT_MS"))?;

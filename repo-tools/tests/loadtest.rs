@@ -324,3 +324,170 @@ fn fly_mode_runs_real_sessions_against_a_static_export() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("built-in flights"));
 }
+
+/// Every field of a fly point (`FlyLoadReport`), nullable ones included.
+const FLY_POINT_FIELDS: [&str; 36] = [
+    "mode",
+    "clients",
+    "clients_failed",
+    "flight",
+    "seconds",
+    "frames",
+    "requests",
+    "bytes_fetched",
+    "bytes_fetched_per_client_p50",
+    "rps",
+    "fetch_errors",
+    "fetch_timeouts",
+    "jumps",
+    "jumps_unfinished",
+    "time_to_full_quality_s_p50",
+    "time_to_full_quality_s_p90",
+    "time_to_full_quality_s_p95",
+    "time_to_full_quality_s_max",
+    "frames_per_s_p50",
+    "refine_ms_p50",
+    "refine_ms_p99_max",
+    "dag_bytes_max",
+    "cracks",
+    "coverage_errors",
+    "frames_checked",
+    "link",
+    "link_bytes_down",
+    "link_bytes_per_s_max",
+    "cores",
+    "loadgen_cpu_s",
+    "loadgen_cpu_share",
+    "server_pid",
+    "server_cpu_s",
+    "server_cpu_share",
+    "machine_cpu_share",
+    "errors",
+];
+
+#[test]
+fn a_fly_sweep_reports_every_point_through_a_link_per_client() {
+    let dir = tempfile::tempdir().unwrap();
+    let www = exported_korea(dir.path());
+    let (_rt, url, served) = start_server(www, false);
+    let plots = dir.path().join("plots");
+    // 400 kbit/s = 50,000 bytes/s each way per client: less than the 70,000 bytes/s a
+    // client averaged here through a 2000 kbit/s link, so this link binds.
+    let rate_bytes_s = 400.0 * 1000.0 / 8.0;
+    // The static server runs in this process: its CPU is this process's.
+    let pid = std::process::id().to_string();
+    let report = loadtest(
+        &url,
+        &[
+            "--mode",
+            "fly",
+            "--sweep",
+            "1,2",
+            "--path",
+            "jump",
+            "--legs",
+            "2",
+            "--tolerance-px",
+            "2",
+            "--check-every",
+            "5",
+            "--link",
+            "400,20",
+            "--server-pid",
+            &pid,
+            "--plot",
+            plots.to_str().unwrap(),
+        ],
+    );
+    assert_eq!(report["mode"], "fly");
+    assert_eq!(report["sweep"], serde_json::json!([1, 2]));
+    let points = report["points"].as_array().unwrap();
+    assert_eq!(points.len(), 2, "{report}");
+    let mut requests = 0;
+    for (p, clients) in points.iter().zip([1u64, 2]) {
+        for key in FLY_POINT_FIELDS {
+            assert!(p.get(key).is_some(), "no {key} in {p}");
+        }
+        assert_eq!(p["clients"], clients);
+        assert_eq!(p["clients_failed"], 0, "{p}");
+        assert_eq!(p["errors"], serde_json::json!([]));
+        assert_eq!(p["fetch_errors"], 0, "{p}");
+        assert_eq!(p["cracks"], 0, "{p}");
+        assert_eq!(p["coverage_errors"], 0, "{p}");
+        assert!(p["frames_checked"].as_u64().unwrap() > 0);
+        // Two jump legs per client, each timed.
+        assert_eq!(p["jumps"], 2 * clients, "{p}");
+        assert_eq!(p["jumps_unfinished"], 0, "{p}");
+        let t = |k: &str| p[k].as_f64().unwrap_or_else(|| panic!("{k} in {p}"));
+        assert!(t("time_to_full_quality_s_p50") <= t("time_to_full_quality_s_p95"));
+        assert!(t("time_to_full_quality_s_p95") <= t("time_to_full_quality_s_max"));
+        assert!(
+            t("frames_per_s_p50") > 0.0 && t("frames_per_s_p50") <= 61.0,
+            "{p}"
+        );
+        assert!(t("rps") > 0.0);
+        // Every byte went through the clients' own links (headers add to the bodies), and
+        // no client's link carried more than its rate.
+        assert_eq!(
+            p["link"],
+            serde_json::json!({"kbit_s": 400.0, "rtt_ms": 20.0})
+        );
+        let bytes = p["bytes_fetched"].as_u64().unwrap();
+        assert!(bytes > 0);
+        assert!(p["link_bytes_down"].as_u64().unwrap() > bytes, "{p}");
+        let fastest = t("link_bytes_per_s_max");
+        assert!(
+            fastest > 0.0 && fastest <= rate_bytes_s,
+            "{fastest} bytes/s over a {rate_bytes_s} bytes/s link: {p}"
+        );
+        let per_client = t("bytes_fetched_per_client_p50");
+        assert!(per_client > 0.0 && per_client <= bytes as f64);
+        // CPU: the load generator used some; shares are seconds over the point's time.
+        assert_eq!(
+            p["server_pid"].as_u64(),
+            Some(u64::from(std::process::id()))
+        );
+        assert!(t("loadgen_cpu_s") > 0.0);
+        let seconds = t("seconds");
+        for (cpu, share) in [
+            ("loadgen_cpu_s", "loadgen_cpu_share"),
+            ("server_cpu_s", "server_cpu_share"),
+        ] {
+            assert!(t(cpu) >= 0.0, "{p}");
+            assert!((t(share) * seconds - t(cpu)).abs() < 1e-6, "{p}");
+        }
+        let machine = t("machine_cpu_share");
+        assert!((0.0..=1.0).contains(&machine), "{p}");
+        requests += p["requests"].as_u64().unwrap();
+    }
+    assert_eq!(requests, served.requests.load(Ordering::Relaxed));
+    for name in [
+        "clients_ttfq.png",
+        "clients_rps.png",
+        "clients_cpu.png",
+        "clients_jumps.png",
+    ] {
+        let file = std::fs::File::open(plots.join(name)).unwrap();
+        let info = png::Decoder::new(file).read_info().unwrap().info().clone();
+        assert_eq!((info.width, info.height), (1000, 600), "{name}");
+    }
+
+    // Bad options fail cleanly, naming the option.
+    for (extra, needle) in [
+        (
+            vec!["--mode", "fly", "--server-pid", "4294967295"],
+            "--server-pid",
+        ),
+        (vec!["--mode", "fly", "--sweep", "1,0"], "--sweep"),
+        (vec!["--link", "2000,20"], "--link needs --mode fly"),
+        (vec!["--mode", "fly", "--link", "0,20"], "link rate"),
+        (vec!["--mode", "fly", "--legs", "0"], "--legs"),
+    ] {
+        let out = run(bin()
+            .args(["loadtest", "--url", &url, "--repo", "korea", "--quiet"])
+            .args(&extra));
+        assert!(!out.status.success(), "{extra:?}");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(stderr.contains(needle), "{extra:?}: {stderr}");
+    }
+}

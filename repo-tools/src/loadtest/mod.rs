@@ -97,6 +97,33 @@ pub struct LoadtestArgs {
     /// duration and report how many are still open (`idle_open`).
     #[arg(long)]
     pub idle: bool,
+    /// `--mode fly`: largest share of a client's flight time its checks may take: a frame
+    /// due for a check is skipped while they exceed it (as `quincunx fly`). 0: no limit.
+    #[arg(long, default_value_t = 0.0)]
+    pub check_max_share: f64,
+    /// `--mode fly`: memory budget of each client's DAG in MiB (default: only the view
+    /// bounds it; a korea cut at 1 px holds about 95 MB).
+    #[arg(long)]
+    pub dag_budget_mb: Option<f64>,
+    /// `--mode fly`: fly only the first this many legs of the flight (a shorter run).
+    #[arg(long)]
+    pub legs: Option<usize>,
+    /// `--mode fly`: an emulated link `KBIT_S,RTT_MS` of its own for each client (an
+    /// in-process throttling proxy in front of the server, as `quincunx fly --link`).
+    #[arg(long, value_parser = crate::fly::parse_link)]
+    pub link: Option<(f64, f64)>,
+    /// `--mode fly`: run once per client count, in order (e.g. `1,4,16,64,256`), and
+    /// report one point per count (`points` in the JSON) instead of `--clients`.
+    #[arg(long, value_delimiter = ',', num_args = 1)]
+    pub sweep: Option<Vec<usize>>,
+    /// `--mode fly`: the server's process id, to report the CPU it used in each point
+    /// (`server_cpu_s`, `server_cpu_share`; Linux `/proc`).
+    #[arg(long)]
+    pub server_pid: Option<u32>,
+    /// `--mode fly`: write charts of the points into this directory (`clients_ttfq.png`,
+    /// `clients_rps.png`, `clients_cpu.png`, `clients_jumps.png`).
+    #[arg(long)]
+    pub plot: Option<std::path::PathBuf>,
     /// One JSON object instead of text.
     #[arg(long)]
     pub json: bool,
@@ -236,6 +263,21 @@ fn check_args(args: &LoadtestArgs) -> Result<()> {
     }
     if args.color.is_some() && args.mode != "fly" {
         bail!("--color needs --mode fly (replayed request streams are of one repository)");
+    }
+    if args.mode != "fly" {
+        for (given, name) in [
+            (args.legs.is_some(), "--legs"),
+            (args.check_max_share != 0.0, "--check-max-share"),
+            (args.dag_budget_mb.is_some(), "--dag-budget-mb"),
+            (args.link.is_some(), "--link"),
+            (args.sweep.is_some(), "--sweep"),
+            (args.server_pid.is_some(), "--server-pid"),
+            (args.plot.is_some(), "--plot"),
+        ] {
+            if given {
+                bail!("{name} needs --mode fly");
+            }
+        }
     }
     if !(1..=1024).contains(&args.pipeline_depth) {
         bail!("--pipeline-depth must be between 1 and 1024");
