@@ -80,16 +80,7 @@ fn gpu_or_skip(test: &str) -> bool {
 
 fn trade(url: &str, extra: &[&str]) -> Value {
     let o = bin()
-        .args([
-            "trade",
-            "--url",
-            url,
-            "--json",
-            "--viewport",
-            "480x270",
-            "--views",
-            "3",
-        ])
+        .args(["trade", "--url", url, "--json", "--viewport", "480x270"])
         .args(extra)
         .output()
         .unwrap();
@@ -159,6 +150,8 @@ fn trade_on_the_bundled_korea_crop() {
             "korea",
             "--tolerances",
             "0,1,4",
+            "--views",
+            "3",
             "--plot",
             plots.to_str().unwrap(),
         ],
@@ -205,6 +198,18 @@ fn trade_on_the_bundled_planet_with_colour_at_the_extremes() {
         &colour,
     );
     let server = serve(&[("earth", &earth), ("earth_colour", &colour)]);
+    // Two jumps 15,000 and 4,000 km out, looking past the centre: where the tolerance
+    // matters on a 37 km grid at 480 x 270.
+    let jumps = dir.path().join("far.json");
+    std::fs::write(
+        &jumps,
+        r#"{"legs": [
+          {"duration_s": 20, "jump": true, "settle_s": 0.5,
+           "from": {"eye": [21371000, 0, 0], "target": [0, 0, 1000000]}},
+          {"duration_s": 20, "jump": true, "settle_s": 0.5,
+           "from": {"eye": [0, 8000000, 6600000], "target": [0, 1000000, 0]}}]}"#,
+    )
+    .unwrap();
     let r = trade(
         &server.url,
         &[
@@ -215,6 +220,33 @@ fn trade_on_the_bundled_planet_with_colour_at_the_extremes() {
             "--tolerances",
             "1,4",
             "--path",
+            jumps.to_str().unwrap(),
+            "--views",
+            "3",
+            "--link",
+            "none",
+        ],
+    );
+    let points = r["points"].as_array().unwrap();
+    check_points(points);
+    let (one, four) = (&points[0], &points[1]);
+    assert!(
+        f(one, "triangles_median") > f(four, "triangles_median"),
+        "{r}"
+    );
+    assert!(f(one, "bytes_needed") > f(four, "bytes_needed"), "{r}");
+    assert!(f(one, "needed_halves") > f(four, "needed_halves"), "{r}");
+    // The extremes: 1 m above the ground, 100,000 km away, a pole, a cube corner.
+    let r = trade(
+        &server.url,
+        &[
+            "--repo",
+            "earth",
+            "--colour",
+            "earth_colour",
+            "--tolerances",
+            "1",
+            "--path",
             "extremes",
             "--views",
             "5",
@@ -224,7 +256,6 @@ fn trade_on_the_bundled_planet_with_colour_at_the_extremes() {
     );
     let points = r["points"].as_array().unwrap();
     check_points(points);
-    assert!(f(&points[0], "triangles_median") > f(&points[1], "triangles_median"));
     for p in points {
         let views = p["views"].as_array().unwrap();
         assert_eq!(views.len(), 5, "{p}");
