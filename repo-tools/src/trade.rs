@@ -100,6 +100,10 @@ pub struct TradeArgs {
     /// Seconds a reference or needed-set view may take to reach full quality.
     #[arg(long, default_value_t = 300.0)]
     pub reference_wait_s: f64,
+    /// Seconds each flight's session may spend refining its overviews before the flight
+    /// (0: none, the first jump starts from nothing).
+    #[arg(long, default_value_t = 0.0)]
+    pub warm_up_s: f64,
     /// Check each flight's cut for cracks every this many frames (0 never).
     #[arg(long, default_value_t = 10)]
     pub check_every: usize,
@@ -349,6 +353,9 @@ pub fn run(args: &TradeArgs) -> Result<()> {
             bail!("{name} must be positive");
         }
     }
+    if !(args.warm_up_s.is_finite() && (0.0..=600.0).contains(&args.warm_up_s)) {
+        bail!("--warm-up-s must be within 0..=600 seconds");
+    }
     let link = parse_link_arg(&args.link)?;
     let probe = quincunx_client::session::AnySession::open_with_colour(
         &args.url,
@@ -535,9 +542,12 @@ fn fly_point<R: TradeDomain>(
         .map_or(args.url.as_str(), |(_, u)| u.as_str());
     let fa = fly_args(args, url, tolerance_px);
     let mut session = R::open(url, &args.repo, args.colour.as_deref(), session_config(&fa))?;
-    // No warm-up (the flight is made already): the first jump starts from nothing, as
-    // a client that opens a repository and goes to a view does, and only what the views
-    // ask for is fetched.
+    // With `--warm-up-s` 0 the first jump starts from nothing, as a client does that
+    // opens a repository and goes to a view; else the session first refines its
+    // overviews (as `quincunx fly` does), whose bytes count as fetched.
+    if args.warm_up_s > 0.0 && !session.warm_up(Duration::from_secs_f64(args.warm_up_s))? {
+        tracing::warn!("the roots did not arrive within --warm-up-s");
+    }
     let opts = fly_options(&fa);
     let mut drawer = FrameDrawer::new(&session, &fa)?;
     let mut frames = Vec::new();
