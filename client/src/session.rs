@@ -133,9 +133,9 @@ pub struct SessionConfig {
     /// [`SessionConfig::lookahead_min_blobs`].
     pub lookahead_levels: usize,
     /// No lookahead while one round trip of the link (estimated bandwidth x RTT) carries
-    /// fewer than this many mean-sized blobs: on such a link the bandwidth, not the round
-    /// trips, bounds how fast a view fills, and lookahead answers would only queue ahead
-    /// of wanted ones.
+    /// fewer than this many mean-sized blobs and the link queues (answers take more than
+    /// twice the RTT): on such a link the bandwidth, not the round trips, bounds how fast
+    /// a view fills, and lookahead answers would only queue ahead of wanted ones.
     pub lookahead_min_blobs: f64,
     /// Metres between samples; `None` derives it from the metadata's georeference
     /// (latitude/longitude grids on a sphere of [`EARTH_RADIUS_M`]; projected grids in
@@ -719,6 +719,18 @@ impl<R: Domain> Session<R> {
         &self.config
     }
 
+    /// Sets the most halves the cut may hold ([`RefineConfig::max_cut_halves`]): a
+    /// renderer passes the patches its GPU pool holds.
+    pub fn set_max_cut_halves(&mut self, max: Option<usize>) {
+        self.refinement.config.max_cut_halves = max;
+        self.config.refine.max_cut_halves = max;
+    }
+
+    /// The most halves the cut may hold, if bounded.
+    pub fn max_cut_halves(&self) -> Option<usize> {
+        self.refinement.config.max_cut_halves
+    }
+
     /// Repository name.
     pub fn name(&self) -> &str {
         &self.elevation.name
@@ -1042,10 +1054,13 @@ impl<R: Domain> Session<R> {
     }
 
     /// Lookahead depth for the link as measured: lookahead hides round trips, which
-    /// cost only while one round trip of the link carries many blobs. Below
-    /// [`SessionConfig::lookahead_min_blobs`] blobs per round trip (bandwidth x RTT over
-    /// the mean blob) the link itself is the bottleneck: lookahead answers would queue
-    /// ahead of wanted ones, so there is none. Before the first estimate: the configured
+    /// cost only while the link has room for more answers. There is none while the link
+    /// both carries fewer than [`SessionConfig::lookahead_min_blobs`] blobs per round
+    /// trip (delivered bandwidth x RTT over the mean blob) *and* queues (answers take
+    /// more than twice the RTT): there the link itself is the bottleneck, and lookahead
+    /// answers would queue ahead of wanted ones. A link that does not queue has room,
+    /// however little it delivered: the delivered rate of a lightly used link is what
+    /// was asked of it, not what it can carry. Before the first estimate: the configured
     /// depth.
     pub fn lookahead_levels(&self) -> usize {
         self.lookahead_levels_for(&self.elevation.fetcher.stats())
@@ -1054,13 +1069,13 @@ impl<R: Domain> Session<R> {
     /// [`Session::lookahead_levels`] from the network thread's counters.
     fn lookahead_levels_for(&self, stats: &FetchStats) -> usize {
         let levels = self.config.lookahead_levels;
-        // The link carries at least the most it ever delivered (a lightly loaded link
-        // delivers far less than it could).
+        // The link carries at least the most it ever delivered.
         let bandwidth = stats.bandwidth_bit_s.max(self.peak_bandwidth_bit_s);
-        match stats.rtt {
-            Some(rtt) if bandwidth > 0.0 && stats.mean_blob_bytes > 0.0 => {
+        match (stats.rtt, stats.latency) {
+            (Some(rtt), Some(latency)) if bandwidth > 0.0 && stats.mean_blob_bytes > 0.0 => {
                 let per_trip = bandwidth / 8.0 * rtt.as_secs_f64() / stats.mean_blob_bytes;
-                if per_trip < self.config.lookahead_min_blobs {
+                let queues = latency > rtt * 2;
+                if per_trip < self.config.lookahead_min_blobs && queues {
                     0
                 } else {
                     levels

@@ -20,6 +20,8 @@ const RATE_ALPHA: f64 = 0.3;
 const SIZE_ALPHA: f64 = 0.05;
 /// EWMA weight of a new frame interval.
 const FRAME_ALPHA: f64 = 0.2;
+/// EWMA weight of a new answer latency.
+const LATENCY_ALPHA: f64 = 0.2;
 /// Headroom over the bandwidth-delay product.
 const GAIN: f64 = 2.0;
 /// Least size assumed per answer under a bandwidth cap (leaves are empty but still cost a
@@ -35,6 +37,7 @@ pub struct Bandwidth {
     rate_answers_s: Option<f64>,
     mean_bytes: Option<f64>,
     rtt: Option<Duration>,
+    latency_s: Option<f64>,
     frame: Option<Duration>,
     last_submit: Option<Instant>,
     last_advance: Option<Instant>,
@@ -94,6 +97,7 @@ impl Bandwidth {
         self.sample_answers += 1;
         self.mean_bytes = Some(ewma(self.mean_bytes, body_bytes as f64, SIZE_ALPHA));
         if let Some(l) = latency {
+            self.latency_s = Some(ewma(self.latency_s, l.as_secs_f64(), LATENCY_ALPHA));
             // The least latency ever seen: the path's RTT without queueing delay. Letting
             // it creep up would feed back (a fuller window queues more, which raises the
             // latency, which widens the window); a path that really got longer leaves the
@@ -110,6 +114,12 @@ impl Bandwidth {
     /// Estimated RTT.
     pub fn rtt(&self) -> Option<Duration> {
         self.rtt
+    }
+
+    /// Smoothed latency of recent answers: the RTT plus transfer and queueing time
+    /// (`None` before the first answer).
+    pub fn latency(&self) -> Option<Duration> {
+        self.latency_s.map(Duration::from_secs_f64)
     }
 
     /// Mean answer body size in bytes (0 before the first answer).

@@ -372,6 +372,9 @@ pub struct FetchStats {
     pub bandwidth_bit_s: f64,
     /// Estimated round trip (the least request latency seen).
     pub rtt: Option<Duration>,
+    /// Smoothed latency of recent answers (EWMA): the RTT plus transfer and queueing
+    /// time. Well above [`FetchStats::rtt`], answers queue on the link.
+    pub latency: Option<Duration>,
     /// Mean body size of fetched blobs (EWMA), bytes.
     pub mean_blob_bytes: f64,
     /// Errors by class (each failed attempt counts).
@@ -403,6 +406,8 @@ impl FetchStats {
             (Some(a), Some(b)) => Some(a.min(b)),
             (a, b) => a.or(b),
         };
+        // The slower layer's: a queue on either link shows.
+        self.latency = self.latency.max(o.latency);
         self.errors.add(&o.errors);
     }
 }

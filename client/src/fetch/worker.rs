@@ -486,6 +486,7 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
         self.stats.queued = self.sched.queued();
         self.stats.bandwidth_bit_s = self.bandwidth.rate_bit_s();
         self.stats.rtt = self.bandwidth.rtt();
+        self.stats.latency = self.bandwidth.latency();
         self.stats.mean_blob_bytes = self.bandwidth.mean_bytes();
         let mut shared = lock(&self.shared.stats);
         let cache_hits = shared.cache_hits;
