@@ -460,8 +460,13 @@ pub struct JumpResult {
     /// Leg index.
     pub leg: usize,
     /// Seconds from the jump to the first frame at full quality; `None` if the leg
-    /// ended first.
+    /// ended first. Where a budget (the DAG's memory, or the cut a renderer's GPU pool
+    /// holds) keeps the view from the tolerance, to the first frame at the best quality
+    /// the budgets allow (refinement converged under them; `budget_limited`).
     pub time_to_full_quality_s: Option<f64>,
+    /// The budgets, not the tolerance, ended refinement: the view was drawn coarser
+    /// than the tolerance asks.
+    pub budget_limited: bool,
     /// Body bytes fetched during the leg until then (or the leg's end).
     pub bytes_fetched: u64,
 }
@@ -491,6 +496,9 @@ pub struct FlightReport {
     pub time_to_full_quality_s_max: Option<f64>,
     /// Jumps that never reached full quality within their leg.
     pub jumps_unfinished: usize,
+    /// Jumps whose time is to the best quality the budgets allow, not to the tolerance
+    /// ([`JumpResult::budget_limited`]).
+    pub jumps_budget_limited: usize,
     /// Body bytes fetched (prefetch included).
     pub bytes_fetched: u64,
     /// Body bytes of the distinct blobs of the final cuts: the cut at the last frame of
@@ -596,6 +604,7 @@ pub fn fly_with<R: Domain>(
         let mut jump = leg.jump.then_some(JumpResult {
             leg: li,
             time_to_full_quality_s: None,
+            budget_limited: false,
             bytes_fetched: 0,
         });
         loop {
@@ -670,12 +679,14 @@ pub fn fly_with<R: Domain>(
             frame_no += 1;
             last_view = Some(view);
             on_frame(session, &view, &rec);
-            if rec.full_quality {
+            // As good as it gets: the tolerance met, or the budgets reached.
+            if frame.refine.settled() {
                 let at = *full_at.get_or_insert(now);
                 if let Some(j) = jump.as_mut()
                     && j.time_to_full_quality_s.is_none()
                 {
                     j.time_to_full_quality_s = Some(t_leg);
+                    j.budget_limited = !rec.full_quality;
                     j.bytes_fetched = fetch.bytes_fetched - bytes_at_start;
                 }
                 if leg
@@ -705,6 +716,9 @@ pub fn fly_with<R: Domain>(
             if j.time_to_full_quality_s.is_none() {
                 j.bytes_fetched = session.fetch_stats().bytes_fetched - bytes_at_start;
                 report.jumps_unfinished += 1;
+            }
+            if j.budget_limited {
+                report.jumps_budget_limited += 1;
             }
             report.jumps.push(j);
         }
@@ -805,7 +819,7 @@ pub fn needed_for_views<R: Domain>(
         let start = Instant::now();
         let frame = loop {
             let frame = session.update(view, start.elapsed(), Duration::from_millis(50))?;
-            if frame.refine.full_quality || start.elapsed() >= timeout {
+            if frame.refine.settled() || start.elapsed() >= timeout {
                 break frame;
             }
             if frame.refine.refined == 0 {

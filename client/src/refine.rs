@@ -110,6 +110,13 @@ pub struct RefineConfig {
     /// coarsening of what matters least: off-screen diamonds first, then the smallest
     /// projected errors. `None`: only the view bounds memory.
     pub max_dag_bytes: Option<usize>,
+    /// Most halves in the cut (patches a renderer draws): no refinement that would exceed
+    /// it, and while it is exceeded, coarsening of what matters least, as for
+    /// `max_dag_bytes`. A renderer whose GPU pool holds `n` patches sets `n`, so the cut
+    /// it is given always fits: a tolerance finer than the pool allows then draws the
+    /// finest cut that fits, never one with patches left out. `None`: only the view
+    /// bounds the cut.
+    pub max_cut_halves: Option<usize>,
 }
 
 impl Default for RefineConfig {
@@ -118,6 +125,7 @@ impl Default for RefineConfig {
             hysteresis: 1.0,
             flat_fraction: 0.1,
             max_dag_bytes: None,
+            max_cut_halves: None,
         }
     }
 }
@@ -137,8 +145,9 @@ pub struct FrameStats {
     pub cut_halves: usize,
     /// DAG memory after the frame ([`Dag::memory_bytes`]).
     pub dag_bytes: usize,
-    /// The memory budget held refinement back or forced coarsening this frame: the frame
-    /// is then not at full quality (`converged` may still say nothing more can be done).
+    /// A budget (DAG memory or cut halves) held refinement back or forced coarsening this
+    /// frame: the frame is then not at full quality (`converged` may still say nothing
+    /// more can be done).
     pub over_budget: bool,
     /// Largest projected error of a visible cut diamond that still wants refining (0 when
     /// the cut meets the tolerance).
@@ -153,6 +162,16 @@ pub struct FrameStats {
     pub full_quality: bool,
     /// Time used.
     pub elapsed: Duration,
+}
+
+impl FrameStats {
+    /// As good as it gets: full quality, or, where a budget holds refinement back, the
+    /// best cut the budgets allow (converged, and the frame changed nothing: a frame that
+    /// coarsened to make room may refine more in the next).
+    pub fn settled(&self) -> bool {
+        self.full_quality
+            || (self.over_budget && self.converged && self.refined == 0 && self.coarsened == 0)
+    }
 }
 
 /// An `f64` ordered for the heaps (NaN never occurs: errors are finite by construction).
@@ -356,6 +375,49 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
     }
 }
 
+/// Halves in the cut at `id` and its children: what refining or coarsening `id` changes.
+fn cut_around<R: Domain>(dag: &Dag<R>, id: R::Id) -> usize {
+    let halves = |id: R::Id| {
+        dag.node(id).map_or(0, |n| {
+            if n.refined.is_some() {
+                0
+            } else {
+                n.present.iter().filter(|p| **p).count()
+            }
+        })
+    };
+    halves(id) + dag.children(id).iter().map(|&c| halves(c)).sum::<usize>()
+}
+
+/// Halves in the cut, kept up to date by the frame's operations when a cut budget is set
+/// (counting it is a pass over the DAG).
+struct CutCount {
+    halves: Option<usize>,
+}
+
+impl CutCount {
+    /// Applies `op` to `id`, tracking the cut.
+    fn around<R: Domain, T>(
+        &mut self,
+        dag: &mut Dag<R>,
+        id: R::Id,
+        op: impl FnOnce(&mut Dag<R>) -> T,
+    ) -> T {
+        let Some(halves) = self.halves else {
+            return op(dag);
+        };
+        let before = cut_around(dag, id);
+        let out = op(dag);
+        let after = cut_around(dag, id);
+        self.halves = Some((halves + after).saturating_sub(before));
+        out
+    }
+
+    fn over(&self, max: Option<usize>, extra: usize) -> bool {
+        matches!((self.halves, max), (Some(h), Some(m)) if h + extra > m)
+    }
+}
+
 /// Coarsens `id` unless the deadline has passed (then `None`, and the frame is out of
 /// time); returns its parents that became coarsenable.
 fn coarsen_in_time<R: Domain>(
@@ -364,12 +426,13 @@ fn coarsen_in_time<R: Domain>(
     clock: &dyn Clock,
     deadline: Duration,
     stats: &mut FrameStats,
+    cut: &mut CutCount,
 ) -> Result<Option<Vec<R::Id>>, DagError> {
     if clock.now() >= deadline {
         stats.out_of_time = true;
         return Ok(None);
     }
-    dag.coarsen(id)?;
+    cut.around(dag, id, |dag| dag.coarsen(id))?;
     stats.coarsened += 1;
     let mut parents = dag.parents(id);
     parents.retain(|&p| dag.is_coarsenable(p));
@@ -398,6 +461,9 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         let deadline = start + budget;
         let projector = self.projector(view, world);
         let mut stats = FrameStats::default();
+        let mut cut = CutCount {
+            halves: self.config.max_cut_halves.map(|_| dag.cut_len()),
+        };
 
         self.track_camera(view, &world);
         // Split queue: the cut's diamonds that want refining, most urgent first.
@@ -447,7 +513,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             }
             let mut newly = Vec::new();
             let outcome = self.refine_with_parents(
-                dag, id, error, source, &mut stats, 0, &projector, &mut newly,
+                dag, id, error, source, &mut stats, 0, &projector, &mut newly, &mut cut,
             )?;
             // Children of everything refined (the diamond and any parents it needed),
             // complete or not: an incomplete one gets its other parent refined first when
@@ -504,7 +570,8 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 if !children_calm {
                     continue;
                 }
-                let Some(freed) = coarsen_in_time(dag, id, clock, deadline, &mut stats)? else {
+                let Some(freed) = coarsen_in_time(dag, id, clock, deadline, &mut stats, &mut cut)?
+                else {
                     break;
                 };
                 for parent in freed {
@@ -516,12 +583,17 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             }
         }
 
-        if let Some(max) = self.config.max_dag_bytes
-            && dag.memory_bytes() > max
-            && !stats.out_of_time
-        {
+        let over = |dag: &Dag<R>, cut: &CutCount| {
+            self.config
+                .max_dag_bytes
+                .is_some_and(|max| dag.memory_bytes() > max)
+                || cut.over(self.config.max_cut_halves, 0)
+        };
+        if over(dag, &cut) && !stats.out_of_time {
             stats.over_budget = true;
-            self.evict(dag, &projector, max, clock, deadline, &mut stats)?;
+            self.evict(
+                dag, &projector, &over, clock, deadline, &mut stats, &mut cut,
+            )?;
         }
 
         stats.pending = waiting;
@@ -534,16 +606,18 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         Ok(stats)
     }
 
-    /// Coarsens until the DAG fits `max` bytes: off-screen diamonds first, then the
-    /// smallest projected errors.
+    /// Coarsens until the budgets hold (`over` is false): off-screen diamonds first, then
+    /// the smallest projected errors.
+    #[allow(clippy::too_many_arguments)]
     fn evict<R: Domain<Id = I>>(
-        &mut self,
+        &self,
         dag: &mut Dag<R>,
         projector: &Projector<'_, R::World>,
-        max: usize,
+        over: &dyn Fn(&Dag<R>, &CutCount) -> bool,
         clock: &dyn Clock,
         deadline: Duration,
         stats: &mut FrameStats,
+        cut: &mut CutCount,
     ) -> Result<(), DagError> {
         let rank = |dag: &Dag<R>, id: I| {
             let a = projector.appearance(dag, id);
@@ -560,14 +634,14 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             .filter(|n| n.refined.is_some() && dag.is_coarsenable(n.id))
             .map(|n| rank(dag, n.id))
             .collect();
-        while dag.memory_bytes() > max {
+        while over(dag, cut) {
             let Some(std::cmp::Reverse(Key(_, id))) = queue.pop() else {
                 break;
             };
             if !dag.is_coarsenable(id) {
                 continue;
             }
-            let Some(freed) = coarsen_in_time(dag, id, clock, deadline, stats)? else {
+            let Some(freed) = coarsen_in_time(dag, id, clock, deadline, stats, cut)? else {
                 break;
             };
             for parent in freed {
@@ -589,6 +663,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         depth: usize,
         projector: &Projector<'_, R::World>,
         newly: &mut Vec<I>,
+        cut: &mut CutCount,
     ) -> Result<Outcome, DagError> {
         if depth > 128 || !dag.refiner().is_refinable(id) {
             return Ok(Outcome::Impossible);
@@ -613,6 +688,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                     depth + 1,
                     projector,
                     newly,
+                    cut,
                 )? {
                     Outcome::Done => {}
                     Outcome::Pending => pending = true,
@@ -632,8 +708,12 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         if depth == 0 && !projector.wants_split(&projector.appearance(dag, id)) {
             return Ok(Outcome::Impossible);
         }
-        if let Some(max) = self.config.max_dag_bytes
-            && dag.memory_bytes() + dag.refinement_bytes() > max
+        // Refining replaces each present half by two children's halves: at most 2 more.
+        if self
+            .config
+            .max_dag_bytes
+            .is_some_and(|max| dag.memory_bytes() + dag.refinement_bytes() > max)
+            || cut.over(self.config.max_cut_halves, 2)
         {
             stats.over_budget = true;
             stats.max_error_px = stats.max_error_px.max(priority);
@@ -651,7 +731,9 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         };
         match (details, colour) {
             (Arrival::Ready(details), Arrival::Ready(colour)) => {
-                dag.refine_layers(id, details.as_deref(), colour.as_deref())?;
+                cut.around(dag, id, |dag| {
+                    dag.refine_layers(id, details.as_deref(), colour.as_deref())
+                })?;
                 stats.refined += 1;
                 newly.push(id);
                 Ok(Outcome::Done)

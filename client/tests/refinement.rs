@@ -516,3 +516,77 @@ fn a_memory_budget_is_never_exceeded_and_shrinking_it_evicts_at_once() {
     assert!(s.full_quality && !s.over_budget, "{s:?}");
     assert_eq!(cut_set(&dag), free_cut);
 }
+
+#[test]
+fn a_cut_budget_is_never_exceeded_and_shrinking_it_coarsens_at_once() {
+    // The largest cut the flight needs without a budget.
+    let (enc, mut dag, mut source) = setup(0);
+    let views = flight(30);
+    let mut free = Refinement::default();
+    let (mut need, mut widest) = (0, 0);
+    for (k, v) in views.iter().enumerate() {
+        unlimited_frame(&mut free, &mut dag, v, &enc, &mut source);
+        if dag.cut_len() > need {
+            (need, widest) = (dag.cut_len(), k);
+        }
+    }
+    let free_cut = cut_set(&dag);
+    assert!(need > 40, "a flight that needs a cut: {need}");
+
+    // Half of it: every frame stays within, crack-free, and says it is held back; where
+    // nothing more fits, the frame is settled (the best cut the budget allows).
+    let (enc, mut dag, mut source) = setup(0);
+    let budget = need / 2;
+    let mut limited = Refinement::with_config(RefineConfig {
+        max_cut_halves: Some(budget),
+        ..RefineConfig::default()
+    });
+    let mut held_back = 0;
+    for v in &views {
+        let s = unlimited_frame(&mut limited, &mut dag, v, &enc, &mut source);
+        assert!(dag.cut_len() <= budget, "{} > {budget}", dag.cut_len());
+        assert_eq!(s.cut_halves, dag.cut_len());
+        assert!(dag.check_cut().ok());
+        if s.over_budget {
+            held_back += 1;
+            assert!(!s.full_quality && s.max_error_px > 0.0, "{s:?}");
+        }
+    }
+    assert!(held_back > 0);
+    // Held at the view that needs the most, it settles: a frame that changes nothing,
+    // the cut full.
+    let s = (0..10)
+        .map(|_| unlimited_frame(&mut limited, &mut dag, &views[widest], &enc, &mut source))
+        .find(|s| s.settled())
+        .expect("settles within 10 frames");
+    assert!(s.over_budget && !s.full_quality, "{s:?}");
+    assert!(
+        dag.cut_len() + 2 > budget && dag.cut_len() <= budget,
+        "{s:?}"
+    );
+
+    // A quarter, at the same view: coarsened within one frame.
+    limited.config.max_cut_halves = Some(need / 4);
+    let s = unlimited_frame(
+        &mut limited,
+        &mut dag,
+        views.last().unwrap(),
+        &enc,
+        &mut source,
+    );
+    assert!(s.over_budget && s.coarsened > 0, "{s:?}");
+    assert!(dag.cut_len() <= need / 4);
+    assert!(dag.check_cut().ok());
+
+    // Enough for everything: the same cut as without a budget.
+    limited.config.max_cut_halves = Some(2 * need);
+    let s = unlimited_frame(
+        &mut limited,
+        &mut dag,
+        views.last().unwrap(),
+        &enc,
+        &mut source,
+    );
+    assert!(s.full_quality && !s.over_budget, "{s:?}");
+    assert_eq!(cut_set(&dag), free_cut);
+}

@@ -413,6 +413,17 @@ impl<R: RenderDomain> TerrainRenderer<R> {
         &self.config
     }
 
+    /// Bounds the session's cut by the patches the pool holds
+    /// ([`Session::set_max_cut_halves`], unless it is bounded tighter already), so the
+    /// cut it is given always fits: a tolerance finer than the GPU budget allows draws the
+    /// finest cut that fits instead of leaving patches out.
+    pub fn bound_cut(&self, session: &mut Session<R>) {
+        let slots = self.pool.capacity() as usize;
+        if session.max_cut_halves().is_none_or(|max| max > slots) {
+            session.set_max_cut_halves(Some(slots));
+        }
+    }
+
     /// Patch slots in the pool.
     pub fn capacity(&self) -> u32 {
         self.pool.capacity()
@@ -453,8 +464,10 @@ impl<R: RenderDomain> TerrainRenderer<R> {
         self.multi_draw
     }
 
-    /// Takes the session's cut changes since the previous frame ([`Session::cut_changes`]).
+    /// Takes the session's cut changes since the previous frame ([`Session::cut_changes`]),
+    /// and bounds the session's cut by the pool ([`TerrainRenderer::bound_cut`]).
     pub fn sync(&mut self, session: &mut Session<R>) -> Result<(), RenderError> {
+        self.bound_cut(session);
         let changes = session.cut_changes();
         let dag = session.dag();
         self.apply(dag.refiner(), dag.colour(), changes)

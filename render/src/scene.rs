@@ -160,6 +160,9 @@ impl Shot {
 pub struct Streamed {
     /// The client reached full quality for the final view.
     pub full_quality: bool,
+    /// The renderer's GPU pool (or the DAG budget) held the cut coarser than the
+    /// tolerance: the view is the best cut that fits, not full quality.
+    pub budget_limited: bool,
     /// Seconds from the start to full quality (or to giving up).
     pub seconds: f64,
     /// Frames run.
@@ -196,7 +199,7 @@ pub fn stream_to<R: RenderDomain>(
             r.sync(session)?;
             out.upload_bytes += r.prepare(q, &Camera::from_view(&view)).upload_bytes;
         }
-        let full = frame.refine.full_quality && frame.wanted == 0;
+        let full = frame.refine.settled() && frame.wanted == 0;
         if full {
             // The terrain under the camera may have changed as it refined: move the
             // camera to the new height and check again (twice in a row unchanged).
@@ -210,7 +213,8 @@ pub fn stream_to<R: RenderDomain>(
                 view = shot.view(session, ground)?;
             }
             if settled >= 2 {
-                out.full_quality = true;
+                out.full_quality = frame.refine.full_quality;
+                out.budget_limited = !frame.refine.full_quality;
                 break;
             }
         }

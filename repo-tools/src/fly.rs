@@ -312,7 +312,7 @@ fn fly_session<R: BuiltinFlights + RenderDomain>(
     if !(args.gpu_budget_mb.is_finite() && args.gpu_budget_mb > 0.0) {
         bail!("--gpu-budget-mb must be positive");
     }
-    let mut drawer = FrameDrawer::new(&session, args)?;
+    let mut drawer = FrameDrawer::new(&mut session, args)?;
     // The flight runs at its real pace and records each frame's cut changes (the time
     // taking them is the first part of the renderer's frame); the renderer then replays
     // them frame by frame with real uploads and submissions (see `FrameDrawer::replay`).
@@ -413,7 +413,8 @@ pub(crate) struct FrameDrawer<R: RenderDomain> {
 }
 
 impl<R: RenderDomain> FrameDrawer<R> {
-    pub(crate) fn new(session: &Session<R>, args: &FlyArgs) -> Result<Self> {
+    /// A drawer for `session`'s repository; bounds the session's cut by its pool.
+    pub(crate) fn new(session: &mut Session<R>, args: &FlyArgs) -> Result<Self> {
         let gpu = Gpu::headless().context("starting the renderer")?;
         let size = args.render_size.unwrap_or(args.viewport);
         let offscreen = Offscreen::new(&gpu, size)?;
@@ -423,6 +424,7 @@ impl<R: RenderDomain> FrameDrawer<R> {
             ..RendererConfig::default()
         };
         let renderer = TerrainRenderer::for_session(&gpu.device, session, config)?;
+        renderer.bound_cut(session);
         Ok(FrameDrawer {
             gpu,
             offscreen,

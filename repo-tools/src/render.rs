@@ -161,6 +161,7 @@ pub fn run(args: &RenderArgs) -> Result<()> {
             "patches": pic.stats.patches,
             "draw_calls": pic.stats.draw_calls,
             "full_quality": streamed.full_quality,
+            "budget_limited": streamed.budget_limited,
             "time_to_full_quality_s": streamed.full_quality.then_some(streamed.seconds),
             "frames": streamed.frames,
             "cut_cracks": cracks,
@@ -185,6 +186,8 @@ pub fn run(args: &RenderArgs) -> Result<()> {
             pic.stats.draw_calls,
             if streamed.full_quality {
                 "full quality"
+            } else if streamed.budget_limited {
+                "the finest cut --gpu-budget-mb holds (coarser than the tolerance)"
             } else {
                 "NOT at full quality (--wait-s ran out)"
             },

@@ -151,8 +151,16 @@ pub struct TradePoint {
     pub time_to_full_quality_s_median: Option<f64>,
     /// Largest.
     pub time_to_full_quality_s_max: Option<f64>,
+    /// Mean time to full quality over the jumps that reached it (s).
+    pub time_to_full_quality_s_mean: Option<f64>,
     /// Jumps whose leg ended before full quality.
     pub jumps_unfinished: usize,
+    /// Jumps whose cut the GPU budget held coarser than the tolerance (their time is to
+    /// the best cut the pool holds).
+    pub jumps_budget_limited: usize,
+    /// The most halves (patches) the flight's cut could hold: the patch slots the
+    /// `--gpu-budget-mb` pool has.
+    pub cut_budget_halves: usize,
     /// PSNR of the shaded views against the references, over all compared pixels
     /// (`None`: every view identical, infinite).
     pub psnr_db: Option<f64>,
@@ -417,9 +425,16 @@ fn fly_args(args: &TradeArgs, url: &str, tolerance_px: f64) -> FlyArgs {
 }
 
 /// Settings of the needed-set and reference sessions: the data without a link, and
-/// only what refinement asks for.
-fn exact_config(args: &TradeArgs, flat_fraction: Option<f64>) -> SessionConfig {
-    let mut refine = RefineConfig::default();
+/// only what refinement asks for; the needed sets under the flight's cut budget.
+fn exact_config(
+    args: &TradeArgs,
+    flat_fraction: Option<f64>,
+    max_cut_halves: Option<usize>,
+) -> SessionConfig {
+    let mut refine = RefineConfig {
+        max_cut_halves,
+        ..RefineConfig::default()
+    };
     if let Some(f) = flat_fraction {
         refine.flat_fraction = f;
     }
@@ -549,7 +564,7 @@ fn fly_point<R: TradeDomain>(
         tracing::warn!("the roots did not arrive within --warm-up-s");
     }
     let opts = fly_options(&fa);
-    let mut drawer = FrameDrawer::new(&session, &fa)?;
+    let mut drawer = FrameDrawer::new(&mut session, &fa)?;
     let mut frames = Vec::new();
     let report = flight::fly_with(&mut session, flight, &opts, |s, view, rec| {
         let t = Instant::now();
@@ -592,6 +607,7 @@ fn fly_point<R: TradeDomain>(
         }
     }
     let render = drawer.summary();
+    let cut_budget_halves = session.max_cut_halves().unwrap_or(0);
     drop(drawer);
     drop(session);
     // The needed set, with and without the side information.
@@ -603,7 +619,7 @@ fn fly_point<R: TradeDomain>(
                     &args.url,
                     &args.repo,
                     args.colour.as_deref(),
-                    exact_config(args, flat),
+                    exact_config(args, flat, Some(cut_budget_halves)),
                 )
             },
             &report.final_views,
@@ -636,7 +652,17 @@ fn fly_point<R: TradeDomain>(
         },
         time_to_full_quality_s_median: report.time_to_full_quality_s_p50,
         time_to_full_quality_s_max: report.time_to_full_quality_s_max,
+        time_to_full_quality_s_mean: {
+            let t: Vec<f64> = report
+                .jumps
+                .iter()
+                .filter_map(|j| j.time_to_full_quality_s)
+                .collect();
+            (!t.is_empty()).then(|| t.iter().sum::<f64>() / t.len() as f64)
+        },
         jumps_unfinished: report.jumps_unfinished,
+        jumps_budget_limited: report.jumps_budget_limited,
+        cut_budget_halves,
         bytes_in_final_cuts: report.bytes_in_final_cuts,
         bytes_needed: with.bytes,
         fetched_over_needed: if with.bytes > 0 {
@@ -679,7 +705,7 @@ fn reference_view<R: TradeDomain>(
         &args.url,
         &args.repo,
         args.colour.as_deref(),
-        exact_config(args, None),
+        exact_config(args, None, None),
     )?;
     let view = View {
         tolerance_px: 0.0,
