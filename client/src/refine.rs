@@ -393,6 +393,8 @@ fn cut_around<R: Domain>(dag: &Dag<R>, id: R::Id) -> usize {
 /// (counting it is a pass over the DAG).
 struct CutCount {
     halves: Option<usize>,
+    /// The largest error of a split the cut budget refused this frame.
+    blocked: Option<f64>,
 }
 
 impl CutCount {
@@ -463,6 +465,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         let mut stats = FrameStats::default();
         let mut cut = CutCount {
             halves: self.config.max_cut_halves.map(|_| dag.cut_len()),
+            blocked: None,
         };
 
         self.track_camera(view, &world);
@@ -538,6 +541,11 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 }
                 Outcome::Impossible => {}
             }
+            if cut.blocked.is_some() {
+                // The cut is full: the rest of the queue (smaller errors) cannot be
+                // refined either; room is made below, and they come up next frame.
+                break;
+            }
             worked = stats.refined > refined_before;
         }
 
@@ -589,10 +597,37 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 .is_some_and(|max| dag.memory_bytes() > max)
                 || cut.over(self.config.max_cut_halves, 0)
         };
+        if let (Some(blocked), Some(max)) = (cut.blocked, self.config.max_cut_halves)
+            && !stats.out_of_time
+        {
+            // Room for the refused split: coarsen what matters less than it (off-screen
+            // diamonds, then visible ones under half its error, so a swap is always a
+            // clear gain and the cut settles), a little beyond one split so the next
+            // frame can refine several.
+            let target = max.saturating_sub((max / 64).max(2));
+            let room = |_: &Dag<R>, cut: &CutCount| cut.halves.is_some_and(|h| h > target);
+            self.evict(
+                dag,
+                &projector,
+                &room,
+                blocked / 2.0,
+                clock,
+                deadline,
+                &mut stats,
+                &mut cut,
+            )?;
+        }
         if over(dag, &cut) && !stats.out_of_time {
             stats.over_budget = true;
             self.evict(
-                dag, &projector, &over, clock, deadline, &mut stats, &mut cut,
+                dag,
+                &projector,
+                &over,
+                f64::INFINITY,
+                clock,
+                deadline,
+                &mut stats,
+                &mut cut,
             )?;
         }
 
@@ -607,13 +642,14 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
     }
 
     /// Coarsens until the budgets hold (`over` is false): off-screen diamonds first, then
-    /// the smallest projected errors.
+    /// the smallest projected errors, none of error `below` or more.
     #[allow(clippy::too_many_arguments)]
     fn evict<R: Domain<Id = I>>(
         &self,
         dag: &mut Dag<R>,
         projector: &Projector<'_, R::World>,
         over: &dyn Fn(&Dag<R>, &CutCount) -> bool,
+        below: f64,
         clock: &dyn Clock,
         deadline: Duration,
         stats: &mut FrameStats,
@@ -635,9 +671,12 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             .map(|n| rank(dag, n.id))
             .collect();
         while over(dag, cut) {
-            let Some(std::cmp::Reverse(Key(_, id))) = queue.pop() else {
+            let Some(std::cmp::Reverse(Key(e, id))) = queue.pop() else {
                 break;
             };
+            if e >= below {
+                break;
+            }
             if !dag.is_coarsenable(id) {
                 continue;
             }
@@ -708,15 +747,20 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         if depth == 0 && !projector.wants_split(&projector.appearance(dag, id)) {
             return Ok(Outcome::Impossible);
         }
-        // Refining replaces each present half by two children's halves: at most 2 more.
         if self
             .config
             .max_dag_bytes
             .is_some_and(|max| dag.memory_bytes() + dag.refinement_bytes() > max)
-            || cut.over(self.config.max_cut_halves, 2)
         {
             stats.over_budget = true;
             stats.max_error_px = stats.max_error_px.max(priority);
+            return Ok(Outcome::Impossible);
+        }
+        // Refining replaces each present half by two children's halves: at most 2 more.
+        if cut.over(self.config.max_cut_halves, 2) {
+            stats.over_budget = true;
+            stats.max_error_px = stats.max_error_px.max(priority);
+            cut.blocked = Some(cut.blocked.map_or(priority, |b| b.max(priority)));
             return Ok(Outcome::Impossible);
         }
         // Both layers are asked at once, so both requests go out in the same frame.

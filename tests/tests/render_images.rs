@@ -476,6 +476,48 @@ fn planar_views_show_no_background_inside_the_terrain() {
 }
 
 #[test]
+fn a_gpu_budget_below_the_cut_draws_the_finest_cut_that_fits() {
+    let Some(gpu) =
+        gpu_for_test("a_gpu_budget_below_the_cut_draws_the_finest_cut_that_fits").unwrap()
+    else {
+        return;
+    };
+    // A low oblique view at half a pixel: thousands of patches with the default budget.
+    let s = Shot {
+        tolerance_px: 0.5,
+        ..shot(Place::Uv(0.5, 0.8), 3_000.0, -30.0)
+    };
+    let (full, _, _) = take(&gpu, &mut korea(), &s, MAGENTA);
+    // A third of the slots that view used: the session's cut is bounded by the pool.
+    let options = PictureOptions {
+        background: MAGENTA,
+        renderer: RendererConfig {
+            gpu_budget_bytes: full.stats.gpu_bytes_used / 3,
+            ..RendererConfig::default()
+        },
+        ..PictureOptions::default()
+    };
+    let mut session = korea();
+    let (pic, streamed, view) = picture(&gpu, &mut session, &s, WAIT, &options).unwrap();
+    assert!(
+        streamed.budget_limited && !streamed.full_quality,
+        "{streamed:?}"
+    );
+    assert_eq!(pic.stats.missing, 0, "no patch left out");
+    assert!(
+        pic.stats.patches < full.stats.patches / 2,
+        "{} of {}",
+        pic.stats.patches,
+        full.stats.patches
+    );
+    assert!(pic.stats.gpu_bytes_used <= pic.stats.gpu_bytes_allocated);
+    assert!(session.dag().check_cut().ok());
+    let c = count(&pic.image, &planar_truth(&session, &view));
+    assert!(c.terrain > 0);
+    assert_eq!(c.background_in_terrain, 0, "{c:?}");
+}
+
+#[test]
 fn planet_views_show_no_background_inside_the_disc() {
     let Some(gpu) = gpu_for_test("planet_views_show_no_background_inside_the_disc").unwrap() else {
         return;
