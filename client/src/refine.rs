@@ -602,9 +602,10 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         {
             // Room for the refused split: coarsen what matters less than it (off-screen
             // diamonds, then visible ones under half its error, so a swap is always a
-            // clear gain and the cut settles), a little beyond one split so the next
-            // frame can refine several.
-            let target = max.saturating_sub((max / 64).max(2));
+            // clear gain and the cut settles), to a sixteenth below the budget (at least
+            // 64 halves): room for the split with the parents the 4-8 rule asks for, or
+            // the parents refined for it would be coarsened again, frame after frame.
+            let target = max.saturating_sub((max / 16).max(64).min(max / 2));
             let room = |_: &Dag<R>, cut: &CutCount| cut.halves.is_some_and(|h| h > target);
             self.evict(
                 dag,
