@@ -134,7 +134,7 @@ pub struct SessionConfig {
     pub lookahead_levels: usize,
     /// No lookahead while one round trip of the link (estimated bandwidth x RTT) carries
     /// fewer than this many mean-sized blobs and the link queues (answers take more than
-    /// twice the RTT): on such a link the bandwidth, not the round trips, bounds how fast
+    /// 1.25 times the RTT): on such a link the bandwidth, not the round trips, bounds how fast
     /// a view fills, and lookahead answers would only queue ahead of wanted ones.
     pub lookahead_min_blobs: f64,
     /// Metres between samples; `None` derives it from the metadata's georeference
@@ -1057,7 +1057,7 @@ impl<R: Domain> Session<R> {
     /// cost only while the link has room for more answers. There is none while the link
     /// both carries fewer than [`SessionConfig::lookahead_min_blobs`] blobs per round
     /// trip (delivered bandwidth x RTT over the mean blob) *and* queues (answers take
-    /// more than twice the RTT): there the link itself is the bottleneck, and lookahead
+    /// more than 1.25 times the RTT): there the link itself is the bottleneck, and lookahead
     /// answers would queue ahead of wanted ones. A link that does not queue has room,
     /// however little it delivered: the delivered rate of a lightly used link is what
     /// was asked of it, not what it can carry. Before the first estimate: the configured
@@ -1074,7 +1074,7 @@ impl<R: Domain> Session<R> {
         match (stats.rtt, stats.latency) {
             (Some(rtt), Some(latency)) if bandwidth > 0.0 && stats.mean_blob_bytes > 0.0 => {
                 let per_trip = bandwidth / 8.0 * rtt.as_secs_f64() / stats.mean_blob_bytes;
-                let queues = latency > rtt * 2;
+                let queues = latency > rtt + rtt / 4;
                 if per_trip < self.config.lookahead_min_blobs && queues {
                     0
                 } else {
