@@ -24,7 +24,7 @@
 //! refined.
 
 use std::cmp::Ordering;
-use std::collections::BinaryHeap;
+use std::collections::{BinaryHeap, HashSet};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -269,6 +269,15 @@ impl<W: World> Projector<'_, W> {
     fn allows_merge(&self, a: &Appearance) -> bool {
         !a.visible || a.flat || a.error_px < self.view.tolerance_px * self.config.hysteresis
     }
+
+    /// None of `id`'s children wants refining: coarsening `id` takes nothing a split
+    /// would bring back at once.
+    fn children_calm<R: Domain<World = W>>(&self, dag: &Dag<R>, id: R::Id) -> bool {
+        dag.children(id).iter().all(|&c| {
+            dag.node(c)
+                .is_none_or(|_| !self.wants_split(&self.appearance(dag, c)))
+        })
+    }
 }
 
 /// Refinement state kept across frames.
@@ -496,6 +505,9 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         }
         let mut waiting = 0;
         let mut worked = true;
+        // The ancestors the frame's splits needed (refined or waiting for data): neither
+        // merged nor evicted to make room, or they would be refined again next frame.
+        let mut needed = HashSet::new();
         while let Some(Key(error, id)) = splits.pop() {
             // The clock is read after each operation that did work.
             if worked && clock.now() >= deadline {
@@ -514,9 +526,29 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             if dag.node(id).is_none_or(|n| n.refined.is_some()) {
                 continue;
             }
+            // With a cut budget, a split whose 4-8 closure does not fit is refused before
+            // any of it is refined: a part of the chain (a parent that does not want
+            // refining itself) would be coarsened again by the merge queue.
+            if let Some(max) = self.config.max_cut_halves
+                && cut.over(Some(max), 2 * unrefined_closure(dag, id, max))
+            {
+                stats.over_budget = true;
+                stats.max_error_px = stats.max_error_px.max(error);
+                cut.blocked = Some(cut.blocked.map_or(error, |b| b.max(error)));
+                break;
+            }
             let mut newly = Vec::new();
             let outcome = self.refine_with_parents(
-                dag, id, error, source, &mut stats, 0, &projector, &mut newly, &mut cut,
+                dag,
+                id,
+                error,
+                source,
+                &mut stats,
+                0,
+                &projector,
+                &mut newly,
+                &mut cut,
+                &mut needed,
             )?;
             // Children of everything refined (the diamond and any parents it needed),
             // complete or not: an incomplete one gets its other parent refined first when
@@ -571,11 +603,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 if !dag.is_coarsenable(id) {
                     continue;
                 }
-                let children_calm = dag.children(id).iter().all(|&c| {
-                    dag.node(c)
-                        .is_none_or(|_| !projector.wants_split(&projector.appearance(dag, c)))
-                });
-                if !children_calm {
+                if needed.contains(&id) || !projector.children_calm(dag, id) {
                     continue;
                 }
                 let Some(freed) = coarsen_in_time(dag, id, clock, deadline, &mut stats, &mut cut)?
@@ -605,13 +633,16 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             // clear gain and the cut settles), to a sixteenth below the budget (at least
             // 64 halves): room for the split with the parents the 4-8 rule asks for, or
             // the parents refined for it would be coarsened again, frame after frame.
+            // Only diamonds whose children are calm: a parent refined for a wanted
+            // child (off-screen while the child is not) would be refined again next
+            // frame, and the cut would churn instead of settling.
             let target = max.saturating_sub((max / 16).max(64).min(max / 2));
             let room = |_: &Dag<R>, cut: &CutCount| cut.halves.is_some_and(|h| h > target);
             self.evict(
                 dag,
                 &projector,
                 &room,
-                blocked / 2.0,
+                Some((blocked / 2.0, &needed)),
                 clock,
                 deadline,
                 &mut stats,
@@ -621,14 +652,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         if over(dag, &cut) && !stats.out_of_time {
             stats.over_budget = true;
             self.evict(
-                dag,
-                &projector,
-                &over,
-                f64::INFINITY,
-                clock,
-                deadline,
-                &mut stats,
-                &mut cut,
+                dag, &projector, &over, None, clock, deadline, &mut stats, &mut cut,
             )?;
         }
 
@@ -642,15 +666,17 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         Ok(stats)
     }
 
-    /// Coarsens until the budgets hold (`over` is false): off-screen diamonds first, then
-    /// the smallest projected errors, none of error `below` or more.
+    /// Coarsens until `over` is false: off-screen diamonds first, then the smallest
+    /// projected errors. To make room (`below` is `Some((error, needed))`): only diamonds
+    /// of smaller error, not needed by a split and whose children are calm. To meet a
+    /// budget (`None`): any.
     #[allow(clippy::too_many_arguments)]
     fn evict<R: Domain<Id = I>>(
         &self,
         dag: &mut Dag<R>,
         projector: &Projector<'_, R::World>,
         over: &dyn Fn(&Dag<R>, &CutCount) -> bool,
-        below: f64,
+        below: Option<(f64, &HashSet<I>)>,
         clock: &dyn Clock,
         deadline: Duration,
         stats: &mut FrameStats,
@@ -675,10 +701,12 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             let Some(std::cmp::Reverse(Key(e, id))) = queue.pop() else {
                 break;
             };
-            if e >= below {
+            if below.is_some_and(|(b, _)| e >= b) {
                 break;
             }
-            if !dag.is_coarsenable(id) {
+            let spare =
+                |needed: &HashSet<I>| !needed.contains(&id) && projector.children_calm(dag, id);
+            if !dag.is_coarsenable(id) || below.is_some_and(|(_, needed)| !spare(needed)) {
                 continue;
             }
             let Some(freed) = coarsen_in_time(dag, id, clock, deadline, stats, cut)? else {
@@ -704,9 +732,13 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         projector: &Projector<'_, R::World>,
         newly: &mut Vec<I>,
         cut: &mut CutCount,
+        needed: &mut HashSet<I>,
     ) -> Result<Outcome, DagError> {
         if depth > 128 || !dag.refiner().is_refinable(id) {
             return Ok(Outcome::Impossible);
+        }
+        if depth > 0 {
+            needed.insert(id);
         }
         if dag.node(id).is_some_and(|n| n.refined.is_some()) {
             return Ok(Outcome::Done);
@@ -729,6 +761,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                     projector,
                     newly,
                     cut,
+                    needed,
                 )? {
                     Outcome::Done => {}
                     Outcome::Pending => pending = true,
@@ -786,6 +819,26 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             _ => Ok(Outcome::Pending),
         }
     }
+}
+
+/// How many diamonds refining `id` takes: itself and the unrefined ancestors the 4-8 rule
+/// asks for (each adds at most 2 halves to the cut). Counting stops past `limit`.
+fn unrefined_closure<R: Domain>(dag: &Dag<R>, id: R::Id, limit: usize) -> usize {
+    let mut seen = HashSet::new();
+    let mut stack = vec![id];
+    while let Some(d) = stack.pop() {
+        if seen.len() > limit {
+            break;
+        }
+        if !dag.refiner().is_refinable(d)
+            || dag.node(d).is_some_and(|n| n.refined.is_some())
+            || !seen.insert(d)
+        {
+            continue;
+        }
+        stack.extend(dag.parents(d));
+    }
+    seen.len()
 }
 
 /// Records that `id`'s data is wanted in every layer that fetches it.

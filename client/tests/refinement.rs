@@ -269,10 +269,11 @@ fn late_details_only_delay_refinement() {
     let view = flight(10)[7];
     let (enc, reference) = converged_in_one_frame(&view);
     let (_, mut dag, mut slow) = setup(2);
-    let mut frames = 0;
+    let (mut frames, mut coarsened) = (0, 0);
     loop {
         let stats = unlimited_frame(&mut Refinement::default(), &mut dag, &view, &enc, &mut slow);
         frames += 1;
+        coarsened += stats.coarsened;
         assert!(dag.check_cut().ok());
         if stats.converged {
             break;
@@ -281,6 +282,14 @@ fn late_details_only_delay_refinement() {
         assert!(frames < 1000);
     }
     assert!(frames > 2);
+    // A held view coarsens only parents refined for a split that, once they had
+    // arrived, no longer wanted it (6 here). Parents refined for a split still waiting
+    // for its own data are kept: merging them (17 coarsenings here) refines them again
+    // next frame.
+    assert!(
+        coarsened <= 8,
+        "{coarsened} coarsenings while the view was held"
+    );
     assert_eq!(cut_set(&dag), cut_set(&reference));
 }
 
@@ -589,4 +598,58 @@ fn a_cut_budget_is_never_exceeded_and_shrinking_it_coarsens_at_once() {
     );
     assert!(s.full_quality && !s.over_budget, "{s:?}");
     assert_eq!(cut_set(&dag), free_cut);
+}
+
+#[test]
+fn under_any_cut_budget_a_held_view_settles() {
+    // A refused split must not churn: a parent refined for it and evicted again (it may be
+    // off-screen while the child is on) would cost a refinement and a coarsening every
+    // frame and never settle. Every view of the flight, held, under budgets from an eighth
+    // of what it needs to just under it, reaches a frame that changes nothing.
+    let views = flight(12);
+    for (k, view) in views.iter().enumerate() {
+        let (enc, mut dag, mut source) = setup(0);
+        unlimited_frame(
+            &mut Refinement::default(),
+            &mut dag,
+            view,
+            &enc,
+            &mut source,
+        );
+        let need = dag.cut_len();
+        for budget in [
+            need / 8,
+            need / 4,
+            need / 3,
+            need / 2,
+            3 * need / 4,
+            need - 3,
+        ] {
+            let budget = budget.max(8);
+            let (enc, mut dag, mut source) = setup(0);
+            let mut limited = Refinement::with_config(RefineConfig {
+                max_cut_halves: Some(budget),
+                ..RefineConfig::default()
+            });
+            let frames: Vec<FrameStats> = (0..40)
+                .map(|_| unlimited_frame(&mut limited, &mut dag, view, &enc, &mut source))
+                .collect();
+            let settled = frames.iter().position(|s| s.settled());
+            assert!(
+                settled.is_some(),
+                "view {k}, budget {budget} of {need}: last frames {:?}",
+                &frames[36..]
+            );
+            let s = frames[settled.unwrap()];
+            assert!(s.over_budget && !s.full_quality, "view {k}: {s:?}");
+            assert!(dag.cut_len() <= budget && dag.check_cut().ok());
+            // Settled means settled: the next frames change nothing either.
+            let cut = cut_set(&dag);
+            let again = unlimited_frame(&mut limited, &mut dag, view, &enc, &mut source);
+            assert!(
+                again.settled() && cut_set(&dag) == cut,
+                "view {k}: {again:?}"
+            );
+        }
+    }
 }
