@@ -85,6 +85,8 @@ pub struct RenderFrameStats {
     pub gpu_bytes_used: u64,
     /// GPU bytes allocated for the pool (the budget, rounded down to whole slots).
     pub gpu_bytes_allocated: u64,
+    /// GPU bytes of one patch slot.
+    pub slot_bytes: u64,
 }
 
 #[repr(C)]
@@ -645,6 +647,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
         };
         stats.gpu_bytes_used = self.pool.occupied() as u64 * self.slot_bytes;
         stats.gpu_bytes_allocated = u64::from(self.pool.capacity()) * self.slot_bytes;
+        stats.slot_bytes = self.slot_bytes;
         stats.cpu_ms = (self.cpu_s + start.elapsed().as_secs_f64()) * 1e3;
         self.cpu_s = 0.0;
         stats

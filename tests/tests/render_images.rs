@@ -488,11 +488,12 @@ fn a_gpu_budget_below_the_cut_draws_the_finest_cut_that_fits() {
         ..shot(Place::Uv(0.5, 0.8), 3_000.0, -30.0)
     };
     let (full, _, _) = take(&gpu, &mut korea(), &s, MAGENTA);
-    // A third of the slots that view used: the session's cut is bounded by the pool.
+    // Slots for a third of that view's patches (the pool also holds cached ones): the
+    // session's cut is bounded by the pool.
     let options = PictureOptions {
         background: MAGENTA,
         renderer: RendererConfig {
-            gpu_budget_bytes: full.stats.gpu_bytes_used / 3,
+            gpu_budget_bytes: full.stats.slot_bytes * full.stats.patches as u64 / 3,
             ..RendererConfig::default()
         },
         ..PictureOptions::default()
