@@ -141,6 +141,10 @@ pub struct Dag<R: Domain = PlanarRefiner> {
     generations: u64,
     /// Diamonds holding a refined lattice.
     refined: usize,
+    /// Halves in the cut, kept by every refinement and coarsening.
+    cut_halves: usize,
+    /// Refinements and coarsenings so far.
+    changes: u64,
     /// Diamonds whose halves may have entered or left the cut since the last
     /// [`Dag::take_cut_changes`].
     touched: HashSet<R::Id, BuildHasherDefault<IdHasher>>,
@@ -202,12 +206,15 @@ impl<R: Domain> Dag<R> {
             })
             .collect::<IdMap<_, _>>();
         let touched = nodes.keys().copied().collect();
+        let cut_halves = 2 * nodes.len();
         Dag {
             nodes,
             refiner,
             colour,
             generations: 1,
             refined: 0,
+            cut_halves,
+            changes: 0,
             touched,
             reported: HashSet::default(),
         }
@@ -352,6 +359,38 @@ impl<R: Domain> Dag<R> {
         details: Option<&Details<R::Id>>,
         colour: Option<&ColourDetails<R::Id>>,
     ) -> Result<Vec<R::Id>, DagError> {
+        self.counting_cut(id, |dag| dag.refine_uncounted(id, details, colour))
+    }
+
+    /// Runs `op` on `id` and keeps the cut's count: an operation on `id` changes the cut
+    /// only at `id` and its children.
+    fn counting_cut<T>(&mut self, id: R::Id, op: impl FnOnce(&mut Self) -> T) -> T {
+        let near = |dag: &Self| -> usize {
+            let halves = |id: R::Id| {
+                dag.nodes.get(&id).map_or(0, |n| {
+                    if n.refined.is_some() {
+                        0
+                    } else {
+                        n.present.iter().filter(|p| **p).count()
+                    }
+                })
+            };
+            halves(id) + dag.children(id).iter().map(|&c| halves(c)).sum::<usize>()
+        };
+        let before = near(self);
+        let out = op(self);
+        self.cut_halves = (self.cut_halves + near(self)).saturating_sub(before);
+        self.changes += 1;
+        out
+    }
+
+    /// [`Dag::refine_layers`] without the cut's count.
+    fn refine_uncounted(
+        &mut self,
+        id: R::Id,
+        details: Option<&Details<R::Id>>,
+        colour: Option<&ColourDetails<R::Id>>,
+    ) -> Result<Vec<R::Id>, DagError> {
         let not_refinable = || DagError::NotRefinable(format!("{id:?}"));
         if !self.is_refinable(id) {
             return Err(not_refinable());
@@ -395,6 +434,12 @@ impl<R: Domain> Dag<R> {
         if !self.is_coarsenable(id) {
             return Err(DagError::NotCoarsenable(format!("{id:?}")));
         }
+        self.counting_cut(id, |dag| dag.coarsen_uncounted(id));
+        Ok(())
+    }
+
+    /// [`Dag::coarsen`] of a coarsenable diamond, without the cut's count.
+    fn coarsen_uncounted(&mut self, id: R::Id) {
         self.touched.insert(id);
         if let Some(node) = self.nodes.get_mut(&id) {
             node.refined = None;
@@ -406,7 +451,6 @@ impl<R: Domain> Dag<R> {
         for &child in self.children(id).iter() {
             self.remove_half(child, id);
         }
-        Ok(())
     }
 
     /// Writes the half of `child` that lies in `parent` (its fresh lattice, and its colour
@@ -605,13 +649,14 @@ impl<R: Domain> Dag<R> {
         self.touched = self.nodes.keys().copied().collect();
     }
 
-    /// Halves in the cut (without listing them).
+    /// Halves in the cut (a counter: O(1)).
     pub fn cut_len(&self) -> usize {
-        self.nodes
-            .values()
-            .filter(|n| n.refined.is_none())
-            .map(|n| n.present.iter().filter(|p| **p).count())
-            .sum()
+        self.cut_halves
+    }
+
+    /// Refinements and coarsenings so far: equal counts mean an unchanged DAG.
+    pub fn changes(&self) -> u64 {
+        self.changes
     }
 
     /// The cut: every present half of every unrefined diamond, in a stable order.
@@ -637,8 +682,11 @@ impl<R: Domain> Dag<R> {
         let n = self.refiner.n();
         let mut values: HashMap<[i64; 3], i32, std::hash::BuildHasherDefault<IdHasher>> =
             HashMap::default();
-        let mut check = CutCheck::default();
         let cut = self.cut();
+        let mut check = CutCheck {
+            counted_halves: self.cut_halves,
+            ..CutCheck::default()
+        };
         let mut triangles: HashMap<u8, Vec<[[f64; 2]; 3]>> = HashMap::new();
         for &(id, half) in &cut {
             check.halves += 1;
@@ -849,6 +897,8 @@ fn in_triangle(p: [f64; 2], t: &[[f64; 2]; 3]) -> bool {
 pub struct CutCheck {
     /// Halves in the cut.
     pub halves: usize,
+    /// Halves in the cut by the DAG's counter ([`Dag::cut_len`]; must equal `halves`).
+    pub counted_halves: usize,
     /// Edge vertices seen by more than one half, with equal values.
     pub shared_vertices: usize,
     /// Edge vertices seen by more than one half with different values (must be 0).
@@ -869,6 +919,7 @@ impl CutCheck {
     /// No cracks, and the cut covers the raster exactly once.
     pub fn ok(&self) -> bool {
         self.cracks == 0
+            && self.halves == self.counted_halves
             && self.colour_cracks == 0
             && self.uncovered == 0
             && self.overlaps == 0

@@ -162,6 +162,9 @@ pub struct FrameStats {
     pub full_quality: bool,
     /// Time used.
     pub elapsed: Duration,
+    /// The frame was the previous one again (same view, world, tuning and DAG after a
+    /// frame that changed nothing and waited for nothing): its figures, not run.
+    pub reused: bool,
 }
 
 impl FrameStats {
@@ -300,6 +303,20 @@ pub struct Refinement<I = PlanarId> {
     projection: Option<(f64, [u32; 2], f64, [f64; 4])>,
     /// Per diamond: the travel at which to look again, and its generation then.
     deferred: IdMap<(f64, u64), I>,
+    /// The last frame, when it changed nothing and waited for nothing: what it was run
+    /// under (view, world, tuning, [`Dag::changes`]) and its figures. A frame under the
+    /// same is the same, so it is not run again: a held camera costs nothing per frame.
+    quiet: Option<Quiet>,
+}
+
+/// What a quiet frame ran under, and its figures.
+#[derive(Clone, Copy, Debug)]
+struct Quiet {
+    view: View,
+    world: [f64; 4],
+    config: RefineConfig,
+    changes: u64,
+    stats: FrameStats,
 }
 
 impl<I> Default for Refinement<I> {
@@ -310,6 +327,7 @@ impl<I> Default for Refinement<I> {
             last_eye: None,
             projection: None,
             deferred: IdMap::default(),
+            quiet: None,
         }
     }
 }
@@ -384,48 +402,17 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
     }
 }
 
-/// Halves in the cut at `id` and its children: what refining or coarsening `id` changes.
-fn cut_around<R: Domain>(dag: &Dag<R>, id: R::Id) -> usize {
-    let halves = |id: R::Id| {
-        dag.node(id).map_or(0, |n| {
-            if n.refined.is_some() {
-                0
-            } else {
-                n.present.iter().filter(|p| **p).count()
-            }
-        })
-    };
-    halves(id) + dag.children(id).iter().map(|&c| halves(c)).sum::<usize>()
-}
-
-/// Halves in the cut, kept up to date by the frame's operations when a cut budget is set
-/// (counting it is a pass over the DAG).
+/// What the cut budget did this frame.
+#[derive(Default)]
 struct CutCount {
-    halves: Option<usize>,
     /// The largest error of a split the cut budget refused this frame.
     blocked: Option<f64>,
 }
 
 impl CutCount {
-    /// Applies `op` to `id`, tracking the cut.
-    fn around<R: Domain, T>(
-        &mut self,
-        dag: &mut Dag<R>,
-        id: R::Id,
-        op: impl FnOnce(&mut Dag<R>) -> T,
-    ) -> T {
-        let Some(halves) = self.halves else {
-            return op(dag);
-        };
-        let before = cut_around(dag, id);
-        let out = op(dag);
-        let after = cut_around(dag, id);
-        self.halves = Some((halves + after).saturating_sub(before));
-        out
-    }
-
-    fn over(&self, max: Option<usize>, extra: usize) -> bool {
-        matches!((self.halves, max), (Some(h), Some(m)) if h + extra > m)
+    /// Whether `extra` more halves would take the cut over `max`.
+    fn over<R: Domain>(dag: &Dag<R>, max: Option<usize>, extra: usize) -> bool {
+        max.is_some_and(|m| dag.cut_len() + extra > m)
     }
 }
 
@@ -437,13 +424,14 @@ fn coarsen_in_time<R: Domain>(
     clock: &dyn Clock,
     deadline: Duration,
     stats: &mut FrameStats,
-    cut: &mut CutCount,
 ) -> Result<Option<Vec<R::Id>>, DagError> {
-    if clock.now() >= deadline {
+    // The frame's first coarsening runs even past the deadline (building the queue may
+    // have taken the budget), so coarsening makes progress too.
+    if stats.coarsened > 0 && clock.now() >= deadline {
         stats.out_of_time = true;
         return Ok(None);
     }
-    cut.around(dag, id, |dag| dag.coarsen(id))?;
+    dag.coarsen(id)?;
     stats.coarsened += 1;
     let mut parents = dag.parents(id);
     parents.retain(|&p| dag.is_coarsenable(p));
@@ -470,12 +458,22 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
     ) -> Result<FrameStats, DagError> {
         let start = clock.now();
         let deadline = start + budget;
+        let under = |q: &Quiet| {
+            q.view == *view
+                && q.world == world.fingerprint()
+                && q.config == self.config
+                && q.changes == dag.changes()
+        };
+        if let Some(q) = self.quiet.as_ref().filter(|q| under(q)) {
+            return Ok(FrameStats {
+                elapsed: clock.now().saturating_sub(start),
+                reused: true,
+                ..q.stats
+            });
+        }
         let projector = self.projector(view, world);
         let mut stats = FrameStats::default();
-        let mut cut = CutCount {
-            halves: self.config.max_cut_halves.map(|_| dag.cut_len()),
-            blocked: None,
-        };
+        let mut cut = CutCount::default();
 
         self.track_camera(view, &world);
         // Split queue: the cut's diamonds that want refining, most urgent first.
@@ -504,7 +502,9 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             self.deferred.retain(|id, _| dag.node(*id).is_some());
         }
         let mut waiting = 0;
-        let mut worked = true;
+        // The first split runs even when building the queue took the whole budget, so
+        // every frame makes progress (and a budget-limited cut can settle).
+        let mut worked = false;
         // The ancestors the frame's splits needed (refined or waiting for data): neither
         // merged nor evicted to make room, or they would be refined again next frame.
         let mut needed = HashSet::new();
@@ -530,7 +530,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             // any of it is refined: a part of the chain (a parent that does not want
             // refining itself) would be coarsened again by the merge queue.
             if let Some(max) = self.config.max_cut_halves
-                && cut.over(Some(max), 2 * unrefined_closure(dag, id, max))
+                && CutCount::over(dag, Some(max), 2 * unrefined_closure(dag, id, max))
             {
                 stats.over_budget = true;
                 stats.max_error_px = stats.max_error_px.max(error);
@@ -606,8 +606,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 if needed.contains(&id) || !projector.children_calm(dag, id) {
                     continue;
                 }
-                let Some(freed) = coarsen_in_time(dag, id, clock, deadline, &mut stats, &mut cut)?
-                else {
+                let Some(freed) = coarsen_in_time(dag, id, clock, deadline, &mut stats)? else {
                     break;
                 };
                 for parent in freed {
@@ -619,11 +618,11 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             }
         }
 
-        let over = |dag: &Dag<R>, cut: &CutCount| {
+        let over = |dag: &Dag<R>| {
             self.config
                 .max_dag_bytes
                 .is_some_and(|max| dag.memory_bytes() > max)
-                || cut.over(self.config.max_cut_halves, 0)
+                || CutCount::over(dag, self.config.max_cut_halves, 0)
         };
         if let (Some(blocked), Some(max)) = (cut.blocked, self.config.max_cut_halves)
             && !stats.out_of_time
@@ -637,7 +636,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             // child (off-screen while the child is not) would be refined again next
             // frame, and the cut would churn instead of settling.
             let target = max.saturating_sub((max / 16).max(64).min(max / 2));
-            let room = |_: &Dag<R>, cut: &CutCount| cut.halves.is_some_and(|h| h > target);
+            let room = |dag: &Dag<R>| dag.cut_len() > target;
             self.evict(
                 dag,
                 &projector,
@@ -646,14 +645,11 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 clock,
                 deadline,
                 &mut stats,
-                &mut cut,
             )?;
         }
-        if over(dag, &cut) && !stats.out_of_time {
+        if over(dag) && !stats.out_of_time {
             stats.over_budget = true;
-            self.evict(
-                dag, &projector, &over, None, clock, deadline, &mut stats, &mut cut,
-            )?;
+            self.evict(dag, &projector, &over, None, clock, deadline, &mut stats)?;
         }
 
         stats.pending = waiting;
@@ -663,6 +659,14 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         stats.converged = !stats.out_of_time && waiting == 0;
         stats.full_quality = splits_done && waiting == 0 && !stats.over_budget;
         stats.elapsed = clock.now().saturating_sub(start);
+        self.quiet =
+            (stats.converged && stats.refined == 0 && stats.coarsened == 0).then_some(Quiet {
+                view: *view,
+                world: world.fingerprint(),
+                config: self.config,
+                changes: dag.changes(),
+                stats,
+            });
         Ok(stats)
     }
 
@@ -675,12 +679,11 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         &self,
         dag: &mut Dag<R>,
         projector: &Projector<'_, R::World>,
-        over: &dyn Fn(&Dag<R>, &CutCount) -> bool,
+        over: &dyn Fn(&Dag<R>) -> bool,
         below: Option<(f64, &HashSet<I>)>,
         clock: &dyn Clock,
         deadline: Duration,
         stats: &mut FrameStats,
-        cut: &mut CutCount,
     ) -> Result<(), DagError> {
         let rank = |dag: &Dag<R>, id: I| {
             let a = projector.appearance(dag, id);
@@ -697,7 +700,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             .filter(|n| n.refined.is_some() && dag.is_coarsenable(n.id))
             .map(|n| rank(dag, n.id))
             .collect();
-        while over(dag, cut) {
+        while over(dag) {
             let Some(std::cmp::Reverse(Key(e, id))) = queue.pop() else {
                 break;
             };
@@ -709,7 +712,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             if !dag.is_coarsenable(id) || below.is_some_and(|(_, needed)| !spare(needed)) {
                 continue;
             }
-            let Some(freed) = coarsen_in_time(dag, id, clock, deadline, stats, cut)? else {
+            let Some(freed) = coarsen_in_time(dag, id, clock, deadline, stats)? else {
                 break;
             };
             for parent in freed {
@@ -791,7 +794,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             return Ok(Outcome::Impossible);
         }
         // Refining replaces each present half by two children's halves: at most 2 more.
-        if cut.over(self.config.max_cut_halves, 2) {
+        if CutCount::over(dag, self.config.max_cut_halves, 2) {
             stats.over_budget = true;
             stats.max_error_px = stats.max_error_px.max(priority);
             cut.blocked = Some(cut.blocked.map_or(priority, |b| b.max(priority)));
@@ -809,9 +812,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         };
         match (details, colour) {
             (Arrival::Ready(details), Arrival::Ready(colour)) => {
-                cut.around(dag, id, |dag| {
-                    dag.refine_layers(id, details.as_deref(), colour.as_deref())
-                })?;
+                dag.refine_layers(id, details.as_deref(), colour.as_deref())?;
                 stats.refined += 1;
                 newly.push(id);
                 Ok(Outcome::Done)

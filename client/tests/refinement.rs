@@ -653,3 +653,63 @@ fn under_any_cut_budget_a_held_view_settles() {
         }
     }
 }
+
+#[test]
+fn a_held_view_reuses_its_quiet_frame_until_something_changes() {
+    let (enc, mut dag, mut source) = setup(0);
+    let view = flight(10)[5];
+    let mut refinement = Refinement::default();
+    let first = unlimited_frame(&mut refinement, &mut dag, &view, &enc, &mut source);
+    assert!(first.refined > 0 && first.converged && !first.reused);
+    // The first frame refined: the next runs (and finds nothing to do).
+    let quiet = unlimited_frame(&mut refinement, &mut dag, &view, &enc, &mut source);
+    assert!(!quiet.reused && quiet.refined == 0 && quiet.coarsened == 0);
+    let cut = cut_set(&dag);
+    // Now held frames are the quiet one again, with its figures and an unchanged cut,
+    // the figures a refinement without that memory computes for the same DAG and view.
+    let held = unlimited_frame(&mut refinement, &mut dag, &view, &enc, &mut source);
+    assert!(held.reused);
+    assert_eq!(cut_set(&dag), cut);
+    let fresh = unlimited_frame(
+        &mut Refinement::default(),
+        &mut dag,
+        &view,
+        &enc,
+        &mut source,
+    );
+    assert!(!fresh.reused);
+    let figures = |s: FrameStats| {
+        (
+            s.refined,
+            s.coarsened,
+            s.cut_halves,
+            s.dag_nodes,
+            s.full_quality,
+        )
+    };
+    assert_eq!(figures(held), figures(fresh));
+    assert_eq!(figures(held), figures(quiet));
+    // A change to the DAG, the view or the tuning runs the frame again.
+    let refined = dag
+        .nodes()
+        .find(|n| n.refined.is_some() && dag.is_coarsenable(n.id))
+        .unwrap()
+        .id;
+    dag.coarsen(refined).unwrap();
+    let after = unlimited_frame(&mut refinement, &mut dag, &view, &enc, &mut source);
+    assert!(!after.reused && after.refined > 0, "{after:?}");
+    assert_eq!(cut_set(&dag), cut);
+    unlimited_frame(&mut refinement, &mut dag, &view, &enc, &mut source);
+    let moved = View {
+        eye: view.eye + DVec3::X * 1e-3,
+        ..view
+    };
+    assert!(!unlimited_frame(&mut refinement, &mut dag, &moved, &enc, &mut source).reused);
+    refinement.config.flat_fraction = 0.2;
+    assert!(!unlimited_frame(&mut refinement, &mut dag, &moved, &enc, &mut source).reused);
+    assert!(
+        (0..5)
+            .any(|_| unlimited_frame(&mut refinement, &mut dag, &moved, &enc, &mut source).reused),
+        "held again, it is quiet again"
+    );
+}
