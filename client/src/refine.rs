@@ -23,6 +23,7 @@
 //! by less than [`RefineConfig::flat_fraction`] of the tolerance, the diamond is not
 //! refined.
 
+use std::cell::RefCell;
 use std::cmp::Ordering;
 use std::collections::{BinaryHeap, HashSet};
 use std::sync::Arc;
@@ -212,7 +213,7 @@ pub struct Appearance {
 }
 
 /// Projects diamonds for one view.
-struct Projector<'a, W> {
+struct Projector<'a, W, I> {
     view: &'a View,
     frustum: Frustum,
     world: W,
@@ -221,10 +222,27 @@ struct Projector<'a, W> {
     px_at_1m: f64,
     /// Pixels below which a surface change is invisible (flat regions).
     flat_px: f64,
+    /// Appearances computed under this view, world and tuning, with the generation of
+    /// the node they were computed for (a node's appearance changes only with it).
+    seen: RefCell<Appearances<I>>,
 }
 
-impl<W: World> Projector<'_, W> {
-    fn appearance<R: Domain<World = W>>(&self, dag: &Dag<R>, id: R::Id) -> Appearance {
+impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
+    fn appearance<R: Domain<World = W, Id = I>>(&self, dag: &Dag<R>, id: I) -> Appearance {
+        let Some(node) = dag.node(id) else {
+            return self.measure(dag, id);
+        };
+        if let Some(&(generation, a)) = self.seen.borrow().get(&id)
+            && generation == node.generation
+        {
+            return a;
+        }
+        let a = self.measure(dag, id);
+        self.seen.borrow_mut().insert(id, (node.generation, a));
+        a
+    }
+
+    fn measure<R: Domain<World = W, Id = I>>(&self, dag: &Dag<R>, id: I) -> Appearance {
         let Some(node) = dag.node(id) else {
             return Appearance {
                 error_px: 0.0,
@@ -275,7 +293,7 @@ impl<W: World> Projector<'_, W> {
 
     /// None of `id`'s children wants refining: coarsening `id` takes nothing a split
     /// would bring back at once.
-    fn children_calm<R: Domain<World = W>>(&self, dag: &Dag<R>, id: R::Id) -> bool {
+    fn children_calm<R: Domain<World = W, Id = I>>(&self, dag: &Dag<R>, id: I) -> bool {
         dag.children(id).iter().all(|&c| {
             dag.node(c)
                 .is_none_or(|_| !self.wants_split(&self.appearance(dag, c)))
@@ -307,7 +325,16 @@ pub struct Refinement<I = PlanarId> {
     /// under (view, world, tuning, [`Dag::changes`]) and its figures. A frame under the
     /// same is the same, so it is not run again: a held camera costs nothing per frame.
     quiet: Option<Quiet>,
+    /// The appearances of the last frame and what they were computed under: a held
+    /// camera (a jump waiting for its data) projects only the diamonds that changed.
+    seen: Option<(Seen, Appearances<I>)>,
 }
+
+/// What appearances depend on besides the node.
+type Seen = (View, [f64; 4], RefineConfig);
+
+/// Appearances by diamond, with the node generation each was computed for.
+type Appearances<I> = IdMap<(u64, Appearance), I>;
 
 /// What a quiet frame ran under, and its figures.
 #[derive(Clone, Copy, Debug)]
@@ -328,6 +355,7 @@ impl<I> Default for Refinement<I> {
             projection: None,
             deferred: IdMap::default(),
             quiet: None,
+            seen: None,
         }
     }
 }
@@ -361,7 +389,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
 }
 
 impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
-    fn projector<'a, W: World>(&self, view: &'a View, world: W) -> Projector<'a, W> {
+    fn projector<'a, W: World>(&self, view: &'a View, world: W) -> Projector<'a, W, I> {
         Projector {
             view,
             frustum: view.frustum(),
@@ -369,6 +397,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             config: self.config,
             px_at_1m: view.px_per_m(1.0),
             flat_px: self.config.flat_fraction * view.tolerance_px,
+            seen: RefCell::default(),
         }
     }
 
@@ -471,7 +500,13 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 ..q.stats
             });
         }
-        let projector = self.projector(view, world);
+        let mut projector = self.projector(view, world);
+        let under: Seen = (*view, world.fingerprint(), self.config);
+        if let Some((seen_under, seen)) = self.seen.take()
+            && seen_under == under
+        {
+            projector.seen = RefCell::new(seen);
+        }
         let mut stats = FrameStats::default();
         let mut cut = CutCount::default();
 
@@ -658,6 +693,11 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         stats.cut_halves = dag.cut_len();
         stats.converged = !stats.out_of_time && waiting == 0;
         stats.full_quality = splits_done && waiting == 0 && !stats.over_budget;
+        let mut seen = projector.seen.into_inner();
+        if seen.len() > 2 * dag.len() + 1024 {
+            seen.retain(|id, _| dag.node(*id).is_some());
+        }
+        self.seen = Some((under, seen));
         stats.elapsed = clock.now().saturating_sub(start);
         self.quiet =
             (stats.converged && stats.refined == 0 && stats.coarsened == 0).then_some(Quiet {
@@ -678,7 +718,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
     fn evict<R: Domain<Id = I>>(
         &self,
         dag: &mut Dag<R>,
-        projector: &Projector<'_, R::World>,
+        projector: &Projector<'_, R::World, I>,
         over: &dyn Fn(&Dag<R>) -> bool,
         below: Option<(f64, &HashSet<I>)>,
         clock: &dyn Clock,
@@ -732,7 +772,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         source: &mut dyn DetailSource<I>,
         stats: &mut FrameStats,
         depth: usize,
-        projector: &Projector<'_, R::World>,
+        projector: &Projector<'_, R::World, I>,
         newly: &mut Vec<I>,
         cut: &mut CutCount,
         needed: &mut HashSet<I>,

@@ -713,3 +713,35 @@ fn a_held_view_reuses_its_quiet_frame_until_something_changes() {
         "held again, it is quiet again"
     );
 }
+
+#[test]
+fn what_refinement_remembers_across_frames_changes_no_cut() {
+    // A refinement kept across frames (deferred diamonds, appearances of a held view,
+    // quiet frames) against a fresh one each frame, over a held view whose details arrive
+    // late and then a flight: the same cut after every frame.
+    let views: Vec<View> = std::iter::repeat_n(flight(10)[7], 30)
+        .chain(flight(16))
+        .collect();
+    let (enc, mut kept_dag, mut kept_source) = setup(2);
+    let (_, mut fresh_dag, mut fresh_source) = setup(2);
+    let mut kept = Refinement::default();
+    let mut reused = 0;
+    for (k, view) in views.iter().enumerate() {
+        let a = unlimited_frame(&mut kept, &mut kept_dag, view, &enc, &mut kept_source);
+        let b = unlimited_frame(
+            &mut Refinement::default(),
+            &mut fresh_dag,
+            view,
+            &enc,
+            &mut fresh_source,
+        );
+        reused += usize::from(a.reused);
+        assert_eq!(cut_set(&kept_dag), cut_set(&fresh_dag), "frame {k}");
+        assert_eq!(
+            (a.refined, a.coarsened),
+            (b.refined, b.coarsened),
+            "frame {k}"
+        );
+    }
+    assert!(reused > 0, "the held view reached a quiet frame");
+}
