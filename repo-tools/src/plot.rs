@@ -236,8 +236,51 @@ where
         .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(3)));
         ctx.draw_series(points.iter().map(|&p| Circle::new(p, 4, colour.filled())))?;
     }
+    // The legend goes to the corner of the plot that covers the fewest points.
+    let pixels: Vec<(i32, i32)> = series
+        .iter()
+        .flatten()
+        .map(|p| ctx.backend_coord(p))
+        .collect();
+    let (xs, ys) = ctx.plotting_area().get_pixel_range();
+    let longest = chart.series.iter().map(|s| s.name.chars().count()).max();
+    let w = (longest.unwrap_or(0) as i32 * text as i32 * 3 / 5 + 3 * text as i32)
+        .min(xs.end - xs.start);
+    let h = (chart.series.len() as i32 * text as i32 * 3 / 2 + text as i32).min(ys.end - ys.start);
+    let corners = [
+        (
+            SeriesLabelPosition::UpperLeft,
+            xs.start..xs.start + w,
+            ys.start..ys.start + h,
+        ),
+        (
+            SeriesLabelPosition::UpperRight,
+            xs.end - w..xs.end,
+            ys.start..ys.start + h,
+        ),
+        (
+            SeriesLabelPosition::LowerLeft,
+            xs.start..xs.start + w,
+            ys.end - h..ys.end,
+        ),
+        (
+            SeriesLabelPosition::LowerRight,
+            xs.end - w..xs.end,
+            ys.end - h..ys.end,
+        ),
+    ];
+    let covered = |(_, cx, cy): &(SeriesLabelPosition, Range<i32>, Range<i32>)| {
+        pixels
+            .iter()
+            .filter(|(px, py)| cx.contains(px) && cy.contains(py))
+            .count()
+    };
+    let corner = corners
+        .iter()
+        .min_by_key(|c| covered(c))
+        .map_or(SeriesLabelPosition::UpperLeft, |c| c.0.clone());
     ctx.configure_series_labels()
-        .position(SeriesLabelPosition::UpperLeft)
+        .position(corner)
         .label_font(("sans-serif", text))
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)

@@ -908,6 +908,12 @@ fn write_plots(dir: &Path, report: &TradeReport) -> Result<()> {
     let file = dir.join(format!("{}.json", sanitize(&report.label)));
     std::fs::write(&file, serde_json::to_string_pretty(report)?)
         .with_context(|| format!("writing {}", file.display()))?;
+    replot(dir)
+}
+
+/// Draws the charts of every report in `dir` (the `<label>.json` files `--plot` wrote),
+/// measuring nothing: for reports gathered from several runs or machines.
+pub fn replot(dir: &Path) -> Result<()> {
     let mut reports = Vec::new();
     let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
         .with_context(|| format!("reading {}", dir.display()))?
