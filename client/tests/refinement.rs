@@ -463,98 +463,47 @@ fn extreme_views_stay_finite_and_sane() {
     }
 }
 
-#[test]
-fn a_memory_budget_is_never_exceeded_and_shrinking_it_evicts_at_once() {
-    // What the demanding view of the flight needs without a budget.
-    let (enc, mut dag, mut source) = setup(0);
-    let views = flight(30);
-    let mut free = Refinement::default();
-    let mut need = 0;
-    for v in &views {
-        unlimited_frame(&mut free, &mut dag, v, &enc, &mut source);
-        need = need.max(dag.memory_bytes());
-    }
-    let free_cut = cut_set(&dag);
-
-    // Half of it: every frame stays within, crack-free, and says it is held back.
-    let (enc, mut dag, mut source) = setup(0);
-    let budget = need / 2;
-    let mut limited = Refinement::with_config(RefineConfig {
-        max_dag_bytes: Some(budget),
-        ..RefineConfig::default()
-    });
-    let mut held_back = 0;
-    for v in &views {
-        let s = unlimited_frame(&mut limited, &mut dag, v, &enc, &mut source);
-        assert!(
-            dag.memory_bytes() <= budget,
-            "{} > {budget}",
-            dag.memory_bytes()
-        );
-        assert_eq!(s.dag_bytes, dag.memory_bytes());
-        assert!(dag.check_cut().ok());
-        if s.over_budget {
-            held_back += 1;
-            assert!(!s.full_quality && s.max_error_px > 0.0, "{s:?}");
-        }
-    }
-    assert!(held_back > 0);
-
-    // A quarter, at the same view: evicted within one frame.
-    limited.config.max_dag_bytes = Some(need / 4);
-    let s = unlimited_frame(
-        &mut limited,
-        &mut dag,
-        views.last().unwrap(),
-        &enc,
-        &mut source,
-    );
-    assert!(s.over_budget && s.coarsened > 0, "{s:?}");
-    assert!(dag.memory_bytes() <= need / 4);
-    assert!(dag.check_cut().ok());
-
-    // Enough for everything: the same cut as without a budget.
-    limited.config.max_dag_bytes = Some(2 * need);
-    let s = unlimited_frame(
-        &mut limited,
-        &mut dag,
-        views.last().unwrap(),
-        &enc,
-        &mut source,
-    );
-    assert!(s.full_quality && !s.over_budget, "{s:?}");
-    assert_eq!(cut_set(&dag), free_cut);
+/// A budget of refinement (DAG memory or cut halves): what it bounds, and how it is set.
+struct Budget {
+    /// What it bounds, measured on the DAG.
+    measure: fn(&Dag) -> usize,
+    /// The frame's own figure of it.
+    reported: fn(&FrameStats) -> usize,
+    /// Sets it.
+    set: fn(&mut RefineConfig, Option<usize>),
 }
 
-#[test]
-fn a_cut_budget_is_never_exceeded_and_shrinking_it_coarsens_at_once() {
-    // The largest cut the flight needs without a budget.
+/// The budget's flight test. Unbounded, the flight needs `need` at its widest view.
+/// Under half of that every frame stays within, crack-free, and says when it is held
+/// back; `held` then runs at the widest view; a quarter is met within one frame; and
+/// twice `need` gives the unbudgeted cut.
+fn a_budget_holds_over_a_flight(
+    budget: Budget,
+    held: impl FnOnce(&mut Refinement, &mut Dag, &View, &Encoded, &mut LocalSource, usize),
+) {
     let (enc, mut dag, mut source) = setup(0);
     let views = flight(30);
     let mut free = Refinement::default();
     let (mut need, mut widest) = (0, 0);
     for (k, v) in views.iter().enumerate() {
         unlimited_frame(&mut free, &mut dag, v, &enc, &mut source);
-        if dag.cut_len() > need {
-            (need, widest) = (dag.cut_len(), k);
+        if (budget.measure)(&dag) > need {
+            (need, widest) = ((budget.measure)(&dag), k);
         }
     }
     let free_cut = cut_set(&dag);
-    assert!(need > 40, "a flight that needs a cut: {need}");
 
-    // Half of it: every frame stays within, crack-free, and says it is held back; where
-    // nothing more fits, the frame is settled (the best cut the budget allows).
     let (enc, mut dag, mut source) = setup(0);
-    let budget = need / 2;
-    let mut limited = Refinement::with_config(RefineConfig {
-        max_cut_halves: Some(budget),
-        ..RefineConfig::default()
-    });
+    let half = need / 2;
+    let mut config = RefineConfig::default();
+    (budget.set)(&mut config, Some(half));
+    let mut limited = Refinement::with_config(config);
     let mut held_back = 0;
     for v in &views {
         let s = unlimited_frame(&mut limited, &mut dag, v, &enc, &mut source);
-        assert!(dag.cut_len() <= budget, "{} > {budget}", dag.cut_len());
-        assert_eq!(s.cut_halves, dag.cut_len());
+        let now = (budget.measure)(&dag);
+        assert!(now <= half, "{now} > {half}");
+        assert_eq!((budget.reported)(&s), now);
         assert!(dag.check_cut().ok());
         if s.over_budget {
             held_back += 1;
@@ -562,42 +511,62 @@ fn a_cut_budget_is_never_exceeded_and_shrinking_it_coarsens_at_once() {
         }
     }
     assert!(held_back > 0);
-    // Held at the view that needs the most, it settles: a frame that changes nothing,
-    // the cut full.
-    let s = (0..10)
-        .map(|_| unlimited_frame(&mut limited, &mut dag, &views[widest], &enc, &mut source))
-        .find(|s| s.settled())
-        .expect("settles within 10 frames");
-    assert!(s.over_budget && !s.full_quality, "{s:?}");
-    assert!(
-        dag.cut_len() + 2 > budget && dag.cut_len() <= budget,
-        "{s:?}"
-    );
-
-    // A quarter, at the same view: coarsened within one frame.
-    limited.config.max_cut_halves = Some(need / 4);
-    let s = unlimited_frame(
+    held(
         &mut limited,
         &mut dag,
-        views.last().unwrap(),
+        &views[widest],
         &enc,
         &mut source,
+        half,
     );
+
+    let last = views.last().unwrap();
+    (budget.set)(&mut limited.config, Some(need / 4));
+    let s = unlimited_frame(&mut limited, &mut dag, last, &enc, &mut source);
     assert!(s.over_budget && s.coarsened > 0, "{s:?}");
-    assert!(dag.cut_len() <= need / 4);
+    assert!((budget.measure)(&dag) <= need / 4);
     assert!(dag.check_cut().ok());
 
-    // Enough for everything: the same cut as without a budget.
-    limited.config.max_cut_halves = Some(2 * need);
-    let s = unlimited_frame(
-        &mut limited,
-        &mut dag,
-        views.last().unwrap(),
-        &enc,
-        &mut source,
-    );
+    (budget.set)(&mut limited.config, Some(2 * need));
+    let s = unlimited_frame(&mut limited, &mut dag, last, &enc, &mut source);
     assert!(s.full_quality && !s.over_budget, "{s:?}");
     assert_eq!(cut_set(&dag), free_cut);
+}
+
+#[test]
+fn a_memory_budget_is_never_exceeded_and_shrinking_it_evicts_at_once() {
+    a_budget_holds_over_a_flight(
+        Budget {
+            measure: |dag| dag.memory_bytes(),
+            reported: |s| s.dag_bytes,
+            set: |c, max| c.max_dag_bytes = max,
+        },
+        |_, _, _, _, _, _| {},
+    );
+}
+
+#[test]
+fn a_cut_budget_is_never_exceeded_and_shrinking_it_coarsens_at_once() {
+    a_budget_holds_over_a_flight(
+        Budget {
+            measure: |dag| dag.cut_len(),
+            reported: |s| s.cut_halves,
+            set: |c, max| c.max_cut_halves = max,
+        },
+        // Held at the view that needs the most, it settles: a frame that changes
+        // nothing, the cut full.
+        |limited, dag, view, enc, source, budget| {
+            let s = (0..10)
+                .map(|_| unlimited_frame(limited, dag, view, enc, source))
+                .find(|s| s.settled())
+                .expect("settles within 10 frames");
+            assert!(s.over_budget && !s.full_quality, "{s:?}");
+            assert!(
+                dag.cut_len() + 2 > budget && dag.cut_len() <= budget,
+                "{s:?}"
+            );
+        },
+    );
 }
 
 #[test]
