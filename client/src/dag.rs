@@ -366,15 +366,7 @@ impl<R: Domain> Dag<R> {
     /// only at `id` and its children.
     fn counting_cut<T>(&mut self, id: R::Id, op: impl FnOnce(&mut Self) -> T) -> T {
         let near = |dag: &Self| -> usize {
-            let halves = |id: R::Id| {
-                dag.nodes.get(&id).map_or(0, |n| {
-                    if n.refined.is_some() {
-                        0
-                    } else {
-                        n.present.iter().filter(|p| **p).count()
-                    }
-                })
-            };
+            let halves = |id: R::Id| Half::BOTH.iter().filter(|&&h| dag.in_cut(id, h)).count();
             halves(id) + dag.children(id).iter().map(|&c| halves(c)).sum::<usize>()
         };
         let before = near(self);

@@ -339,9 +339,7 @@ type Appearances<I> = IdMap<(u64, Appearance), I>;
 /// What a quiet frame ran under, and its figures.
 #[derive(Clone, Copy, Debug)]
 struct Quiet {
-    view: View,
-    world: [f64; 4],
-    config: RefineConfig,
+    under: Seen,
     changes: u64,
     stats: FrameStats,
 }
@@ -431,18 +429,9 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
     }
 }
 
-/// What the cut budget did this frame.
-#[derive(Default)]
-struct CutCount {
-    /// The largest error of a split the cut budget refused this frame.
-    blocked: Option<f64>,
-}
-
-impl CutCount {
-    /// Whether `extra` more halves would take the cut over `max`.
-    fn over<R: Domain>(dag: &Dag<R>, max: Option<usize>, extra: usize) -> bool {
-        max.is_some_and(|m| dag.cut_len() + extra > m)
-    }
+/// Whether `extra` more halves would take the cut over `max`.
+fn cut_over<R: Domain>(dag: &Dag<R>, max: Option<usize>, extra: usize) -> bool {
+    max.is_some_and(|m| dag.cut_len() + extra > m)
 }
 
 /// Coarsens `id` unless the deadline has passed (then `None`, and the frame is out of
@@ -487,13 +476,12 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
     ) -> Result<FrameStats, DagError> {
         let start = clock.now();
         let deadline = start + budget;
-        let under = |q: &Quiet| {
-            q.view == *view
-                && q.world == world.fingerprint()
-                && q.config == self.config
-                && q.changes == dag.changes()
-        };
-        if let Some(q) = self.quiet.as_ref().filter(|q| under(q)) {
+        let under: Seen = (*view, world.fingerprint(), self.config);
+        if let Some(q) = self
+            .quiet
+            .as_ref()
+            .filter(|q| q.under == under && q.changes == dag.changes())
+        {
             return Ok(FrameStats {
                 elapsed: clock.now().saturating_sub(start),
                 reused: true,
@@ -501,14 +489,14 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             });
         }
         let mut projector = self.projector(view, world);
-        let under: Seen = (*view, world.fingerprint(), self.config);
         if let Some((seen_under, seen)) = self.seen.take()
             && seen_under == under
         {
             projector.seen = RefCell::new(seen);
         }
         let mut stats = FrameStats::default();
-        let mut cut = CutCount::default();
+        // The error of the split the cut budget refused this frame.
+        let mut blocked = None;
 
         self.track_camera(view, &world);
         // Split queue: the cut's diamonds that want refining, most urgent first.
@@ -563,13 +551,15 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             }
             // With a cut budget, a split whose 4-8 closure does not fit is refused before
             // any of it is refined: a part of the chain (a parent that does not want
-            // refining itself) would be coarsened again by the merge queue.
+            // refining itself) would be coarsened again by the merge queue. The rest of
+            // the queue (smaller errors) waits too: room is made below, and they come
+            // up next frame.
             if let Some(max) = self.config.max_cut_halves
-                && CutCount::over(dag, Some(max), 2 * unrefined_closure(dag, id, max))
+                && cut_over(dag, Some(max), 2 * unrefined_closure(dag, id, max))
             {
                 stats.over_budget = true;
                 stats.max_error_px = stats.max_error_px.max(error);
-                cut.blocked = Some(cut.blocked.map_or(error, |b| b.max(error)));
+                blocked = Some(error);
                 break;
             }
             let mut newly = Vec::new();
@@ -582,7 +572,6 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 0,
                 &projector,
                 &mut newly,
-                &mut cut,
                 &mut needed,
             )?;
             // Children of everything refined (the diamond and any parents it needed),
@@ -607,11 +596,6 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                     stats.max_error_px = stats.max_error_px.max(error);
                 }
                 Outcome::Impossible => {}
-            }
-            if cut.blocked.is_some() {
-                // The cut is full: the rest of the queue (smaller errors) cannot be
-                // refined either; room is made below, and they come up next frame.
-                break;
             }
             worked = stats.refined > refined_before;
         }
@@ -657,9 +641,9 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             self.config
                 .max_dag_bytes
                 .is_some_and(|max| dag.memory_bytes() > max)
-                || CutCount::over(dag, self.config.max_cut_halves, 0)
+                || cut_over(dag, self.config.max_cut_halves, 0)
         };
-        if let (Some(blocked), Some(max)) = (cut.blocked, self.config.max_cut_halves)
+        if let (Some(blocked), Some(max)) = (blocked, self.config.max_cut_halves)
             && !stats.out_of_time
         {
             // Room for the refused split: coarsen what matters less than it (off-screen
@@ -701,9 +685,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         stats.elapsed = clock.now().saturating_sub(start);
         self.quiet =
             (stats.converged && stats.refined == 0 && stats.coarsened == 0).then_some(Quiet {
-                view: *view,
-                world: world.fingerprint(),
-                config: self.config,
+                under,
                 changes: dag.changes(),
                 stats,
             });
@@ -774,7 +756,6 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         depth: usize,
         projector: &Projector<'_, R::World, I>,
         newly: &mut Vec<I>,
-        cut: &mut CutCount,
         needed: &mut HashSet<I>,
     ) -> Result<Outcome, DagError> {
         if depth > 128 || !dag.refiner().is_refinable(id) {
@@ -803,7 +784,6 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                     depth + 1,
                     projector,
                     newly,
-                    cut,
                     needed,
                 )? {
                     Outcome::Done => {}
@@ -833,13 +813,6 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             stats.max_error_px = stats.max_error_px.max(priority);
             return Ok(Outcome::Impossible);
         }
-        // Refining replaces each present half by two children's halves: at most 2 more.
-        if CutCount::over(dag, self.config.max_cut_halves, 2) {
-            stats.over_budget = true;
-            stats.max_error_px = stats.max_error_px.max(priority);
-            cut.blocked = Some(cut.blocked.map_or(priority, |b| b.max(priority)));
-            return Ok(Outcome::Impossible);
-        }
         // Both layers are asked at once, so both requests go out in the same frame.
         let details = if dag.refiner().is_coded(id) {
             source.details(id, priority)
@@ -863,7 +836,8 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
 }
 
 /// How many diamonds refining `id` takes: itself and the unrefined ancestors the 4-8 rule
-/// asks for (each adds at most 2 halves to the cut). Counting stops past `limit`.
+/// asks for (each adds at most 2 halves to the cut: it replaces each present half by two
+/// children's halves). Counting stops past `limit`.
 fn unrefined_closure<R: Domain>(dag: &Dag<R>, id: R::Id, limit: usize) -> usize {
     let mut seen = HashSet::new();
     let mut stack = vec![id];
