@@ -22,7 +22,7 @@ use quincunx_store::channels::split_channels;
 
 use crate::domain::Domain;
 use crate::fetch::Weigh;
-use crate::session::SessionError;
+use crate::open::SessionError;
 
 /// Channels of a colour repository (Y, Co, Cg).
 pub const CHANNELS: usize = 3;

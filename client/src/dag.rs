@@ -12,58 +12,46 @@ use std::hash::BuildHasherDefault;
 use std::sync::Arc;
 
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::incremental::{Details, PlanarRefiner, RefineError, Refined};
+use quincunx_codec::incremental::{Details, PlanarRefiner, Refined};
 use quincunx_codec::lifting::DiamondMask;
 
 use crate::colour::{CHANNELS, ColourDetails, ColourLayer, ColourNode};
+pub use crate::domain::Half;
 use crate::domain::{Domain, World};
+pub use crate::open::DagError;
 use quincunx_codec::entropy::class_bound;
 
 pub use quincunx_codec::diamond::{IdHasher, IdMap};
 
-/// Why the DAG refused an operation.
-#[derive(Debug, thiserror::Error)]
-pub enum DagError {
-    /// Not in the DAG, not complete (a parent is unrefined), already refined, or finer
-    /// than the repository.
-    #[error("{0} cannot be refined now")]
-    NotRefinable(String),
-    /// Not refined, or a child is refined.
-    #[error("{0} cannot be coarsened now")]
-    NotCoarsenable(String),
-    /// Synthesis failed (bad details).
-    #[error(transparent)]
-    Refine(#[from] RefineError),
+/// One drawable triangle of the cut: a present half of an unrefined diamond.
+#[derive(Clone, Debug)]
+pub struct Patch<I = PlanarId> {
+    /// The diamond.
+    pub id: I,
+    /// Which half.
+    pub half: Half,
+    /// The diamond's frame `[E1, P1, E2, P2]` (id units; planar `z = 0`): on the plane,
+    /// grid vertex `(i, j)` is at `E1 + (i (P1 - E1) + j (P2 - E1)) / N`; on a planet
+    /// [`Domain::vertex_world`] places vertices (halves fold across cube edges).
+    pub corners: [[i64; 3]; 4],
+    /// The diamond's `(N+1)^2` vertex grid (integer samples; metres through the world
+    /// mapping). Shared, not copied.
+    pub grid: Arc<Vec<i32>>,
+    /// Changes whenever the grid or the halves change: a renderer re-uploads a patch
+    /// only when `(id, half, generation)` is new to it.
+    pub generation: u64,
+    /// With a colour layer: the diamond's `(Nc+1)^2` Y, Co, Cg grids (YCoCg-R integers;
+    /// [`ColourLayer::rgb`] turns a vertex into sRGB), laid out on the same frame.
+    pub colour: Option<Arc<Vec<Vec<i32>>>>,
 }
 
-/// One triangle of a diamond's grid. Grid vertex `(i, j)` lies at
-/// `E1 + (i (P1 - E1) + j (P2 - E1)) / N` in the diamond's frame `[E1, P1, E2, P2]`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Half {
-    /// Entries with `i >= j`: the triangle `E1 P1 E2`, inside the parent centred at `P1`.
-    Lower,
-    /// Entries with `i <= j`: the triangle `E1 P2 E2`, inside the parent centred at `P2`.
-    Upper,
-}
-
-impl Half {
-    /// Both halves.
-    pub const BOTH: [Half; 2] = [Half::Lower, Half::Upper];
-
-    fn index(self) -> usize {
-        match self {
-            Half::Lower => 0,
-            Half::Upper => 1,
-        }
-    }
-
-    /// Whether grid entry `(i, j)` belongs to this half (the diagonal to both).
-    pub fn contains(self, i: usize, j: usize) -> bool {
-        match self {
-            Half::Lower => i >= j,
-            Half::Upper => i <= j,
-        }
-    }
+/// What entered and left the cut since the previous `Session::cut_changes`.
+#[derive(Clone, Debug)]
+pub struct PatchChanges<I = PlanarId> {
+    /// Patches that entered the cut, in a stable order.
+    pub entered: Vec<Patch<I>>,
+    /// Halves that left it.
+    pub left: Vec<(I, Half)>,
 }
 
 /// A diamond in the DAG.
@@ -608,9 +596,9 @@ impl<R: Domain> Dag<R> {
     }
 
     /// A half of the cut as a renderer takes it (`None` when the diamond is not here).
-    pub fn patch(&self, id: R::Id, half: Half) -> Option<crate::session::Patch<R::Id>> {
+    pub fn patch(&self, id: R::Id, half: Half) -> Option<Patch<R::Id>> {
         let node = self.nodes.get(&id)?;
-        Some(crate::session::Patch {
+        Some(Patch {
             id,
             half,
             corners: node.corners,
@@ -621,14 +609,14 @@ impl<R: Domain> Dag<R> {
     }
 
     /// [`Dag::take_cut_changes`] with the patches that entered.
-    pub fn take_patch_changes(&mut self) -> crate::session::PatchChanges<R::Id> {
+    pub fn take_patch_changes(&mut self) -> PatchChanges<R::Id> {
         let changes = self.take_cut_changes();
         let entered = changes
             .entered
             .into_iter()
             .filter_map(|(id, half)| self.patch(id, half))
             .collect();
-        crate::session::PatchChanges {
+        PatchChanges {
             entered,
             left: changes.left,
         }

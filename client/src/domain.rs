@@ -13,12 +13,40 @@ use quincunx_codec::diamond::{PlanarId, SphereId};
 use quincunx_codec::incremental::{PlanarRefiner, Procedural, RefineError, Refiner, SphereRefiner};
 use quincunx_store::Metadata;
 
-use crate::dag::Half;
-use crate::session::{
+use crate::open::{
     SessionError, planar_channel_refiner, planar_refiner, planar_world, sphere_channel_refiner,
     sphere_refiner, sphere_world,
 };
 use crate::view::{Aabb, PlanarWorld, SphereWorld, View};
+
+/// One triangle of a diamond's grid. Grid vertex `(i, j)` lies at
+/// `E1 + (i (P1 - E1) + j (P2 - E1)) / N` in the diamond's frame `[E1, P1, E2, P2]`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Half {
+    /// Entries with `i >= j`: the triangle `E1 P1 E2`, inside the parent centred at `P1`.
+    Lower,
+    /// Entries with `i <= j`: the triangle `E1 P2 E2`, inside the parent centred at `P2`.
+    Upper,
+}
+impl Half {
+    /// Both halves.
+    pub const BOTH: [Half; 2] = [Half::Lower, Half::Upper];
+
+    pub(crate) fn index(self) -> usize {
+        match self {
+            Half::Lower => 0,
+            Half::Upper => 1,
+        }
+    }
+
+    /// Whether grid entry `(i, j)` belongs to this half (the diagonal to both).
+    pub fn contains(self, i: usize, j: usize) -> bool {
+        match self {
+            Half::Lower => i >= j,
+            Half::Upper => i <= j,
+        }
+    }
+}
 
 /// A world mapping: ids and integer samples to metres.
 pub trait World: Copy + std::fmt::Debug + PartialEq + Send + Sync + 'static {

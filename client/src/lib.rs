@@ -22,6 +22,8 @@
 //! - [`flight`]: camera paths (built-in and from files) and a headless real-time runner
 //!   that measures a session along one (what `quincunx fly` and the fly load test run).
 //!
+//! - [`open`]: opening a repository: [`open::SessionError`] and the refiners and world
+//!   mappings its metadata gives; it depends on no module above it.
 //! - [`domain`]: what differs between planar repositories and planets (world boxes,
 //!   exact vertex positions, coverage probes); everything above is generic over it.
 //! - [`colour`]: an optional colour repository matched at run time to the elevation one
@@ -34,6 +36,7 @@ pub mod dag;
 pub mod domain;
 pub mod fetch;
 pub mod flight;
+pub mod open;
 pub mod refine;
 pub mod session;
 pub mod view;
