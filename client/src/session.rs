@@ -70,7 +70,7 @@ use crate::refine::{
 use crate::view::{Aabb, PlanarWorld, View};
 
 pub use crate::dag::{Patch, PatchChanges};
-pub(crate) use crate::open::metadata_error;
+use crate::open::metadata_error;
 pub use crate::open::{
     EARTH_RADIUS_M, SessionError, planar_channel_refiner, planar_refiner, planar_world,
     sphere_channel_refiner, sphere_refiner, sphere_world,
