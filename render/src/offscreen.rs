@@ -490,6 +490,10 @@ impl Offscreen {
     /// was drawn). Allocates its own readback buffer (4 bytes a pixel, rows padded to 256
     /// bytes) for the call.
     pub fn read_depth(&self, gpu: &Gpu) -> Result<DepthImage, RenderError> {
+        depth_copies(
+            gpu.adapter.get_downlevel_capabilities().flags,
+            &gpu.adapter.get_info().name,
+        )?;
         let [w, h] = self.size;
         let row = w as usize * 4;
         let padded = (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
@@ -570,4 +574,35 @@ pub fn map_read<T>(
     };
     buffer.unmap();
     Ok(out)
+}
+/// Whether an adapter with downlevel `flags` can copy a depth texture to a buffer, as
+/// [`Offscreen::read_depth`] does (wgpu's GL backend cannot; wgpu would panic).
+fn depth_copies(flags: wgpu::DownlevelFlags, adapter: &str) -> Result<(), RenderError> {
+    if flags.contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES) {
+        Ok(())
+    } else {
+        Err(RenderError::NoAdapter(format!(
+            "adapter {adapter:?} cannot copy depth textures to buffers \
+             (DEPTH_TEXTURE_AND_BUFFER_COPIES): depth read-back and the image error need \
+             a Vulkan, Metal or DX12 adapter (e.g. Mesa's lavapipe)"
+        )))
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn depth_read_back_without_depth_copies_is_a_clear_error() {
+        let all = wgpu::DownlevelFlags::all();
+        assert!(depth_copies(all, "vk").is_ok());
+        let gl = all - wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES;
+        let e = depth_copies(gl, "llvmpipe").unwrap_err().to_string();
+        assert!(
+            e.contains("llvmpipe") && e.contains("DEPTH_TEXTURE_AND_BUFFER_COPIES"),
+            "{e}"
+        );
+    }
 }
