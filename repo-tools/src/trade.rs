@@ -107,6 +107,11 @@ pub struct TradeArgs {
     /// Check each flight's cut for cracks every this many frames (0 never).
     #[arg(long, default_value_t = 10)]
     pub check_every: usize,
+    /// Flights per tolerance, each a new session through a new link starting from
+    /// nothing: the times to full quality pool the jumps of every run; the other
+    /// figures (frames, bytes, images) are the first run's.
+    #[arg(long, default_value_t = 3)]
+    pub runs: usize,
     /// Metres between samples (default: from the georeference).
     #[arg(long)]
     pub spacing_m: Option<f64>,
@@ -147,16 +152,21 @@ pub struct TradePoint {
     pub bytes_fetched: u64,
     /// `bytes_fetched` over the flight's seconds.
     pub bytes_per_s: f64,
-    /// Time to full quality after each jump: median and largest (s).
+    /// Time to full quality after each jump of every run: median and largest (s).
     pub time_to_full_quality_s_median: Option<f64>,
     /// Largest.
     pub time_to_full_quality_s_max: Option<f64>,
     /// Mean time to full quality over the jumps that reached it (s).
     pub time_to_full_quality_s_mean: Option<f64>,
-    /// Jumps whose leg ended before full quality.
+    /// Flights pooled into the time-to-full-quality figures (`--runs`).
+    pub runs: usize,
+    /// Each run's seconds to full quality, one per jump leg in flight order (`None`:
+    /// the leg ended first).
+    pub jump_times_s: Vec<Vec<Option<f64>>>,
+    /// Jumps, over every run, whose leg ended before full quality.
     pub jumps_unfinished: usize,
-    /// Jumps whose cut the GPU budget held coarser than the tolerance (their time is to
-    /// the best cut the pool holds).
+    /// Jumps, over every run, whose cut the GPU budget held coarser than the tolerance
+    /// (their time is to the best cut the pool holds).
     pub jumps_budget_limited: usize,
     /// The most halves (patches) the flight's cut could hold: the patch slots the
     /// `--gpu-budget-mb` pool has.
@@ -351,6 +361,9 @@ pub fn run(args: &TradeArgs) -> Result<()> {
     }
     if args.views == 0 {
         bail!("--views must be at least 1");
+    }
+    if args.runs == 0 {
+        bail!("--runs must be at least 1");
     }
     for (name, v) in [
         ("--gpu-budget-mb", args.gpu_budget_mb),
@@ -607,9 +620,19 @@ fn fly_point<R: TradeDomain>(
         }
     }
     let render = drawer.summary();
-    let cut_budget_halves = session.max_cut_halves().unwrap_or(0);
+    let bound = session.max_cut_halves();
+    let cut_budget_halves = bound.unwrap_or(0);
     drop(drawer);
     drop(session);
+    drop(proxy);
+    // The other runs: only their jumps' times are kept.
+    let mut runs = vec![report.jumps.clone()];
+    for run in 1..args.runs {
+        let again = fly_again::<R>(args, flight, link, tolerance_px, bound)
+            .with_context(|| format!("run {}", run + 1))?;
+        runs.push(again.jumps);
+    }
+    let jumps = pool_jumps(&runs);
     // The needed set, with and without the side information.
     let wait = Duration::from_secs_f64(args.reference_wait_s);
     let needed = |flat: Option<f64>| -> Result<NeededSet> {
@@ -650,18 +673,16 @@ fn fly_point<R: TradeDomain>(
         } else {
             0.0
         },
-        time_to_full_quality_s_median: report.time_to_full_quality_s_p50,
-        time_to_full_quality_s_max: report.time_to_full_quality_s_max,
-        time_to_full_quality_s_mean: {
-            let t: Vec<f64> = report
-                .jumps
-                .iter()
-                .filter_map(|j| j.time_to_full_quality_s)
-                .collect();
-            (!t.is_empty()).then(|| t.iter().sum::<f64>() / t.len() as f64)
-        },
-        jumps_unfinished: report.jumps_unfinished,
-        jumps_budget_limited: report.jumps_budget_limited,
+        time_to_full_quality_s_median: jumps.median_s,
+        time_to_full_quality_s_max: jumps.max_s,
+        time_to_full_quality_s_mean: jumps.mean_s,
+        runs: runs.len(),
+        jump_times_s: runs
+            .iter()
+            .map(|r| r.iter().map(|j| j.time_to_full_quality_s).collect())
+            .collect(),
+        jumps_unfinished: jumps.unfinished,
+        jumps_budget_limited: jumps.budget_limited,
         cut_budget_halves,
         bytes_in_final_cuts: report.bytes_in_final_cuts,
         bytes_needed: with.bytes,
@@ -692,6 +713,63 @@ fn fly_point<R: TradeDomain>(
         ..TradePoint::default()
     };
     Ok((point, captures, render.adapter))
+}
+
+/// One more flight of `tolerance_px` as the first run flew it (a new session through a
+/// new link, its cut bounded as the renderer bounded the first's), without rendering.
+fn fly_again<R: TradeDomain>(
+    args: &TradeArgs,
+    flight: &Flight,
+    link: Option<(f64, f64)>,
+    tolerance_px: f64,
+    bound: Option<usize>,
+) -> Result<flight::FlightReport> {
+    let proxy = link.map(|l| start_link(&args.url, l)).transpose()?;
+    let url = proxy
+        .as_ref()
+        .map_or(args.url.as_str(), |(_, u)| u.as_str());
+    let fa = fly_args(args, url, tolerance_px);
+    let mut session = R::open(url, &args.repo, args.colour.as_deref(), session_config(&fa))?;
+    session.set_max_cut_halves(bound);
+    if args.warm_up_s > 0.0 && !session.warm_up(Duration::from_secs_f64(args.warm_up_s))? {
+        tracing::warn!("the roots did not arrive within --warm-up-s");
+    }
+    let opts = fly_options(&fa);
+    // The same per-frame work as the first run: its cut changes are taken (and dropped).
+    Ok(flight::fly_with(&mut session, flight, &opts, |s, _, _| {
+        drop(s.cut_changes());
+    })?)
+}
+
+/// Times to full quality pooled over runs.
+#[derive(Debug, Default, PartialEq)]
+struct PooledJumps {
+    median_s: Option<f64>,
+    max_s: Option<f64>,
+    mean_s: Option<f64>,
+    unfinished: usize,
+    budget_limited: usize,
+}
+
+/// Median (nearest rank), largest and mean over every jump of every run that reached
+/// full quality, and the counts of the others.
+fn pool_jumps(runs: &[Vec<flight::JumpResult>]) -> PooledJumps {
+    let all = runs.iter().flatten();
+    let mut t: Vec<f64> = all
+        .clone()
+        .filter_map(|j| j.time_to_full_quality_s)
+        .collect();
+    t.sort_by(f64::total_cmp);
+    PooledJumps {
+        median_s: (!t.is_empty()).then(|| flight::percentile(&t, 0.5)),
+        max_s: t.last().copied(),
+        mean_s: (!t.is_empty()).then(|| t.iter().sum::<f64>() / t.len() as f64),
+        unfinished: all
+            .clone()
+            .filter(|j| j.time_to_full_quality_s.is_none())
+            .count(),
+        budget_limited: all.filter(|j| j.budget_limited).count(),
+    }
 }
 
 /// The full-resolution reference of `view`: refined at tolerance 0, drawn, read back.
@@ -1047,6 +1125,46 @@ mod tests {
         for bad in ["", "4000", "0,100", "-1,5", "x,1", "1,inf"] {
             assert!(parse_link_arg(bad).is_err(), "{bad}");
         }
+    }
+
+    #[test]
+    fn jumps_pool_over_runs() {
+        let j = |leg, t: Option<f64>, limited| flight::JumpResult {
+            leg,
+            time_to_full_quality_s: t,
+            budget_limited: limited,
+            bytes_fetched: 0,
+        };
+        // Seven finished jumps over three runs; the median is the 4th smallest.
+        let runs = vec![
+            vec![
+                j(0, Some(0.5), false),
+                j(2, Some(0.1), false),
+                j(4, None, false),
+            ],
+            vec![
+                j(0, Some(0.7), true),
+                j(2, Some(0.3), false),
+                j(4, Some(0.2), false),
+            ],
+            vec![
+                j(0, Some(0.4), false),
+                j(2, Some(0.6), false),
+                j(4, None, false),
+            ],
+        ];
+        let p = pool_jumps(&runs);
+        assert_eq!(p.median_s, Some(0.4));
+        assert_eq!(p.max_s, Some(0.7));
+        assert!((p.mean_s.unwrap() - 2.8 / 7.0).abs() < 1e-12);
+        assert_eq!((p.unfinished, p.budget_limited), (2, 1));
+        assert_eq!(
+            pool_jumps(&[vec![j(0, None, false)]]),
+            PooledJumps {
+                unfinished: 1,
+                ..PooledJumps::default()
+            }
+        );
     }
 
     #[test]

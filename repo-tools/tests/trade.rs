@@ -152,6 +152,8 @@ fn trade_on_the_bundled_korea_crop() {
             "0,1,4",
             "--views",
             "3",
+            "--runs",
+            "2",
             "--plot",
             plots.to_str().unwrap(),
         ],
@@ -168,6 +170,29 @@ fn trade_on_the_bundled_korea_crop() {
     assert!(f(one, "bytes_fetched") > f(four, "bytes_fetched"));
     assert!(f(one, "psnr_db") > f(four, "psnr_db"));
     assert!(f(one, "geometric_error_px_p99") <= f(four, "geometric_error_px_p99"));
+    // Times to full quality pool both runs: each run lists one time per jump, and the
+    // median and largest are those of the pooled finished jumps.
+    for p in points {
+        assert_eq!(f(p, "runs"), 2.0, "{p}");
+        let runs = p["jump_times_s"].as_array().unwrap();
+        assert_eq!(runs.len(), 2, "{p}");
+        assert!(
+            runs.iter()
+                .all(|r| r.as_array().unwrap().len() == runs[0].as_array().unwrap().len())
+        );
+        let mut t: Vec<f64> = runs
+            .iter()
+            .flat_map(|r| r.as_array().unwrap().iter().filter_map(|v| v.as_f64()))
+            .collect();
+        t.sort_by(f64::total_cmp);
+        let unfinished = 2 * runs[0].as_array().unwrap().len() - t.len();
+        assert_eq!(f(p, "jumps_unfinished"), unfinished as f64, "{p}");
+        if let Some(max) = t.last() {
+            assert_eq!(f(p, "time_to_full_quality_s_max"), *max, "{p}");
+            let mid = t[((t.len() - 1) as f64 * 0.5).round() as usize];
+            assert_eq!(f(p, "time_to_full_quality_s_median"), mid, "{p}");
+        }
+    }
     // The charts and the report the charts came from.
     for name in [
         "trade-triangles.png",
@@ -225,6 +250,8 @@ fn trade_on_the_bundled_planet_with_colour_at_the_extremes() {
             "3",
             "--link",
             "none",
+            "--runs",
+            "1",
         ],
     );
     let points = r["points"].as_array().unwrap();
@@ -252,6 +279,8 @@ fn trade_on_the_bundled_planet_with_colour_at_the_extremes() {
             "5",
             "--link",
             "none",
+            "--runs",
+            "1",
         ],
     );
     let points = r["points"].as_array().unwrap();
