@@ -119,6 +119,34 @@ fn fault_then_recovery(fault: Fault, kind: ErrorKind, transport: Transport) {
 }
 
 #[test]
+fn a_404_is_a_leaf_only_from_a_static_export() {
+    let fake = FakeServer::start(Fault::LeafNotFound);
+    let wants = planar_wants();
+    assert!(wants.iter().any(|(k, _)| *k == PLANAR_LEAF));
+    // The fake server speaks HTTP/1.1 only.
+    for transport in [Transport::Pipelined, Transport::Plain] {
+        // From a static export (the metadata's `static_export`) the leaf's 404 is a leaf.
+        let mut c = fake_config(&fake, transport);
+        c.remote.static_export = true;
+        let fetcher = Fetcher::spawn(c, raw()).unwrap();
+        let (answers, failures) = drive(&fetcher, &wants, Duration::from_secs(30), false);
+        assert!(failures.is_empty(), "{transport:?}: {failures:?}");
+        assert_exact(&answers, &wants);
+        let stats = fetcher.stats();
+        assert_eq!(stats.errors.total(), 0, "{transport:?}");
+        assert_eq!(stats.leaves, 1, "{transport:?}");
+        // From `quincunx serve` a 404 is an error: the version asked for is not served.
+        let fetcher = Fetcher::spawn(fake_config(&fake, transport), raw()).unwrap();
+        let (answers, _) = drive(&fetcher, &wants, Duration::from_secs(30), false);
+        match &answers[&PLANAR_LEAF] {
+            Fetched::Failed(e) => assert_eq!(e, &FetchError::Status(404), "{transport:?}"),
+            other => panic!("{transport:?}: the 404 was taken as {other:?}"),
+        }
+        assert_eq!(fetcher.stats().errors.client_status, 1, "{transport:?}");
+    }
+}
+
+#[test]
 fn truncated_bodies_are_connection_errors_and_recover() {
     fault_then_recovery(Fault::Truncate, ErrorKind::Connection, Transport::Pipelined);
     fault_then_recovery(Fault::Truncate, ErrorKind::Connection, Transport::Plain);

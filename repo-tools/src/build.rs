@@ -978,6 +978,7 @@ fn publish(
         level_stats: Vec::new(),
         coverage: d.coverage.clone(),
         inline_max_bytes: u32::try_from(args.inline_bytes).ok().filter(|&t| t > 0),
+        static_export: false,
     };
     builder
         .publish(meta, args.overwrite)

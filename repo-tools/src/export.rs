@@ -9,7 +9,9 @@
 //! `hash16` is the first 16 hex digits of the content hash, so a rebuilt repository gets
 //! new URLs and caches never serve stale blobs. Leaves (no blob) have no file. A
 //! repository with an inlining limit also gets each diamond's package (its blob with its
-//! small owned children's, `quincunx_store::answer`) at `.../p/<centre>`.
+//! small owned children's, `quincunx_store::answer`) at `.../p/<centre>`. The exported
+//! `metadata.json` has `static_export: true`, so clients take the 404 a static server
+//! answers for a leaf's missing file as a leaf (no special server rule needed).
 
 use std::path::{Path, PathBuf};
 
@@ -84,7 +86,12 @@ pub fn run(path: &Path, dir: &Path, name: Option<&str>) -> Result<()> {
     }
     pb.finish_and_clear();
     let meta_file = root.join("metadata.json");
-    std::fs::write(&meta_file, serde_json::to_vec(meta)?)
+    // Served as files, a leaf's URL is a 404: the record says so (`static_export`).
+    let exported = Metadata {
+        static_export: true,
+        ..meta.clone()
+    };
+    std::fs::write(&meta_file, serde_json::to_vec(&exported)?)
         .with_context(|| format!("writing {}", meta_file.display()))?;
     outln!(
         "exported {files} blobs and metadata.json to {}",

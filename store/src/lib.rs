@@ -193,6 +193,14 @@ pub struct Metadata {
     /// of at most `T` bytes ([`answer`]). `None`: no packages are served.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub inline_max_bytes: Option<u32>,
+    /// `true` only in the `metadata.json` that `quincunx export` writes: the repository is
+    /// a folder of static files, where a diamond without a blob (a leaf) has no file, so
+    /// the web server or object store answers its URL with a 404. A client takes a 404
+    /// on a blob or package URL of such a repository as a leaf; from `quincunx serve`
+    /// (which answers a leaf with an empty 200 and never sets this) a 404 stays an error.
+    /// Not part of the content hash, which is computed with it `false`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub static_export: bool,
 }
 
 /// The attribute a repository carries.
@@ -506,6 +514,7 @@ fn finish_hash(mut h: Sha256, metadata: &Metadata, path: &Path) -> Result<String
     let mut m = metadata.clone();
     m.content_hash.clear();
     m.complete = true;
+    m.static_export = false;
     let json = serde_json::to_vec(&m).map_err(|e| StoreError::BadMetadata {
         path: path.to_path_buf(),
         reason: e.to_string(),
@@ -919,6 +928,7 @@ mod tests {
             level_stats: vec![],
             coverage: None,
             inline_max_bytes: None,
+            static_export: false,
         }
     }
 

@@ -36,6 +36,7 @@ fn metadata() -> Metadata {
         level_stats: vec![],
         coverage: None,
         inline_max_bytes: None,
+        static_export: false,
     }
 }
 

@@ -55,6 +55,7 @@ fn metadata(domain: &str, m: u32, levels: u32) -> Metadata {
         level_stats: vec![],
         coverage: None,
         inline_max_bytes: None,
+        static_export: false,
     }
 }
 

@@ -3,6 +3,9 @@
 //! `docker/nginx-cache.conf` (only host names, ports and paths are replaced). Also runs the
 //! image's health check script, `docker/healthcheck.sh`, against the replicas.
 //!
+//! And `quincunx fly` against a static export (`quincunx export`) that nginx serves as
+//! plain files, with no rule for missing files: a leaf's 404 is a leaf.
+//!
 //! Prints `SKIP nginx_cache: ...` and passes when nginx is not installed.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -15,6 +18,10 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::{Response, get, metric, try_get, workspace_root};
+use quincunx_client::flight::{self, Flight, FlyOptions};
+use quincunx_client::session::Session;
+use quincunx_codec::incremental::PlanarRefiner;
+use quincunx_repo_tools::fly::{self, FlyArgs};
 use quincunx_server::{RepoConfig, Server, ServerConfig};
 
 const REPO: &str = "korea";
@@ -185,6 +192,81 @@ fn nginx_caches_blobs_across_two_replicas_and_survives_losing_one() {
     b.stop(&runtime);
 }
 
+#[test]
+fn quincunx_fly_streams_a_static_export_from_plain_nginx() {
+    let Some(nginx) = find_nginx() else {
+        println!("SKIP nginx_static: nginx not installed");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let built = root.join("built").join(REPO);
+    common::build_bundled_korea(&built);
+    let www = root.join("www");
+    quincunx_repo_tools::export::run(&built, &www, Some(REPO)).unwrap();
+    let addr = free_port();
+    // Files, nothing else: a missing file is nginx's 404.
+    let log = root.join("nginx/access.log");
+    let snippet = format!(
+        "access_log {};\nserver {{ listen {addr}; root {}; }}",
+        log.display(),
+        www.display()
+    );
+    let metadata = format!("/repos/{REPO}/metadata.json");
+    let server = Nginx::run(&nginx, &root.join("nginx"), addr, &snippet, &metadata);
+    let url = format!("http://{addr}");
+    let not_found = || {
+        std::fs::read_to_string(&log)
+            .unwrap()
+            .lines()
+            .filter(|l| l.contains("/v/") && l.contains("\" 404 "))
+            .count()
+    };
+
+    // `quincunx fly` itself, then the same session and flight with its report.
+    let args = FlyArgs {
+        tolerance_px: 2.0,
+        ..FlyArgs::new(&url, REPO, "jump")
+    };
+    quincunx_repo_tools::fly::run(&args).unwrap();
+    let fly = || {
+        let mut session =
+            Session::<PlanarRefiner>::open(&url, REPO, fly::session_config(&args)).unwrap();
+        let flight = Flight::builtin_for("jump", &mut session, args.seed).unwrap();
+        let opts = FlyOptions {
+            check_every: 1,
+            ..fly::fly_options(&args)
+        };
+        flight::fly(&mut session, &flight, &opts, |_| {}).unwrap()
+    };
+    let before = not_found();
+    let report = fly();
+    let leaves_404 = not_found() - before;
+    assert!(leaves_404 > 0, "no leaf was asked for: {report:?}");
+    assert_eq!(report.fetch_errors, 0, "{report:?}");
+    assert_eq!(report.failures, 0, "{report:?}");
+    assert_eq!(report.jumps_unfinished, 0, "{report:?}");
+    assert_eq!((report.cracks, report.coverage_errors), (0, 0));
+    let requests = report.requests;
+
+    // The same files without `static_export` in the metadata (as `quincunx serve` answers
+    // it): a 404 is then an error, not a leaf.
+    let meta_file = www.join(&metadata[1..]);
+    let mut meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&meta_file).unwrap()).unwrap();
+    assert_eq!(meta["static_export"], true);
+    meta.as_object_mut().unwrap().remove("static_export");
+    std::fs::write(&meta_file, meta.to_string()).unwrap();
+    let report = fly();
+    assert!(report.fetch_errors > 0, "{report:?}");
+    println!(
+        "nginx_static: {requests} requests, {leaves_404} leaves answered 404, 0 fetch errors; \
+         {} fetch errors without static_export",
+        report.fetch_errors
+    );
+    drop(server);
+}
+
 /// `/usr/sbin/nginx`, else `nginx` on `PATH`.
 fn find_nginx() -> Option<PathBuf> {
     let debian = PathBuf::from("/usr/sbin/nginx");
@@ -285,8 +367,7 @@ struct Nginx {
 }
 
 impl Nginx {
-    /// Writes `dir/nginx.conf` (the shipped snippet inside a main context whose paths are
-    /// all under `dir`) and starts nginx in the foreground, waiting until it answers.
+    /// nginx running the shipped `docker/nginx-cache.conf` in front of `replicas`.
     fn start(binary: &Path, dir: &Path, replicas: [SocketAddr; 2]) -> Nginx {
         let shipped =
             std::fs::read_to_string(workspace_root().join("docker/nginx-cache.conf")).unwrap();
@@ -307,6 +388,13 @@ impl Nginx {
             );
             snippet = snippet.replace(from, &to);
         }
+        Nginx::run(binary, dir, addr, &snippet, "/healthz")
+    }
+
+    /// Writes `dir/nginx.conf` (`snippet` inside a main context whose paths are all under
+    /// `dir`) and starts nginx in the foreground, waiting until `ready` answers 200.
+    fn run(binary: &Path, dir: &Path, addr: SocketAddr, snippet: &str, ready: &str) -> Nginx {
+        let d = dir.display();
         // Workers of a root master run as `nobody` unless told otherwise, and could not
         // enter the 0700 temporary directory.
         let running_as_root = std::fs::metadata("/proc/self").is_ok_and(|m| m.uid() == 0);
@@ -341,7 +429,7 @@ impl Nginx {
             if let Some(status) = nginx.child.try_wait().unwrap() {
                 panic!("nginx exited with {status}:\n{}", nginx.error_log());
             }
-            if let Ok(Response { status: 200, .. }) = try_get(addr, "/healthz", &[]) {
+            if let Ok(Response { status: 200, .. }) = try_get(addr, ready, &[]) {
                 return nginx;
             }
             assert!(

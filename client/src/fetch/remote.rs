@@ -24,6 +24,9 @@ pub struct Remote {
     pub version: String,
     /// Sphere domain (three coordinates in URLs) rather than planar.
     pub sphere: bool,
+    /// A folder of static files (`quincunx export`, the metadata's `static_export`): a
+    /// 404 on a blob or package URL is a leaf, not an error.
+    pub static_export: bool,
 }
 
 impl Remote {
@@ -84,6 +87,7 @@ impl Remote {
             name: name.to_string(),
             version: meta.content_hash[..16].to_string(),
             sphere,
+            static_export: meta.static_export,
         })
     }
 
@@ -146,6 +150,7 @@ mod tests {
             name: "r".into(),
             version: "0123456789abcdef".into(),
             sphere,
+            static_export: false,
         }
     }
 

@@ -407,6 +407,12 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
                 self.bandwidth.advance(now, in_flight_before);
                 return;
             }
+            // A static export has no file for a leaf.
+            Ok((404, _)) if self.config.remote.static_export => {
+                self.answered(key, Bytes::new(), packaged, latency, report);
+                self.bandwidth.advance(now, in_flight_before);
+                return;
+            }
             Ok((status, _)) => FetchError::Status(status),
             Err(e) => e,
         };

@@ -227,6 +227,9 @@ pub enum Fault {
     ServerError = 4,
     /// Reads requests, never answers.
     Stall = 5,
+    /// Like `Good`, but the leaf is a 404, as a static file server answers the missing
+    /// file of an exported leaf.
+    LeafNotFound = 6,
 }
 
 /// A raw-TCP HTTP/1.1 server whose behaviour can be switched at run time.
@@ -284,6 +287,7 @@ impl FakeServer {
             name: "plain".into(),
             version: "0123456789abcdef".into(),
             sphere: false,
+            static_export: false,
         }
     }
 }
@@ -331,6 +335,10 @@ fn serve_fake(mut s: TcpStream, fault: &AtomicU8, stop: &AtomicBool, requests: &
             };
             let reply = match fault.load(Ordering::Relaxed) {
                 0 => ok(&blob),
+                6 if key == PLANAR_LEAF => {
+                    b"HTTP/1.1 404 Not Found\r\nContent-Length: 4\r\n\r\nnope".to_vec()
+                }
+                6 => ok(&blob),
                 1 => {
                     let mut r = ok(&blob);
                     r.truncate(r.len() - blob.len() / 2 - 1);
