@@ -278,18 +278,36 @@ pub fn run(args: &FlyArgs) -> Result<()> {
     }
     let link = args.link.map(|l| start_link(&args.url, l)).transpose()?;
     let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
+    let opened = Instant::now();
     let session =
         AnySession::open_with_colour(url, &args.repo, args.color.as_deref(), session_config(args))
             .with_context(|| match &args.color {
                 Some(c) => format!("opening {} with colour {c} at {}", args.repo, args.url),
                 None => format!("opening {} at {}", args.repo, args.url),
             })?;
+    let process = ProcessFigures {
+        session_open_ms: opened.elapsed().as_secs_f64() * 1e3,
+        client_peak_rss_mb: 0.0,
+    };
     let (report, render) = match session {
         AnySession::Planar(s) => fly_session(s, args)?,
         AnySession::Planet(s) => fly_session(s, args)?,
     };
+    let process = ProcessFigures {
+        client_peak_rss_mb: crate::layout::peak_rss_mb(),
+        ..process
+    };
     let link_bytes = link.as_ref().map(|(p, _)| p.bytes_down());
-    print_report(&report, args, link_bytes, render.as_ref())
+    print_report(&report, args, link_bytes, render.as_ref(), &process)
+}
+
+/// What the flight cost the process itself.
+struct ProcessFigures {
+    /// Opening the session: metadata, the colour layer's and the roots' tables (ms).
+    session_open_ms: f64,
+    /// The process's peak resident memory (`VmHWM`) at the end of the flight, the
+    /// renderer's included with `--render` (MB).
+    client_peak_rss_mb: f64,
 }
 
 /// Loads and flies the flight of `args` with `session` (rendering each frame with
@@ -573,10 +591,16 @@ fn print_report(
     args: &FlyArgs,
     link_bytes_down: Option<u64>,
     render: Option<&RenderSummary>,
+    process: &ProcessFigures,
 ) -> Result<()> {
     if args.json {
         let mut v = serde_json::to_value(r)?;
         if let Some(obj) = v.as_object_mut() {
+            obj.insert("session_open_ms".into(), process.session_open_ms.into());
+            obj.insert(
+                "client_peak_rss_mb".into(),
+                process.client_peak_rss_mb.into(),
+            );
             if let Some(render) = render {
                 obj.insert("render".into(), serde_json::to_value(render)?);
             }
@@ -614,6 +638,11 @@ fn print_report(
             r.seconds,
             r.frames,
             r.frames_per_s
+        );
+        outln!(
+            "session opened in {:.1} ms; peak resident memory {:.1} MB",
+            process.session_open_ms,
+            process.client_peak_rss_mb
         );
         for j in &r.jumps {
             match j.time_to_full_quality_s {

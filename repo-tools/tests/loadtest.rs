@@ -61,6 +61,7 @@ struct Served {
     requests: AtomicU64,
     body_bytes: AtomicU64,
     empty: AtomicU64,
+    not_found: AtomicU64,
 }
 
 /// Serves files under `root`, in request order on each connection. A missing file is an
@@ -102,6 +103,9 @@ async fn connection(mut sock: TcpStream, root: PathBuf, missing_is_404: bool, se
             };
             if !path.ends_with("metadata.json") {
                 served.requests.fetch_add(1, Ordering::Relaxed);
+                served
+                    .not_found
+                    .fetch_add(u64::from(status.starts_with("404")), Ordering::Relaxed);
                 if status.starts_with("200") {
                     served
                         .body_bytes
@@ -323,6 +327,41 @@ fn fly_mode_runs_real_sessions_against_a_static_export() {
     ]));
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("built-in flights"));
+}
+
+#[test]
+fn quincunx_fly_takes_a_static_servers_404_as_a_leaf_and_reports_its_costs() {
+    let dir = tempfile::tempdir().unwrap();
+    let www = exported_korea(dir.path());
+    // A leaf's missing file is a 404, as from any static server or object store.
+    let (_rt, url, served) = start_server(www, true);
+    let report = ok_json(bin().args([
+        "fly",
+        "--url",
+        &url,
+        "--repo",
+        "korea",
+        "--path",
+        "jump",
+        "--tolerance-px",
+        "2",
+        "--json",
+    ]));
+    assert_eq!(report["fetch_errors"], 0, "{report}");
+    assert_eq!(report["jumps_unfinished"], 0, "{report}");
+    assert_eq!(report["cracks"], 0);
+    assert!(
+        served.not_found.load(Ordering::Relaxed) > 0,
+        "no leaf was asked for"
+    );
+    // What opening and flying cost the client process.
+    let open_ms = report["session_open_ms"].as_f64().unwrap();
+    assert!(
+        open_ms > 0.0 && open_ms < report["seconds"].as_f64().unwrap() * 1e3,
+        "{report}"
+    );
+    let rss = report["client_peak_rss_mb"].as_f64().unwrap();
+    assert!(rss > 1.0 && rss < 4096.0, "{report}");
 }
 
 /// Every field of a fly point (`FlyLoadReport`), nullable ones included.
