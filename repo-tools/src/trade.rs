@@ -109,7 +109,8 @@ pub struct TradeArgs {
     pub check_every: usize,
     /// Flights per tolerance, each a new session through a new link starting from
     /// nothing: the times to full quality pool the jumps of every run; the other
-    /// figures (frames, bytes, images) are the first run's.
+    /// figures (frames, bytes, images) are the first run's. So many cold starts too,
+    /// at each jump's view.
     #[arg(long, default_value_t = 3)]
     pub runs: usize,
     /// Metres between samples (default: from the georeference).
@@ -165,6 +166,16 @@ pub struct TradePoint {
     pub jump_times_s: Vec<Vec<Option<f64>>>,
     /// Jumps, over every run, whose leg ended before full quality.
     pub jumps_unfinished: usize,
+    /// Time to full quality from a cold start at each jump's view: a new session through
+    /// a new link flies that leg alone, so nothing an earlier view fetched helps it.
+    /// Median and largest over every view of every run (s).
+    pub time_to_full_quality_cold_s_median: Option<f64>,
+    /// Largest.
+    pub time_to_full_quality_cold_s_max: Option<f64>,
+    /// Each run's cold-start seconds, one per jump leg in flight order.
+    pub cold_times_s: Vec<Vec<Option<f64>>>,
+    /// Cold starts, over every run, that did not reach full quality within the leg.
+    pub cold_unfinished: usize,
     /// Jumps, over every run, whose cut the GPU budget held coarser than the tolerance
     /// (their time is to the best cut the pool holds).
     pub jumps_budget_limited: usize,
@@ -633,6 +644,22 @@ fn fly_point<R: TradeDomain>(
         runs.push(again.jumps);
     }
     let jumps = pool_jumps(&runs);
+    // Cold starts at each jump's view.
+    let mut colds = Vec::new();
+    for run in 0..args.runs {
+        let mut one_run = Vec::new();
+        for leg in flight.legs.iter().filter(|l| l.jump) {
+            let alone = Flight {
+                name: format!("{} (one leg)", flight.name),
+                legs: vec![leg.clone()],
+            };
+            let r = fly_again::<R>(args, &alone, link, tolerance_px, bound)
+                .with_context(|| format!("cold start {} of run {}", one_run.len() + 1, run + 1))?;
+            one_run.extend(r.jumps);
+        }
+        colds.push(one_run);
+    }
+    let cold = pool_jumps(&colds);
     // The needed set, with and without the side information.
     let wait = Duration::from_secs_f64(args.reference_wait_s);
     let needed = |flat: Option<f64>| -> Result<NeededSet> {
@@ -683,6 +710,13 @@ fn fly_point<R: TradeDomain>(
             .collect(),
         jumps_unfinished: jumps.unfinished,
         jumps_budget_limited: jumps.budget_limited,
+        time_to_full_quality_cold_s_median: cold.median_s,
+        time_to_full_quality_cold_s_max: cold.max_s,
+        cold_times_s: colds
+            .iter()
+            .map(|r| r.iter().map(|j| j.time_to_full_quality_s).collect())
+            .collect(),
+        cold_unfinished: cold.unfinished,
         cut_budget_halves,
         bytes_in_final_cuts: report.bytes_in_final_cuts,
         bytes_needed: with.bytes,
@@ -715,8 +749,8 @@ fn fly_point<R: TradeDomain>(
     Ok((point, captures, render.adapter))
 }
 
-/// One more flight of `tolerance_px` as the first run flew it (a new session through a
-/// new link, its cut bounded as the renderer bounded the first's), without rendering.
+/// A flight of `tolerance_px` as the first run flew it (a new session through a new
+/// link, its cut bounded as the renderer bounded the first's), without rendering.
 fn fly_again<R: TradeDomain>(
     args: &TradeArgs,
     flight: &Flight,
@@ -940,13 +974,14 @@ fn print(report: &TradeReport, args: &TradeArgs) -> Result<()> {
             )),
         );
         outln!(
-            "{:>6} {:>10} {:>8} {:>8} {:>12} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            "{:>6} {:>10} {:>8} {:>8} {:>12} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
             "tol px",
             "triangles",
             "refine",
             "render",
             "bytes",
             "ttfq s",
+            "cold s",
             "PSNR dB",
             "geo p99",
             "geo max",
@@ -954,13 +989,15 @@ fn print(report: &TradeReport, args: &TradeArgs) -> Result<()> {
         );
         for p in &report.points {
             outln!(
-                "{:>6} {:>10.0} {:>8.3} {:>8.3} {:>12} {:>8} {:>8} {:>8.3} {:>8.3} {:>8.3}",
+                "{:>6} {:>10.0} {:>8.3} {:>8.3} {:>12} {:>8} {:>8} {:>8} {:>8.3} {:>8.3} {:>8.3}",
                 p.tolerance_px,
                 p.triangles_median,
                 p.refine_ms_median,
                 p.render_ms_median,
                 p.bytes_fetched,
                 p.time_to_full_quality_s_median
+                    .map_or("-".into(), |t| format!("{t:.2}")),
+                p.time_to_full_quality_cold_s_median
                     .map_or("-".into(), |t| format!("{t:.2}")),
                 p.psnr_db.map_or("inf".into(), |v| format!("{v:.2}")),
                 p.geometric_error_px_p99,
@@ -1008,7 +1045,7 @@ pub fn replot(dir: &Path) -> Result<()> {
         }
     }
     type Get = fn(&TradePoint) -> Option<f64>;
-    let charts: [(&str, &str, &str, bool, Get); 8] = [
+    let charts: [(&str, &str, &str, bool, Get); 9] = [
         (
             "triangles",
             "Triangles per frame (median)",
@@ -1050,6 +1087,13 @@ pub fn replot(dir: &Path) -> Result<()> {
             "s",
             true,
             |p| p.time_to_full_quality_s_median,
+        ),
+        (
+            "ttfq-cold",
+            "Time to full quality from a cold start at each view (median)",
+            "s",
+            true,
+            |p| p.time_to_full_quality_cold_s_median,
         ),
         (
             "psnr",

@@ -129,6 +129,31 @@ fn check_points(points: &[Value]) {
     }
 }
 
+/// Checks `p[times]` (runs of per-jump seconds, `null` unfinished) against its pooled
+/// figures `<figure>_median`, `<figure>_max` and the count `p[unfinished]`.
+fn pooled(p: &Value, times: &str, unfinished: &str, figure: &str) {
+    let runs = p[times].as_array().unwrap();
+    assert_eq!(runs.len() as f64, f(p, "runs"), "{p}");
+    let legs = runs[0].as_array().unwrap().len();
+    assert!(legs > 0, "{p}");
+    assert!(runs.iter().all(|r| r.as_array().unwrap().len() == legs));
+    let mut t: Vec<f64> = runs
+        .iter()
+        .flat_map(|r| r.as_array().unwrap().iter().filter_map(|v| v.as_f64()))
+        .collect();
+    t.sort_by(f64::total_cmp);
+    assert_eq!(
+        f(p, unfinished),
+        (runs.len() * legs - t.len()) as f64,
+        "{p}"
+    );
+    if let Some(max) = t.last() {
+        assert_eq!(f(p, &format!("{figure}_max")), *max, "{p}");
+        let mid = t[((t.len() - 1) as f64 * 0.5).round() as usize];
+        assert_eq!(f(p, &format!("{figure}_median")), mid, "{p}");
+    }
+}
+
 #[test]
 fn trade_on_the_bundled_korea_crop() {
     if !gpu_or_skip("trade_on_the_bundled_korea_crop") {
@@ -170,34 +195,32 @@ fn trade_on_the_bundled_korea_crop() {
     assert!(f(one, "bytes_fetched") > f(four, "bytes_fetched"));
     assert!(f(one, "psnr_db") > f(four, "psnr_db"));
     assert!(f(one, "geometric_error_px_p99") <= f(four, "geometric_error_px_p99"));
-    // Times to full quality pool both runs: each run lists one time per jump, and the
-    // median and largest are those of the pooled finished jumps.
+    // Times to full quality after the jumps and from cold starts at their views pool
+    // both runs: each run lists one time per jump, and the median and largest are those
+    // of the pooled finished ones.
     for p in points {
         assert_eq!(f(p, "runs"), 2.0, "{p}");
-        let runs = p["jump_times_s"].as_array().unwrap();
-        assert_eq!(runs.len(), 2, "{p}");
-        assert!(
-            runs.iter()
-                .all(|r| r.as_array().unwrap().len() == runs[0].as_array().unwrap().len())
+        pooled(
+            p,
+            "jump_times_s",
+            "jumps_unfinished",
+            "time_to_full_quality_s",
         );
-        let mut t: Vec<f64> = runs
-            .iter()
-            .flat_map(|r| r.as_array().unwrap().iter().filter_map(|v| v.as_f64()))
-            .collect();
-        t.sort_by(f64::total_cmp);
-        let unfinished = 2 * runs[0].as_array().unwrap().len() - t.len();
-        assert_eq!(f(p, "jumps_unfinished"), unfinished as f64, "{p}");
-        if let Some(max) = t.last() {
-            assert_eq!(f(p, "time_to_full_quality_s_max"), *max, "{p}");
-            let mid = t[((t.len() - 1) as f64 * 0.5).round() as usize];
-            assert_eq!(f(p, "time_to_full_quality_s_median"), mid, "{p}");
-        }
+        pooled(
+            p,
+            "cold_times_s",
+            "cold_unfinished",
+            "time_to_full_quality_cold_s",
+        );
+        let legs = |k: &str| p[k].as_array().unwrap()[0].as_array().unwrap().len();
+        assert_eq!(legs("cold_times_s"), legs("jump_times_s"), "{p}");
     }
     // The charts and the report the charts came from.
     for name in [
         "trade-triangles.png",
         "trade-psnr.png",
         "trade-geometric.png",
+        "trade-ttfq-cold.png",
         "korea.json",
     ] {
         assert!(plots.join(name).is_file(), "no {name}");
