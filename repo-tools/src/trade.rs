@@ -222,7 +222,8 @@ pub struct TradePoint {
     pub gpu_bytes_budget: u64,
     /// Frames whose drawn cut lagged the client's (upload cap or GPU budget).
     pub frames_not_current: usize,
-    /// Cracks and coverage errors over the flight's checked frames (must be 0).
+    /// Cracks and coverage errors over the checked frames of every flight and cold start
+    /// (must be 0).
     pub cracks: usize,
     /// Coverage errors.
     pub coverage_errors: usize,
@@ -638,9 +639,13 @@ fn fly_point<R: TradeDomain>(
     drop(proxy);
     // The other runs: only their jumps' times are kept.
     let mut runs = vec![report.jumps.clone()];
+    // Cracks and coverage errors of every flight, the first's and those below.
+    let (mut cracks, mut coverage_errors) = (report.cracks, report.coverage_errors);
     for run in 1..args.runs {
         let again = fly_again::<R>(args, flight, link, tolerance_px, bound)
             .with_context(|| format!("run {}", run + 1))?;
+        cracks += again.cracks;
+        coverage_errors += again.coverage_errors;
         runs.push(again.jumps);
     }
     let jumps = pool_jumps(&runs);
@@ -655,6 +660,8 @@ fn fly_point<R: TradeDomain>(
             };
             let r = fly_again::<R>(args, &alone, link, tolerance_px, bound)
                 .with_context(|| format!("cold start {} of run {}", one_run.len() + 1, run + 1))?;
+            cracks += r.cracks;
+            coverage_errors += r.coverage_errors;
             one_run.extend(r.jumps);
         }
         colds.push(one_run);
@@ -742,8 +749,8 @@ fn fly_point<R: TradeDomain>(
         gpu_bytes_peak: render.gpu_bytes_peak,
         gpu_bytes_budget: render.gpu_bytes_budget,
         frames_not_current: render.frames_not_current,
-        cracks: report.cracks,
-        coverage_errors: report.coverage_errors,
+        cracks,
+        coverage_errors,
         ..TradePoint::default()
     };
     Ok((point, captures, render.adapter))
