@@ -29,6 +29,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use quincunx_client::fetch::link::LinkProxy;
 use quincunx_client::flight::{self, BuiltinFlights, Flight, Leg, NeededSet, Pose};
 use quincunx_client::refine::RefineConfig;
 use quincunx_client::session::{Session, SessionConfig, SessionError};
@@ -576,18 +577,7 @@ fn fly_point<R: TradeDomain>(
     chosen: &[usize],
     jitter: bool,
 ) -> Result<(TradePoint, Vec<Capture>, String)> {
-    let proxy = link.map(|l| start_link(&args.url, l)).transpose()?;
-    let url = proxy
-        .as_ref()
-        .map_or(args.url.as_str(), |(_, u)| u.as_str());
-    let fa = fly_args(args, url, tolerance_px);
-    let mut session = R::open(url, &args.repo, args.colour.as_deref(), session_config(&fa))?;
-    // With `--warm-up-s` 0 the first jump starts from nothing, as a client does that
-    // opens a repository and goes to a view; else the session first refines its
-    // overviews (as `quincunx fly` does), whose bytes count as fetched.
-    if args.warm_up_s > 0.0 && !session.warm_up(Duration::from_secs_f64(args.warm_up_s))? {
-        tracing::warn!("the roots did not arrive within --warm-up-s");
-    }
+    let (proxy, mut session, fa) = flight_session::<R>(args, link, tolerance_px, None)?;
     let opts = fly_options(&fa);
     let mut drawer = FrameDrawer::new(&mut session, &fa)?;
     let mut frames = Vec::new();
@@ -756,6 +746,35 @@ fn fly_point<R: TradeDomain>(
     Ok((point, captures, render.adapter))
 }
 
+/// An emulated link and its URL.
+type Link = (LinkProxy, String);
+
+/// A new session for a flight at `tolerance_px` through a new link (open while the
+/// returned proxy lives), its cut bounded by `bound` if given (else by the renderer).
+/// With `--warm-up-s` 0 the first jump starts from nothing, as a client does that opens
+/// a repository and goes to a view; else the session first refines its overviews (as
+/// `quincunx fly` does), whose bytes count as fetched.
+fn flight_session<R: TradeDomain>(
+    args: &TradeArgs,
+    link: Option<(f64, f64)>,
+    tolerance_px: f64,
+    bound: Option<Option<usize>>,
+) -> Result<(Option<Link>, Session<R>, FlyArgs)> {
+    let proxy = link.map(|l| start_link(&args.url, l)).transpose()?;
+    let url = proxy
+        .as_ref()
+        .map_or(args.url.as_str(), |(_, u)| u.as_str());
+    let fa = fly_args(args, url, tolerance_px);
+    let mut session = R::open(url, &args.repo, args.colour.as_deref(), session_config(&fa))?;
+    if let Some(bound) = bound {
+        session.set_max_cut_halves(bound);
+    }
+    if args.warm_up_s > 0.0 && !session.warm_up(Duration::from_secs_f64(args.warm_up_s))? {
+        tracing::warn!("the roots did not arrive within --warm-up-s");
+    }
+    Ok((proxy, session, fa))
+}
+
 /// A flight of `tolerance_px` as the first run flew it (a new session through a new
 /// link, its cut bounded as the renderer bounded the first's), without rendering.
 fn fly_again<R: TradeDomain>(
@@ -765,16 +784,7 @@ fn fly_again<R: TradeDomain>(
     tolerance_px: f64,
     bound: Option<usize>,
 ) -> Result<flight::FlightReport> {
-    let proxy = link.map(|l| start_link(&args.url, l)).transpose()?;
-    let url = proxy
-        .as_ref()
-        .map_or(args.url.as_str(), |(_, u)| u.as_str());
-    let fa = fly_args(args, url, tolerance_px);
-    let mut session = R::open(url, &args.repo, args.colour.as_deref(), session_config(&fa))?;
-    session.set_max_cut_halves(bound);
-    if args.warm_up_s > 0.0 && !session.warm_up(Duration::from_secs_f64(args.warm_up_s))? {
-        tracing::warn!("the roots did not arrive within --warm-up-s");
-    }
+    let (_proxy, mut session, fa) = flight_session::<R>(args, link, tolerance_px, Some(bound))?;
     let opts = fly_options(&fa);
     // The same per-frame work as the first run: its cut changes are taken (and dropped).
     Ok(flight::fly_with(&mut session, flight, &opts, |s, _, _| {
