@@ -285,17 +285,14 @@ pub fn run(args: &FlyArgs) -> Result<()> {
                 Some(c) => format!("opening {} with colour {c} at {}", args.repo, args.url),
                 None => format!("opening {} at {}", args.repo, args.url),
             })?;
-    let process = ProcessFigures {
-        session_open_ms: opened.elapsed().as_secs_f64() * 1e3,
-        client_peak_rss_mb: 0.0,
-    };
+    let session_open_ms = opened.elapsed().as_secs_f64() * 1e3;
     let (report, render) = match session {
         AnySession::Planar(s) => fly_session(s, args)?,
         AnySession::Planet(s) => fly_session(s, args)?,
     };
     let process = ProcessFigures {
+        session_open_ms,
         client_peak_rss_mb: crate::layout::peak_rss_mb(),
-        ..process
     };
     let link_bytes = link.as_ref().map(|(p, _)| p.bytes_down());
     print_report(&report, args, link_bytes, render.as_ref(), &process)

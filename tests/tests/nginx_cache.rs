@@ -228,7 +228,7 @@ fn quincunx_fly_streams_a_static_export_from_plain_nginx() {
         tolerance_px: 2.0,
         ..FlyArgs::new(&url, REPO, "jump")
     };
-    quincunx_repo_tools::fly::run(&args).unwrap();
+    fly::run(&args).unwrap();
     let fly = || {
         let mut session =
             Session::<PlanarRefiner>::open(&url, REPO, fly::session_config(&args)).unwrap();

@@ -401,23 +401,23 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
         }
         // Report to the frame loop what it asked for (not prefetches it no longer wants).
         let report = issued_as == Class::Want || self.sched.class(key) == Some(Class::Want);
-        let error = match done.result {
-            Ok((200, body)) => {
+        let answer = match done.result {
+            Ok((200, body)) => Ok(body),
+            // A static export has no file for a leaf.
+            Ok((404, _)) if self.config.remote.static_export => Ok(Bytes::new()),
+            Ok((status, _)) => Err(FetchError::Status(status)),
+            Err(e) => Err(e),
+        };
+        match answer {
+            Ok(body) => {
                 self.answered(key, body, packaged, latency, report);
                 self.bandwidth.advance(now, in_flight_before);
-                return;
             }
-            // A static export has no file for a leaf.
-            Ok((404, _)) if self.config.remote.static_export => {
-                self.answered(key, Bytes::new(), packaged, latency, report);
+            Err(error) => {
                 self.bandwidth.advance(now, in_flight_before);
-                return;
+                self.failed(key, error, now, report);
             }
-            Ok((status, _)) => FetchError::Status(status),
-            Err(e) => e,
-        };
-        self.bandwidth.advance(now, in_flight_before);
-        self.failed(key, error, now, report);
+        }
     }
 
     /// A 200 answer: a leaf, or a blob to decode and cache.
