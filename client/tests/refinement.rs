@@ -714,3 +714,41 @@ fn what_refinement_remembers_across_frames_changes_no_cut() {
     }
     assert!(reused > 0, "the held view reached a quiet frame");
 }
+
+#[test]
+fn lookahead_predicts_a_diamonds_error_from_its_id_as_refinement_measures_it() {
+    let view = flight(10)[5];
+    let (enc, dag) = converged_in_one_frame(&view);
+    let refinement = Refinement::default();
+    let w = world(&enc);
+    let (mut compared, mut nearer) = (0, 0);
+    for node in dag.nodes() {
+        // With the diamond's own height bounds, the prediction is the measurement.
+        let z = node.height_bounds_m(&w);
+        let predicted = refinement.predicted_error_px(&dag, &view, w, node.id, z, false);
+        let measured = refinement.appearance(&dag, &view, w, node.id);
+        assert_eq!(
+            predicted,
+            measured.visible.then_some(measured.error_px),
+            "{:?}",
+            node.id
+        );
+        compared += 1;
+        // With its parent's bounds: a child straddles its parent's edge, so it can be
+        // nearer the camera than its parent's box (more than the parent's error / sqrt 2).
+        for &c in dag.children(node.id).iter() {
+            let parent = refinement.appearance(&dag, &view, w, node.id);
+            let child = refinement.predicted_error_px(&dag, &view, w, c, z, false);
+            if parent.visible
+                && child.is_some_and(|e| e > parent.error_px / std::f64::consts::SQRT_2 * 1.01)
+            {
+                nearer += 1;
+            }
+        }
+    }
+    assert!(compared > 20, "{compared}");
+    assert!(
+        nearer > 0,
+        "no child was predicted nearer than its parent's box"
+    );
+}
