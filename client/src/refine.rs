@@ -255,7 +255,12 @@ impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
         let bound_m = node.bound_m(w);
         let z = node.height_bounds_m(w);
         let (bbox, edge_m) = dag.refiner().footprint(w, id, &node.corners, z);
-        let error_m = error_m(dag, edge_m, node.colour.is_some());
+        // max(edge, texel): texels are edges divided by the texels per edge.
+        let error_m = if node.colour.is_some() {
+            edge_m * (1.0 / dag.texels_per_edge()).max(1.0)
+        } else {
+            edge_m
+        };
         let distance_m = bbox.distance(self.view.eye).max(View::NEAR_M);
         let px_per_m = self.px_at_1m / distance_m;
         // Flatness speaks for the heights only: with colour, the texels decide.
@@ -276,25 +281,6 @@ impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
             flat,
             margin_m: (distance_m - trigger_m).max(0.0),
         }
-    }
-
-    /// The projected error `id` will have, from its own corners and the height bounds
-    /// `z` (metres) of an ancestor, before its data is here; `None` if it will not be
-    /// visible.
-    fn predict<R: Domain<World = W, Id = I>>(
-        &self,
-        dag: &Dag<R>,
-        id: I,
-        z: (f64, f64),
-        colour: bool,
-    ) -> Option<f64> {
-        let w = &self.world;
-        let corners = dag.refiner().corners(id);
-        let (bbox, edge_m) = dag.refiner().footprint(w, id, &corners, z);
-        let visible = self.frustum.intersects(&bbox)
-            && !dag.refiner().hidden(w, id, &corners, z.1, self.view.eye);
-        let distance_m = bbox.distance(self.view.eye).max(View::NEAR_M);
-        visible.then(|| error_m(dag, edge_m, colour) * (self.px_at_1m / distance_m))
     }
 
     fn wants_split(&self, a: &Appearance) -> bool {
@@ -424,23 +410,6 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         self.projector(view, world).appearance(dag, id)
     }
 
-    /// The projected error (px) diamond `id` will have from `view` once it is in the
-    /// DAG, predicted from its own corners and the height bounds `z` (metres) of an
-    /// ancestor (`colour`: whether it will carry colour); `None` if it will not be
-    /// visible. For lookahead: a child straddles its parent's edge, so it can be nearer
-    /// the camera than its parent's box.
-    pub fn predicted_error_px<R: Domain<Id = I>>(
-        &self,
-        dag: &Dag<R>,
-        view: &View,
-        world: R::World,
-        id: I,
-        z: (f64, f64),
-        colour: bool,
-    ) -> Option<f64> {
-        self.projector(view, world).predict(dag, id, z, colour)
-    }
-
     /// The unrefined diamonds of the DAG that `view` would want refined, with their
     /// projected errors: for prefetching along a predicted camera. Changes nothing.
     pub fn wanted_splits<R: Domain<Id = I>>(
@@ -457,16 +426,6 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 projector.wants_split(&a).then_some((n.id, a.error_px))
             })
             .collect()
-    }
-}
-
-/// The world error (metres) of a diamond of edge `edge_m`: max(edge, texel) with
-/// colour, texels being edges divided by the texels per edge.
-fn error_m<R: Domain>(dag: &Dag<R>, edge_m: f64, colour: bool) -> f64 {
-    if colour {
-        edge_m * (1.0 / dag.texels_per_edge()).max(1.0)
-    } else {
-        edge_m
     }
 }
 

@@ -913,7 +913,7 @@ impl<R: Domain> Session<R> {
                 }
             }
         }
-        let mut ahead = self.lookahead(view, &wanted, levels);
+        let mut ahead = self.lookahead(&wanted, levels, view.tolerance_px);
         ahead.extend(self.prefetch(view, now, &wanted));
         ahead.sort_by(|a, b| b.1.total_cmp(&a.1));
         ahead.dedup_by_key(|(id, _)| *id);
@@ -958,44 +958,36 @@ impl<R: Domain> Session<R> {
             })
     }
 
-    /// The descendants of wanted diamonds that will be wanted once these arrive (their
-    /// projected error from `view`, predicted from their own corners and the wanted
-    /// ancestor's height bounds, exceeds the tolerance; they will be visible), down to
-    /// `levels` below, and that some layer would fetch.
+    /// The descendants of wanted diamonds that will be wanted once these arrive, while
+    /// their projected error (about the parent's over `sqrt(2)` per level) exceeds the
+    /// tolerance, and that some layer would fetch.
     fn lookahead(
         &self,
-        view: &View,
         wanted: &HashMap<R::Id, f32>,
         levels: usize,
+        tolerance_px: f64,
     ) -> Vec<(R::Id, f32)> {
         if levels == 0 {
             return Vec::new();
         }
         let mut out: HashMap<R::Id, f32> = HashMap::new();
-        // (diamond, its wanted ancestor's height bounds, whether it carries colour)
-        let mut frontier: Vec<(R::Id, (f64, f64), bool)> = wanted
-            .keys()
-            .filter_map(|&id| {
-                let node = self.dag.node(id)?;
-                Some((id, node.height_bounds_m(&self.world), node.colour.is_some()))
-            })
-            .collect();
+        let mut frontier: Vec<(R::Id, f64)> =
+            wanted.iter().map(|(&id, &p)| (id, f64::from(p))).collect();
         for _ in 0..levels {
             let mut next = Vec::new();
-            for (id, z, colour) in frontier {
+            for (id, p) in frontier {
+                let child_error = p / std::f64::consts::SQRT_2;
+                if child_error <= tolerance_px {
+                    continue;
+                }
                 for &c in self.dag.children(id).iter() {
-                    if wanted.contains_key(&c) || out.contains_key(&c) || !self.fetchable(c) {
+                    if wanted.contains_key(&c) || !self.fetchable(c) {
                         continue;
                     }
-                    let Some(e) = self
-                        .refinement
-                        .predicted_error_px(&self.dag, view, self.world, c, z, colour)
-                    else {
-                        continue;
-                    };
-                    if e > view.tolerance_px {
-                        out.insert(c, e as f32);
-                        next.push((c, z, colour));
+                    let e = out.entry(c).or_insert(0.0);
+                    if child_error as f32 > *e {
+                        *e = child_error as f32;
+                        next.push((c, child_error));
                     }
                 }
             }
