@@ -14,11 +14,11 @@ use quincunx_client::dag::Dag;
 use quincunx_client::refine::{Availability, DetailSource, Refinement, SystemClock};
 use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::encode::{EncodeOptions, Encoded, Grid, RateMode, encode};
+use quincunx_codec::encode::{EncodeOptions, Grid, RateMode, encode};
 use quincunx_codec::incremental::{Details, PlanarRefiner};
 
 struct Decoded {
-    enc: Arc<Encoded>,
+    blobs: HashMap<Vec<u8>, Vec<u8>>,
     refiner: Arc<PlanarRefiner>,
     cache: HashMap<PlanarId, Option<Arc<Details>>>,
     decode_time: Duration,
@@ -32,7 +32,7 @@ impl DetailSource for Decoded {
         // Decoding belongs to the network thread: it is timed apart from refinement.
         let start = Instant::now();
         let d = self.refiner.info(id).and_then(|info| {
-            let blob = self.enc.blobs[info.level][info.index].as_deref()?;
+            let blob = self.blobs.get(&info.key)?;
             self.refiner.decode(id, blob).ok().map(Arc::new)
         });
         self.decode_time += start.elapsed();
@@ -92,7 +92,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let refiner = Arc::new(PlanarRefiner::from_encoded(&enc)?);
     let mut dag = Dag::new(refiner.clone());
     let mut source = Decoded {
-        enc: enc.clone(),
+        blobs: enc.blobs_by_key()?,
         refiner,
         cache: HashMap::new(),
         decode_time: Duration::ZERO,

@@ -63,7 +63,7 @@ fn world(enc: &Encoded) -> PlanarWorld {
 /// Details straight from the encoding; with `delay`, each diamond is only ready from the
 /// `delay`-th time it is asked for (a slow network).
 struct LocalSource {
-    enc: Arc<Encoded>,
+    blobs: HashMap<Vec<u8>, Vec<u8>>,
     refiner: Arc<PlanarRefiner>,
     delay: usize,
     asked: HashMap<PlanarId, usize>,
@@ -73,7 +73,7 @@ struct LocalSource {
 impl LocalSource {
     fn new(enc: Arc<Encoded>, refiner: Arc<PlanarRefiner>, delay: usize) -> Self {
         LocalSource {
-            enc,
+            blobs: enc.blobs_by_key().unwrap(),
             refiner,
             delay,
             asked: HashMap::new(),
@@ -91,7 +91,7 @@ impl DetailSource for LocalSource {
             return Availability::Pending;
         }
         let info = self.refiner.info(id).unwrap();
-        let blob = self.enc.blobs[info.level][info.index].as_deref();
+        let blob = self.blobs.get(&info.key).map(Vec::as_slice);
         Availability::Ready(blob.map(|b| Arc::new(self.refiner.decode(id, b).unwrap())))
     }
 }

@@ -69,7 +69,28 @@ pub struct BlobContext<'a> {
     pub step: u32,
 }
 
-impl BlobContext<'_> {
+impl<'a> BlobContext<'a> {
+    /// The context of a diamond of detail level `level` of `detail_levels`, with storage
+    /// key `key`, valid cells `mask` and `owned_children`; the step is 256 until a caller
+    /// that knows the repository's steps sets it.
+    pub fn of_level(
+        key: &'a [u8],
+        n: usize,
+        detail_levels: usize,
+        level: usize,
+        mask: Option<&'a DiamondMask>,
+        owned_children: usize,
+    ) -> BlobContext<'a> {
+        BlobContext {
+            key,
+            n,
+            group: entropy::group(detail_levels - 1 - level),
+            mask,
+            owned_children,
+            step: 256,
+        }
+    }
+
     /// Whether this diamond's blocks hide signs.
     pub fn hides_signs(&self) -> bool {
         self.step > 256

@@ -316,6 +316,33 @@ pub struct Encoded {
     pub report: EncodeReport,
 }
 
+impl Encoded {
+    /// A copy of every blob by its storage key, as a repository holds them (builds the
+    /// geometry's tables: for tests and tools that look blobs up as a client asks).
+    pub fn blobs_by_key(&self) -> Result<std::collections::HashMap<Vec<u8>, Vec<u8>>, RasterError> {
+        let keys: Vec<Vec<Vec<u8>>> = match self.domain {
+            EncodedDomain::Planar { width, height } => {
+                let g = RasterGeometry::new(width, height, self.n)?;
+                (0..g.detail_levels())
+                    .map(|l| g.level(l).iter().map(|s| s.key.clone()).collect())
+                    .collect()
+            }
+            EncodedDomain::Sphere { face_side } => {
+                let g = SphereGeometry::new(face_side, self.n)?;
+                (0..g.detail_levels())
+                    .map(|l| g.level(l).iter().map(|s| s.key.clone()).collect())
+                    .collect()
+            }
+        };
+        Ok(keys
+            .into_iter()
+            .zip(&self.blobs)
+            .flat_map(|(k, b)| k.into_iter().zip(b))
+            .filter_map(|(k, b)| Some((k, b.clone()?)))
+            .collect())
+    }
+}
+
 /// Rounding offset of the quantiser's decisions, in 1/256 of a step: 128 is round to
 /// nearest. Smaller values move values near a decision threshold to the smaller index
 /// (cheaper to code); reconstruction points stay uniform (no dead zone in the decoder).

@@ -12,7 +12,6 @@ use rayon::prelude::*;
 use crate::blob::BlobContext;
 use crate::coverage::{BlockState, Coverage};
 use crate::diamond::{PlanarDomain, PlanarId, check_size};
-use crate::entropy;
 use crate::lifting::{self, DiamondMask};
 
 /// Why a raster cannot be placed in a hierarchy.
@@ -100,30 +99,27 @@ impl DiamondSlot {
 /// diamonds that meet the raster.
 #[derive(Clone, Debug)]
 pub struct RasterGeometry {
-    width: usize,
-    height: usize,
-    n: usize,
-    domain: PlanarDomain,
+    frame: RasterFrame,
     levels: Vec<Vec<DiamondSlot>>,
-    coverage: Option<Coverage>,
+}
+
+/// The geometry answers everything its frame does (placement of the raster and of single
+/// diamonds); its own methods are those that need the tables.
+impl std::ops::Deref for RasterGeometry {
+    type Target = RasterFrame;
+
+    fn deref(&self) -> &RasterFrame {
+        &self.frame
+    }
 }
 
 impl RasterGeometry {
     /// Places a `width x height` raster in the smallest hierarchy of `N x N` diamonds.
     pub fn new(width: usize, height: usize, n: usize) -> Result<Self, RasterError> {
-        check_size(n)?;
-        if width == 0 || height == 0 || width > 1 << 24 || height > 1 << 24 {
-            return Err(RasterError::BadDimensions(width, height));
-        }
-        let extent = (width.max(height) - 1).max(1) as u64;
-        let mut k = 0u32;
-        while ((n as u64) << k) < extent {
-            k += 1;
-        }
-        let m = n.trailing_zeros() + k;
-        let domain = PlanarDomain::new(m.max(1))?;
+        let frame = RasterFrame::new(width, height, n, None)?;
+        let domain = frame.domain;
+        let detail_levels = frame.detail_levels as u32;
         let rect = [0, width as i64 - 1, 0, height as i64 - 1];
-        let detail_levels = 2 * k;
         let mut levels: Vec<Vec<DiamondSlot>> = (0..detail_levels)
             .map(|level| {
                 domain
@@ -151,14 +147,7 @@ impl RasterGeometry {
                 }
             });
         }
-        Ok(RasterGeometry {
-            width,
-            height,
-            n,
-            domain,
-            levels,
-            coverage: None,
-        })
+        Ok(RasterGeometry { frame, levels })
     }
 
     /// Like [`RasterGeometry::new`], with the points outside the covered blocks of
@@ -171,46 +160,15 @@ impl RasterGeometry {
         coverage: &Coverage,
     ) -> Result<Self, RasterError> {
         let mut g = Self::new(width, height, n)?;
-        let b = coverage.block_side();
-        if coverage.faces() != 1
-            || coverage.cols() != (width - 1) / b + 1
-            || coverage.rows() != (height - 1) / b + 1
-        {
-            return Err(RasterError::Coverage("block grid of another raster size"));
-        }
+        check_coverage(width, height, coverage)?;
         let empty = DiamondMask::none(n);
-        let (w, h) = (width as i64, height as i64);
-        let inside = |(x, y): (i64, i64)| x >= 0 && y >= 0 && x < w && y < h;
-        let covered =
-            |(x, y): (i64, i64)| inside((x, y)) && coverage.covers_point(0, x as usize, y as usize);
         for level in &mut g.levels {
             level.par_iter_mut().for_each(|s| {
-                let corners = [(0, 0), (n, 0), (n, n), (0, n)].map(|(i, j)| s.vertex_xy(i, j));
-                let range = |k: usize, hi: i64| {
-                    let lo = corners.iter().map(|c| [c.0, c.1][k]).min().unwrap_or(0);
-                    let up = corners.iter().map(|c| [c.0, c.1][k]).max().unwrap_or(0);
-                    [lo.max(0) as usize, up.min(hi - 1).max(0) as usize]
-                };
-                match coverage.state(0, range(0, w), range(1, h)) {
-                    BlockState::Full => {}
-                    BlockState::Empty => s.mask = Some(empty.clone()),
-                    BlockState::Mixed => {
-                        s.mask = Some(DiamondMask::from_fn(
-                            n,
-                            |i, j| covered(s.vertex_xy(i, j)),
-                            |i, j| covered(s.cell_xy(i, j)),
-                        ));
-                    }
-                }
+                apply_coverage(s, n, width, height, coverage, &empty);
             });
         }
-        g.coverage = Some(coverage.clone());
+        g.frame.coverage = Some(coverage.clone());
         Ok(g)
-    }
-
-    /// The coverage the geometry was built with ([`RasterGeometry::with_coverage`]).
-    pub fn coverage(&self) -> Option<&Coverage> {
-        self.coverage.as_ref()
     }
 
     /// Whether raster sample `(x, y)` is a valid point: inside the raster and, with a
@@ -222,26 +180,6 @@ impl RasterGeometry {
                 .coverage
                 .as_ref()
                 .is_none_or(|c| c.covers_point(0, x, y))
-    }
-
-    /// Raster width.
-    pub fn width(&self) -> usize {
-        self.width
-    }
-
-    /// Raster height.
-    pub fn height(&self) -> usize {
-        self.height
-    }
-
-    /// Diamond size `N`.
-    pub fn n(&self) -> usize {
-        self.n
-    }
-
-    /// The planar domain (id units = raster samples).
-    pub fn domain(&self) -> PlanarDomain {
-        self.domain
     }
 
     /// Number of levels that carry details.
@@ -257,15 +195,7 @@ impl RasterGeometry {
     /// What the blob decoder must know about diamond `index` of detail level `level`.
     pub fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
         let s = &self.levels[level][index];
-        BlobContext {
-            key: &s.key,
-            n: self.n,
-            group: entropy::group(self.levels.len() - 1 - level),
-            mask: s.mask.as_ref(),
-            owned_children: s.owned.len(),
-            // Set by callers that know the repository's steps.
-            step: 256,
-        }
+        self.frame.slot_context(level, s, s.owned.len())
     }
 
     /// The root diamond's slot (level 0), used for the root grid.
@@ -1083,6 +1013,214 @@ impl Layout for RasterGeometry {
 }
 
 /// The raster placement of a diamond, `None` if none of its points is in the raster.
+/// Checks that `coverage` is a block grid of a `width x height` raster.
+fn check_coverage(width: usize, height: usize, coverage: &Coverage) -> Result<(), RasterError> {
+    let b = coverage.block_side();
+    if coverage.faces() != 1
+        || coverage.cols() != (width - 1) / b + 1
+        || coverage.rows() != (height - 1) / b + 1
+    {
+        return Err(RasterError::Coverage("block grid of another raster size"));
+    }
+    Ok(())
+}
+
+/// Makes the points of slot `s` outside the covered blocks of `coverage` invalid.
+fn apply_coverage(
+    s: &mut DiamondSlot,
+    n: usize,
+    width: usize,
+    height: usize,
+    coverage: &Coverage,
+    empty: &DiamondMask,
+) {
+    let (w, h) = (width as i64, height as i64);
+    let inside = |(x, y): (i64, i64)| x >= 0 && y >= 0 && x < w && y < h;
+    let covered =
+        |(x, y): (i64, i64)| inside((x, y)) && coverage.covers_point(0, x as usize, y as usize);
+    let corners = [(0, 0), (n, 0), (n, n), (0, n)].map(|(i, j)| s.vertex_xy(i, j));
+    let range = |k: usize, hi: i64| {
+        let lo = corners.iter().map(|c| [c.0, c.1][k]).min().unwrap_or(0);
+        let up = corners.iter().map(|c| [c.0, c.1][k]).max().unwrap_or(0);
+        [lo.max(0) as usize, up.min(hi - 1).max(0) as usize]
+    };
+    match coverage.state(0, range(0, w), range(1, h)) {
+        BlockState::Full => {}
+        BlockState::Empty => s.mask = Some(empty.clone()),
+        BlockState::Mixed => {
+            s.mask = Some(DiamondMask::from_fn(
+                n,
+                |i, j| covered(s.vertex_xy(i, j)),
+                |i, j| covered(s.cell_xy(i, j)),
+            ));
+        }
+    }
+}
+
+/// Where a raster sits in the hierarchy, without the per-diamond tables of
+/// [`RasterGeometry`]: what is needed of one diamond is derived from its id, so a client
+/// holds memory for the diamonds it looks at, not for the repository's.
+#[derive(Clone, Debug)]
+pub struct RasterFrame {
+    width: usize,
+    height: usize,
+    n: usize,
+    domain: PlanarDomain,
+    detail_levels: usize,
+    coverage: Option<Coverage>,
+}
+
+impl RasterFrame {
+    /// The frame of a `width x height` raster coded with `N x N` diamonds (the hierarchy
+    /// of [`RasterGeometry::new`]) and, for sparse repositories, its coverage.
+    pub fn new(
+        width: usize,
+        height: usize,
+        n: usize,
+        coverage: Option<&Coverage>,
+    ) -> Result<Self, RasterError> {
+        check_size(n)?;
+        if width == 0 || height == 0 || width > 1 << 24 || height > 1 << 24 {
+            return Err(RasterError::BadDimensions(width, height));
+        }
+        let extent = (width.max(height) - 1).max(1) as u64;
+        let mut k = 0u32;
+        while ((n as u64) << k) < extent {
+            k += 1;
+        }
+        let m = n.trailing_zeros() + k;
+        let domain = PlanarDomain::new(m.max(1))?;
+        if let Some(c) = coverage {
+            check_coverage(width, height, c)?;
+        }
+        Ok(RasterFrame {
+            width,
+            height,
+            n,
+            domain,
+            detail_levels: 2 * k as usize,
+            coverage: coverage.cloned(),
+        })
+    }
+
+    /// Raster width.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// Raster height.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Diamond size `N`.
+    pub fn n(&self) -> usize {
+        self.n
+    }
+
+    /// The planar domain (id units = raster samples).
+    pub fn domain(&self) -> PlanarDomain {
+        self.domain
+    }
+
+    /// Number of levels that carry details.
+    pub fn detail_levels(&self) -> usize {
+        self.detail_levels
+    }
+
+    /// The coverage (sparse repositories).
+    pub fn coverage(&self) -> Option<&Coverage> {
+        self.coverage.as_ref()
+    }
+
+    /// The detail level of `id` if it is a diamond of a detail level.
+    fn detail_level(&self, id: PlanarId) -> Option<usize> {
+        let level = self.domain.level(id).ok()? as usize;
+        (level < self.detail_levels).then_some(level)
+    }
+
+    /// Whether diamond `id` carries details: of a detail level, with a point in the
+    /// raster (the diamonds of [`RasterGeometry::level`]). Builds no mask.
+    pub fn is_coded(&self, id: PlanarId) -> bool {
+        self.detail_level(id).is_some() && self.meets(id)
+    }
+
+    /// Whether a vertex or cell of diamond `id` lies in the raster.
+    fn meets(&self, id: PlanarId) -> bool {
+        let Some(s) = bare_slot(&self.domain, id, self.n) else {
+            return false;
+        };
+        let (w, h) = (self.width as i64, self.height as i64);
+        let inside = |(x, y): (i64, i64)| x >= 0 && y >= 0 && x < w && y < h;
+        let n = self.n;
+        // Every point lies in the box of the corners: a box outside the raster has none.
+        let corners = [(0, 0), (n, 0), (n, n), (0, n)].map(|(i, j)| s.vertex_xy(i, j));
+        let lo = |k: usize| corners.iter().map(|c| [c.0, c.1][k]).min().unwrap_or(0);
+        let hi = |k: usize| corners.iter().map(|c| [c.0, c.1][k]).max().unwrap_or(-1);
+        if lo(0) >= w || hi(0) < 0 || lo(1) >= h || hi(1) < 0 {
+            return false;
+        }
+        corners.iter().any(|&c| inside(c))
+            || (0..=n).any(|i| (0..=n).any(|j| inside(s.vertex_xy(i, j))))
+            || (0..n).any(|i| (0..n).any(|j| inside(s.cell_xy(i, j))))
+    }
+
+    /// The slot of a diamond that carries details (its level, storage key and mask, the
+    /// raster's edges and coverage applied; no child indices), `None` for others.
+    pub fn slot(&self, id: PlanarId) -> Option<(usize, DiamondSlot)> {
+        let level = self.detail_level(id)?;
+        let mut s = slot(&self.domain, id, self.n, self.width, self.height)?;
+        if let Some(c) = &self.coverage {
+            apply_coverage(
+                &mut s,
+                self.n,
+                self.width,
+                self.height,
+                c,
+                &DiamondMask::none(self.n),
+            );
+        }
+        Some((level, s))
+    }
+
+    /// The blob context of a coded diamond's slot at `level` with `owned` owned children.
+    pub fn slot_context<'a>(
+        &self,
+        level: usize,
+        s: &'a DiamondSlot,
+        owned: usize,
+    ) -> BlobContext<'a> {
+        BlobContext::of_level(
+            &s.key,
+            self.n,
+            self.detail_levels,
+            level,
+            s.mask.as_ref(),
+            owned,
+        )
+    }
+}
+
+/// A diamond's frame as a slot (no key, mask or placement), `None` outside the domain.
+fn bare_slot(domain: &PlanarDomain, id: PlanarId, n: usize) -> Option<DiamondSlot> {
+    let c = domain.corners(id).ok()?;
+    let ni = n as i64;
+    let a = [(c[1][0] - c[0][0]) / ni, (c[1][1] - c[0][1]) / ni];
+    let b = [(c[3][0] - c[0][0]) / ni, (c[3][1] - c[0][1]) / ni];
+    Some(DiamondSlot {
+        id,
+        x0: c[0][0],
+        y0: c[0][1],
+        a,
+        b,
+        mask: None,
+        key: Vec::new(),
+        children: Vec::new(),
+        owned: Vec::new(),
+        lin: None,
+    })
+}
+
 fn slot(
     domain: &PlanarDomain,
     id: PlanarId,
@@ -1090,23 +1228,8 @@ fn slot(
     width: usize,
     height: usize,
 ) -> Option<DiamondSlot> {
-    let c = domain.corners(id).ok()?;
-    let ni = n as i64;
-    let a = [(c[1][0] - c[0][0]) / ni, (c[1][1] - c[0][1]) / ni];
-    let b = [(c[3][0] - c[0][0]) / ni, (c[3][1] - c[0][1]) / ni];
-    let key = domain.key(id).ok()?;
-    let mut s = DiamondSlot {
-        id,
-        x0: c[0][0],
-        y0: c[0][1],
-        a,
-        b,
-        mask: None,
-        key,
-        children: Vec::new(),
-        owned: Vec::new(),
-        lin: None,
-    };
+    let mut s = bare_slot(domain, id, n)?;
+    s.key = domain.key(id).ok()?;
     let inside =
         |(x, y): (i64, i64)| x >= 0 && y >= 0 && (x as usize) < width && (y as usize) < height;
     let all_corners = [(0, 0), (n, 0), (n, n), (0, n)]

@@ -31,7 +31,6 @@ use crate::blob::BlobContext;
 use crate::coverage::{BlockState, Coverage};
 use crate::diamond::sphere::{axes, chart_of};
 use crate::diamond::{SphereDomain, SphereId, check_size};
-use crate::entropy;
 use crate::lifting::DiamondMask;
 use crate::raster::{
     Layout, RasterError, analyze_levels, check_len, read_lattice, synthesize_checked,
@@ -193,22 +192,27 @@ impl SphereSlot {
     }
 }
 
-/// The sphere hierarchy a cube raster is placed in: domain, diamond size, the six face
-/// roots and, per detail level, every diamond.
+/// Where a planet sits in the sphere hierarchy, without the per-diamond tables of
+/// [`SphereGeometry`]: what is needed of one diamond (its placement in the cube raster,
+/// key and mask) is derived from its id, so a client holds memory for the diamonds it
+/// looks at, not for the planet's.
 #[derive(Clone, Debug)]
-pub struct SphereGeometry {
+pub struct SphereFrame {
     face_side: usize,
     n: usize,
     domain: SphereDomain,
-    roots: Vec<SphereSlot>,
-    levels: Vec<Vec<SphereSlot>>,
+    detail_levels: usize,
     coverage: Option<Coverage>,
 }
 
-impl SphereGeometry {
-    /// Places a planet of `face_side` samples per face side (`N 2^k`, `k >= 0`) in the
-    /// sphere hierarchy of `N x N` diamonds.
-    pub fn new(face_side: usize, n: usize) -> Result<Self, RasterError> {
+impl SphereFrame {
+    /// The frame of a planet of `face_side` samples per face side (`N 2^k`, `k >= 0`)
+    /// coded with `N x N` diamonds and, for sparse planets, its coverage.
+    pub fn new(
+        face_side: usize,
+        n: usize,
+        coverage: Option<&Coverage>,
+    ) -> Result<Self, RasterError> {
         check_size(n)?;
         if face_side == 0 || face_side > 1 << 24 {
             return Err(RasterError::BadDimensions(face_side, face_side));
@@ -222,98 +226,56 @@ impl SphereGeometry {
         if m == 0 {
             return Err(RasterError::FaceSide { face_side, n });
         }
-        let domain = SphereDomain::new(m)?;
-        let mut geom = SphereGeometry {
+        if let Some(c) = coverage {
+            check_coverage(face_side, c)?;
+        }
+        Ok(SphereFrame {
             face_side,
             n,
-            domain,
-            roots: Vec::new(),
-            levels: Vec::new(),
-            coverage: None,
-        };
-        geom.roots = domain
-            .roots()
-            .into_iter()
-            .map(|id| geom.slot(id))
-            .collect::<Result<_, _>>()?;
-        let s2 = face_side as i64;
-        for level in 0..2 * k {
-            let step = 1usize << domain.level_exponent(level);
-            let ids: Vec<SphereId> = (0..6u8)
-                .flat_map(|f| {
-                    (0..=s2).step_by(step).flat_map(move |v| {
-                        (0..=s2)
-                            .step_by(step)
-                            .filter_map(move |u| domain.from_face_chart(f, [u, v]).ok())
-                            .filter(move |&id| {
-                                domain.level(id).ok() == Some(level)
-                                    && domain.faces(id).ok().map(|x| x.0) == Some(f)
-                            })
-                    })
-                })
-                .collect();
-            let mut slots: Vec<SphereSlot> = ids
-                .into_par_iter()
-                .map(|id| geom.slot(id))
-                .collect::<Result<_, _>>()?;
-            slots.sort_by(|a, b| a.key.cmp(&b.key));
-            geom.levels.push(slots);
-        }
-        for level in 0..geom.levels.len().saturating_sub(1) {
-            let (coarse, fine) = geom.levels.split_at_mut(level + 1);
-            let fine = &fine[0];
-            let find = |id: SphereId| {
-                let key = domain.key(id).ok()?;
-                fine.binary_search_by(|s| s.key.as_slice().cmp(&key)).ok()
-            };
-            coarse[level].par_iter_mut().for_each(|s| {
-                for child in domain.children(s.id).unwrap_or_default() {
-                    if let Some(k) = find(child) {
-                        s.children.push(k);
-                        if domain.parents(child).ok().and_then(|p| p.first().copied()) == Some(s.id)
-                        {
-                            s.owned.push(k);
-                        }
-                    }
-                }
-            });
-        }
-        Ok(geom)
+            domain: SphereDomain::new(m)?,
+            detail_levels: 2 * k as usize,
+            coverage: coverage.cloned(),
+        })
     }
 
-    /// Like [`SphereGeometry::new`], with the points outside the covered blocks of
-    /// `coverage` invalid (sparse mode, see [`crate::coverage`]): diamonds that meet
-    /// uncovered blocks get masks. Both copies of a cube edge point agree: a point is
-    /// valid when a covered block of any face holding a copy contains it.
-    pub fn with_coverage(
-        face_side: usize,
-        n: usize,
-        coverage: &Coverage,
-    ) -> Result<Self, RasterError> {
-        Self::new(face_side, n)?.covered(coverage)
+    /// Number of levels that carry details.
+    pub fn detail_levels(&self) -> usize {
+        self.detail_levels
     }
 
-    /// This geometry with `coverage` applied (see [`SphereGeometry::with_coverage`]).
-    pub(crate) fn covered(mut self, coverage: &Coverage) -> Result<Self, RasterError> {
-        let g = &mut self;
-        let (face_side, n) = (g.face_side, g.n);
-        let b = coverage.block_side();
-        if coverage.faces() != 6
-            || coverage.cols() != coverage.rows()
-            || coverage.cols().checked_mul(b) != Some(face_side)
-        {
-            return Err(RasterError::Coverage("block grid of another planet size"));
+    /// The detail level of `id` if it is a diamond of a detail level (on a planet every
+    /// diamond of those levels carries details).
+    pub fn coded_level(&self, id: SphereId) -> Option<usize> {
+        let level = self.domain.level(id).ok()? as usize;
+        (level < self.detail_levels).then_some(level)
+    }
+
+    /// The slot of a diamond that carries details (its level, placement, key and, with a
+    /// coverage, mask; no child indices), `None` for others.
+    pub fn coded_slot(&self, id: SphereId) -> Option<(usize, SphereSlot)> {
+        let level = self.coded_level(id)?;
+        let mut s = self.slot(id).ok()?;
+        if let Some(c) = &self.coverage {
+            s.mask = self.coverage_mask(c, &s, &DiamondMask::none(self.n));
         }
-        g.coverage = Some(coverage.clone());
-        let mut levels = std::mem::take(&mut g.levels);
-        let empty = DiamondMask::none(n);
-        for level in &mut levels {
-            level.par_iter_mut().for_each(|s| {
-                s.mask = g.coverage_mask(coverage, s, &empty);
-            });
-        }
-        g.levels = levels;
-        Ok(self)
+        Some((level, s))
+    }
+
+    /// The blob context of a coded diamond's slot at `level` with `owned` owned children.
+    pub fn slot_context<'a>(
+        &self,
+        level: usize,
+        s: &'a SphereSlot,
+        owned: usize,
+    ) -> BlobContext<'a> {
+        BlobContext::of_level(
+            &s.key,
+            self.n,
+            self.detail_levels,
+            level,
+            s.mask.as_ref(),
+            owned,
+        )
     }
 
     /// The mask a coverage gives a diamond (`None`: all valid).
@@ -422,50 +384,6 @@ impl SphereGeometry {
         6 * self.face_side * self.face_side + 2
     }
 
-    /// Number of levels that carry details.
-    pub fn detail_levels(&self) -> usize {
-        self.levels.len()
-    }
-
-    /// The diamonds of a detail level, sorted by key.
-    pub fn level(&self, level: usize) -> &[SphereSlot] {
-        &self.levels[level]
-    }
-
-    /// The six face roots' slots, in face order.
-    pub fn root_slots(&self) -> &[SphereSlot] {
-        &self.roots
-    }
-
-    /// `(level, index)` of a diamond with details, `None` for ids outside the detail
-    /// levels (or not of this domain).
-    pub fn locate(&self, id: SphereId) -> Option<(usize, usize)> {
-        self.locate_key(&self.domain.key(id).ok()?)
-    }
-
-    /// `(level, index)` of the diamond with storage key `key`, `None` if no diamond with
-    /// details has that key.
-    pub fn locate_key(&self, key: &[u8]) -> Option<(usize, usize)> {
-        let level = *key.first()? as usize;
-        let slots = self.levels.get(level)?;
-        let index = slots.binary_search_by(|s| s.key.as_slice().cmp(key)).ok()?;
-        Some((level, index))
-    }
-
-    /// What the blob decoder must know about diamond `index` of detail level `level`.
-    pub fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
-        let s = &self.levels[level][index];
-        BlobContext {
-            key: &s.key,
-            n: self.n,
-            group: entropy::group(self.levels.len() - 1 - level),
-            mask: s.mask.as_ref(),
-            owned_children: s.owned.len(),
-            // Set by callers that know the repository's steps.
-            step: 256,
-        }
-    }
-
     fn width(&self) -> usize {
         self.face_side + 1
     }
@@ -519,33 +437,6 @@ impl SphereGeometry {
             == Some(index)
     }
 
-    /// Copies the canonical copy of every cube edge and corner point to its other copies;
-    /// `values` must be a whole cube raster.
-    pub fn make_consistent<T: Copy>(&self, values: &mut [T]) -> Result<(), RasterError> {
-        if values.len() != self.cube_len() {
-            return Err(RasterError::WrongLength {
-                expected: self.cube_len(),
-                got: values.len(),
-            });
-        }
-        let w = self.width();
-        for face in 0..6u8 {
-            for v in 0..w {
-                let step = if v == 0 || v == w - 1 { 1 } else { w - 1 };
-                for u in (0..w).step_by(step) {
-                    let here = self.cube_index(face, u, v);
-                    let pos = self.sample_position(face, u, v);
-                    if let Some(first) = self.point_indices(pos).next()
-                        && first != here
-                    {
-                        values[here] = values[first];
-                    }
-                }
-            }
-        }
-        Ok(())
-    }
-
     /// The cube-raster placement of a diamond.
     fn slot(&self, id: SphereId) -> Result<SphereSlot, RasterError> {
         let d = &self.domain;
@@ -597,6 +488,191 @@ impl SphereGeometry {
             diag_upper,
             mask: None,
         })
+    }
+}
+
+/// Checks that `coverage` is a block grid of a planet of `face_side`.
+fn check_coverage(face_side: usize, coverage: &Coverage) -> Result<(), RasterError> {
+    let b = coverage.block_side();
+    if coverage.faces() != 6
+        || coverage.cols() != coverage.rows()
+        || coverage.cols().checked_mul(b) != Some(face_side)
+    {
+        return Err(RasterError::Coverage("block grid of another planet size"));
+    }
+    Ok(())
+}
+
+/// The sphere hierarchy a cube raster is placed in: domain, diamond size, the six face
+/// roots and, per detail level, every diamond.
+#[derive(Clone, Debug)]
+pub struct SphereGeometry {
+    frame: SphereFrame,
+    roots: Vec<SphereSlot>,
+    levels: Vec<Vec<SphereSlot>>,
+}
+
+/// The geometry answers everything its frame does (placement of samples and of single
+/// diamonds); its own methods are those that need the tables.
+impl std::ops::Deref for SphereGeometry {
+    type Target = SphereFrame;
+
+    fn deref(&self) -> &SphereFrame {
+        &self.frame
+    }
+}
+
+impl SphereGeometry {
+    /// Places a planet of `face_side` samples per face side (`N 2^k`, `k >= 0`) in the
+    /// sphere hierarchy of `N x N` diamonds.
+    pub fn new(face_side: usize, n: usize) -> Result<Self, RasterError> {
+        let frame = SphereFrame::new(face_side, n, None)?;
+        let (domain, detail_levels) = (frame.domain, frame.detail_levels as u32);
+        let mut geom = SphereGeometry {
+            frame,
+            roots: Vec::new(),
+            levels: Vec::new(),
+        };
+        geom.roots = domain
+            .roots()
+            .into_iter()
+            .map(|id| geom.slot(id))
+            .collect::<Result<_, _>>()?;
+        let s2 = face_side as i64;
+        for level in 0..detail_levels {
+            let step = 1usize << domain.level_exponent(level);
+            let ids: Vec<SphereId> = (0..6u8)
+                .flat_map(|f| {
+                    (0..=s2).step_by(step).flat_map(move |v| {
+                        (0..=s2)
+                            .step_by(step)
+                            .filter_map(move |u| domain.from_face_chart(f, [u, v]).ok())
+                            .filter(move |&id| {
+                                domain.level(id).ok() == Some(level)
+                                    && domain.faces(id).ok().map(|x| x.0) == Some(f)
+                            })
+                    })
+                })
+                .collect();
+            let mut slots: Vec<SphereSlot> = ids
+                .into_par_iter()
+                .map(|id| geom.slot(id))
+                .collect::<Result<_, _>>()?;
+            slots.sort_by(|a, b| a.key.cmp(&b.key));
+            geom.levels.push(slots);
+        }
+        for level in 0..geom.levels.len().saturating_sub(1) {
+            let (coarse, fine) = geom.levels.split_at_mut(level + 1);
+            let fine = &fine[0];
+            let find = |id: SphereId| {
+                let key = domain.key(id).ok()?;
+                fine.binary_search_by(|s| s.key.as_slice().cmp(&key)).ok()
+            };
+            coarse[level].par_iter_mut().for_each(|s| {
+                for child in domain.children(s.id).unwrap_or_default() {
+                    if let Some(k) = find(child) {
+                        s.children.push(k);
+                        if domain.parents(child).ok().and_then(|p| p.first().copied()) == Some(s.id)
+                        {
+                            s.owned.push(k);
+                        }
+                    }
+                }
+            });
+        }
+        Ok(geom)
+    }
+
+    /// Like [`SphereGeometry::new`], with the points outside the covered blocks of
+    /// `coverage` invalid (sparse mode, see [`crate::coverage`]): diamonds that meet
+    /// uncovered blocks get masks. Both copies of a cube edge point agree: a point is
+    /// valid when a covered block of any face holding a copy contains it.
+    pub fn with_coverage(
+        face_side: usize,
+        n: usize,
+        coverage: &Coverage,
+    ) -> Result<Self, RasterError> {
+        Self::new(face_side, n)?.covered(coverage)
+    }
+
+    /// This geometry with `coverage` applied (see [`SphereGeometry::with_coverage`]).
+    pub(crate) fn covered(mut self, coverage: &Coverage) -> Result<Self, RasterError> {
+        let g = &mut self;
+        let n = g.n;
+        check_coverage(g.face_side, coverage)?;
+        g.frame.coverage = Some(coverage.clone());
+        let mut levels = std::mem::take(&mut g.levels);
+        let empty = DiamondMask::none(n);
+        for level in &mut levels {
+            level.par_iter_mut().for_each(|s| {
+                s.mask = g.coverage_mask(coverage, s, &empty);
+            });
+        }
+        g.levels = levels;
+        Ok(self)
+    }
+
+    /// Number of levels that carry details.
+    pub fn detail_levels(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// The diamonds of a detail level, sorted by key.
+    pub fn level(&self, level: usize) -> &[SphereSlot] {
+        &self.levels[level]
+    }
+
+    /// The six face roots' slots, in face order.
+    pub fn root_slots(&self) -> &[SphereSlot] {
+        &self.roots
+    }
+
+    /// `(level, index)` of a diamond with details, `None` for ids outside the detail
+    /// levels (or not of this domain).
+    pub fn locate(&self, id: SphereId) -> Option<(usize, usize)> {
+        self.locate_key(&self.domain.key(id).ok()?)
+    }
+
+    /// `(level, index)` of the diamond with storage key `key`, `None` if no diamond with
+    /// details has that key.
+    pub fn locate_key(&self, key: &[u8]) -> Option<(usize, usize)> {
+        let level = *key.first()? as usize;
+        let slots = self.levels.get(level)?;
+        let index = slots.binary_search_by(|s| s.key.as_slice().cmp(key)).ok()?;
+        Some((level, index))
+    }
+
+    /// What the blob decoder must know about diamond `index` of detail level `level`.
+    pub fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
+        let s = &self.levels[level][index];
+        self.frame.slot_context(level, s, s.owned.len())
+    }
+
+    /// Copies the canonical copy of every cube edge and corner point to its other copies;
+    /// `values` must be a whole cube raster.
+    pub fn make_consistent<T: Copy>(&self, values: &mut [T]) -> Result<(), RasterError> {
+        if values.len() != self.cube_len() {
+            return Err(RasterError::WrongLength {
+                expected: self.cube_len(),
+                got: values.len(),
+            });
+        }
+        let w = self.width();
+        for face in 0..6u8 {
+            for v in 0..w {
+                let step = if v == 0 || v == w - 1 { 1 } else { w - 1 };
+                for u in (0..w).step_by(step) {
+                    let here = self.cube_index(face, u, v);
+                    let pos = self.sample_position(face, u, v);
+                    if let Some(first) = self.point_indices(pos).next()
+                        && first != here
+                    {
+                        values[here] = values[first];
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Reads the six root vertex grids (`(N+1)^2` each, canonical copies), in face order.

@@ -10,6 +10,7 @@ use std::collections::HashMap;
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::encode::{EncodeOptions, Encoded, RateMode, decode_integers, encode};
 use quincunx_codec::incremental::{PlanarRefiner, RefineError, Refined};
+use quincunx_codec::raster::RasterGeometry;
 
 fn korea(mode: RateMode, n: usize) -> Encoded {
     // A crop that is not a power of two plus one: border diamonds have masks.
@@ -41,13 +42,13 @@ fn refine_everything(enc: &Encoded) -> HashMap<PlanarId, Refined> {
         (x >= 0 && y >= 0 && (x as usize) < enc.width && (y as usize) < enc.height)
             .then(|| y as usize * enc.width + x as usize)
     };
+    let blobs = enc.blobs_by_key().unwrap();
     let mut level_ids: Vec<Vec<PlanarId>> = vec![vec![r.root().0]];
     for level in 0..r.detail_levels() {
         let mut next = Vec::new();
         for &id in &level_ids[level] {
             let info = r.info(id).unwrap();
             assert_eq!(info.level, level);
-            let index = info.index;
             let grid = if level == 0 {
                 r.root().1.to_vec()
             } else {
@@ -73,7 +74,7 @@ fn refine_everything(enc: &Encoded) -> HashMap<PlanarId, Refined> {
                     }
                 }
             }
-            let blob = enc.blobs[level].get(index).and_then(Option::as_deref);
+            let blob = blobs.get(&info.key).map(Vec::as_slice);
             let out = r.refine(id, &grid, blob).unwrap();
             for i in 0..=n {
                 for j in 0..=n {
@@ -151,11 +152,12 @@ fn bad_input_is_an_error_never_a_panic() {
     let refined_root = r.refine(root, root_grid, root_blob).unwrap();
     let child = r.info(root).unwrap().children[0];
     let child_info = r.info(child).unwrap();
-    let other = enc.blobs[1]
+    let blobs = enc.blobs_by_key().unwrap();
+    let other = blobs
         .iter()
-        .enumerate()
-        .find(|(k, b)| *k != child_info.index && b.is_some())
-        .and_then(|(_, b)| b.as_deref());
+        .filter(|(k, _)| **k != child_info.key)
+        .min_by_key(|(k, _)| k.as_slice())
+        .map(|(_, b)| b.as_slice());
     let grid = r.child_grid(child, &[&refined_root]).unwrap();
     if let Some(other) = other {
         assert!(matches!(
@@ -170,7 +172,7 @@ fn bad_input_is_an_error_never_a_panic() {
         Err(RefineError::NotAParent { .. })
     ));
     let refined_child = r
-        .refine(child, &grid, enc.blobs[1][child_info.index].as_deref())
+        .refine(child, &grid, blobs.get(&child_info.key).map(Vec::as_slice))
         .unwrap();
     let parents = domain.parents(grandchild).unwrap();
     if parents.len() == 2 && r.info(grandchild).is_some_and(|i| i.mask.is_none()) {
@@ -207,10 +209,12 @@ fn no_data_flags_name_exactly_the_empty_subtrees() {
     let r = PlanarRefiner::from_encoded(&enc).unwrap();
     // Whether a diamond or any descendant has a blob, bottom-up over the levels.
     let levels = r.detail_levels();
+    // The encoder's order of each level's diamonds.
+    let geom = RasterGeometry::new(enc.width, enc.height, enc.n).unwrap();
     let mut data: HashMap<PlanarId, bool> = HashMap::new();
     for l in (0..levels).rev() {
         for (i, blob) in enc.blobs[l].iter().enumerate() {
-            let id = level_ids(&r, l)[i];
+            let id = geom.level(l)[i].id;
             let below = r
                 .info(id)
                 .unwrap()
@@ -224,7 +228,7 @@ fn no_data_flags_name_exactly_the_empty_subtrees() {
     for l in 0..levels {
         for (i, blob) in enc.blobs[l].iter().enumerate() {
             let Some(blob) = blob else { continue };
-            let id = level_ids(&r, l)[i];
+            let id = geom.level(l)[i].id;
             let d = r.decode(id, blob).unwrap();
             for &(child, class) in &d.child_classes {
                 let empty = d.empty_children.contains(&child);
@@ -241,19 +245,4 @@ fn no_data_flags_name_exactly_the_empty_subtrees() {
         }
     }
     assert!(flagged > 10 && unflagged > 10, "{flagged} {unflagged}");
-}
-
-/// The ids of a level, in the encoder's order.
-fn level_ids(r: &PlanarRefiner, level: usize) -> Vec<PlanarId> {
-    let mut ids = vec![r.root().0];
-    for _ in 0..level {
-        let mut next: Vec<PlanarId> = ids
-            .iter()
-            .flat_map(|&id| r.info(id).unwrap().children)
-            .collect();
-        next.sort_by_key(|id| r.info(*id).unwrap().index);
-        next.dedup();
-        ids = next;
-    }
-    ids
 }

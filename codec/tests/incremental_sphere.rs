@@ -31,7 +31,8 @@ fn refine_everything(enc: &Encoded) {
     let r = SphereRefiner::from_encoded(enc).unwrap();
     let n = r.n();
     let domain = r.domain();
-    let geom = r.geometry().clone();
+    let geom = r.frame().clone();
+    let blobs = enc.blobs_by_key().unwrap();
     let two_n = 2 * n as i64;
     let decoded = decode_sphere_integers(enc).unwrap();
     let mut raster = vec![0i32; decoded.len()];
@@ -82,7 +83,7 @@ fn refine_everything(enc: &Encoded) {
                     }
                 }
             }
-            let blob = enc.blobs[level].get(info.index).and_then(Option::as_deref);
+            let blob = blobs.get(&info.key).map(Vec::as_slice);
             let details = blob.map(|b| r.decode(id, b).unwrap());
             let out = r.synthesize(id, &grid, details.as_ref()).unwrap();
             for i in 0..=n {

@@ -37,7 +37,7 @@ fn korea_crop(w: usize, h: usize, n: usize) -> Encoded {
 /// is the vertex position in a common unit (`None` outside the data).
 fn refine_all<R: Refiner>(
     r: &R,
-    blobs: &[Vec<Option<Vec<u8>>>],
+    blobs: &HashMap<Vec<u8>, Vec<u8>>,
     point: impl Fn(R::Id, usize, usize) -> Option<[i64; 3]>,
 ) -> Vec<HashMap<R::Id, Vec<i32>>> {
     let n = r.n();
@@ -56,7 +56,7 @@ fn refine_all<R: Refiner>(
             assert_eq!(r.is_coded(id), !info.procedural);
             assert!(r.is_refinable(id));
             let blob = (!info.procedural)
-                .then(|| blobs[level].get(info.index).and_then(Option::as_deref))
+                .then(|| blobs.get(&info.key).map(Vec::as_slice))
                 .flatten();
             let details = blob.map(|b| r.decode(id, b).unwrap());
             refined.insert(id, r.synthesize(id, g, details.as_ref()).unwrap());
@@ -119,7 +119,7 @@ fn planar_procedural_levels_keep_every_decoded_sample_and_stay_seamless() {
             (0..=(w as i64 - 1) * ni).contains(&p[0]) && (0..=(h as i64 - 1) * ni).contains(&p[1]);
         inside.then_some([p[0], p[1], 0])
     };
-    let levels = refine_all(&r, &enc.blobs, point);
+    let levels = refine_all(&r, &enc.blobs_by_key().unwrap(), point);
     // Zero details interpolate: wherever a procedural vertex falls on a sample of the
     // raster, it carries exactly the decoded value.
     let mut on_samples = 0;
@@ -169,7 +169,7 @@ fn noise_is_bounded_zero_centred_and_the_same_every_time() {
             c[0][k] * 8 + i as i64 * (c[1][k] - c[0][k]) + j as i64 * (c[3][k] - c[0][k])
         }))
     };
-    let levels = refine_all(&zero, &enc.blobs, point);
+    let levels = refine_all(&zero, &enc.blobs_by_key().unwrap(), point);
     let finest = levels.last().unwrap();
     let (mut sum, mut count, mut differ) = (0i64, 0, 0);
     for (&id, g) in finest {
@@ -220,7 +220,7 @@ fn planet_procedural_levels_stay_seamless_across_cube_edges_and_corners() {
         let scaled = quincunx_codec::diamond::SphereId::new(id.c.map(|x| x * n as i64));
         big.vertex_position(scaled, n, i, j).ok()
     };
-    let levels = refine_all(&r, &enc.blobs, point);
+    let levels = refine_all(&r, &enc.blobs_by_key().unwrap(), point);
     assert_eq!(levels.len(), r.detail_levels() + 4);
 }
 

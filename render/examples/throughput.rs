@@ -23,6 +23,7 @@
 //! of submit + wait. Prints medians.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+use std::collections::HashMap;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -50,7 +51,7 @@ const SIZE: [u32; 2] = [1920, 1080];
 const BACKGROUND: [u8; 3] = [135, 170, 210];
 
 struct Local {
-    enc: Arc<Encoded>,
+    blobs: HashMap<Vec<u8>, Vec<u8>>,
     refiner: Arc<PlanarRefiner>,
 }
 
@@ -62,12 +63,7 @@ impl DetailSource for Local {
         if info.procedural {
             return Availability::Ready(None);
         }
-        let blob = self
-            .enc
-            .blobs
-            .get(info.level)
-            .and_then(|l| l.get(info.index))
-            .and_then(|b| b.as_deref());
+        let blob = self.blobs.get(&info.key).map(Vec::as_slice);
         Availability::Ready(blob.and_then(|b| self.refiner.decode(id, b).ok().map(Arc::new)))
     }
 }
@@ -414,7 +410,7 @@ fn main() -> Result<(), Error> {
     };
     let mut dag = Dag::new(Arc::clone(&refiner));
     let mut source = Local {
-        enc: Arc::clone(&enc),
+        blobs: enc.blobs_by_key()?,
         refiner: Arc::clone(&refiner),
     };
     let mut refinement = Refinement::default();

@@ -15,7 +15,7 @@ use quincunx_client::dag::Dag;
 use quincunx_client::refine::{Availability, DetailSource};
 use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::encode::{EncodeOptions, Encoded, Grid, RateMode, encode};
+use quincunx_codec::encode::{EncodeOptions, Grid, RateMode, encode};
 use quincunx_codec::incremental::PlanarRefiner;
 use quincunx_render::offscreen::gpu_for_test;
 use quincunx_render::{Camera, RenderDomain};
@@ -96,7 +96,7 @@ fn shared_planet_vertices_are_bit_identical_across_cube_faces() {
 }
 
 struct Local {
-    enc: Arc<Encoded>,
+    blobs: HashMap<Vec<u8>, Vec<u8>>,
     refiner: Arc<PlanarRefiner>,
 }
 
@@ -106,7 +106,7 @@ impl DetailSource for Local {
         if info.procedural {
             return Availability::Ready(None);
         }
-        let blob = self.enc.blobs[info.level][info.index].as_deref();
+        let blob = self.blobs.get(&info.key).map(Vec::as_slice);
         Availability::Ready(blob.map(|b| Arc::new(self.refiner.decode(id, b).unwrap())))
     }
 }
@@ -154,7 +154,7 @@ fn shared_planar_vertices_are_bit_identical() {
     };
     let mut dag = Dag::new(Arc::clone(&refiner));
     let mut source = Local {
-        enc,
+        blobs: enc.blobs_by_key().unwrap(),
         refiner: Arc::clone(&refiner),
     };
     converge(&mut dag, world, &view, &mut source).unwrap();

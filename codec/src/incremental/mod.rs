@@ -13,10 +13,11 @@
 //! of the whole-raster decoder ([`crate::encode::decode_integers`]); the tests check
 //! both.
 //!
-//! [`PlanarRefiner`] covers the planar domain, [`SphereRefiner`] planets; both precompute
-//! the slots of their geometry ([`RasterGeometry`], [`crate::sphere_raster::SphereGeometry`]):
-//! memory is proportional to the repository's diamonds (about 60 bytes each plus masks
-//! where the data ends). [`Refiner`] is what a client needs of either.
+//! [`PlanarRefiner`] covers the planar domain, [`SphereRefiner`] planets. Neither holds
+//! tables of the repository's diamonds: what refining one needs (level, key, mask,
+//! children) is derived from its id ([`RasterFrame`],
+//! [`crate::sphere_raster::SphereFrame`]), so a client's memory follows its view, not
+//! the repository's size. [`Refiner`] is what a client needs of either.
 
 mod sphere;
 
@@ -28,7 +29,7 @@ use crate::diamond::{IdError, PlanarDomain, PlanarId};
 use crate::encode::{Encoded, dequantize};
 use crate::entropy::CodecModel;
 use crate::lifting::{self, DiamondMask};
-use crate::raster::{RasterError, RasterGeometry};
+use crate::raster::{RasterError, RasterFrame};
 
 /// Why a diamond could not be refined or assembled.
 #[derive(Debug, thiserror::Error)]
@@ -110,21 +111,19 @@ pub struct Details<I = PlanarId> {
 
 /// What a client needs to know about a diamond besides its grid.
 #[derive(Clone, Debug)]
-pub struct DiamondInfo<'a, I = PlanarId> {
+pub struct DiamondInfo<I = PlanarId> {
     /// Detail level (0 = the root).
     pub level: usize,
-    /// Position among its level's diamonds in the encoder's output
-    /// ([`Encoded::blobs`]`[level][index]`).
-    pub index: usize,
-    /// Storage key (the blob's key in the repository).
-    pub key: &'a [u8],
+    /// Storage key (the blob's key in the repository; [`Encoded::blobs_by_key`] finds it in an
+    /// encoder's output).
+    pub key: Vec<u8>,
     /// Valid points (`None` = all): vertices outside the raster or its coverage are
     /// invalid and carry no meaningful value. (Cheap to clone: shared storage.)
     pub mask: Option<DiamondMask>,
     /// Its children (inside the data; at the finest level, the leaves).
     pub children: Vec<I>,
     /// Below the repository's finest level: no blob exists, synthesis makes its details
-    /// up ([`Procedural`]); `index` and `key` are then meaningless (0 and empty).
+    /// up ([`Procedural`]); `key` is then empty.
     pub procedural: bool,
 }
 
@@ -254,7 +253,7 @@ pub trait Refiner: Send + Sync + std::fmt::Debug + 'static {
     /// The roots (one planar root, six planet face roots) and their vertex grids.
     fn roots(&self) -> Vec<(Self::Id, &[i32])>;
     /// What a client needs to know about a refinable diamond (`None` for leaves).
-    fn info(&self, id: Self::Id) -> Option<DiamondInfo<'_, Self::Id>>;
+    fn info(&self, id: Self::Id) -> Option<DiamondInfo<Self::Id>>;
     /// Whether `id` can be refined here (coded or procedural).
     fn is_refinable(&self, id: Self::Id) -> bool;
     /// The parents of `id` inside the domain (none for roots).
@@ -287,16 +286,15 @@ pub trait Refiner: Send + Sync + std::fmt::Debug + 'static {
     fn id_of(key: [i64; 3]) -> Self::Id;
 }
 
-/// Dequantises a diamond's blob and splits its side information over the owned children
-/// (`next[k]` is the id of the next level's diamond `k`).
+/// Dequantises a diamond's blob and splits its side information over its `owned`
+/// children (in side order).
 pub(crate) fn decode_details<I: Copy>(
     id: I,
     blob: &[u8],
     ctx: &crate::blob::BlobContext<'_>,
     model: &CodecModel,
     step: u32,
-    owned: &[usize],
-    next: impl Fn(usize) -> Option<I>,
+    owned: &[I],
 ) -> Result<Details<I>, RefineError> {
     let mut q = Vec::with_capacity(ctx.n * ctx.n);
     // The level's step decides sign hiding.
@@ -305,13 +303,11 @@ pub(crate) fn decode_details<I: Copy>(
     let h = q.iter().map(|&x| dequantize(x, step)).collect();
     let mut child_classes = Vec::with_capacity(classes.len());
     let mut empty_children = Vec::new();
-    for (&k, entry) in owned.iter().zip(classes) {
-        if let Some(c) = next(k) {
-            let (class, no_data) = crate::entropy::split_side(entry);
-            child_classes.push((c, class));
-            if no_data {
-                empty_children.push(c);
-            }
+    for (&c, entry) in owned.iter().zip(classes) {
+        let (class, no_data) = crate::entropy::split_side(entry);
+        child_classes.push((c, class));
+        if no_data {
+            empty_children.push(c);
         }
     }
     Ok(Details {
@@ -402,8 +398,7 @@ pub(crate) fn id_text(id: impl std::fmt::Debug) -> String {
 /// Refines planar diamonds one at a time for a repository's parameters.
 #[derive(Debug)]
 pub struct PlanarRefiner {
-    geometry: RasterGeometry,
-    slots: crate::diamond::IdMap<(usize, usize)>,
+    geometry: RasterFrame,
     steps: Vec<u32>,
     model: CodecModel,
     root: Vec<i32>,
@@ -424,10 +419,7 @@ impl PlanarRefiner {
         model: CodecModel,
         root: Vec<i32>,
     ) -> Result<PlanarRefiner, RefineError> {
-        let geometry = match coverage {
-            Some(c) => RasterGeometry::with_coverage(width, height, n, c)?,
-            None => RasterGeometry::new(width, height, n)?,
-        };
+        let geometry = RasterFrame::new(width, height, n, coverage)?;
         let side = (n + 1) * (n + 1);
         if root.len() != side {
             return Err(RefineError::WrongLength {
@@ -435,18 +427,8 @@ impl PlanarRefiner {
                 got: root.len(),
             });
         }
-        let slots = (0..geometry.detail_levels())
-            .flat_map(|level| {
-                geometry
-                    .level(level)
-                    .iter()
-                    .enumerate()
-                    .map(move |(index, s)| (s.id, (level, index)))
-            })
-            .collect();
         Ok(PlanarRefiner {
             geometry,
-            slots,
             steps,
             model,
             root,
@@ -545,37 +527,55 @@ impl PlanarRefiner {
 
     /// What a client needs to know about a refinable diamond; `None` for diamonds
     /// outside the raster or finer than the detail levels (those are leaves).
-    pub fn info(&self, id: PlanarId) -> Option<DiamondInfo<'_>> {
-        let Some(&(level, index)) = self.slots.get(&id) else {
+    pub fn info(&self, id: PlanarId) -> Option<DiamondInfo> {
+        let Some((level, slot)) = self.geometry.slot(id) else {
             let level = self.procedural_level(id)?;
             return Some(DiamondInfo {
                 level,
-                index: 0,
-                key: &[],
+                key: Vec::new(),
                 mask: self.procedural_mask(id),
                 children: self.children_in_raster(id),
                 procedural: true,
             });
         };
-        let s = &self.geometry.level(level)[index];
         let children = if self.geometry.detail_levels() > level + 1 {
-            s.children
-                .iter()
-                .map(|&k| self.geometry.level(level + 1)[k].id)
-                .collect()
+            self.coded_children(id)
         } else {
-            // Children of the finest detail level have no slots: full-resolution leaves,
-            // or the first procedural level.
+            // Children of the finest detail level carry no details: full-resolution
+            // leaves, or the first procedural level.
             self.children_in_raster(id)
         };
         Some(DiamondInfo {
             level,
-            index,
-            key: &s.key,
-            mask: s.mask.clone(),
+            key: slot.key,
+            mask: slot.mask,
             children,
             procedural: false,
         })
+    }
+
+    /// The children of `id` that carry details, in the domain's order.
+    fn coded_children(&self, id: PlanarId) -> Vec<PlanarId> {
+        let domain = self.geometry.domain();
+        domain
+            .children(id)
+            .unwrap_or_default()
+            .into_iter()
+            .filter(|&c| self.geometry.is_coded(c))
+            .collect()
+    }
+
+    /// The coded children whose side information `id`'s blob carries (those whose first
+    /// parent it is), in side order.
+    fn owned_children(&self, id: PlanarId, level: usize) -> Vec<PlanarId> {
+        if level + 1 >= self.geometry.detail_levels() {
+            return Vec::new();
+        }
+        let domain = self.geometry.domain();
+        self.coded_children(id)
+            .into_iter()
+            .filter(|&c| domain.parents(c).ok().and_then(|p| p.first().copied()) == Some(id))
+            .collect()
     }
 
     fn children_in_raster(&self, id: PlanarId) -> Vec<PlanarId> {
@@ -591,7 +591,7 @@ impl PlanarRefiner {
     /// Whether `id` can be refined here (coded or procedural): cheaper than
     /// [`Self::info`].
     pub fn is_refinable(&self, id: PlanarId) -> bool {
-        self.slots.contains_key(&id) || self.procedural_level(id).is_some()
+        self.geometry.is_coded(id) || self.procedural_level(id).is_some()
     }
 
     /// Whether any point of diamond `id` lies inside the raster.
@@ -608,21 +608,14 @@ impl PlanarRefiner {
     /// Decodes the blob of `id` (checksum over key and content, the repository's model,
     /// dequantisation): the part of refinement that can run off the frame loop.
     pub fn decode(&self, id: PlanarId, blob: &[u8]) -> Result<Details, RefineError> {
-        let &(level, index) = self
-            .slots
-            .get(&id)
+        let (level, slot) = self
+            .geometry
+            .slot(id)
             .ok_or_else(|| RefineError::NotRefinable(id_text(id)))?;
-        let slot = &self.geometry.level(level)[index];
-        let ctx = self.geometry.blob_context(level, index);
+        let owned = self.owned_children(id, level);
+        let ctx = self.geometry.slot_context(level, &slot, owned.len());
         let step = self.steps.get(level).copied().unwrap_or(256);
-        let next: &[_] = if level + 1 < self.geometry.detail_levels() {
-            self.geometry.level(level + 1)
-        } else {
-            &[]
-        };
-        decode_details(id, blob, &ctx, &self.model, step, &slot.owned, |k| {
-            next.get(k).map(|c| c.id)
-        })
+        decode_details(id, blob, &ctx, &self.model, step, &owned)
     }
 
     /// Refines `id` from its vertex `grid` and its decoded details (`None`: no blob, the
@@ -636,7 +629,7 @@ impl PlanarRefiner {
         if details.is_some_and(|d| d.id != id) {
             return Err(RefineError::NotRefinable(id_text(id)));
         }
-        let Some(&(level, index)) = self.slots.get(&id) else {
+        let Some((_, slot)) = self.geometry.slot(id) else {
             if details.is_some() || self.procedural_level(id).is_none() {
                 return Err(RefineError::NotRefinable(id_text(id)));
             }
@@ -647,7 +640,6 @@ impl PlanarRefiner {
             let mask = self.procedural_mask(id);
             return synthesize_one(self.n(), id, grid, made_up.as_ref(), mask.as_ref());
         };
-        let slot = &self.geometry.level(level)[index];
         synthesize_one(self.n(), id, grid, details, slot.mask.as_ref())
     }
 
@@ -732,14 +724,14 @@ impl Refiner for PlanarRefiner {
     }
 
     fn is_coded(&self, id: PlanarId) -> bool {
-        self.slots.contains_key(&id)
+        self.geometry.is_coded(id)
     }
 
     fn roots(&self) -> Vec<(PlanarId, &[i32])> {
         vec![self.root()]
     }
 
-    fn info(&self, id: PlanarId) -> Option<DiamondInfo<'_>> {
+    fn info(&self, id: PlanarId) -> Option<DiamondInfo> {
         PlanarRefiner::info(self, id)
     }
 

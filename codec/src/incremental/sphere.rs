@@ -12,17 +12,16 @@ use super::{
 };
 use crate::coverage::Coverage;
 use crate::diamond::sphere::unfold;
-use crate::diamond::{IdMap, SphereDomain, SphereId};
+use crate::diamond::{SphereDomain, SphereId};
 use crate::encode::{Encoded, EncodedDomain};
 use crate::entropy::CodecModel;
 use crate::lifting;
-use crate::sphere_raster::SphereGeometry;
+use crate::sphere_raster::{SphereFrame, SphereSlot};
 
 /// Refines planet diamonds one at a time for a repository's parameters.
 #[derive(Debug)]
 pub struct SphereRefiner {
-    geometry: SphereGeometry,
-    slots: IdMap<(usize, usize), SphereId>,
+    geometry: SphereFrame,
     steps: Vec<u32>,
     model: CodecModel,
     roots: Vec<Vec<i32>>,
@@ -42,10 +41,7 @@ impl SphereRefiner {
         model: CodecModel,
         roots: Vec<Vec<i32>>,
     ) -> Result<SphereRefiner, RefineError> {
-        let geometry = match coverage {
-            Some(c) => SphereGeometry::with_coverage(face_side, n, c)?,
-            None => SphereGeometry::new(face_side, n)?,
-        };
+        let geometry = SphereFrame::new(face_side, n, coverage)?;
         let side = (n + 1) * (n + 1);
         if roots.len() != 6 {
             return Err(RefineError::WrongLength {
@@ -59,18 +55,8 @@ impl SphereRefiner {
                 got: r.len(),
             });
         }
-        let slots = (0..geometry.detail_levels())
-            .flat_map(|level| {
-                geometry
-                    .level(level)
-                    .iter()
-                    .enumerate()
-                    .map(move |(index, s)| (s.id, (level, index)))
-            })
-            .collect();
         Ok(SphereRefiner {
             geometry,
-            slots,
             steps,
             model,
             roots,
@@ -122,16 +108,33 @@ impl SphereRefiner {
         self.geometry.domain()
     }
 
-    /// The placement of the planet's samples (cube raster).
-    pub fn geometry(&self) -> &SphereGeometry {
+    /// The placement of the planet's samples (cube raster) and of single diamonds.
+    pub fn frame(&self) -> &SphereFrame {
         &self.geometry
     }
 
-    fn slot_of(&self, id: SphereId) -> Result<(usize, usize), RefineError> {
-        self.slots
-            .get(&id)
-            .copied()
+    fn slot_of(&self, id: SphereId) -> Result<(usize, SphereSlot), RefineError> {
+        self.geometry
+            .coded_slot(id)
             .ok_or_else(|| RefineError::NotRefinable(id_text(id)))
+    }
+
+    /// The children of `id` that carry details below a detail level (all of them on a
+    /// planet), `None` at the finest.
+    fn coded_children(&self, id: SphereId, level: usize) -> Option<Vec<SphereId>> {
+        (level + 1 < self.geometry.detail_levels())
+            .then(|| self.geometry.domain().children(id).unwrap_or_default())
+    }
+
+    /// The coded children whose side information `id`'s blob carries (those whose first
+    /// parent it is), in side order.
+    fn owned_children(&self, id: SphereId, level: usize) -> Vec<SphereId> {
+        let domain = self.geometry.domain();
+        self.coded_children(id, level)
+            .unwrap_or_default()
+            .into_iter()
+            .filter(|&c| domain.parents(c).ok().and_then(|p| p.first().copied()) == Some(id))
+            .collect()
     }
 
     /// The vertex grid of `child`, cut from its refined parents' lattices (pass both:
@@ -164,7 +167,7 @@ impl Refiner for SphereRefiner {
     }
 
     fn is_coded(&self, id: SphereId) -> bool {
-        self.slots.contains_key(&id)
+        self.geometry.coded_level(id).is_some()
     }
 
     fn roots(&self) -> Vec<(SphereId, &[i32])> {
@@ -177,41 +180,33 @@ impl Refiner for SphereRefiner {
             .collect()
     }
 
-    fn info(&self, id: SphereId) -> Option<DiamondInfo<'_, SphereId>> {
-        let Some(&(level, index)) = self.slots.get(&id) else {
+    fn info(&self, id: SphereId) -> Option<DiamondInfo<SphereId>> {
+        let Some((level, slot)) = self.geometry.coded_slot(id) else {
             let level = self.procedural_level(id)?;
             return Some(DiamondInfo {
                 level,
-                index: 0,
-                key: &[],
+                key: Vec::new(),
                 mask: None,
                 children: self.geometry.domain().children(id).unwrap_or_default(),
                 procedural: true,
             });
         };
-        let s = &self.geometry.level(level)[index];
-        let children = if self.geometry.detail_levels() > level + 1 {
-            s.children
-                .iter()
-                .map(|&k| self.geometry.level(level + 1)[k].id)
-                .collect()
-        } else {
-            // Children of the finest detail level: full-resolution leaves, or the first
-            // procedural level.
-            self.geometry.domain().children(id).unwrap_or_default()
-        };
+        // Children of the finest detail level: full-resolution leaves, or the first
+        // procedural level.
+        let children = self
+            .coded_children(id, level)
+            .unwrap_or_else(|| self.geometry.domain().children(id).unwrap_or_default());
         Some(DiamondInfo {
             level,
-            index,
-            key: &s.key,
-            mask: s.mask.clone(),
+            key: slot.key,
+            mask: slot.mask,
             children,
             procedural: false,
         })
     }
 
     fn is_refinable(&self, id: SphereId) -> bool {
-        self.slots.contains_key(&id) || self.procedural_level(id).is_some()
+        self.is_coded(id) || self.procedural_level(id).is_some()
     }
 
     fn parents(&self, id: SphereId) -> Vec<SphereId> {
@@ -228,18 +223,11 @@ impl Refiner for SphereRefiner {
     }
 
     fn decode(&self, id: SphereId, blob: &[u8]) -> Result<Details<SphereId>, RefineError> {
-        let (level, index) = self.slot_of(id)?;
-        let slot = &self.geometry.level(level)[index];
-        let ctx = self.geometry.blob_context(level, index);
+        let (level, slot) = self.slot_of(id)?;
+        let owned = self.owned_children(id, level);
+        let ctx = self.geometry.slot_context(level, &slot, owned.len());
         let step = self.steps.get(level).copied().unwrap_or(256);
-        let next: &[_] = if level + 1 < self.geometry.detail_levels() {
-            self.geometry.level(level + 1)
-        } else {
-            &[]
-        };
-        decode_details(id, blob, &ctx, &self.model, step, &slot.owned, |k| {
-            next.get(k).map(|c| c.id)
-        })
+        decode_details(id, blob, &ctx, &self.model, step, &owned)
     }
 
     fn synthesize(
@@ -251,13 +239,11 @@ impl Refiner for SphereRefiner {
         if details.is_some_and(|d| d.id != id) {
             return Err(RefineError::NotRefinable(id_text(id)));
         }
-        if !self.slots.contains_key(&id) && details.is_none() && self.procedural_level(id).is_some()
-        {
+        if !self.is_coded(id) && details.is_none() && self.procedural_level(id).is_some() {
             let made_up = self.extension.detail().details(id, id.c, self.n());
             return synthesize_one(self.n(), id, grid, made_up.as_ref(), None);
         }
-        let (level, index) = self.slot_of(id)?;
-        let slot = &self.geometry.level(level)[index];
+        let (_, slot) = self.slot_of(id)?;
         synthesize_one(self.n(), id, grid, details, slot.mask.as_ref())
     }
 

@@ -95,7 +95,7 @@ pub struct Local<R: Domain> {
 impl<R: Domain> DetailSource<R::Id> for Local<R> {
     fn details(&mut self, id: R::Id, _priority: f64) -> Availability<R::Id> {
         let info = self.refiner.info(id).expect("refinable");
-        let blob = self.repo.get(info.key).unwrap();
+        let blob = self.repo.get(&info.key).unwrap();
         Availability::Ready(blob.map(|b| Arc::new(self.refiner.decode(id, &b).unwrap())))
     }
 }
