@@ -4,71 +4,17 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use std::io::{BufRead, BufReader};
+mod common;
+
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 
+use common::{bin, build, serve};
 use serde_json::Value;
-
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_quincunx"))
-}
 
 fn data(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("../data")
         .join(name)
-}
-
-fn build(args: &[&str], input: &Path, out: &Path) {
-    let o = bin()
-        .arg("build")
-        .args(args)
-        .arg("--overwrite")
-        .arg("-o")
-        .arg(out)
-        .arg(input)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-}
-
-/// `quincunx serve` on a free port; killed on drop.
-struct Server {
-    child: Child,
-    url: String,
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn serve(repos: &[(&str, &Path)]) -> Server {
-    let mut cmd = bin();
-    cmd.args(["serve", "--addr", "127.0.0.1:0"]);
-    for (name, path) in repos {
-        cmd.arg("--repo").arg(format!("{name}={}", path.display()));
-    }
-    let mut child = cmd
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    // "serving on http://127.0.0.1:PORT/  (...)"
-    let url = line
-        .split_whitespace()
-        .find(|w| w.starts_with("http://"))
-        .unwrap_or_else(|| panic!("no address in {line:?}"))
-        .trim_end_matches('/')
-        .to_string();
-    Server { child, url }
 }
 
 fn gpu_or_skip(test: &str) -> bool {
