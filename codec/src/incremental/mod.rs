@@ -114,8 +114,8 @@ pub struct Details<I = PlanarId> {
 pub struct DiamondInfo<I = PlanarId> {
     /// Detail level (0 = the root).
     pub level: usize,
-    /// Storage key (the blob's key in the repository; [`Encoded::blobs_by_key`] finds it in an
-    /// encoder's output).
+    /// Storage key (the blob's key in the repository; [`Encoded::blobs_by_key`] finds it
+    /// in an encoder's output).
     pub key: Vec<u8>,
     /// Valid points (`None` = all): vertices outside the raster or its coverage are
     /// invalid and carry no meaningful value. (Cheap to clone: shared storage.)
