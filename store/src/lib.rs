@@ -425,7 +425,9 @@ impl Repository {
     }
 
     /// The blob stored under `key`, `None` when the diamond has no blob (a leaf). The bytes
-    /// are a view into the page read (no copy).
+    /// are copied out of the page read, so whoever keeps them (the server's hot cache)
+    /// holds the blob, not its page: as views, 24,000 cached blobs of about 100 bytes
+    /// held over 100 MB of 4 KiB pages under an 8 MiB cache budget.
     pub fn get(&self, key: &[u8]) -> Result<Option<Bytes>> {
         // The page whose first key is the greatest one <= key.
         let after = self.pages.partition_point(|p| &*p.first_key <= key);
@@ -435,7 +437,7 @@ impl Repository {
         let page = self.read_page(page_ref)?;
         let found = page::find(&page_ref.first_key, &page, key)
             .map_err(|e| self.page_err(page_ref, e.to_string()))?;
-        Ok(found.map(|range| page.slice(range)))
+        Ok(found.map(|range| Bytes::copy_from_slice(&page[range])))
     }
 
     /// Every `(key, blob)` in key order (level-major, then space-filling curve). Each page

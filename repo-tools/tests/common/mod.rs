@@ -31,6 +31,19 @@ pub struct Server {
     pub url: String,
 }
 
+impl Server {
+    /// The server's resident memory now, in bytes (Linux `/proc`).
+    pub fn rss_bytes(&self) -> u64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).unwrap();
+        let kb: u64 = status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmRSS:"))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+            .unwrap_or_else(|| panic!("no VmRSS in {status}"));
+        kb * 1024
+    }
+}
+
 impl Drop for Server {
     fn drop(&mut self) {
         let _ = self.child.kill();
@@ -40,8 +53,13 @@ impl Drop for Server {
 
 /// Serves each `(name, path)` repository.
 pub fn serve(repos: &[(&str, &Path)]) -> Server {
+    serve_with(repos, &[])
+}
+
+/// [`serve`] with more `quincunx serve` flags.
+pub fn serve_with(repos: &[(&str, &Path)], flags: &[&str]) -> Server {
     let mut cmd = bin();
-    cmd.args(["serve", "--addr", "127.0.0.1:0"]);
+    cmd.args(["serve", "--addr", "127.0.0.1:0"]).args(flags);
     for (name, path) in repos {
         cmd.arg("--repo").arg(format!("{name}={}", path.display()));
     }
