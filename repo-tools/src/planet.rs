@@ -286,7 +286,9 @@ struct CubeAngles {
 }
 
 /// How a face's chart coordinates map to cube axes: `q[a] = s`, `q[b]` from `u`, `q[c]`
-/// from `v` (read off [`SphereGeometry::sample_position`]).
+/// from `v` (read off [`SphereFrame::sample_position`]).
+///
+/// [`SphereFrame::sample_position`]: quincunx_codec::sphere_raster::SphereFrame::sample_position
 #[derive(Clone, Copy)]
 struct FaceFrame {
     a: usize,
