@@ -182,11 +182,6 @@ impl RasterGeometry {
                 .is_none_or(|c| c.covers_point(0, x, y))
     }
 
-    /// Number of levels that carry details.
-    pub fn detail_levels(&self) -> usize {
-        self.levels.len()
-    }
-
     /// The diamonds of a detail level that meet the raster.
     pub fn level(&self, level: usize) -> &[DiamondSlot] {
         &self.levels[level]
@@ -1012,7 +1007,6 @@ impl Layout for RasterGeometry {
     }
 }
 
-/// The raster placement of a diamond, `None` if none of its points is in the raster.
 /// Checks that `coverage` is a block grid of a `width x height` raster.
 fn check_coverage(width: usize, height: usize, coverage: &Coverage) -> Result<(), RasterError> {
     let b = coverage.block_side();
@@ -1221,6 +1215,7 @@ fn bare_slot(domain: &PlanarDomain, id: PlanarId, n: usize) -> Option<DiamondSlo
     })
 }
 
+/// The raster placement of a diamond, `None` if none of its points is in the raster.
 fn slot(
     domain: &PlanarDomain,
     id: PlanarId,

@@ -612,11 +612,6 @@ impl SphereGeometry {
         Ok(self)
     }
 
-    /// Number of levels that carry details.
-    pub fn detail_levels(&self) -> usize {
-        self.levels.len()
-    }
-
     /// The diamonds of a detail level, sorted by key.
     pub fn level(&self, level: usize) -> &[SphereSlot] {
         &self.levels[level]

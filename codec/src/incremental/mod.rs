@@ -318,6 +318,19 @@ pub(crate) fn decode_details<I: Copy>(
     })
 }
 
+/// The `children` of `id` whose side information its blob carries: those whose first
+/// parent it is (the encoder's rule, `RasterGeometry::new`), in the children's order.
+pub(crate) fn owned_by<I: Copy + PartialEq>(
+    id: I,
+    children: Vec<I>,
+    parents: impl Fn(I) -> Result<Vec<I>, IdError>,
+) -> Vec<I> {
+    children
+        .into_iter()
+        .filter(|&c| parents(c).ok().and_then(|p| p.first().copied()) == Some(id))
+        .collect()
+}
+
 /// Lifting synthesis of one diamond from its vertex grid and details (`None`: zeros).
 pub(crate) fn synthesize_one<I: Copy>(
     n: usize,
@@ -565,17 +578,14 @@ impl PlanarRefiner {
             .collect()
     }
 
-    /// The coded children whose side information `id`'s blob carries (those whose first
-    /// parent it is), in side order.
+    /// The coded children whose side information `id`'s blob carries, in side order.
     fn owned_children(&self, id: PlanarId, level: usize) -> Vec<PlanarId> {
         if level + 1 >= self.geometry.detail_levels() {
             return Vec::new();
         }
-        let domain = self.geometry.domain();
-        self.coded_children(id)
-            .into_iter()
-            .filter(|&c| domain.parents(c).ok().and_then(|p| p.first().copied()) == Some(id))
-            .collect()
+        owned_by(id, self.coded_children(id), |c| {
+            self.geometry.domain().parents(c)
+        })
     }
 
     fn children_in_raster(&self, id: PlanarId) -> Vec<PlanarId> {

@@ -8,7 +8,7 @@
 
 use super::{
     Details, DiamondInfo, Extension, Procedural, RefineError, Refined, Refiner, check_complete,
-    check_lattice, decode_details, id_text, synthesize_one,
+    check_lattice, decode_details, id_text, owned_by, synthesize_one,
 };
 use crate::coverage::Coverage;
 use crate::diamond::sphere::unfold;
@@ -126,15 +126,10 @@ impl SphereRefiner {
             .then(|| self.geometry.domain().children(id).unwrap_or_default())
     }
 
-    /// The coded children whose side information `id`'s blob carries (those whose first
-    /// parent it is), in side order.
+    /// The coded children whose side information `id`'s blob carries, in side order.
     fn owned_children(&self, id: SphereId, level: usize) -> Vec<SphereId> {
-        let domain = self.geometry.domain();
-        self.coded_children(id, level)
-            .unwrap_or_default()
-            .into_iter()
-            .filter(|&c| domain.parents(c).ok().and_then(|p| p.first().copied()) == Some(id))
-            .collect()
+        let children = self.coded_children(id, level).unwrap_or_default();
+        owned_by(id, children, |c| self.geometry.domain().parents(c))
     }
 
     /// The vertex grid of `child`, cut from its refined parents' lattices (pass both:
