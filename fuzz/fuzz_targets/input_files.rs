@@ -4,7 +4,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use quincunx_repo_tools::input::{read_heights, read_rgb};
+use quincunx_repo_tools::input::{probe_heights, read_heights, read_rgb};
 
 fuzz_target!(|data: &[u8]| {
     let Some((&kind, body)) = data.split_first() else {
@@ -33,6 +33,8 @@ fuzz_target!(|data: &[u8]| {
     let _ = if rgb {
         read_rgb(&path).map(|_| ())
     } else {
+        // A mosaic reads each tile's header first, then the tile.
+        let _ = probe_heights(&path);
         read_heights(&path).map(|_| ())
     };
 });

@@ -16,7 +16,7 @@ use serde::Serialize;
 
 use crate::input::{self, Georef};
 use crate::layout::{self, COLOUR_CHANNELS, Geometry};
-use crate::{info, planet, progress};
+use crate::{info, mosaic, planet, progress};
 
 /// What the program itself is assumed to keep resident during an out-of-core build.
 const PROGRAM_BYTES: usize = 10 << 20;
@@ -25,7 +25,10 @@ const PROGRAM_BYTES: usize = 10 << 20;
 #[derive(Args, Debug, Clone)]
 pub struct BuildArgs {
     /// Source: raw grid (`.i16`/`.f32` or its `.json` sidecar), GeoTIFF, 16-bit PNG, SRTM
-    /// `.hgt`; with `--colour`, JPEG or PNG imagery.
+    /// `.hgt`; with `--colour`, JPEG or PNG imagery. Or a mosaic of georeferenced height
+    /// tiles: a directory, a list file (`.txt`/`.list`, one path per line) or a quoted
+    /// pattern (`'tiles/N3*.hgt'`); the finer tile wins where tiles overlap, then the first
+    /// in order, and what no tile covers is a hole (mosaics are always `--sparse`).
     pub input: PathBuf,
     /// Repository directory to publish.
     #[arg(short, long)]
@@ -516,6 +519,9 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
             return build_streaming(args, rows, n, mode, budget_mb, started);
         }
     }
+    if mosaic::is_mosaic(&args.input) {
+        return build_mosaic(args, n, mode, started);
+    }
     let spin = progress::spinner("reading");
     spin.set_message(args.input.display().to_string());
     let encode_started;
@@ -579,9 +585,11 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
                 face_side = geom.face_side(),
                 "resampled onto the cube"
             );
+            let source = Source::of(&raster);
+            drop(raster); // the cube holds what is coded
             encode_started = Instant::now();
             encode_planet(
-                raster,
+                source,
                 cube,
                 n,
                 mode,
@@ -592,9 +600,22 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         } else {
             check_budget(args, raster.grid.width * raster.grid.height, 1)?;
             encode_started = Instant::now();
-            encode_heights(raster, n, mode, args.sparse, args.rdo.mode())?
+            let source = Source::of(&raster);
+            encode_heights(&raster.grid, source, n, mode, args.sparse, args.rdo.mode())?
         }
     };
+    store(args, &coded, n, mode, started, encode_started)
+}
+
+/// Writes what was encoded, publishes it, and summarises the build.
+fn store(
+    args: &BuildArgs,
+    coded: &Coded,
+    n: usize,
+    mode: RateMode,
+    started: Instant,
+    encode_started: Instant,
+) -> Result<BuildSummary> {
     let encode_seconds = encode_started.elapsed().as_secs_f64();
     tracing::info!(
         seconds = encode_seconds,
@@ -603,7 +624,7 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
     );
     let write_started = Instant::now();
     let meta = with_builder(args, |mut builder| {
-        write_blobs(args, &mut builder, &coded)?;
+        write_blobs(args, &mut builder, coded)?;
         tracing::info!(
             seconds = write_started.elapsed().as_secs_f64(),
             "blobs written"
@@ -617,6 +638,76 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         Ok(meta)
     })?;
     summarise(args, &meta, &coded.desc, started, encode_seconds)
+}
+
+/// Builds from a tile mosaic (`mosaic.rs`): always sparse, so that what no tile covers is
+/// not coded.
+fn build_mosaic(
+    args: &BuildArgs,
+    n: usize,
+    mode: RateMode,
+    started: Instant,
+) -> Result<BuildSummary> {
+    if args.colour {
+        bail!(
+            "{}: colour mosaics are not supported; give one georeferenced image with --colour",
+            args.input.display()
+        );
+    }
+    let mosaic = mosaic::Mosaic::open(&args.input)?;
+    tracing::info!(
+        tiles = mosaic.tiles.len(),
+        samples = mosaic.source_samples,
+        "read mosaic headers"
+    );
+    let encode_started;
+    let coded = if args.planet {
+        mosaic.check_planet()?;
+        let face_side = args
+            .face_side
+            .unwrap_or_else(|| planet::default_face_side(mosaic.finest_spacing(), n));
+        // Before the geometry, whose tables grow with the face side too.
+        let samples = 6 * (face_side as u64 + 1).pow(2);
+        mosaic::check_memory(samples, &format!("choose a --face-side below {face_side}"))?;
+        check_budget(args, samples as usize, 1)?;
+        let geom = SphereGeometry::new(face_side, n)
+            .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
+        let resample_started = Instant::now();
+        let (cube, assembled) = mosaic.to_cube(&geom)?;
+        tracing::info!(
+            seconds = resample_started.elapsed().as_secs_f64(),
+            face_side,
+            "resampled the mosaic onto the cube"
+        );
+        let source = Source {
+            units: assembled.units,
+            source_samples: mosaic.source_samples,
+            nodata_count: assembled.nodata_count,
+            georef: None,
+        };
+        encode_started = Instant::now();
+        encode_planet(
+            source,
+            cube,
+            n,
+            mode,
+            radius_m(args)?,
+            true,
+            args.rdo.mode(),
+        )?
+    } else {
+        let (grid, georef, assembled) = mosaic.to_grid()?;
+        check_budget(args, grid.width * grid.height, 1)?;
+        let source = Source {
+            units: assembled.units,
+            source_samples: mosaic.source_samples,
+            nodata_count: assembled.nodata_count,
+            georef: Some(georef),
+        };
+        encode_started = Instant::now();
+        encode_heights(&grid, source, n, mode, true, args.rdo.mode())?
+    };
+    store(args, &coded, n, mode, started, encode_started)
 }
 
 /// What the metadata and summary say about the coded data (both build paths).
@@ -677,16 +768,17 @@ fn summarise(
 }
 
 fn encode_heights(
-    raster: input::HeightRaster,
+    grid: &Grid,
+    source: Source,
     n: usize,
     mode: RateMode,
     sparse: bool,
     rdo: RdoMode,
 ) -> Result<Coded> {
     let spin = progress::spinner("encoding");
-    spin.set_message(format!("{} x {}", raster.grid.width, raster.grid.height));
+    spin.set_message(format!("{} x {}", grid.width, grid.height));
     let enc = encode::encode(
-        &raster.grid,
+        grid,
         EncodeOptions {
             n,
             mode,
@@ -696,27 +788,43 @@ fn encode_heights(
     )
     .context("encoding the height grid")?;
     spin.finish_and_clear();
-    elevation(raster, enc, None, mode)
+    elevation(source, enc, None, mode)
+}
+
+/// What the metadata records of an elevation build's source.
+struct Source {
+    units: String,
+    /// Samples read (all tiles' for a mosaic).
+    source_samples: usize,
+    /// Nodata samples the encoder was given.
+    nodata_count: usize,
+    georef: Option<Georef>,
+}
+
+impl Source {
+    fn of(raster: &input::HeightRaster) -> Source {
+        Source {
+            units: raster.units.clone(),
+            source_samples: raster.grid.width * raster.grid.height,
+            nodata_count: raster.nodata_count,
+            georef: raster.georef.clone(),
+        }
+    }
 }
 
 /// An elevation result: one `height` channel.
-fn elevation(
-    raster: input::HeightRaster,
-    enc: Encoded,
-    radius_m: Option<f64>,
-    mode: RateMode,
-) -> Result<Coded> {
+fn elevation(source: Source, enc: Encoded, radius_m: Option<f64>, mode: RateMode) -> Result<Coded> {
     Ok(Coded {
         desc: Description {
             coverage: enc.coverage.as_ref().map(|c| c.to_bytes()),
             geometry: Geometry::of(&enc)?,
             radius_m,
             kind: "elevation",
-            units: raster.units,
+            units: source.units,
             samples: enc.report.samples,
-            source_samples: raster.grid.width * raster.grid.height,
-            nodata_count: raster.nodata_count,
-            georef: raster.georef,
+            source_samples: source.source_samples,
+            nodata_count: source.nodata_count,
+            georef: source.georef,
             channels: vec![layout::channel_coding("height", &enc, mode)],
             rms: enc.report.rms_m,
             max_abs: enc.report.max_abs_m,
@@ -757,7 +865,7 @@ fn planet_geometry(
 }
 
 fn encode_planet(
-    raster: input::HeightRaster,
+    source: Source,
     cube: CubeGrid,
     n: usize,
     mode: RateMode,
@@ -778,7 +886,7 @@ fn encode_planet(
     )
     .context("encoding the planet")?;
     spin.finish_and_clear();
-    elevation(raster, enc, Some(radius_m), mode)
+    elevation(source, enc, Some(radius_m), mode)
 }
 
 /// Where colour pixels live.

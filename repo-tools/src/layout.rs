@@ -260,6 +260,20 @@ pub fn rss_bytes() -> usize {
     proc_status_kb("VmRSS:").map_or(0, |kb| (kb * 1024.0) as usize)
 }
 
+/// Physical memory of this machine, bytes (`MemTotal` of `/proc/meminfo`; `None` where
+/// there is none).
+pub fn memory_total_bytes() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let kb: u64 = text
+        .lines()
+        .find(|l| l.starts_with("MemTotal:"))?
+        .split_whitespace()
+        .nth(1)?
+        .parse()
+        .ok()?;
+    Some(kb * 1024)
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {

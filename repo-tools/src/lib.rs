@@ -26,6 +26,7 @@ pub mod info;
 pub mod input;
 pub mod layout;
 pub mod loadtest;
+pub mod mosaic;
 pub mod planet;
 pub mod plot;
 pub mod preview;

@@ -278,7 +278,7 @@ impl Bilinear {
 /// vector (`atan2` of the cube point), and on the four equatorial faces it is one value
 /// per column or per row. Every copy of an edge or corner point is the same vector, so
 /// it gets the same angles; they equal [`lat_lon`] to 1e-12 degrees (tested).
-struct CubeAngles {
+pub(crate) struct CubeAngles {
     tans: Vec<f64>,
     frames: Vec<FaceFrame>,
     /// Per face whose `v` is the z axis: the longitude of each column.
@@ -315,7 +315,7 @@ impl FaceFrame {
 }
 
 impl CubeAngles {
-    fn new(geom: &SphereGeometry) -> Self {
+    pub(crate) fn new(geom: &SphereGeometry) -> Self {
         let half = (geom.face_side() / 2) as i64;
         let big = half as f64;
         // The expression of `cube_to_unit_sphere`, made odd by construction (the mirrored
@@ -365,7 +365,7 @@ impl CubeAngles {
     }
 
     /// Latitude and longitude (degrees) of row `v` of face `face`, into `out`.
-    fn row(&self, face: usize, v: usize, out: &mut [(f64, f64)]) {
+    pub(crate) fn row(&self, face: usize, v: usize, out: &mut [(f64, f64)]) {
         let f = self.frames[face];
         // Equatorial faces: the longitude is constant along a column (`v` is the
         // z axis) or along this row (`u` is).

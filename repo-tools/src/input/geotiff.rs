@@ -62,8 +62,24 @@ impl SampleType {
     }
 }
 
-/// Reads a single-band GeoTIFF.
-pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
+/// A GeoTIFF's header, checked, with the decoder positioned to read the image.
+struct Header {
+    decoder: Decoder<BufReader<std::fs::File>>,
+    width: usize,
+    height: usize,
+    ty: SampleType,
+    decoded_bytes: usize,
+    nodata: Option<f64>,
+    georef: Option<Georef>,
+}
+
+/// Size and georeference of a single-band GeoTIFF, without decoding its samples.
+pub(super) fn probe(path: &Path) -> Result<(usize, usize, Option<Georef>), InputError> {
+    let h = header(path)?;
+    Ok((h.width, h.height, h.georef))
+}
+
+fn header(path: &Path) -> Result<Header, InputError> {
     let corrupt = |e: tiff::TiffError| tiff_error(path, e);
     let unsupported = |message: String| InputError::Unsupported {
         path: path.to_path_buf(),
@@ -151,7 +167,29 @@ pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
 
     let nodata = gdal_nodata(&mut decoder, path)?;
     let georef = georef(&mut decoder, path, width, height)?;
+    Ok(Header {
+        decoder,
+        width,
+        height,
+        ty,
+        decoded_bytes,
+        nodata,
+        georef,
+    })
+}
 
+/// Reads a single-band GeoTIFF.
+pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
+    let corrupt = |e: tiff::TiffError| tiff_error(path, e);
+    let Header {
+        decoder,
+        width,
+        height,
+        ty,
+        decoded_bytes,
+        nodata,
+        georef,
+    } = header(path)?;
     let mut limits = Limits::default();
     limits.decoding_buffer_size = decoded_bytes;
     let mut decoder = decoder.with_limits(limits);

@@ -14,8 +14,9 @@ use super::{
 /// The void value of SRTM.
 const VOID: i16 = -32768;
 
-/// Reads an `.hgt` tile.
-pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
+/// The side of an `.hgt` tile (from its length) and its georeference (from its name),
+/// without reading its samples.
+pub(super) fn probe(path: &Path) -> Result<(usize, Option<Georef>), InputError> {
     let actual = file_len(path)?;
     let side: usize = match actual {
         2_884_802 => 1201,
@@ -26,20 +27,6 @@ pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
                 actual,
             });
         }
-    };
-    let bytes = read_exact_len(path, side * side * 2)?;
-    let values_m = bytes
-        .chunks_exact(2)
-        .map(|c| match i16::from_be_bytes([c[0], c[1]]) {
-            VOID => f64::NAN,
-            h => f64::from(h),
-        })
-        .collect();
-    let grid = Grid {
-        width: side,
-        height: side,
-        values_m,
-        quantum_m: Some(1.0),
     };
     let georef = path
         .file_stem()
@@ -56,6 +43,26 @@ pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
                 name: "SRTM .hgt tile (WGS 84 latitude/longitude)".into(),
             }),
         });
+    Ok((side, georef))
+}
+
+/// Reads an `.hgt` tile.
+pub(super) fn read(path: &Path) -> Result<HeightRaster, InputError> {
+    let (side, georef) = probe(path)?;
+    let bytes = read_exact_len(path, side * side * 2)?;
+    let values_m = bytes
+        .chunks_exact(2)
+        .map(|c| match i16::from_be_bytes([c[0], c[1]]) {
+            VOID => f64::NAN,
+            h => f64::from(h),
+        })
+        .collect();
+    let grid = Grid {
+        width: side,
+        height: side,
+        values_m,
+        quantum_m: Some(1.0),
+    };
     if georef.is_none() {
         tracing::warn!(path = %path.display(), "no [NS]dd[EW]ddd tile name: reading without a georeference");
     }

@@ -273,6 +273,42 @@ pub fn read_heights(path: &Path) -> Result<HeightRaster, InputError> {
     Ok(raster)
 }
 
+/// What a height file says about itself before its samples are read.
+#[derive(Clone, Debug)]
+pub struct HeightHeader {
+    /// Samples per row.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// Where the grid lies, when the file says.
+    pub georef: Option<Georef>,
+}
+
+/// Reads a height file's size and georeference: from the header or sidecar alone for
+/// `.hgt`, raw grids and GeoTIFF; a PNG is decoded (its sidecar has no size).
+pub fn probe_heights(path: &Path) -> Result<HeightHeader, InputError> {
+    let (width, height, georef) = match extension(path).as_deref() {
+        Some("json" | "i16" | "f32") => {
+            let f = raw::open(path)?;
+            (f.width, f.height, f.georef)
+        }
+        Some("hgt") => {
+            let (side, georef) = hgt::probe(path)?;
+            (side, side, georef)
+        }
+        Some("tif" | "tiff") => geotiff::probe(path)?,
+        _ => {
+            let r = read_heights(path)?;
+            (r.grid.width, r.grid.height, r.georef)
+        }
+    };
+    Ok(HeightHeader {
+        width,
+        height,
+        georef,
+    })
+}
+
 /// Reads a colour image (`.jpg`, `.jpeg` or `.png`) and the georeference of a sidecar
 /// `NAME.json` beside it, if there is one.
 pub fn read_rgb(path: &Path) -> Result<RgbImage, InputError> {
