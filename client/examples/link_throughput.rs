@@ -92,7 +92,7 @@ fn blob_keys(path: &PathBuf, n: usize) -> Vec<Key> {
     let mut keys = Vec::new();
     for entry in repo.blobs().take(n) {
         let (key, _) = entry.expect("read repository");
-        let centre = if meta.domain == "sphere" {
+        let centre = if meta.domain == quincunx_store::Domain::Sphere {
             SphereDomain::new(meta.m)
                 .unwrap()
                 .id_from_key(&key)

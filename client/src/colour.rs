@@ -13,12 +13,12 @@
 //!   `(Ne+1)^2` heights (by default `Nc = 2 Ne`: two texels per triangle edge); refinement
 //!   synthesises both, and its error is `max(edge, texel)` in pixels.
 //! - **Blobs.** One request per diamond fetches its three channel blobs, framed
-//!   ([`quincunx_store::channels`]); a channel without details has length 0.
+//!   ([`quincunx_meta::channels`]); a channel without details has length 0.
 
 use quincunx_codec::colour::ycocg_r_to_rgb;
 use quincunx_codec::incremental::{Details, Procedural, RefineError, Refined};
-use quincunx_store::Metadata;
-use quincunx_store::channels::split_channels;
+use quincunx_meta::Metadata;
+use quincunx_meta::channels::split_channels;
 
 use crate::domain::Domain;
 use crate::fetch::Weigh;
@@ -111,7 +111,9 @@ impl<R: Domain> ColourLayer<R> {
             name: name.to_string(),
             reason,
         };
-        if meta.attribute.kind != "colour" || meta.channels.len() != CHANNELS {
+        if meta.attribute.kind != quincunx_meta::AttributeKind::Colour
+            || meta.channels.len() != CHANNELS
+        {
             return Err(mismatch(format!(
                 "a colour layer needs a colour repository of {CHANNELS} channels, not {} ({} channels)",
                 meta.attribute.kind,
@@ -288,7 +290,7 @@ impl<R: Domain> ColourLayer<R> {
 /// radius; planar rasters whose extents correspond at the id scale `2^shift` and whose
 /// georeferences (when both have one) agree.
 fn check_same_domain(elevation: &Metadata, colour: &Metadata, shift: i32) -> Result<(), String> {
-    if elevation.domain == "sphere" {
+    if elevation.domain == quincunx_meta::Domain::Sphere {
         if let (Some(a), Some(b)) = (elevation.radius_m, colour.radius_m)
             && (a - b).abs() > 1e-9 * a.abs().max(b.abs())
         {
@@ -315,14 +317,13 @@ fn check_same_domain(elevation: &Metadata, colour: &Metadata, shift: i32) -> Res
         }
     }
     if let (Some(a), Some(b)) = (&elevation.georef, &colour.georef) {
-        for k in ["west", "east", "north", "south"] {
-            let (x, y) = (
-                a.get(k).and_then(serde_json::Value::as_f64),
-                b.get(k).and_then(serde_json::Value::as_f64),
-            );
-            if let (Some(x), Some(y)) = (x, y)
-                && (x - y).abs() > 1e-6 * (1.0 + x.abs())
-            {
+        for (k, x, y) in [
+            ("west", a.west, b.west),
+            ("east", a.east, b.east),
+            ("north", a.north, b.north),
+            ("south", a.south, b.south),
+        ] {
+            if (x - y).abs() > 1e-6 * (1.0 + x.abs()) {
                 return Err(format!(
                     "georeference {k} {y} does not match the elevation's {x}"
                 ));

@@ -11,7 +11,7 @@ use quincunx_codec::diamond::SphereDomain;
 use quincunx_codec::diamond::sphere::{axes, chart_of, cube_to_unit_sphere};
 use quincunx_codec::diamond::{PlanarId, SphereId};
 use quincunx_codec::incremental::{PlanarRefiner, Procedural, RefineError, Refiner, SphereRefiner};
-use quincunx_store::Metadata;
+use quincunx_meta::Metadata;
 
 use crate::open::{
     SessionError, planar_channel_refiner, planar_refiner, planar_world, sphere_channel_refiner,
@@ -108,8 +108,8 @@ pub trait Domain: Refiner + Sized {
     /// Its world mapping.
     type World: World;
 
-    /// `"planar"` or `"sphere"` (the repository metadata's domain).
-    const KIND: &'static str;
+    /// The repository metadata's domain.
+    const KIND: quincunx_meta::Domain;
 
     /// The refiner and world mapping of a repository (`spacing_m` overrides a planar
     /// repository's sample spacing).
@@ -242,7 +242,7 @@ fn probe_axis(extent: f64, steps: usize, offset: f64) -> impl Iterator<Item = f6
 
 impl Domain for PlanarRefiner {
     type World = PlanarWorld;
-    const KIND: &'static str = "planar";
+    const KIND: quincunx_meta::Domain = quincunx_meta::Domain::Planar;
 
     fn from_metadata(
         name: &str,
@@ -460,7 +460,7 @@ pub fn below_horizon(eye: DVec3, occluder: f64, centre: DVec3, cap: f64, r_max: 
 
 impl Domain for SphereRefiner {
     type World = SphereWorld;
-    const KIND: &'static str = "sphere";
+    const KIND: quincunx_meta::Domain = quincunx_meta::Domain::Sphere;
 
     fn from_metadata(
         name: &str,

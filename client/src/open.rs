@@ -5,7 +5,7 @@
 use quincunx_codec::coverage::Coverage;
 use quincunx_codec::entropy::CodecModel;
 use quincunx_codec::incremental::{PlanarRefiner, RefineError, Refiner, SphereRefiner};
-use quincunx_store::{ChannelCoding, Metadata};
+use quincunx_meta::{ChannelCoding, Domain, Metadata, Registration};
 
 use crate::fetch::FetchError;
 use crate::view::{PlanarWorld, SphereWorld};
@@ -82,7 +82,7 @@ fn single_channel(name: &str, meta: &Metadata) -> Result<(), SessionError> {
 fn channel<'m>(
     name: &str,
     meta: &'m Metadata,
-    domain: &str,
+    domain: Domain,
     channel: usize,
 ) -> Result<(&'m ChannelCoding, CodecModel, Option<Coverage>), SessionError> {
     if meta.domain != domain {
@@ -90,8 +90,8 @@ fn channel<'m>(
             name: name.to_string(),
             reason: format!(
                 "domain {:?}: open it with the {} session",
-                meta.domain,
-                if meta.domain == "sphere" {
+                meta.domain.name(),
+                if meta.domain == Domain::Sphere {
                     "planet"
                 } else {
                     "planar"
@@ -152,7 +152,7 @@ pub fn planar_channel_refiner(
     meta: &Metadata,
     index: usize,
 ) -> Result<PlanarRefiner, SessionError> {
-    let (coding, model, coverage) = channel(name, meta, "planar", index)?;
+    let (coding, model, coverage) = channel(name, meta, Domain::Planar, index)?;
     let [root] = coding.roots.as_slice() else {
         return Err(metadata_error(
             name,
@@ -185,7 +185,7 @@ pub fn sphere_channel_refiner(
     meta: &Metadata,
     index: usize,
 ) -> Result<SphereRefiner, SessionError> {
-    let (coding, model, coverage) = channel(name, meta, "sphere", index)?;
+    let (coding, model, coverage) = channel(name, meta, Domain::Sphere, index)?;
     if coding.roots.len() != 6 {
         return Err(metadata_error(
             name,
@@ -249,18 +249,11 @@ pub fn planar_world(meta: &Metadata, spacing_m: Option<f64>) -> PlanarWorld {
 /// registration}`: degrees on the Earth for geographic grids, the grid's units otherwise.
 fn georef_spacing_m(meta: &Metadata) -> Option<f64> {
     let g = meta.georef.as_ref()?;
-    let num = |k: &str| g.get(k).and_then(serde_json::Value::as_f64);
-    let (west, east, north, south) = (num("west")?, num("east")?, num("north")?, num("south")?);
+    let (west, east, north, south) = (g.west, g.east, g.north, g.south);
     let rows = meta.extent[1] as f64;
-    let node = g
-        .get("registration")
-        .and_then(serde_json::Value::as_str)
-        .is_some_and(|r| r.eq_ignore_ascii_case("node"));
+    let node = g.registration == Registration::Node;
     let intervals = if node { rows - 1.0 } else { rows };
-    let crs = g
-        .get("crs")
-        .and_then(serde_json::Value::as_str)
-        .unwrap_or("");
+    let crs = g.crs.as_deref().unwrap_or("");
     let geographic = crs.contains("4326")
         || (crs.is_empty() || crs.to_ascii_lowercase().contains("lat"))
             && [west, east].iter().all(|v| v.abs() <= 360.0)

@@ -2,7 +2,7 @@
 //! optionally, a colour repository matched to it ([`Session::open_with_colour`], see
 //! [`crate::colour`]), with their DAG, refinement and data access layers, driven one frame
 //! at a time. [`Session`] is planar by default; [`PlanetSession`] streams planets (the
-//! world is then centred on the planet). [`quincunx_store::Metadata::domain`] says which
+//! world is then centred on the planet). [`quincunx_meta::Metadata::domain`] says which
 //! one a repository needs.
 //!
 //! ```no_run
@@ -55,8 +55,8 @@ use bytes::Bytes;
 use glam::DVec3;
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::incremental::{Details, PlanarRefiner, Procedural, Refiner, SphereRefiner};
-use quincunx_store::Metadata;
-use quincunx_store::answer;
+use quincunx_meta::Metadata;
+use quincunx_meta::answer;
 
 use crate::colour::{ColourDetails, ColourLayer};
 use crate::dag::Dag;
@@ -216,10 +216,10 @@ struct Layer<T> {
     packing: Option<Packing>,
 }
 
-/// How a repository's answers carry small owned children (`quincunx_store::answer`).
+/// How a repository's answers carry small owned children (`quincunx_meta::answer`).
 #[derive(Clone, Debug)]
 struct Packing {
-    domain: answer::Domain,
+    domain: answer::IdSpace,
     levels: u32,
     /// Per level: whether its blobs are small enough, on average, to be carried by their
     /// owners' answers (mean blob at most the inlining limit).
@@ -238,7 +238,7 @@ impl Packing {
             }
         }
         Ok(Some(Packing {
-            domain: answer::Domain::of(meta)?,
+            domain: answer::IdSpace::of(meta)?,
             levels: meta.levels,
             carried,
         }))

@@ -10,7 +10,10 @@ use quincunx_codec::encode::{self, CubeGrid, EncodeOptions, Encoded, Grid, RateM
 use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_codec::stream::{self, BlobSink, StreamOptions};
-use quincunx_store::{Attribute, ChannelCoding, Metadata, NodataPolicy, RepositoryBuilder};
+use quincunx_store::{
+    Attribute, AttributeKind, ChannelCoding, Metadata, NodataHandling, NodataPolicy,
+    RepositoryBuilder,
+};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -360,7 +363,7 @@ fn build_streaming(
                 RasterGeometry::new(width, height, n).context("raster geometry")?,
             ),
             radius_m: None,
-            kind: "elevation",
+            kind: AttributeKind::Elevation,
             units,
             samples: enc.report.samples,
             source_samples: enc.report.samples,
@@ -716,7 +719,7 @@ struct Description {
     coverage: Option<Vec<u8>>,
     geometry: Geometry,
     radius_m: Option<f64>,
-    kind: &'static str,
+    kind: AttributeKind,
     units: String,
     samples: usize,
     /// Samples of the input file.
@@ -745,7 +748,7 @@ fn summarise(
     let coded_bytes = blob_bytes + side_bytes as u64;
     Ok(BuildSummary {
         output: args.output.display().to_string(),
-        kind: d.kind.into(),
+        kind: d.kind.name().into(),
         samples: d.samples,
         source_samples: d.source_samples,
         source_msamples_per_s: d.source_samples as f64 / seconds / 1e6,
@@ -819,7 +822,7 @@ fn elevation(source: Source, enc: Encoded, radius_m: Option<f64>, mode: RateMode
             coverage: enc.coverage.as_ref().map(|c| c.to_bytes()),
             geometry: Geometry::of(&enc)?,
             radius_m,
-            kind: "elevation",
+            kind: AttributeKind::Elevation,
             units: source.units,
             samples: enc.report.samples,
             source_samples: source.source_samples,
@@ -976,7 +979,7 @@ fn encode_colour(
             coverage: channels[0].1.coverage.as_ref().map(|c| c.to_bytes()),
             geometry: Geometry::of(&channels[0].1)?,
             radius_m: None,
-            kind: "colour",
+            kind: AttributeKind::Colour,
             units: "srgb8".into(),
             samples: channels[0].1.report.samples,
             source_samples: channels[0].1.report.samples,
@@ -1057,20 +1060,24 @@ fn publish(
         format_version: quincunx_store::FORMAT_VERSION,
         complete: false,
         content_hash: String::new(),
-        domain: geom.domain_name().into(),
+        domain: geom.domain(),
         m: geom.m(),
         n: n as u32,
         levels: geom.detail_levels() as u32,
         attribute: Attribute {
-            kind: d.kind.into(),
+            kind: d.kind,
             units: d.units.clone(),
         },
         extent: geom.extent(),
         nodata: NodataPolicy {
             source_count: d.nodata_count as u64,
-            handling: if d.nodata_count > 0 { "filled" } else { "none" }.into(),
+            handling: if d.nodata_count > 0 {
+                NodataHandling::Filled
+            } else {
+                NodataHandling::None
+            },
         },
-        georef: d.georef.as_ref().map(serde_json::to_value).transpose()?,
+        georef: d.georef.as_ref().map(Georef::stored),
         radius_m: d.radius_m,
         channels: d.channels.clone(),
         build: serde_json::json!({

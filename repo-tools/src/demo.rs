@@ -253,7 +253,7 @@ fn example_paths(config: &quincunx_server::ServerConfig) -> Result<Vec<(String, 
         let base = format!("/repos/{}", rc.name);
         let v = &meta.content_hash[..16.min(meta.content_hash.len())];
         paths.push((format!("{base}/metadata.json"), 200));
-        if meta.domain == "sphere" {
+        if meta.domain == quincunx_store::Domain::Sphere {
             let [x, y, z] = SphereDomain::new(meta.m)?.roots()[0].c;
             paths.push((format!("{base}/v/{v}/d/{x}/{y}/{z}"), 200));
         } else {

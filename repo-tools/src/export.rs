@@ -17,8 +17,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use quincunx_codec::diamond::{PlanarDomain, SphereDomain};
-use quincunx_store::answer::Domain;
-use quincunx_store::{Metadata, Repository};
+use quincunx_store::answer::IdSpace;
+use quincunx_store::{Domain, Metadata, Repository};
 
 use crate::progress;
 
@@ -31,17 +31,16 @@ pub fn blob_path(meta: &Metadata, name: &str, key: &[u8]) -> Result<String> {
 /// (`z = 0` for planar ids).
 fn path_centre(meta: &Metadata, name: &str, key: &[u8], kind: &str) -> Result<(String, [i64; 3])> {
     let version = &meta.content_hash[..meta.content_hash.len().min(16)];
-    let (centre, c) = match meta.domain.as_str() {
-        "planar" => {
+    let (centre, c) = match meta.domain {
+        Domain::Planar => {
             let id = PlanarDomain::new(meta.m)?.id_from_key(key)?;
             (format!("{}/{}", id.x, id.y), [id.x, id.y, 0])
         }
-        "sphere" => {
+        Domain::Sphere => {
             let id = SphereDomain::new(meta.m)?.id_from_key(key)?;
             let [x, y, z] = id.c;
             (format!("{x}/{y}/{z}"), id.c)
         }
-        other => bail!("unknown domain {other:?}"),
     };
     Ok((format!("repos/{name}/v/{version}/{kind}/{centre}"), c))
 }
@@ -70,7 +69,7 @@ pub fn run(path: &Path, dir: &Path, name: Option<&str>) -> Result<()> {
     let meta = repo.metadata();
     let root: PathBuf = dir.join("repos").join(&name);
     std::fs::create_dir_all(&root).with_context(|| format!("creating {}", root.display()))?;
-    let domain = Domain::of(meta).map_err(anyhow::Error::msg)?;
+    let domain = IdSpace::of(meta).map_err(anyhow::Error::msg)?;
     let pb = progress::bar(repo.blob_count() as u64, "exporting", "blobs");
     let mut files = 0u64;
     for kv in repo.blobs() {

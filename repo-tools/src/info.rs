@@ -24,7 +24,7 @@ struct Info<'a> {
 /// Input samples a repository covers (planar: width x height; sphere: distinct cube points).
 pub fn samples(meta: &quincunx_store::Metadata) -> u64 {
     let [a, b] = meta.extent;
-    if meta.domain == "sphere" {
+    if meta.domain == quincunx_store::Domain::Sphere {
         6 * a * b + 2
     } else {
         a * b
@@ -94,10 +94,10 @@ pub fn run(path: &Path, json: bool) -> Result<()> {
     outln!(
         "nodata         {} source samples, {}",
         meta.nodata.source_count,
-        meta.nodata.handling
+        serde_json::to_string(&meta.nodata.handling)?.trim_matches('"')
     );
     if let Some(g) = &meta.georef {
-        outln!("georef         {g}");
+        outln!("georef         {}", serde_json::to_string(g)?);
     }
     if let Some(r) = meta.radius_m {
         outln!("radius         {r} m");

@@ -15,17 +15,17 @@ use quincunx_codec::encode::{self, EncodeReport, Encoded, EncodedDomain, RateMod
 use quincunx_codec::entropy::CodecModel;
 use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::sphere_raster::SphereGeometry;
-use quincunx_store::{ChannelCoding, Metadata, Repository};
+use quincunx_store::{ChannelCoding, Domain, Metadata, Rate, Repository};
 
 /// Names of the colour channels, in blob order.
 pub const COLOUR_CHANNELS: [&str; 3] = ["Y", "Co", "Cg"];
 
 /// The rate mode as stored in metadata.
-pub fn rate_label(mode: RateMode) -> String {
+pub fn rate_label(mode: RateMode) -> Rate {
     match mode {
-        RateMode::Lossless => "lossless".into(),
-        RateMode::RmsM(t) => format!("rms={t}"),
-        RateMode::MaxErrorM(e) => format!("max_error={e}"),
+        RateMode::Lossless => Rate::Lossless,
+        RateMode::RmsM(t) => Rate::Rms(t),
+        RateMode::MaxErrorM(e) => Rate::MaxError(e),
     }
 }
 
@@ -71,14 +71,16 @@ impl Geometry {
         let (a, b) = (a as usize, b as usize);
         let n = meta.n as usize;
         let coverage = coverage(meta)?;
-        let geom = match (meta.domain.as_str(), &coverage) {
-            ("planar", None) => Geometry::Planar(RasterGeometry::new(a, b, n)?),
-            ("planar", Some(c)) => Geometry::Planar(RasterGeometry::with_coverage(a, b, n, c)?),
-            ("sphere", None) if a == b => Geometry::Sphere(SphereGeometry::new(a, n)?),
-            ("sphere", Some(c)) if a == b => {
+        let geom = match (meta.domain, &coverage) {
+            (Domain::Planar, None) => Geometry::Planar(RasterGeometry::new(a, b, n)?),
+            (Domain::Planar, Some(c)) => {
+                Geometry::Planar(RasterGeometry::with_coverage(a, b, n, c)?)
+            }
+            (Domain::Sphere, None) if a == b => Geometry::Sphere(SphereGeometry::new(a, n)?),
+            (Domain::Sphere, Some(c)) if a == b => {
                 Geometry::Sphere(SphereGeometry::with_coverage(a, n, c)?)
             }
-            (other, _) => bail!("unknown domain {other:?} with extent {a} x {b}"),
+            (Domain::Sphere, _) => bail!("a sphere's extent must be square, not {a} x {b}"),
         };
         if geom.detail_levels() != meta.levels as usize || geom.m() != meta.m {
             bail!(
@@ -92,11 +94,11 @@ impl Geometry {
         Ok(geom)
     }
 
-    /// `"planar"` or `"sphere"`.
-    pub fn domain_name(&self) -> &'static str {
+    /// The metadata's domain.
+    pub fn domain(&self) -> Domain {
         match self {
-            Geometry::Planar(_) => "planar",
-            Geometry::Sphere(_) => "sphere",
+            Geometry::Planar(_) => Domain::Planar,
+            Geometry::Sphere(_) => Domain::Sphere,
         }
     }
 

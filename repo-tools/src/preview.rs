@@ -47,7 +47,7 @@ pub fn run(repo: &Path, out: &Path, width: usize) -> Result<()> {
         }
     };
     let mut rgb = vec![0u8; w * h * 3];
-    if meta.attribute.kind == "colour" {
+    if meta.attribute.kind == quincunx_store::AttributeKind::Colour {
         for y in 0..h {
             for x in 0..w {
                 let (r, g, b) = quincunx_codec::colour::ycocg_r_to_rgb(

@@ -214,7 +214,7 @@ fn verify(args: &VerifyArgs) -> Result<VerifyReport> {
     let Some(source) = &args.source else {
         return Ok(report);
     };
-    let (rms, max) = if meta.attribute.kind == "colour" {
+    let (rms, max) = if meta.attribute.kind == quincunx_store::AttributeKind::Colour {
         let image =
             input::read_rgb(source).with_context(|| format!("reading {}", source.display()))?;
         let pixels = match &decoded.geom {

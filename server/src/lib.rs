@@ -2,7 +2,7 @@
 //!
 //! It never decodes a blob (this crate does not depend on the codec; CI checks it): a
 //! request is parsed, its id validated with `quincunx-diamond` (through
-//! `quincunx_store::answer::Domain`), and the blob's bytes come from the in-memory hot
+//! `quincunx_store::answer::IdSpace`), and the blob's bytes come from the in-memory hot
 //! cache or the repository file; packages are framed from stored blobs
 //! (`quincunx_store::answer`), never decoded. Blob URLs carry the repository's content
 //! hash, so responses are immutable and any HTTP cache or CDN can sit in front.

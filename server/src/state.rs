@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex};
 use axum::http::HeaderValue;
 use bytes::Bytes;
 use quincunx_store::Repository;
-pub use quincunx_store::answer::Domain;
+pub use quincunx_store::answer::IdSpace;
 
 use crate::ServeError;
 use crate::config::{Cors, ServerConfig};
@@ -49,7 +49,7 @@ pub struct Served {
     pub name: String,
     repo: Repository,
     /// Its id space.
-    pub domain: Domain,
+    pub domain: IdSpace,
     levels: u32,
     /// Whether `.../p/` serves packages (the repository has an inlining limit).
     pub packaged: bool,
@@ -174,8 +174,8 @@ impl AppState {
         };
         let kind = if packaged { "p." } else { "" };
         let etag = match served.domain {
-            Domain::Planar(_) => format!("\"{}.{kind}{}.{}\"", served.version, c[0], c[1]),
-            Domain::Sphere(_) => {
+            IdSpace::Planar(_) => format!("\"{}.{kind}{}.{}\"", served.version, c[0], c[1]),
+            IdSpace::Sphere(_) => {
                 format!("\"{}.{kind}{}.{}.{}\"", served.version, c[0], c[1], c[2])
             }
         };
@@ -231,7 +231,7 @@ impl Served {
     fn new(name: String, repo: Repository) -> Result<Served, ServeError> {
         let meta = repo.metadata();
         let bad = |what: String| ServeError::Config(format!("repository {name:?}: {what}"));
-        let domain = Domain::of(meta).map_err(bad)?;
+        let domain = IdSpace::of(meta).map_err(bad)?;
         if meta.content_hash.len() < 16 || !meta.content_hash.bytes().all(|b| b.is_ascii_hexdigit())
         {
             return Err(bad("content hash missing or malformed".into()));
@@ -256,8 +256,8 @@ impl Served {
     fn summary(&self) -> serde_json::Value {
         let meta = self.repo.metadata();
         let centre = match self.domain {
-            Domain::Planar(_) => "{x}/{y}",
-            Domain::Sphere(_) => "{x}/{y}/{z}",
+            IdSpace::Planar(_) => "{x}/{y}",
+            IdSpace::Sphere(_) => "{x}/{y}/{z}",
         };
         serde_json::json!({
             "name": self.name,

@@ -237,7 +237,7 @@ async fn listing_metadata_health_metrics_and_demo_answer() {
     assert_eq!(meta.status, StatusCode::OK);
     assert_eq!(meta.headers[header::CONTENT_TYPE], "application/json");
     let parsed: quincunx_store::Metadata = serde_json::from_slice(&meta.body).unwrap();
-    assert_eq!(parsed.domain, "sphere");
+    assert_eq!(parsed.domain, quincunx_store::Domain::Sphere);
     assert_eq!(parsed.radius_m, Some(6_371_000.0));
     assert_eq!(
         meta.headers[header::ETAG].to_str().unwrap(),

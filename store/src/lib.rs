@@ -28,11 +28,14 @@ use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
 use bytes::Bytes;
-use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 pub mod answer;
-pub mod channels;
+pub use quincunx_meta::channels;
+pub use quincunx_meta::{
+    Attribute, AttributeKind, ChannelCoding, Domain, Georef, LevelStats, Metadata, NodataHandling,
+    NodataPolicy, Rate, Registration,
+};
 pub mod pack;
 pub mod page;
 
@@ -149,107 +152,6 @@ pub fn is_valid_name(name: &str) -> bool {
 
 /// Shorthand.
 pub type Result<T> = std::result::Result<T, StoreError>;
-
-/// Everything a server or client needs to know about a repository, stored as one JSON
-/// record. Codec-specific parts (model, steps, root grids) are opaque numbers here.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Metadata {
-    /// [`FORMAT_VERSION`] of the writer.
-    pub format_version: u32,
-    /// `true` only in the record written by [`RepositoryBuilder::publish`].
-    pub complete: bool,
-    /// SHA-256 (hex) over every key and blob in key order and the metadata with this
-    /// field empty: changes whenever any content changes (used to version URLs).
-    pub content_hash: String,
-    /// `"planar"` or `"sphere"`.
-    pub domain: String,
-    /// Domain size exponent: planar side `2^m`, sphere cube `[-2^m, 2^m]^3` (id units).
-    pub m: u32,
-    /// Diamond size `N` (cells per side; vertex grids are `(N+1)^2`).
-    pub n: u32,
-    /// Levels that carry details (blobs exist for levels `0 .. levels`).
-    pub levels: u32,
-    /// What the samples are.
-    pub attribute: Attribute,
-    /// Planar: raster width and height in samples. Sphere: face side `2S` twice.
-    pub extent: [u64; 2],
-    /// How nodata in the source was handled.
-    pub nodata: NodataPolicy,
-    /// Where the samples are on Earth (or another body); `None` for plain height fields.
-    pub georef: Option<serde_json::Value>,
-    /// Planet radius in metres (sphere domain).
-    pub radius_m: Option<f64>,
-    /// One entry per channel (1 for elevation, 3 for colour: Y, Co, Cg).
-    pub channels: Vec<ChannelCoding>,
-    /// How the repository was built.
-    pub build: serde_json::Value,
-    /// Blob count and bytes per level.
-    pub level_stats: Vec<LevelStats>,
-    /// Sparse repositories: the codec's coverage bitmap (`Coverage::to_bytes`), which
-    /// says where data exists; points elsewhere are invalid (holes). `None` = dense.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub coverage: Option<Vec<u8>>,
-    /// Inlining limit `T`: a diamond's package carries the packages of its owned children
-    /// of at most `T` bytes ([`answer`]). `None`: no packages are served.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub inline_max_bytes: Option<u32>,
-    /// `true` only in the `metadata.json` that `quincunx export` writes: the repository is
-    /// a folder of static files, where a diamond without a blob (a leaf) has no file, so
-    /// the web server or object store answers its URL with a 404. A client takes a 404
-    /// on a blob or package URL of such a repository as a leaf; from `quincunx serve`
-    /// (which answers a leaf with an empty 200 and never sets this) a 404 stays an error.
-    /// Not part of the content hash, which is computed with it `false`.
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
-    pub static_export: bool,
-}
-
-/// The attribute a repository carries.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Attribute {
-    /// `"elevation"` or `"colour"`.
-    pub kind: String,
-    /// Units of decoded values (`"m"` for elevation, `"srgb8"` for colour).
-    pub units: String,
-}
-
-/// How source nodata was handled.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct NodataPolicy {
-    /// Nodata samples in the source.
-    pub source_count: u64,
-    /// `"none"` (no holes) or `"filled"` (holes filled smoothly; no spikes or cliffs).
-    pub handling: String,
-}
-
-/// Decoder parameters of one channel.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ChannelCoding {
-    /// Channel name (`"height"`, `"Y"`, `"Co"`, `"Cg"`).
-    pub name: String,
-    /// Value units per integer: decoded = offset + integer * scale.
-    pub value_scale: f64,
-    /// Value at integer 0.
-    pub value_offset: f64,
-    /// Quantiser step of each detail level, 1/256 integer units.
-    pub steps: Vec<u32>,
-    /// Trained entropy-model bytes.
-    pub model: Vec<u8>,
-    /// Root vertex grids (one per root diamond), row-major `(N+1)^2`.
-    pub roots: Vec<Vec<i32>>,
-    /// Rate mode the channel was coded with (`"lossless"`, `"rms_m=9"`, ...).
-    pub rate: String,
-}
-
-/// Blobs of one level.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct LevelStats {
-    /// Level.
-    pub level: u32,
-    /// Blobs stored.
-    pub blobs: u64,
-    /// Bytes of those blobs.
-    pub bytes: u64,
-}
 
 fn io_err<'a>(
     context: &'static str,
@@ -910,18 +812,18 @@ mod tests {
             format_version: 0,
             complete: false,
             content_hash: String::new(),
-            domain: "planar".into(),
+            domain: crate::Domain::Planar,
             m: 6,
             n: 32,
             levels: 2,
             attribute: Attribute {
-                kind: "elevation".into(),
+                kind: crate::AttributeKind::Elevation,
                 units: "m".into(),
             },
             extent: [65, 65],
             nodata: NodataPolicy {
                 source_count: 0,
-                handling: "none".into(),
+                handling: crate::NodataHandling::None,
             },
             georef: None,
             radius_m: None,

@@ -30,26 +30,26 @@ pub fn blob_for(c: [i64; 3]) -> Vec<u8> {
     (0..len).map(|i| (seed as usize + i * 7) as u8).collect()
 }
 
-fn metadata(domain: &str, m: u32, levels: u32) -> Metadata {
+fn metadata(domain: quincunx_store::Domain, m: u32, levels: u32) -> Metadata {
     Metadata {
         format_version: 0,
         complete: false,
         content_hash: String::new(),
-        domain: domain.into(),
+        domain,
         m,
         n: 32,
         levels,
         attribute: Attribute {
-            kind: "elevation".into(),
+            kind: quincunx_store::AttributeKind::Elevation,
             units: "m".into(),
         },
         extent: [1 << m, 1 << m],
         nodata: NodataPolicy {
             source_count: 0,
-            handling: "none".into(),
+            handling: quincunx_store::NodataHandling::None,
         },
         georef: None,
-        radius_m: (domain == "sphere").then_some(6_371_000.0),
+        radius_m: (domain == quincunx_store::Domain::Sphere).then_some(6_371_000.0),
         channels: vec![],
         build: serde_json::json!({"fixture": true}),
         level_stats: vec![],
@@ -101,8 +101,11 @@ pub fn build_fixtures(dir: &Path) -> Vec<(String, PathBuf)> {
             b.put(level, &d.key(id).unwrap(), &blob_for(c)).unwrap();
         }
     }
-    b.publish(metadata("planar", PLANAR_M, PLANAR_LEVELS), false)
-        .unwrap();
+    b.publish(
+        metadata(quincunx_store::Domain::Planar, PLANAR_M, PLANAR_LEVELS),
+        false,
+    )
+    .unwrap();
     let sphere = dir.join("globe");
     let d = SphereDomain::new(SPHERE_M).unwrap();
     let mut b = RepositoryBuilder::create(&sphere).unwrap();
@@ -110,7 +113,10 @@ pub fn build_fixtures(dir: &Path) -> Vec<(String, PathBuf)> {
         b.put(level, &d.key(SphereId { c }).unwrap(), &blob_for(c))
             .unwrap();
     }
-    b.publish(metadata("sphere", SPHERE_M, SPHERE_LEVELS), false)
-        .unwrap();
+    b.publish(
+        metadata(quincunx_store::Domain::Sphere, SPHERE_M, SPHERE_LEVELS),
+        false,
+    )
+    .unwrap();
     vec![("plain".into(), planar), ("globe".into(), sphere)]
 }

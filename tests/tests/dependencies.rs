@@ -85,3 +85,26 @@ fn client_and_server_do_not_depend_on_wgpu() {
         assert!(wgpu.is_empty(), "{crate_name} depends on {wgpu:?}");
     }
 }
+
+#[test]
+fn the_client_reads_metadata_without_the_store() {
+    let tree = tree_of("quincunx-client");
+    // What it shares with the server and store: the metadata crate.
+    assert!(
+        tree.lines().any(|l| l.starts_with("quincunx-meta ")),
+        "{tree}"
+    );
+    let store: Vec<&str> = tree
+        .lines()
+        .filter(|l| l.starts_with("quincunx-store") || l.starts_with("sled"))
+        .collect();
+    assert!(store.is_empty(), "quincunx-client depends on {store:?}");
+    // The store and server share the same crate.
+    for crate_name in ["quincunx-store", "quincunx-server"] {
+        let tree = tree_of(crate_name);
+        assert!(
+            tree.lines().any(|l| l.starts_with("quincunx-meta ")),
+            "{crate_name}: {tree}"
+        );
+    }
+}

@@ -21,7 +21,7 @@ use quincunx_client::session::{Session, SessionConfig};
 use quincunx_codec::diamond::PlanarDomain;
 use quincunx_repo_tools::build::{self, BuildArgs};
 use quincunx_store::Repository;
-use quincunx_store::answer::{self, Domain};
+use quincunx_store::answer::{self, IdSpace};
 
 fn build_korea(out: &Path, inline_bytes: u64) {
     build::run(&BuildArgs {
@@ -39,7 +39,7 @@ fn build_korea(out: &Path, inline_bytes: u64) {
 /// Checks the package of `c` against the rule; returns the blobs it carries.
 fn check_package(
     repo: &Repository,
-    domain: &Domain,
+    domain: &IdSpace,
     c: [i64; 3],
     bytes: &[u8],
     limit: usize,
@@ -76,7 +76,7 @@ fn packages_follow_the_rule_and_stream_the_same_cut_in_fewer_requests() {
         let repo = Repository::open(&local).unwrap();
         let meta = repo.metadata();
         let limit = meta.inline_max_bytes.expect("default builds have a limit") as usize;
-        let domain = Domain::of(meta).unwrap();
+        let domain = IdSpace::of(meta).unwrap();
         let planar = PlanarDomain::new(meta.m).unwrap();
         let mut carried = 0;
         let mut blobs = Vec::new();

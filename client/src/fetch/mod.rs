@@ -51,7 +51,7 @@ pub type Key = [i64; 3];
 pub type Decode<T> = Arc<dyn Fn(Key, Bytes) -> Result<T, String> + Send + Sync>;
 
 /// What one answer decoded to: the requested key's value, and the values of the other
-/// keys the answer carried (a package's owned children, `quincunx_store::answer`).
+/// keys the answer carried (a package's owned children, `quincunx_meta::answer`).
 #[derive(Debug)]
 pub struct Decoded<T> {
     /// The value of the key asked for.

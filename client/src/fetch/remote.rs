@@ -2,7 +2,7 @@
 
 use std::time::Duration;
 
-use quincunx_store::Metadata;
+use quincunx_meta::Metadata;
 
 use super::http1::{self, Endpoint};
 use super::{FetchError, Key};
@@ -76,11 +76,7 @@ impl Remote {
                 meta.content_hash
             )));
         }
-        let sphere = match meta.domain.as_str() {
-            "planar" => false,
-            "sphere" => true,
-            other => return Err(FetchError::Metadata(format!("unknown domain {other:?}"))),
-        };
+        let sphere = meta.domain == quincunx_meta::Domain::Sphere;
         Ok(Remote {
             endpoint,
             base_url: base_url.trim_end_matches('/').to_string(),
@@ -113,7 +109,7 @@ impl Remote {
     }
 
     /// The path of `key`'s package: its blob with its small owned children's
-    /// (`quincunx_store::answer`; repositories with an inlining limit only).
+    /// (`quincunx_meta::answer`; repositories with an inlining limit only).
     pub fn package_path(&self, key: Key) -> String {
         self.path(key, "p")
     }

@@ -33,17 +33,10 @@ pub const MAX_SIDE: u64 = 1 << 24;
 /// Largest decoded buffer any reader allocates (4 GiB).
 pub const MAX_DECODED_BYTES: u64 = 4 << 30;
 
-/// How the samples sit on the extent given by a [`Georef`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Registration {
-    /// Grid-registered: sample (0, 0) sits exactly on the north-west corner of the extent,
-    /// and the last sample on the south-east corner.
-    Node,
-    /// Pixel-registered: the extent is the outer edge of the cells; sample (0, 0) sits at
-    /// the centre of the north-west cell.
-    Cell,
-}
+/// How the samples sit on the extent given by a [`Georef`]: node (grid-registered: sample
+/// (0, 0) sits on the north-west corner of the extent, the last sample on the south-east
+/// corner) or cell (pixel-registered: the extent is the outer edge of the cells).
+pub use quincunx_store::Registration;
 
 /// Where a raster lies on the ground.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -69,6 +62,18 @@ pub struct Georef {
 }
 
 impl Georef {
+    /// What a repository's metadata records of it.
+    pub fn stored(&self) -> quincunx_store::Georef {
+        quincunx_store::Georef {
+            crs: self.crs.clone(),
+            east: self.east,
+            north: self.north,
+            registration: self.registration,
+            south: self.south,
+            west: self.west,
+        }
+    }
+
     /// The CRS as recognised by the reader, else parsed from `crs`; `None` when the
     /// source names none.
     pub fn projection(&self) -> Option<Projection> {

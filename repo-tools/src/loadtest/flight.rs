@@ -22,9 +22,6 @@ use quincunx_store::Metadata;
 /// Why a stream cannot be planned.
 #[derive(Debug, thiserror::Error)]
 pub enum FlightError {
-    /// The metadata names a domain this tool does not know.
-    #[error("unknown domain {0:?}")]
-    UnknownDomain(String),
     /// The domain parameters are invalid.
     #[error("invalid domain: {0}")]
     Domain(#[from] IdError),
@@ -64,10 +61,9 @@ pub const REFINE_FACTOR: f64 = 3.0;
 impl FlightPlan {
     /// The default plan for a repository: 400 steps, at most `max_requests` requests.
     pub fn for_metadata(meta: &Metadata, max_requests: usize) -> Result<FlightPlan, FlightError> {
-        let geometry = match meta.domain.as_str() {
-            "planar" => Geometry::Planar(PlanarDomain::new(meta.m)?),
-            "sphere" => Geometry::Sphere(SphereDomain::new(meta.m)?),
-            other => return Err(FlightError::UnknownDomain(other.to_string())),
+        let geometry = match meta.domain {
+            quincunx_store::Domain::Planar => Geometry::Planar(PlanarDomain::new(meta.m)?),
+            quincunx_store::Domain::Sphere => Geometry::Sphere(SphereDomain::new(meta.m)?),
         };
         if meta.levels == 0 {
             return Err(FlightError::NoLevels);

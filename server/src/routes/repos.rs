@@ -12,7 +12,7 @@ use axum::response::{IntoResponse, Response};
 
 use super::{not_modified, not_modified_response};
 use crate::error::ApiError;
-use crate::state::{AppState, Domain};
+use crate::state::{AppState, IdSpace};
 
 /// Blob URLs never change meaning: the version in the path is the content hash.
 const IMMUTABLE: &str = "public, max-age=31536000, immutable";
@@ -117,7 +117,7 @@ fn bytes_response(
 /// domain has coordinates.
 fn parse_centre<'a>(
     parts: impl Iterator<Item = &'a str>,
-    domain: Domain,
+    domain: IdSpace,
 ) -> Result<[i64; 3], ApiError> {
     let dims = domain.dims();
     let mut centre = [0i64; 3];
