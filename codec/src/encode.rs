@@ -1279,8 +1279,393 @@ pub(crate) fn check_tolerance(mode: RateMode) -> Result<(), EncodeError> {
     }
 }
 
+/// Every diamond's side information, bottom-up (children before parents): the class
+/// byte its owner's blob carries for it (`gamma`, from its subtree's error bounds) and
+/// whether it or anything below it has data (a blob to code).
+struct SideInfo {
+    gamma: Vec<Vec<u64>>,
+    has_data: Vec<Vec<bool>>,
+}
+
+impl SideInfo {
+    /// The class bytes the blob of diamond `(l, i)` carries for its owned children.
+    fn classes_of<G: Layout>(&self, geom: &G, l: usize, i: usize) -> Vec<u8> {
+        geom.owned(&geom.slot_levels()[l][i])
+            .iter()
+            .map(|&k| side_entry(self.gamma[l + 1][k], self.has_data[l + 1][k]))
+            .collect()
+    }
+}
+
+/// The side-information stage: from the quantised details (which diamonds have indices)
+/// and each diamond's measures of its decoded surface.
+fn side_information<G: Layout>(
+    geom: &G,
+    quantized: &[Vec<Vec<i32>>],
+    measures: &[Vec<Measure>],
+) -> SideInfo {
+    let levels = geom.slot_levels().len();
+    let mut gamma: Vec<Vec<u64>> = vec![Vec::new(); levels];
+    let mut has_data: Vec<Vec<bool>> = vec![Vec::new(); levels];
+    let mut bounds: Vec<Vec<(i64, i64)>> = vec![Vec::new(); levels];
+    for l in (0..levels).rev() {
+        let slots = &geom.slot_levels()[l];
+        let mut g = Vec::with_capacity(slots.len());
+        let mut hd = Vec::with_capacity(slots.len());
+        let mut bd = Vec::with_capacity(slots.len());
+        for (i, s) in slots.iter().enumerate() {
+            let own = quantized[l][i].iter().any(|&x| x != 0);
+            let children: &[usize] = if l + 1 < levels {
+                geom.children(s)
+            } else {
+                &[]
+            };
+            let (gam, data, bound) = side_info(
+                &measures[l][i],
+                own,
+                children
+                    .iter()
+                    .map(|&k| (gamma[l + 1][k], has_data[l + 1][k], bounds[l + 1][k])),
+            );
+            g.push(gam);
+            hd.push(data);
+            bd.push(bound);
+        }
+        gamma[l] = g;
+        has_data[l] = hd;
+        bounds[l] = bd;
+    }
+    SideInfo { gamma, has_data }
+}
+
+/// The coding stage: trains the model (on a subsample of the large levels, see
+/// `trains_on`) on what the blobs will hold, then codes every diamond that has data.
+fn code_blobs<G: Layout>(
+    geom: &G,
+    steps: &[u32],
+    quantized: &[Vec<Vec<i32>>],
+    side: &SideInfo,
+) -> (CodecModel, Vec<Vec<Option<Vec<u8>>>>) {
+    let n = geom.n();
+    let model = train_model(
+        geom,
+        |l, i| side.has_data[l][i],
+        |acc, l, i| {
+            let ctx = BlobContext {
+                step: steps[l],
+                ..geom.blob_context(l, i)
+            };
+            entropy::write_gammas(acc, ctx.group, &side.classes_of(geom, l, i));
+            entropy::write_matrix(
+                acc,
+                ctx.group,
+                n,
+                &quantized[l][i],
+                ctx.mask.map(crate::lifting::DiamondMask::cells),
+                ctx.hides_signs(),
+            );
+        },
+    );
+    let blobs = (0..geom.slot_levels().len())
+        .map(|l| {
+            (0..geom.slot_levels()[l].len())
+                .into_par_iter()
+                .map(|i| {
+                    side.has_data[l][i].then(|| {
+                        blob::encode(
+                            &BlobContext {
+                                step: steps[l],
+                                ..geom.blob_context(l, i)
+                            },
+                            &model,
+                            &side.classes_of(geom, l, i),
+                            &quantized[l][i],
+                        )
+                    })
+                })
+                .collect()
+        })
+        .collect();
+    (model, blobs)
+}
+
+/// What the RMS rate control settled on.
+struct RmsOutcome {
+    /// Quantiser step per level (1/256 units).
+    steps: Vec<u32>,
+    /// Every diamond's measures in the kept attempt's verification decode.
+    measures: Vec<Vec<Measure>>,
+    /// RMS and largest error of that decode.
+    errors: (f64, f64),
+    /// Whether the rate-distortion quantiser chose the indices.
+    rdo_used: bool,
+    /// Verification decodes made.
+    decodes: usize,
+}
+
+/// The RMS rate-control stage: searches the quantiser scale whose verification decode
+/// meets `target` with the fewest bits (the steps per level follow the synthesis gains),
+/// and leaves the kept attempt's indices in `details`. `unit` is the source quantum (or
+/// the integer scale), `error_of` measures a decoded raster against the source, and
+/// `raster` is a buffer for the decodes.
+#[allow(clippy::too_many_arguments)]
+fn control_rms<G: Layout>(
+    geom: &G,
+    details: &mut [Vec<Vec<i32>>],
+    roots: &[Vec<i32>],
+    mut raster: Vec<i32>,
+    (target, unit, scale): (f64, f64, f64),
+    valid_count: usize,
+    rdo: RdoMode,
+    error_of: &(dyn Fn(&[i32]) -> (f64, f64) + Sync),
+) -> Result<RmsOutcome, EncodeError> {
+    let n = geom.n();
+    let levels = geom.slot_levels().len();
+    let level_len = |l: usize| geom.slot_levels()[l].len();
+    let slot = |l: usize, i: usize| &geom.slot_levels()[l][i];
+    let offset = rounding_offset(target / unit);
+    // Quantises one diamond's details in place by rounding (pruned and sign-hiding on
+    // quantised RMS levels).
+    let round_matrix = |steps: &[u32], l: usize, h: &mut [i32]| {
+        let s = steps[l];
+        let quantizer = Quantizer::new(s, offset);
+        if s > 256 {
+            quantize_pruned(n, h, &quantizer, s);
+        } else {
+            for x in h.iter_mut() {
+                *x = quantizer.apply(*x);
+            }
+        }
+    };
+    // Diamond `(l, i)`'s indices into `out`: by rate and distortion under `cost_model`
+    // on quantised RMS levels when one is given, else by rounding.
+    let quantize_matrix =
+        |cost_model: Option<&CodecModel>, steps: &[u32], l: usize, i: usize, out: &mut [i32]| {
+            let s = steps[l];
+            match cost_model {
+                Some(model) if s > 256 => {
+                    let ctx = geom.blob_context(l, i);
+                    let step_units = s as f32 / 256.0;
+                    entropy::rdo::quantize_matrix(
+                        model,
+                        &entropy::rdo::Matrix {
+                            group: ctx.group,
+                            n,
+                            valid: ctx.mask.map(crate::lifting::DiamondMask::cells),
+                            step: s,
+                            lambda: RDO_LAMBDA * step_units * step_units,
+                        },
+                        &details[l][i],
+                        out,
+                        |q, dd| fix_parity(q, dd, s),
+                    );
+                }
+                _ => {
+                    out.copy_from_slice(&details[l][i]);
+                    round_matrix(steps, l, out);
+                }
+            }
+        };
+    // Decodes the details quantised with `steps` into `out` (reused between attempts)
+    // and measures every diamond; also says whether any index was nonzero. Quantising on
+    // the fly keeps no quantised copy of all the details; with the rate-distortion
+    // quantiser, whose second run would cost more than the memory, `keep` receives the
+    // nonzero matrices of the attempt.
+    let decode_measure = |cost_model: Option<&CodecModel>,
+                          steps: &[u32],
+                          out: &mut Vec<i32>,
+                          keep: Option<&Kept>|
+     -> Result<(Vec<Vec<Measure>>, bool), EncodeError> {
+        out.clear();
+        out.resize(geom.raster_len(), 0);
+        geom.scatter_roots(roots, out)?;
+        let coded = AtomicBool::new(false);
+        let measures = synthesize_levels_par(
+            geom,
+            out,
+            |l, i, h| {
+                quantize_matrix(cost_model, steps, l, i, h);
+                let any = h.iter().any(|&x| x != 0);
+                if any {
+                    coded.store(true, Ordering::Relaxed);
+                    if let Some(keep) = keep {
+                        let _ = keep[l][i].set(h.into());
+                    }
+                }
+                for x in h.iter_mut() {
+                    *x = dequantize(*x, steps[l]);
+                }
+                any
+            },
+            |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
+        )?;
+        Ok((measures, coded.into_inner()))
+    };
+    let new_kept = |rdo: bool| -> Option<Kept> {
+        rdo.then(|| {
+            (0..levels)
+                .map(|l| (0..level_len(l)).map(|_| OnceLock::new()).collect())
+                .collect()
+        })
+    };
+
+    let mut decodes = 0;
+    let gains = synthesis_gains(n, levels);
+    let step_of = |q: f64, l: usize, exponent: f64| -> u32 {
+        let g = gains[levels - 1 - l].max(1e-6);
+        ((q / g.powf(exponent)) * 256.0).round().clamp(256.0, 1e9) as u32
+    };
+    // Histogram of |detail| per level for fast error estimates.
+    let hist: Vec<Vec<(u32, u64)>> = details.iter().map(|ds| magnitude_histogram(ds)).collect();
+    let estimate = |q: f64, exponent: f64| -> f64 {
+        let mut mse = 0.0;
+        for (l, hl) in hist.iter().enumerate() {
+            let s = step_of(q, l, exponent);
+            let quantizer = Quantizer::new(s, offset);
+            let g = gains[levels - 1 - l];
+            let e: f64 = hl
+                .iter()
+                .map(|&(a, c)| {
+                    let r = dequantize(quantizer.apply(a as i32), s) as f64;
+                    let d = a as f64 - r;
+                    d * d * c as f64
+                })
+                .sum();
+            mse += g * e;
+        }
+        (mse / valid_count.max(1) as f64).sqrt() * scale
+    };
+    // The largest scale whose estimated RMS, times `ratio`, stays under `goal`.
+    let solve = |goal: f64, ratio: f64, exponent: f64| {
+        largest_scale(|q| estimate(q, exponent) * ratio <= goal)
+    };
+    let quanta = target / unit;
+    let mut search = ScaleSearch::new(target);
+    // The fraction of nonzero indices at scale `q` (plain rounding).
+    let nonzero_fraction = |q: f64, e: f64| -> f64 {
+        let (mut nonzero, mut all) = (0u64, 0u64);
+        for (l, hl) in hist.iter().enumerate() {
+            let quantizer = Quantizer::new(step_of(q, l, e), offset);
+            for &(a, c) in hl {
+                all += c;
+                nonzero += c * u64::from(quantizer.apply(a as i32) != 0);
+            }
+        }
+        nonzero as f64 / all.max(1) as f64
+    };
+    // The first guess: the largest scale whose estimate, times the ratio expected at
+    // its fraction of nonzero indices, meets the goal (the product grows with the
+    // scale).
+    let first_guess = |rdo: bool, e: f64| {
+        largest_scale(|q| {
+            estimate(q, e) * initial_ratio(nonzero_fraction(q, e), rdo) <= search.goal()
+        })
+    };
+    // Whether the rate-distortion quantiser runs: by the option, or (auto) where the
+    // plain quantiser's first guess leaves most indices zero.
+    let plain_guess = (rdo != RdoMode::On).then(|| {
+        let e = gain_exponent(quanta, false);
+        (first_guess(false, e), e)
+    });
+    let rdo_used = match (rdo, plain_guess) {
+        (RdoMode::On, _) => true,
+        (RdoMode::Auto, Some((q, e))) => nonzero_fraction(q, e) < RDO_AUTO_MAX_NONZERO,
+        _ => false,
+    };
+    let exponent = gain_exponent(quanta, rdo_used);
+    let mut q = match plain_guess {
+        Some((q, _)) if !rdo_used => q,
+        _ => first_guess(rdo_used, exponent),
+    };
+    let steps_at = |q: f64| -> Vec<u32> { (0..levels).map(|l| step_of(q, l, exponent)).collect() };
+    // The rate-distortion quantiser's probabilities: a model trained on the plain
+    // quantisation at the first guess's steps.
+    let cost_model = rdo_used.then(|| {
+        let st = steps_at(q);
+        train_model(
+            geom,
+            |_, _| true,
+            |acc, l, i| {
+                let ctx = geom.blob_context(l, i);
+                let mut h = details[l][i].clone();
+                round_matrix(&st, l, &mut h);
+                entropy::write_matrix(
+                    acc,
+                    ctx.group,
+                    n,
+                    &h,
+                    ctx.mask.map(crate::lifting::DiamondMask::cells),
+                    st[l] > 256,
+                );
+            },
+        )
+    });
+    let cost_model = cost_model.as_ref();
+    // The attempt kept: scale, steps, measures, errors, indices.
+    let mut best: Option<Attempt> = None;
+    for _ in 0..8 {
+        let st = steps_at(q);
+        let kept = new_kept(rdo_used);
+        let (ms, coded) = decode_measure(cost_model, &st, &mut raster, kept.as_ref())?;
+        decodes += 1;
+        let (rms, max) = error_of(&raster);
+        let est = estimate(q, exponent);
+        let improves = rms <= target && best.as_ref().is_none_or(|b| q > b.0);
+        if improves {
+            best = Some((q, st, ms, (rms, max), kept));
+        }
+        match search.next(q, rms, est, coded, &|goal, ratio| {
+            solve(goal, ratio, exponent)
+        }) {
+            Some(next) => q = next,
+            None => break,
+        }
+    }
+    let (_, st, ms, errors, kept) = match best {
+        Some(b) => b,
+        None => {
+            // Fall back to the finest steps (integer lossless) if nothing met the target.
+            let st = vec![256; levels];
+            let kept = None;
+            let (ms, _) = decode_measure(None, &st, &mut raster, None)?;
+            decodes += 1;
+            let errors = error_of(&raster);
+            (0.0, st, ms, errors, kept)
+        }
+    };
+    drop(raster);
+    // The kept attempt's indices, as its verification decode quantised them.
+    match kept {
+        Some(kept) => {
+            for (ds, ks) in details.iter_mut().zip(kept) {
+                ds.par_iter_mut()
+                    .zip(ks.into_par_iter())
+                    .for_each(|(h, k)| match k.into_inner() {
+                        Some(q) => h.copy_from_slice(&q),
+                        None => h.iter_mut().for_each(|x| *x = 0),
+                    });
+            }
+        }
+        None => {
+            for (l, ds) in details.iter_mut().enumerate() {
+                ds.par_iter_mut().for_each(|h| round_matrix(&st, l, h));
+            }
+        }
+    }
+    Ok(RmsOutcome {
+        steps: st,
+        measures: ms,
+        errors,
+        rdo_used,
+        decodes,
+    })
+}
+
 /// The encoder over either geometry: `values_m` in the geometry's sample order, with
-/// consistent copies of shared points.
+/// consistent copies of shared points. Its stages, in order: integerise (`integerise`),
+/// analyse leaves to root (`analyze_levels_with`), rate control (`control_rms`, or for
+/// the exact modes the analysis' own measures), side information (`side_information`),
+/// training and coding (`code_blobs`), and the report.
 fn encode_layout<G: Layout>(
     geom: &G,
     domain: EncodedDomain,
@@ -1339,344 +1724,44 @@ fn encode_layout<G: Layout>(
     // allocation to fault in).
     let mut spare_raster = Some(raster);
     let levels = geom.slot_levels().len();
-    let level_len = |l: usize| geom.slot_levels()[l].len();
-    let slot = |l: usize, i: usize| &geom.slot_levels()[l][i];
-
-    let mut steps = vec![256u32; levels];
-    let quantized: Vec<Vec<Vec<i32>>>;
-    let measures;
-    let offset = match opts.mode {
-        RateMode::RmsM(t) => rounding_offset(t / quantum_m.unwrap_or(scale)),
-        _ => 128,
-    };
-    // Only the RMS mode trades individual details for rate; the other modes are exact.
-    let prune = matches!(opts.mode, RateMode::RmsM(_));
-    // Quantises one diamond's details in place by rounding (pruned and sign-hiding on
-    // quantised RMS levels).
-    let round_matrix = |steps: &[u32], l: usize, h: &mut [i32]| {
-        let s = steps[l];
-        let quantizer = Quantizer::new(s, offset);
-        if prune && s > 256 {
-            quantize_pruned(n, h, &quantizer, s);
-        } else {
-            for x in h.iter_mut() {
-                *x = quantizer.apply(*x);
-            }
-        }
-    };
-    // Diamond `(l, i)`'s indices into `out`: by rate and distortion under `cost_model`
-    // on quantised RMS levels when one is given, else by rounding.
-    let quantize_matrix =
-        |cost_model: Option<&CodecModel>, steps: &[u32], l: usize, i: usize, out: &mut [i32]| {
-            let s = steps[l];
-            match cost_model {
-                Some(model) if prune && s > 256 => {
-                    let ctx = geom.blob_context(l, i);
-                    let step_units = s as f32 / 256.0;
-                    entropy::rdo::quantize_matrix(
-                        model,
-                        &entropy::rdo::Matrix {
-                            group: ctx.group,
-                            n,
-                            valid: ctx.mask.map(crate::lifting::DiamondMask::cells),
-                            step: s,
-                            lambda: RDO_LAMBDA * step_units * step_units,
-                        },
-                        &details[l][i],
-                        out,
-                        |q, dd| fix_parity(q, dd, s),
-                    );
-                }
-                _ => {
-                    out.copy_from_slice(&details[l][i]);
-                    round_matrix(steps, l, out);
-                }
-            }
-        };
-    // Decodes the details quantised with `steps` into `out` (reused between attempts)
-    // and measures every diamond; also says whether any index was nonzero. Quantising on
-    // the fly keeps no quantised copy of all the details; with the rate-distortion
-    // quantiser, whose second run would cost more than the memory, `keep` receives the
-    // nonzero matrices of the attempt.
-    let decode_measure = |cost_model: Option<&CodecModel>,
-                          steps: &[u32],
-                          out: &mut Vec<i32>,
-                          keep: Option<&Kept>|
-     -> Result<(Vec<Vec<Measure>>, bool), EncodeError> {
-        out.clear();
-        out.resize(geom.raster_len(), 0);
-        geom.scatter_roots(&roots, out)?;
-        let coded = AtomicBool::new(false);
-        let measures = synthesize_levels_par(
-            geom,
-            out,
-            |l, i, h| {
-                quantize_matrix(cost_model, steps, l, i, h);
-                let any = h.iter().any(|&x| x != 0);
-                if any {
-                    coded.store(true, Ordering::Relaxed);
-                    if let Some(keep) = keep {
-                        let _ = keep[l][i].set(h.into());
-                    }
-                }
-                for x in h.iter_mut() {
-                    *x = dequantize(*x, steps[l]);
-                }
-                any
-            },
-            |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
-        )?;
-        Ok((measures, coded.into_inner()))
-    };
-    let new_kept = |rdo: bool| -> Option<Kept> {
-        rdo.then(|| {
-            (0..levels)
-                .map(|l| (0..level_len(l)).map(|_| OnceLock::new()).collect())
-                .collect()
-        })
-    };
-
-    let (rms_m, max_abs_m);
-    let mut rdo_used = false;
-    let mut decodes = 0;
-    if let RateMode::RmsM(target) = opts.mode {
-        let gains = synthesis_gains(n, levels);
-        let step_of = |q: f64, l: usize, exponent: f64| -> u32 {
-            let g = gains[levels - 1 - l].max(1e-6);
-            ((q / g.powf(exponent)) * 256.0).round().clamp(256.0, 1e9) as u32
-        };
-        // Histogram of |detail| per level for fast error estimates.
-        let hist: Vec<Vec<(u32, u64)>> = details.iter().map(|ds| magnitude_histogram(ds)).collect();
-        let estimate = |q: f64, exponent: f64| -> f64 {
-            let mut mse = 0.0;
-            for (l, hl) in hist.iter().enumerate() {
-                let s = step_of(q, l, exponent);
-                let quantizer = Quantizer::new(s, offset);
-                let g = gains[levels - 1 - l];
-                let e: f64 = hl
-                    .iter()
-                    .map(|&(a, c)| {
-                        let r = dequantize(quantizer.apply(a as i32), s) as f64;
-                        let d = a as f64 - r;
-                        d * d * c as f64
-                    })
-                    .sum();
-                mse += g * e;
-            }
-            (mse / valid_count.max(1) as f64).sqrt() * scale
-        };
-        // The largest scale whose estimated RMS, times `ratio`, stays under `goal`.
-        let solve = |goal: f64, ratio: f64, exponent: f64| {
-            largest_scale(|q| estimate(q, exponent) * ratio <= goal)
-        };
-        let quanta = target / quantum_m.unwrap_or(scale);
-        let mut search = ScaleSearch::new(target);
-        // The fraction of nonzero indices at scale `q` (plain rounding).
-        let nonzero_fraction = |q: f64, e: f64| -> f64 {
-            let (mut nonzero, mut all) = (0u64, 0u64);
-            for (l, hl) in hist.iter().enumerate() {
-                let quantizer = Quantizer::new(step_of(q, l, e), offset);
-                for &(a, c) in hl {
-                    all += c;
-                    nonzero += c * u64::from(quantizer.apply(a as i32) != 0);
-                }
-            }
-            nonzero as f64 / all.max(1) as f64
-        };
-        // The first guess: the largest scale whose estimate, times the ratio expected at
-        // its fraction of nonzero indices, meets the goal (the product grows with the
-        // scale).
-        let first_guess = |rdo: bool, e: f64| {
-            largest_scale(|q| {
-                estimate(q, e) * initial_ratio(nonzero_fraction(q, e), rdo) <= search.goal()
-            })
-        };
-        // Whether the rate-distortion quantiser runs: by the option, or (auto) where the
-        // plain quantiser's first guess leaves most indices zero.
-        let plain_guess = (opts.rdo != RdoMode::On).then(|| {
-            let e = gain_exponent(quanta, false);
-            (first_guess(false, e), e)
-        });
-        rdo_used = match (opts.rdo, plain_guess) {
-            (RdoMode::On, _) => true,
-            (RdoMode::Auto, Some((q, e))) => nonzero_fraction(q, e) < RDO_AUTO_MAX_NONZERO,
-            _ => false,
-        };
-        let exponent = gain_exponent(quanta, rdo_used);
-        let mut q = match plain_guess {
-            Some((q, _)) if !rdo_used => q,
-            _ => first_guess(rdo_used, exponent),
-        };
-        let steps_at =
-            |q: f64| -> Vec<u32> { (0..levels).map(|l| step_of(q, l, exponent)).collect() };
-        // The rate-distortion quantiser's probabilities: a model trained on the plain
-        // quantisation at the first guess's steps.
-        let cost_model = rdo_used.then(|| {
-            let st = steps_at(q);
-            train_model(
+    let (steps, measures, (rms_m, max_abs_m), rdo_used, decodes) = match opts.mode {
+        RateMode::RmsM(target) => {
+            let raster = spare_raster.take().unwrap_or_default();
+            let out = control_rms(
                 geom,
-                |_, _| true,
-                |acc, l, i| {
-                    let ctx = geom.blob_context(l, i);
-                    let mut h = details[l][i].clone();
-                    round_matrix(&st, l, &mut h);
-                    entropy::write_matrix(
-                        acc,
-                        ctx.group,
-                        n,
-                        &h,
-                        ctx.mask.map(crate::lifting::DiamondMask::cells),
-                        st[l] > 256,
-                    );
-                },
+                &mut details,
+                &roots,
+                raster,
+                (target, quantum_m.unwrap_or(scale), scale),
+                valid_count,
+                opts.rdo,
+                &error_of,
+            )?;
+            (
+                out.steps,
+                out.measures,
+                out.errors,
+                out.rdo_used,
+                out.decodes,
             )
-        });
-        let cost_model = cost_model.as_ref();
-        // The attempt kept: scale, steps, measures, errors, indices.
-        let mut best: Option<Attempt> = None;
-        let mut raster = spare_raster.take().unwrap_or_default();
-        for _ in 0..8 {
-            let st = steps_at(q);
-            let kept = new_kept(rdo_used);
-            let (ms, coded) = decode_measure(cost_model, &st, &mut raster, kept.as_ref())?;
-            decodes += 1;
-            let (rms, max) = error_of(&raster);
-            let est = estimate(q, exponent);
-            let improves = rms <= target && best.as_ref().is_none_or(|b| q > b.0);
-            if improves {
-                best = Some((q, st, ms, (rms, max), kept));
-            }
-            match search.next(q, rms, est, coded, &|goal, ratio| {
-                solve(goal, ratio, exponent)
-            }) {
-                Some(next) => q = next,
-                None => break,
-            }
         }
-        let (_, st, ms, errors, kept) = match best {
-            Some(b) => b,
-            None => {
-                // Fall back to the finest steps (integer lossless) if nothing met the target.
-                let st = vec![256; levels];
-                let kept = None;
-                let (ms, _) = decode_measure(None, &st, &mut raster, None)?;
-                decodes += 1;
-                let errors = error_of(&raster);
-                (0.0, st, ms, errors, kept)
-            }
-        };
-        drop(raster);
-        // The kept attempt's indices, as its verification decode quantised them.
-        match kept {
-            Some(kept) => {
-                for (ds, ks) in details.iter_mut().zip(kept) {
-                    ds.par_iter_mut()
-                        .zip(ks.into_par_iter())
-                        .for_each(|(h, k)| match k.into_inner() {
-                            Some(q) => h.copy_from_slice(&q),
-                            None => h.iter_mut().for_each(|x| *x = 0),
-                        });
-                }
-            }
-            None => {
-                for (l, ds) in details.iter_mut().enumerate() {
-                    ds.par_iter_mut().for_each(|h| round_matrix(&st, l, h));
-                }
-            }
-        }
-        steps = st;
-        quantized = details;
-        measures = ms;
-        (rms_m, max_abs_m) = errors;
-    } else {
-        (rms_m, max_abs_m) = exact_errors.unwrap_or_default();
-        quantized = details;
-        measures = analysis_measures
-            .into_iter()
-            .map(|l| l.into_iter().flatten().collect::<Vec<Measure>>())
-            .collect::<Vec<_>>();
-    }
-
-    drop(spare_raster);
-    // Bottom-up: subtree bounds, side information, which diamonds have data.
-    let mut gamma: Vec<Vec<u64>> = vec![Vec::new(); levels];
-    let mut has_data: Vec<Vec<bool>> = vec![Vec::new(); levels];
-    let mut bounds: Vec<Vec<(i64, i64)>> = vec![Vec::new(); levels];
-    for l in (0..levels).rev() {
-        let slots = &geom.slot_levels()[l];
-        let mut g = Vec::with_capacity(slots.len());
-        let mut hd = Vec::with_capacity(slots.len());
-        let mut bd = Vec::with_capacity(slots.len());
-        for (i, s) in slots.iter().enumerate() {
-            let own = quantized[l][i].iter().any(|&x| x != 0);
-            let children: &[usize] = if l + 1 < levels {
-                geom.children(s)
-            } else {
-                &[]
-            };
-            let (gam, data, bound) = side_info(
-                &measures[l][i],
-                own,
-                children
-                    .iter()
-                    .map(|&k| (gamma[l + 1][k], has_data[l + 1][k], bounds[l + 1][k])),
-            );
-            g.push(gam);
-            hd.push(data);
-            bd.push(bound);
-        }
-        gamma[l] = g;
-        has_data[l] = hd;
-        bounds[l] = bd;
-    }
-    drop(measures);
-
-    let classes_of = |l: usize, i: usize| -> Vec<u8> {
-        geom.owned(slot(l, i))
-            .iter()
-            .map(|&k| side_entry(gamma[l + 1][k], has_data[l + 1][k]))
-            .collect()
+        // Exact modes: steps of 1, the analysis' own measures and errors.
+        _ => (
+            vec![256u32; levels],
+            analysis_measures
+                .into_iter()
+                .map(|l| l.into_iter().flatten().collect::<Vec<Measure>>())
+                .collect::<Vec<_>>(),
+            exact_errors.unwrap_or_default(),
+            false,
+            0,
+        ),
     };
-    // Train the model (on a subsample of the large levels, see `trains_on`), then code.
-    let model = train_model(
-        geom,
-        |l, i| has_data[l][i],
-        |acc, l, i| {
-            let ctx = BlobContext {
-                step: steps[l],
-                ..geom.blob_context(l, i)
-            };
-            entropy::write_gammas(acc, ctx.group, &classes_of(l, i));
-            entropy::write_matrix(
-                acc,
-                ctx.group,
-                n,
-                &quantized[l][i],
-                ctx.mask.map(crate::lifting::DiamondMask::cells),
-                ctx.hides_signs(),
-            );
-        },
-    );
-    let blobs: Vec<Vec<Option<Vec<u8>>>> = (0..levels)
-        .map(|l| {
-            (0..level_len(l))
-                .into_par_iter()
-                .map(|i| {
-                    has_data[l][i].then(|| {
-                        blob::encode(
-                            &BlobContext {
-                                step: steps[l],
-                                ..geom.blob_context(l, i)
-                            },
-                            &model,
-                            &classes_of(l, i),
-                            &quantized[l][i],
-                        )
-                    })
-                })
-                .collect()
-        })
-        .collect();
+    let quantized = details;
+    drop(spare_raster);
+    let side = side_information(geom, &quantized, &measures);
+    drop(measures);
+    let (model, blobs) = code_blobs(geom, &steps, &quantized, &side);
 
     let blob_bytes: usize = blobs.iter().flatten().flatten().map(Vec::len).sum();
     let blob_count = blobs.iter().flatten().flatten().count();
