@@ -179,8 +179,13 @@ pub struct BuildSummary {
     pub seconds: f64,
     /// `samples / seconds / 1e6`.
     pub msamples_per_s: f64,
+    /// Seconds reading the input (for planets and mosaics, resampling it too), before
+    /// encoding; 0 out of core, where reading is part of encoding.
+    pub read_seconds: f64,
     /// Seconds spent encoding (transform, rate control, entropy coding).
     pub encode_seconds: f64,
+    /// Seconds writing the blobs and publishing the repository.
+    pub write_seconds: f64,
     /// Peak resident memory of the process, MB.
     pub peak_rss_mb: f64,
     /// Blobs stored.
@@ -385,7 +390,7 @@ fn build_streaming(
         let meta = publish(args, builder, &description, n, mode)?;
         Ok((meta, description, encode_seconds))
     })?;
-    let mut summary = summarise(args, &meta, &description, started, encode_seconds)?;
+    let mut summary = summarise(args, &meta, &description, started, (0.0, encode_seconds))?;
     summary.out_of_core = true;
     Ok(summary)
 }
@@ -640,7 +645,14 @@ fn store(
         );
         Ok(meta)
     })?;
-    summarise(args, &meta, &coded.desc, started, encode_seconds)
+    let read_seconds = encode_started.duration_since(started).as_secs_f64();
+    summarise(
+        args,
+        &meta,
+        &coded.desc,
+        started,
+        (read_seconds, encode_seconds),
+    )
 }
 
 /// Builds from a tile mosaic (`mosaic.rs`): always sparse, so that what no tile covers is
@@ -738,7 +750,7 @@ fn summarise(
     meta: &Metadata,
     d: &Description,
     started: Instant,
-    encode_seconds: f64,
+    (read_seconds, encode_seconds): (f64, f64),
 ) -> Result<BuildSummary> {
     let seconds = started.elapsed().as_secs_f64();
     let blob_bytes: u64 = meta.level_stats.iter().map(|s| s.bytes).sum();
@@ -754,7 +766,9 @@ fn summarise(
         source_msamples_per_s: d.source_samples as f64 / seconds / 1e6,
         seconds,
         msamples_per_s: d.samples as f64 / seconds / 1e6,
+        read_seconds,
         encode_seconds,
+        write_seconds: (seconds - read_seconds - encode_seconds).max(0.0),
         peak_rss_mb: layout::peak_rss_mb(),
         blob_count,
         blob_bytes,

@@ -336,11 +336,11 @@ impl Mosaic {
                 };
                 let rows = &mut out[(face * side + v0) * side..(face * side + v1 + 1) * side];
                 rows.par_chunks_mut(side).enumerate().for_each_init(
-                    || vec![(0.0, 0.0); side],
-                    |row_angles, (i, row)| {
-                        angles.row(face, v0 + i, row_angles);
+                    || vec![(0.0, 0.0); u1 + 1 - u0],
+                    |span, (i, row)| {
+                        angles.row_span(face, v0 + i, u0, span);
                         for u in u0..=u1 {
-                            let (lat, lon) = row_angles[u];
+                            let (lat, lon) = span[u - u0];
                             if row[u].is_nan()
                                 && let Some(s) = sampler.sample(lat, lon)
                             {
@@ -619,35 +619,75 @@ impl<'a> Sampler<'a> {
     }
 }
 
-/// The border samples of each cube face with their latitudes and longitudes: where a
-/// face's edge crosses a tile, the tile's footprint on the face reaches that edge.
+/// The border samples of the cube faces with their latitudes and longitudes, bucketed by
+/// whole degrees: where a face's edge crosses a tile, the tile's footprint on the face
+/// reaches that edge.
 struct FaceBorders {
-    faces: Vec<Vec<(usize, usize, f64, f64)>>,
+    /// The points by cell `(floor(lat) + 90) * 360 + floor(lon) + 180`.
+    cells: Vec<Vec<BorderPoint>>,
+}
+
+/// A sample on the border of a cube face, where it is on the sphere.
+#[derive(Clone, Copy)]
+struct BorderPoint {
+    face: u8,
+    u: usize,
+    v: usize,
+    lat: f64,
+    lon: f64,
+}
+
+/// The one-degree cell of a latitude/longitude.
+fn degree_cell(lat: i64, lon: i64) -> usize {
+    let lat = (lat.clamp(-90, 89) + 90) as usize;
+    let lon = (lon + 180).rem_euclid(360) as usize;
+    lat * 360 + lon
 }
 
 impl FaceBorders {
     fn new(geom: &SphereGeometry) -> Self {
         let s = geom.face_side();
-        let faces = (0..6u8)
-            .map(|face| {
-                let mut points = Vec::with_capacity(4 * s);
-                for k in 0..=s {
-                    for (u, v) in [(k, 0), (k, s), (0, k), (s, k)] {
-                        let (lat, lon) = planet::lat_lon(geom.sample_position(face, u, v));
-                        points.push((u, v, lat, lon));
-                    }
+        let mut cells = vec![Vec::new(); 180 * 360];
+        for face in 0..6u8 {
+            for k in 0..=s {
+                for (u, v) in [(k, 0), (k, s), (0, k), (s, k)] {
+                    let (lat, lon) = planet::lat_lon(geom.sample_position(face, u, v));
+                    cells[degree_cell(lat.floor() as i64, lon.floor() as i64)].push(BorderPoint {
+                        face,
+                        u,
+                        v,
+                        lat,
+                        lon,
+                    });
                 }
-                points
-            })
+            }
+        }
+        FaceBorders { cells }
+    }
+
+    /// The border points in the cells a tile's extent touches.
+    fn near<'a>(&'a self, tile: &Tile) -> impl Iterator<Item = &'a BorderPoint> {
+        let g = &tile.georef;
+        let (lat0, lat1) = ((g.south.floor() as i64) - 1, (g.north.ceil() as i64) + 1);
+        let (lon0, lon1) = if tile.wraps || g.east - g.west >= 358.0 {
+            (-180, 179)
+        } else {
+            ((g.west.floor() as i64) - 1, (g.east.ceil() as i64) + 1)
+        };
+        let mut cells: Vec<usize> = (lat0.max(-90)..=lat1.min(89))
+            .flat_map(|lat| (lon0..=lon1).map(move |lon| degree_cell(lat, lon)))
             .collect();
-        FaceBorders { faces }
+        cells.sort_unstable();
+        cells.dedup();
+        cells.into_iter().flat_map(|c| self.cells[c].iter())
     }
 
     /// The box of face samples `[u0, u1, v0, v1]` that holds a tile's footprint on each
     /// face (`None` where the tile does not reach the face). The footprint's extremes lie
     /// on its boundary, which is made of the tile's edges and of the face's edges inside
     /// the tile: the first are walked at a quarter of the cube's sample spacing, the second
-    /// sample by sample, and the box grows by one sample each way.
+    /// sample by sample (those in the degree cells around the tile), and the box grows by
+    /// one sample each way.
     fn boxes(&self, tile: &Tile, geom: &SphereGeometry) -> [Option<[usize; 4]>; 6] {
         let s = geom.face_side();
         let mut bounds = [[
@@ -684,11 +724,9 @@ impl FaceBorders {
             let (face, u, v) = planet::face_chart(la, lo, s);
             add(usize::from(face), u, v);
         }
-        for (face, points) in self.faces.iter().enumerate() {
-            for &(u, v, la, lo) in points {
-                if tile.covers(la, lo, true).is_some() {
-                    add(face, u as f64, v as f64);
-                }
+        for p in self.near(tile) {
+            if tile.covers(p.lat, p.lon, true).is_some() {
+                add(usize::from(p.face), p.u as f64, p.v as f64);
             }
         }
         bounds.map(|[u0, u1, v0, v1]| {

@@ -392,6 +392,26 @@ impl CubeAngles {
             out[u] = (lat, lon);
         }
     }
+
+    /// Latitude and longitude of samples `u0 .. u0 + out.len()` of row `v` of face `face`,
+    /// into `out`: the angles [`CubeAngles::row`] gives them, bit for bit, without
+    /// computing the rest of the row (a tile's footprint is a small part of it).
+    pub(crate) fn row_span(&self, face: usize, v: usize, u0: usize, out: &mut [(f64, f64)]) {
+        let f = self.frames[face];
+        let row_lon = (f.b == 2).then(|| lon_of(self.vector(f, 0, v)));
+        let columns = self.column_lons[face].as_deref();
+        for (k, o) in out.iter_mut().enumerate() {
+            let u = u0 + k;
+            let q = self.vector(f, u, v);
+            let norm = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt();
+            let lon = match (row_lon, columns) {
+                (Some(l), _) => l,
+                (None, Some(c)) => c[u],
+                (None, None) => lon_of(q),
+            };
+            *o = (lat_of_sine(q[2] / norm), lon);
+        }
+    }
 }
 
 /// Longitude (degrees) of a cube point (any length: `atan2` needs no normalised vector).
@@ -592,6 +612,30 @@ mod tests {
                         }
                         let first = *seen.entry(p).or_insert((lat.to_bits(), lon.to_bits()));
                         assert_eq!(first, (lat.to_bits(), lon.to_bits()), "copy of {p:?}");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn row_spans_equal_whole_rows_bit_for_bit() {
+        let geom = SphereGeometry::new(256, 32).unwrap();
+        let angles = CubeAngles::new(&geom);
+        let mut row = vec![(0.0, 0.0); 257];
+        for face in 0..6 {
+            for v in [0, 1, 77, 128, 200, 256] {
+                angles.row(face, v, &mut row);
+                for (u0, len) in [(0, 257), (0, 1), (100, 57), (200, 57), (256, 1)] {
+                    let mut span = vec![(0.0, 0.0); len];
+                    angles.row_span(face, v, u0, &mut span);
+                    for (k, (a, b)) in span.iter().zip(&row[u0..u0 + len]).enumerate() {
+                        assert_eq!(
+                            (a.0.to_bits(), a.1.to_bits()),
+                            (b.0.to_bits(), b.1.to_bits()),
+                            "face {face} row {v} sample {}",
+                            u0 + k
+                        );
                     }
                 }
             }
