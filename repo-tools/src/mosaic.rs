@@ -25,12 +25,9 @@ use quincunx_codec::encode::{CubeGrid, Grid, round};
 use quincunx_codec::sphere_raster::SphereGeometry;
 use rayon::prelude::*;
 
+use crate::build::BUILD_BYTES_PER_SAMPLE;
 use crate::input::{self, Georef, Registration};
 use crate::planet::{self, CubeAngles};
-
-/// Bytes per output sample an in-memory build of a mosaic needs at its peak (the build's
-/// figure; the mosaic's own buffer is part of it).
-const BUILD_BYTES_PER_SAMPLE: u64 = 48;
 
 /// Whether `input` names a mosaic (a directory, a list file or a pattern) rather than one
 /// file.
@@ -293,8 +290,9 @@ impl Mosaic {
             });
         }
         let source_samples = tiles.iter().map(|t| t.width * t.height).sum();
-        // Finest first; a stable sort keeps input order among equal spacings. Spacings
-        // that agree to 1e-9 (the same lattice written by different tools) are equal.
+        // Finest first; a stable sort keeps input order among equal spacings. Cells are
+        // compared in steps of 1e-9 in log2, so that the same lattice computed from
+        // different extents (rounding in the last bits) compares equal.
         let key = |t: &Tile| (t.cell().log2() * 1e9).round() as i64;
         tiles.sort_by_key(key);
         Ok(Mosaic {

@@ -648,6 +648,52 @@ fn korea_builds_out_of_core_with_a_budget_below_its_input_size() {
     }
 }
 
+/// The ETOPO5 planet at RMS 9 m fits a 256 MB budget in core: the budget's estimate
+/// (24 bytes a cube sample, 8 a source sample) lets it build, within the budget, to the
+/// repository an unbudgeted build makes.
+#[test]
+fn etopo5_planet_at_rms_9_builds_within_a_256_mb_budget() {
+    let Some(input) = shared_data(
+        "etopo5_planet_at_rms_9_builds_within_a_256_mb_budget",
+        "etopo5_global.json",
+    ) else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let build = |name: &str, budget: &[&str]| {
+        ok_json(
+            bin()
+                .args(["build", "--planet", "--rms-m", "9", "--json"])
+                .args(budget)
+                .arg("-o")
+                .arg(dir.path().join(name))
+                .arg(&input),
+        )
+    };
+    let budgeted = build("budget", &["--memory-budget-mb", "256"]);
+    let free = build("free", &[]);
+    let peak = budgeted["peak_rss_mb"].as_f64().unwrap();
+    println!("etopo5 planet RMS 9 m under a 256 MB budget: peak {peak:.1} MB");
+    assert!(peak <= 256.0, "peak {peak} MB over the 256 MB budget");
+    assert!(budgeted["rms"].as_f64().unwrap() <= 9.0);
+    assert_eq!(budgeted["content_hash"], free["content_hash"]);
+    // Below what the estimate allows, the build is refused before it starts.
+    let out = run(bin()
+        .args([
+            "build",
+            "--planet",
+            "--rms-m",
+            "9",
+            "--memory-budget-mb",
+            "64",
+            "-o",
+        ])
+        .arg(dir.path().join("small"))
+        .arg(&input));
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--memory-budget-mb is 64"));
+}
+
 #[test]
 fn demo_builds_and_verifies_the_bundled_samples_once() {
     let dir = tempfile::tempdir().unwrap();
