@@ -22,6 +22,7 @@
 //! [`Coverage`] is part of the [`Encoded`] output (the decoder needs it to rebuild the
 //! diamonds' masks). Nodata samples inside covered blocks are filled as in dense mode.
 
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, OnceLock};
@@ -1217,27 +1218,50 @@ pub(crate) fn side_info(
 
 /// Encodes a grid.
 pub fn encode(grid: &Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> {
-    let expected = grid.width * grid.height;
-    if grid.values_m.len() != expected {
+    encode_raster(
+        grid.width,
+        grid.height,
+        Cow::Borrowed(&grid.values_m),
+        grid.quantum_m,
+        opts,
+    )
+}
+
+/// [`encode`] consuming the grid: exact rate modes free the samples once integerised, so
+/// the build's peak holds no copy of them.
+pub fn encode_owned(grid: Grid, opts: EncodeOptions) -> Result<Encoded, EncodeError> {
+    encode_raster(
+        grid.width,
+        grid.height,
+        Cow::Owned(grid.values_m),
+        grid.quantum_m,
+        opts,
+    )
+}
+
+fn encode_raster(
+    width: usize,
+    height: usize,
+    values_m: Cow<'_, [f64]>,
+    quantum_m: Option<f64>,
+    opts: EncodeOptions,
+) -> Result<Encoded, EncodeError> {
+    let expected = width * height;
+    if values_m.len() != expected {
         return Err(EncodeError::WrongLength {
             expected,
-            got: grid.values_m.len(),
+            got: values_m.len(),
         });
     }
     check_tolerance(opts.mode)?;
     let geom = if opts.sparse {
-        let coverage = Coverage::of_raster(grid.width, grid.height, opts.n, |k| {
-            grid.values_m[k].is_finite()
-        });
-        RasterGeometry::with_coverage(grid.width, grid.height, opts.n, &coverage)?
+        let coverage = Coverage::of_raster(width, height, opts.n, |k| values_m[k].is_finite());
+        RasterGeometry::with_coverage(width, height, opts.n, &coverage)?
     } else {
-        RasterGeometry::new(grid.width, grid.height, opts.n)?
+        RasterGeometry::new(width, height, opts.n)?
     };
-    let domain = EncodedDomain::Planar {
-        width: grid.width,
-        height: grid.height,
-    };
-    encode_layout(&geom, domain, &grid.values_m, grid.quantum_m, opts)
+    let domain = EncodedDomain::Planar { width, height };
+    encode_layout(&geom, domain, values_m, quantum_m, opts)
 }
 
 /// Encodes a planet ([`CubeGrid`]). Where the copies of a cube edge or corner point
@@ -1267,7 +1291,7 @@ pub fn encode_sphere_owned(grid: CubeGrid, opts: EncodeOptions) -> Result<Encode
     let domain = EncodedDomain::Sphere {
         face_side: grid.face_side,
     };
-    encode_layout(&geom, domain, &values_m, grid.quantum_m, opts)
+    encode_layout(&geom, domain, Cow::Owned(values_m), grid.quantum_m, opts)
 }
 
 pub(crate) fn check_tolerance(mode: RateMode) -> Result<(), EncodeError> {
@@ -1661,6 +1685,40 @@ fn control_rms<G: Layout>(
     })
 }
 
+/// The source values a rate mode measures its errors against.
+struct Source<'a> {
+    values_m: Cow<'a, [f64]>,
+    /// The samples counted: valid, one copy of each point.
+    counted: Vec<bool>,
+    valid_count: usize,
+    scale: f64,
+    offset: f64,
+}
+
+impl Source<'_> {
+    /// RMS and largest absolute error of decoded integers against the source, over the
+    /// counted samples (in parallel over fixed pieces, so the sums do not depend on the
+    /// thread count).
+    fn errors(&self, decoded: &[i32]) -> (f64, f64) {
+        let (sum, max) = decoded
+            .par_chunks(PASS_CHUNK)
+            .zip(self.values_m.par_chunks(PASS_CHUNK))
+            .enumerate()
+            .map(|(p, (ds, vs))| {
+                let mut acc = (0.0, 0.0f64);
+                for (k, (&d, &v)) in ds.iter().zip(vs).enumerate() {
+                    if self.counted[p * PASS_CHUNK + k] {
+                        let e = (self.offset + d as f64 * self.scale - v).abs();
+                        acc = (acc.0 + e * e, acc.1.max(e));
+                    }
+                }
+                acc
+            })
+            .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1.max(b.1)));
+        ((sum / self.valid_count.max(1) as f64).sqrt(), max)
+    }
+}
+
 /// The encoder over either geometry: `values_m` in the geometry's sample order, with
 /// consistent copies of shared points. Its stages, in order: integerise (`integerise`),
 /// analyse leaves to root (`analyze_levels_with`), rate control (`control_rms`, or for
@@ -1669,52 +1727,49 @@ fn control_rms<G: Layout>(
 fn encode_layout<G: Layout>(
     geom: &G,
     domain: EncodedDomain,
-    values_m: &[f64],
+    values_m: Cow<'_, [f64]>,
     quantum_m: Option<f64>,
     opts: EncodeOptions,
 ) -> Result<Encoded, EncodeError> {
     let n = geom.n();
-    let ints = integerise(geom, values_m, quantum_m, opts.mode)?;
+    let Integerised {
+        values: ints,
+        valid,
+        scale,
+        offset: value_offset,
+    } = integerise(geom, &values_m, quantum_m, opts.mode)?;
     // The samples errors are measured over: valid, one copy of each point.
     // A planet's extra copies of edge points are masked out once (asking per sample, per
     // error measurement, was 3 % of a planet build); a planar raster has none.
-    let counted_mask: std::borrow::Cow<'_, [bool]> = if geom.distinct_len() == values_m.len() {
-        std::borrow::Cow::Borrowed(&ints.valid)
-    } else {
-        let mut mask = ints.valid.clone();
-        geom.clear_duplicates(&mut mask);
-        std::borrow::Cow::Owned(mask)
-    };
-    let counted = |k: usize| counted_mask[k];
-    let valid_count: usize = counted_mask
-        .par_chunks(PASS_CHUNK)
-        .map(|part| part.iter().filter(|&&ok| ok).count())
-        .sum();
-    let (scale, value_offset) = (ints.scale, ints.offset);
-    let error_of = |decoded: &[i32]| -> (f64, f64) {
-        let (sum, max) = decoded
+    let mut counted = valid;
+    if geom.distinct_len() != values_m.len() {
+        geom.clear_duplicates(&mut counted);
+    }
+    let source = Source {
+        values_m,
+        valid_count: counted
             .par_chunks(PASS_CHUNK)
-            .zip(values_m.par_chunks(PASS_CHUNK))
-            .enumerate()
-            .map(|(p, (ds, vs))| {
-                let mut acc = (0.0, 0.0f64);
-                for (k, (&d, &v)) in ds.iter().zip(vs).enumerate() {
-                    if counted(p * PASS_CHUNK + k) {
-                        let e = (value_offset + d as f64 * scale - v).abs();
-                        acc = (acc.0 + e * e, acc.1.max(e));
-                    }
-                }
-                acc
-            })
-            .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1.max(b.1)));
-        ((sum / valid_count.max(1) as f64).sqrt(), max)
+            .map(|part| part.iter().filter(|&&ok| ok).count())
+            .sum(),
+        counted,
+        scale,
+        offset: value_offset,
     };
+    let valid_count = source.valid_count;
     // Lossless and max-error decodes reproduce the integerised values exactly: their
     // errors are the integerisation's, and the side information is measured during
-    // analysis instead of by a verification decode.
+    // analysis instead of by a verification decode. Nothing measures against the source
+    // after that, so it is freed before the analysis (the build's peak): an owned planet
+    // grid's 8 bytes a sample, and the mask.
     let exact = !matches!(opts.mode, RateMode::RmsM(_));
-    let exact_errors = exact.then(|| error_of(&ints.values));
-    let mut raster = ints.values;
+    let (exact_errors, source) = if exact {
+        let errors = source.errors(&ints);
+        drop(source);
+        (Some(errors), None)
+    } else {
+        (None, Some(source))
+    };
+    let mut raster = ints;
     let (mut details, analysis_measures) =
         analyze_levels_with(geom, &mut raster, |l, i, c, f, x| {
             exact.then(|| measure(n, geom.mask(&geom.slot_levels()[l][i]), c, f, x))
@@ -1727,6 +1782,9 @@ fn encode_layout<G: Layout>(
     let (steps, measures, (rms_m, max_abs_m), rdo_used, decodes) = match opts.mode {
         RateMode::RmsM(target) => {
             let raster = spare_raster.take().unwrap_or_default();
+            let source = source
+                .as_ref()
+                .ok_or(EncodeError::Internal("RMS mode without its source"))?;
             let out = control_rms(
                 geom,
                 &mut details,
@@ -1735,7 +1793,7 @@ fn encode_layout<G: Layout>(
                 (target, quantum_m.unwrap_or(scale), scale),
                 valid_count,
                 opts.rdo,
-                &error_of,
+                &|decoded: &[i32]| source.errors(decoded),
             )?;
             (
                 out.steps,

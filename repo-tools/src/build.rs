@@ -616,7 +616,7 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
             check_budget(args, raster.grid.width * raster.grid.height, 1)?;
             encode_started = Instant::now();
             let source = Source::of(&raster);
-            encode_heights(&raster.grid, source, n, mode, args.sparse, args.rdo.mode())?
+            encode_heights(raster.grid, source, n, mode, args.sparse, args.rdo.mode())?
         }
     };
     store(args, &coded, n, mode, started, encode_started)
@@ -727,7 +727,7 @@ fn build_mosaic(
             georef: Some(georef),
         };
         encode_started = Instant::now();
-        encode_heights(&grid, source, n, mode, true, args.rdo.mode())?
+        encode_heights(grid, source, n, mode, true, args.rdo.mode())?
     };
     store(args, &coded, n, mode, started, encode_started)
 }
@@ -792,7 +792,7 @@ fn summarise(
 }
 
 fn encode_heights(
-    grid: &Grid,
+    grid: Grid,
     source: Source,
     n: usize,
     mode: RateMode,
@@ -801,7 +801,7 @@ fn encode_heights(
 ) -> Result<Coded> {
     let spin = progress::spinner("encoding");
     spin.set_message(format!("{} x {}", grid.width, grid.height));
-    let enc = encode::encode(
+    let enc = encode::encode_owned(
         grid,
         EncodeOptions {
             n,
