@@ -241,8 +241,9 @@ fn diamond_n(args: &BuildArgs) -> Result<usize> {
 
 /// Bytes per coded sample and channel the in-memory build needs at its peak (values,
 /// integers, transform workspace, detail matrices, blobs), with a fifth to spare: measured
-/// 18.3-19.6 on korea_srtm3_4097 (lossless, max error 1 m, RMS 9 m) and, with the source
-/// grid's 8 bytes a sample on top, 20.9-22.0 per cube sample on the ETOPO5 planet.
+/// on korea_srtm3_4097 14.0 (lossless, max error 1 m) and 19.6 (RMS 9 m, whose
+/// verification decodes keep the source) and, with the source grid's 8 bytes a sample on
+/// top, 21.8-22.1 per cube sample on the ETOPO5 planet.
 pub(crate) const BUILD_BYTES_PER_SAMPLE: u64 = 24;
 
 /// Source samples a planet build holds while resampling, in coded samples' worth (8 bytes
