@@ -214,7 +214,8 @@ pub fn write(blob: &[u8], children: &[(usize, Vec<u8>)], packaged: bool) -> Vec<
     out
 }
 
-fn write_varint(out: &mut Vec<u8>, mut v: usize) {
+/// Appends `v` as a LEB128 varint (the lengths of packages and channel frames).
+pub(crate) fn write_varint(out: &mut Vec<u8>, mut v: usize) {
     while v >= 0x80 {
         out.push((v as u8) | 0x80);
         v >>= 7;

@@ -8,17 +8,7 @@
 #[error("malformed channel frame: {0}")]
 pub struct FrameError(String);
 
-fn push_leb128(out: &mut Vec<u8>, mut v: usize) {
-    loop {
-        let b = (v & 0x7F) as u8;
-        v >>= 7;
-        if v == 0 {
-            out.push(b);
-            return;
-        }
-        out.push(b | 0x80);
-    }
-}
+use crate::answer::write_varint;
 
 /// Frames the channel blobs of one diamond (`None` when no channel has details).
 pub fn frame_channels(parts: &[Option<&[u8]>]) -> Option<Vec<u8>> {
@@ -31,7 +21,7 @@ pub fn frame_channels(parts: &[Option<&[u8]>]) -> Option<Vec<u8>> {
     let mut out = Vec::new();
     for p in parts {
         let p = p.unwrap_or_default();
-        push_leb128(&mut out, p.len());
+        write_varint(&mut out, p.len());
         out.extend_from_slice(p);
     }
     Some(out)
