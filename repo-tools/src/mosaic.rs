@@ -594,9 +594,7 @@ impl<'a> Sampler<'a> {
         ];
         let s = if at.iter().all(|x| x.is_finite()) {
             // The common case, in the same arithmetic as a single-grid planet build's.
-            let top = at[0] * (1.0 - fc) + at[1] * fc;
-            let bottom = at[2] * (1.0 - fc) + at[3] * fc;
-            top * (1.0 - fr) + bottom * fr
+            planet::bilinear(at, fr, fc)
         } else {
             let (mut sum, mut weight) = (0.0, 0.0);
             for (value, wt) in at.into_iter().zip(weights) {

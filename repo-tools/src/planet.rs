@@ -263,12 +263,19 @@ impl Bilinear {
 
     /// The bilinear mix of the four samples' values.
     #[inline]
-    fn mix(&self, [a, b, c, d]: [f64; 4]) -> f64 {
-        let (fr, fc) = (self.fr, self.fc);
-        let top = a * (1.0 - fc) + b * fc;
-        let bottom = c * (1.0 - fc) + d * fc;
-        top * (1.0 - fr) + bottom * fr
+    fn mix(&self, v: [f64; 4]) -> f64 {
+        bilinear(v, self.fr, self.fc)
     }
+}
+
+/// The bilinear mix of four values (NW, NE, SW, SE) at fractions `fr` south and `fc` east:
+/// the arithmetic every resampling onto the cube uses, so that a mosaic tile and a single
+/// grid give a point the same value bit for bit.
+#[inline]
+pub(crate) fn bilinear([a, b, c, d]: [f64; 4], fr: f64, fc: f64) -> f64 {
+    let top = a * (1.0 - fc) + b * fc;
+    let bottom = c * (1.0 - fc) + d * fc;
+    top * (1.0 - fr) + bottom * fr
 }
 
 /// Latitude and longitude of the sample points of one cube raster, with the equal-angle
