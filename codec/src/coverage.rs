@@ -113,24 +113,11 @@ impl Coverage {
         n: usize,
         data: impl Fn(usize) -> bool,
     ) -> Coverage {
-        let blocks = |b: usize| ((width.max(1) - 1) / b + 1, (height.max(1) - 1) / b + 1);
-        let mut b = n.max(1).next_power_of_two();
-        while {
-            let (c, r) = blocks(b);
-            c * r > MAX_BITS
-        } {
-            b *= 2;
-        }
-        let (cols, rows) = blocks(b);
-        let mut cov = Coverage::empty(1, b.trailing_zeros() as u8, cols as u32, rows as u32);
+        let mut rows = RasterCoverage::new(width, height, n);
         for y in 0..height {
-            for x in 0..width {
-                if data(y * width + x) {
-                    cov.set(0, x / b, y / b);
-                }
-            }
+            rows.mark_row(y, |x| data(y * width + x));
         }
-        cov
+        rows.finish()
     }
 
     /// The coverage of a planet's cube raster (`face_side` samples per face side, the
@@ -309,6 +296,51 @@ impl Coverage {
             rows,
             bits: bits.to_vec(),
         })
+    }
+}
+
+/// The coverage of a planar raster built row by row (the out-of-core encoder sees each
+/// row once): the same blocks and bits as [`Coverage::of_raster`].
+#[derive(Clone, Debug)]
+pub struct RasterCoverage {
+    cov: Coverage,
+    block: usize,
+    width: usize,
+}
+
+impl RasterCoverage {
+    /// An all-uncovered coverage of a `width x height` raster, blocks as the encoder
+    /// chooses them for diamond size `n`.
+    pub fn new(width: usize, height: usize, n: usize) -> Self {
+        let blocks = |b: usize| ((width.max(1) - 1) / b + 1, (height.max(1) - 1) / b + 1);
+        let mut b = n.max(1).next_power_of_two();
+        while {
+            let (c, r) = blocks(b);
+            c * r > MAX_BITS
+        } {
+            b *= 2;
+        }
+        let (cols, rows) = blocks(b);
+        RasterCoverage {
+            cov: Coverage::empty(1, b.trailing_zeros() as u8, cols as u32, rows as u32),
+            block: b,
+            width,
+        }
+    }
+
+    /// Marks the blocks of row `y` where `data(x)` holds data.
+    pub fn mark_row(&mut self, y: usize, data: impl Fn(usize) -> bool) {
+        let b = self.block;
+        for x in 0..self.width {
+            if data(x) {
+                self.cov.set(0, x / b, y / b);
+            }
+        }
+    }
+
+    /// The coverage.
+    pub fn finish(self) -> Coverage {
+        self.cov
     }
 }
 

@@ -22,14 +22,20 @@
 //! (2) the identical analysis again, coding each diamond's blob into the sink as soon as
 //! its details exist.
 //!
+//! Sparse mode: pass 0 also finds the coverage ([`RasterCoverage`], one row at a time),
+//! and the geometry masks the blocks without data as the in-memory sparse encoder does.
+//!
 //! Nodata is filled chunk by chunk with push-pull ([`crate::fill`]) over the new rows plus
 //! the last [`CONTEXT_ROWS`] filled rows as fixed context, so holes that span chunks have
 //! no cliffs at the seams; the chunking depends only on the dimensions and the budget, so
-//! passes 1 and 2 see identical values.
+//! passes 1 and 2 see identical values. When one chunk holds the whole raster the fills,
+//! and so every byte, equal the in-memory encoder's; with more chunks the voids' fills
+//! (not the data) may differ.
 
 use rayon::prelude::*;
 
 use crate::blob;
+use crate::coverage::{Coverage, RasterCoverage};
 use crate::encode::{
     EncodeError, EncodeReport, Encoded, EncodedDomain, Measure, RateMode, ValueMap,
     check_tolerance, measure, native_quantum, on_quantum, root_grid_bytes, side_info,
@@ -69,6 +75,9 @@ pub struct StreamOptions {
     /// windows, in-flight diamonds). Per-diamond bookkeeping (the geometry and a few bytes
     /// of side information per diamond, `O(width x height / N^2)`) comes on top.
     pub memory_budget_bytes: usize,
+    /// Sparse mode ([`crate::encode::EncodeOptions::sparse`]): blocks without data are
+    /// holes. The coverage is found in the first pass, one row at a time.
+    pub sparse: bool,
 }
 
 /// Everything a decoder needs besides the blobs (which went to the [`BlobSink`]).
@@ -94,6 +103,8 @@ pub struct StreamEncoded {
     pub report: EncodeReport,
     /// Largest number of bytes of sample buffers held at once (at most the budget).
     pub peak_buffer_bytes: usize,
+    /// The coverage (sparse mode).
+    pub coverage: Option<Coverage>,
 }
 
 impl StreamEncoded {
@@ -115,7 +126,7 @@ impl StreamEncoded {
             roots: vec![self.root],
             model: self.model,
             blobs,
-            coverage: None,
+            coverage: self.coverage,
             report: self.report,
         }
     }
@@ -143,10 +154,18 @@ pub fn encode_streaming(
     let plan = Plan::new(&geom, opts.memory_budget_bytes)?;
     let mut meter = Meter::default();
 
-    let scan = scan(source, &plan, &mut meter)?;
+    let mut coverage = opts.sparse.then(|| RasterCoverage::new(width, height, n));
+    let scan = scan(source, &plan, coverage.as_mut(), &mut meter)?;
     if scan.valid == 0 {
         return Err(EncodeError::AllNodata);
     }
+    // Sparse: the same diamonds, masked where blocks hold no data (the plan's buffers
+    // depend on the dimensions only).
+    let coverage = coverage.map(RasterCoverage::finish);
+    let geom = match &coverage {
+        Some(c) => RasterGeometry::with_coverage(width, height, n, c)?,
+        None => geom,
+    };
     let native = native_quantum(source.quantum_m(), |q| scan.integral(q));
     let map = ValueMap::new(scan.lo, scan.hi, native, opts.mode)?;
     let fill = Fill {
@@ -232,6 +251,7 @@ pub fn encode_streaming(
         model,
         report,
         peak_buffer_bytes: meter.peak,
+        coverage,
     })
 }
 
@@ -349,7 +369,12 @@ impl Scan {
     }
 }
 
-fn scan(source: &mut dyn RowSource, plan: &Plan, meter: &mut Meter) -> Result<Scan, EncodeError> {
+fn scan(
+    source: &mut dyn RowSource,
+    plan: &Plan,
+    mut coverage: Option<&mut RasterCoverage>,
+    meter: &mut Meter,
+) -> Result<Scan, EncodeError> {
     let w = plan.width;
     let mut candidates: Vec<f64> = crate::encode::DECIMAL_QUANTA.to_vec();
     if let Some(q) = source.quantum_m().filter(|&q| q > 0.0) {
@@ -371,6 +396,11 @@ fn scan(source: &mut dyn RowSource, plan: &Plan, meter: &mut Meter) -> Result<Sc
         source
             .read_rows(first, count, out)
             .map_err(EncodeError::Source)?;
+        if let Some(cov) = coverage.as_deref_mut() {
+            for (r, row) in out.chunks_exact(w).enumerate() {
+                cov.mark_row(first + r, |x| row[x].is_finite());
+            }
+        }
         // Fixed pieces in parallel, merged in order (the same sums with any thread count).
         let quanta: Vec<f64> = s.quanta.iter().map(|&(q, _)| q).collect();
         let pieces: Vec<Scan> = out

@@ -270,8 +270,8 @@ fn check_budget(args: &BuildArgs, samples: usize, channels: usize) -> Result<()>
     if need_mb > budget {
         bail!(
             "this build needs about {need_mb} MB in memory but --memory-budget-mb is {budget}; \
-             out-of-core builds cover dense planar elevation from a raw grid + JSON sidecar \
-             in --lossless or --max-error-m mode (convert other formats to raw, or raise the budget)"
+             out-of-core builds cover planar elevation (dense or --sparse) from a raw grid + JSON \
+             sidecar in --lossless or --max-error-m mode (convert other formats to raw, or raise the budget)"
         );
     }
     Ok(())
@@ -346,6 +346,7 @@ fn build_streaming(
         n,
         mode,
         memory_budget_bytes: budget - reserve,
+        sparse: args.sparse,
     };
     let (meta, description, encode_seconds) = with_builder(args, |builder| {
         let mut builder = builder
@@ -369,11 +370,14 @@ fn build_streaming(
             peak_rss_mb = layout::peak_rss_mb(),
             "streamed"
         );
+        let geometry = match &enc.coverage {
+            Some(c) => RasterGeometry::with_coverage(width, height, n, c),
+            None => RasterGeometry::new(width, height, n),
+        }
+        .context("raster geometry")?;
         let description = Description {
-            coverage: None,
-            geometry: Geometry::Planar(
-                RasterGeometry::new(width, height, n).context("raster geometry")?,
-            ),
+            coverage: enc.coverage.as_ref().map(|c| c.to_bytes()),
+            geometry: Geometry::Planar(geometry),
             radius_m: None,
             kind: AttributeKind::Elevation,
             units,
@@ -524,7 +528,6 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
     if let Some(budget_mb) = args.memory_budget_mb
         && !args.colour
         && !args.planet
-        && !args.sparse
         && is_raw(&args.input)
     {
         let rows = input::RawRows::open(&args.input)
