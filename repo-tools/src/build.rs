@@ -9,7 +9,7 @@ use quincunx_codec::colour::rgb_to_ycocg_r;
 use quincunx_codec::encode::{self, CubeGrid, EncodeOptions, Encoded, Grid, RateMode, RdoMode};
 use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::sphere_raster::SphereGeometry;
-use quincunx_codec::stream::{self, BlobSink, StreamOptions};
+use quincunx_codec::stream::{self, BlobSink, RowSource, StreamOptions};
 use quincunx_store::{
     Attribute, AttributeKind, ChannelCoding, Metadata, NodataHandling, NodataPolicy,
     RepositoryBuilder,
@@ -271,7 +271,8 @@ fn check_budget(args: &BuildArgs, samples: usize, channels: usize) -> Result<()>
         bail!(
             "this build needs about {need_mb} MB in memory but --memory-budget-mb is {budget}; \
              out-of-core builds cover planar elevation (dense or --sparse) from a raw grid + JSON \
-             sidecar in --lossless or --max-error-m mode (convert other formats to raw, or raise the budget)"
+             sidecar or a tile mosaic in --lossless or --max-error-m mode (convert other formats \
+             to raw, or raise the budget)"
         );
     }
     Ok(())
@@ -302,17 +303,15 @@ impl BlobSink for StoreSink<'_> {
 /// The out-of-core build: rows are read from the file as the streaming encoder needs
 /// them (three passes), so memory holds a few diamond-heights of rows per octave, the
 /// per-diamond bookkeeping and the coded blobs, never the raster.
-fn build_streaming(
+fn build_streaming<S: RowSource>(
     args: &BuildArgs,
-    mut rows: input::RawRows,
-    n: usize,
-    mode: RateMode,
-    budget_mb: u64,
+    rows: &mut S,
+    source_bytes: usize,
+    facts: impl Fn(&S) -> StreamFacts,
+    (n, mode, budget_mb): (usize, RateMode, u64),
     started: Instant,
 ) -> Result<BuildSummary> {
-    let (width, height) = (rows.raw().width, rows.raw().height);
-    let units = rows.raw().units.clone();
-    let georef = rows.raw().georef.clone();
+    let (width, height) = (rows.width(), rows.height());
     tracing::info!(width, height, budget_mb, "out-of-core build");
     // The budget covers the whole process: what is resident now (program, input
     // header), the per-diamond bookkeeping (geometry, side information and the spill
@@ -333,12 +332,13 @@ fn build_streaming(
     let program = layout::rss_bytes()
         .max(PROGRAM_BYTES)
         .next_multiple_of(1 << 20);
-    let reserve = program + diamonds * 400 + (3 << 20);
+    let reserve = program + diamonds * 400 + (3 << 20) + source_bytes;
     let budget = (budget_mb as usize) << 20;
     if budget <= reserve {
         bail!(
             "out-of-core build: --memory-budget-mb {budget_mb} leaves nothing for sample buffers: the program, \
-             the geometry of {diamonds} diamonds and the blob spill already take about {} MB",
+             the geometry of {diamonds} diamonds, the blob spill and the source's own buffers \
+             already take about {} MB",
             reserve.div_ceil(1 << 20)
         );
     }
@@ -346,7 +346,7 @@ fn build_streaming(
         n,
         mode,
         memory_budget_bytes: budget - reserve,
-        sparse: args.sparse,
+        sparse: args.sparse || mosaic::is_mosaic(&args.input),
     };
     let (meta, description, encode_seconds) = with_builder(args, |builder| {
         let mut builder = builder
@@ -362,7 +362,12 @@ fn build_streaming(
             spin: spin.clone(),
         };
         let enc =
-            stream::encode_streaming(&mut rows, opts, &mut sink).context("encoding out of core")?;
+            stream::encode_streaming(rows, opts, &mut sink).context("encoding out of core")?;
+        let StreamFacts {
+            units,
+            georef,
+            source_samples,
+        } = facts(rows);
         spin.finish_and_clear();
         let encode_seconds = encode_started.elapsed().as_secs_f64();
         tracing::info!(
@@ -382,7 +387,7 @@ fn build_streaming(
             kind: AttributeKind::Elevation,
             units,
             samples: enc.report.samples,
-            source_samples: enc.report.samples,
+            source_samples,
             nodata_count: enc.report.samples - enc.report.valid_samples,
             georef,
             channels: vec![ChannelCoding {
@@ -404,6 +409,13 @@ fn build_streaming(
     let mut summary = summarise(args, &meta, &description, started, (0.0, encode_seconds))?;
     summary.out_of_core = true;
     Ok(summary)
+}
+
+/// What the metadata says of an out-of-core build's input (asked once it has been read).
+struct StreamFacts {
+    units: String,
+    georef: Option<Georef>,
+    source_samples: usize,
 }
 
 /// Runs `quincunx build`.
@@ -530,11 +542,17 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         && !args.planet
         && is_raw(&args.input)
     {
-        let rows = input::RawRows::open(&args.input)
+        let mut rows = input::RawRows::open(&args.input)
             .with_context(|| format!("reading {}", args.input.display()))?;
         let samples = rows.raw().width * rows.raw().height;
         if in_memory_mb(samples, 1) > budget_mb {
-            return build_streaming(args, rows, n, mode, budget_mb, started);
+            let facts = |r: &input::RawRows| StreamFacts {
+                units: r.raw().units.clone(),
+                georef: r.raw().georef.clone(),
+                source_samples: samples,
+            };
+            let held = 0;
+            return build_streaming(args, &mut rows, held, facts, (n, mode, budget_mb), started);
         }
     }
     if mosaic::is_mosaic(&args.input) {
@@ -722,6 +740,26 @@ fn build_mosaic(
             args.rdo.mode(),
         )?
     } else {
+        if let Some(budget_mb) = args.memory_budget_mb {
+            let (mut rows, georef) = mosaic.rows()?;
+            let samples = rows.width() * rows.height();
+            if in_memory_mb(samples, 1) > budget_mb {
+                let held = rows.held_bytes();
+                let facts = |r: &mosaic::MosaicRows<'_>| StreamFacts {
+                    units: r.assembled().units,
+                    georef: Some(georef.clone()),
+                    source_samples: mosaic.source_samples,
+                };
+                return build_streaming(
+                    args,
+                    &mut rows,
+                    held,
+                    facts,
+                    (n, mode, budget_mb),
+                    started,
+                );
+            }
+        }
         let (grid, georef, assembled) = mosaic.to_grid()?;
         check_budget(args, grid.width * grid.height, 1)?;
         let source = Source {

@@ -363,9 +363,9 @@ impl Mosaic {
         ))
     }
 
-    /// Resamples the tiles onto one planar grid: node-registered, on the finest tile's
-    /// lattice, spanning every tile's samples. The tiles must share a CRS.
-    pub fn to_grid(&self) -> Result<(Grid, Georef, Assembled)> {
+    /// The planar output lattice: node-registered, on the finest tile's lattice, spanning
+    /// every tile's samples. The tiles must share a CRS.
+    fn plane(&self) -> Result<(Plane, Georef)> {
         let Some(finest) = self.tiles.first() else {
             bail!("a mosaic without tiles");
         };
@@ -414,44 +414,6 @@ impl Mosaic {
             );
         }
         let (width, height) = (width as usize, height as usize);
-        check_memory(
-            width as u64 * height as u64,
-            "build a planet or fewer tiles",
-        )?;
-        let mut values = vec![f64::NAN; width * height];
-        let mut reader = TileReader::default();
-        let pb = crate::progress::bar(self.tiles.len() as u64, "assembling", "tiles");
-        for tile in &self.tiles {
-            let grid = reader.read(tile)?;
-            let sampler = Sampler::new(tile, &grid, false);
-            let l = tile.lattice;
-            // The output rows and columns on the tile (its edges, with a margin of one
-            // sample that `covers` trims).
-            let r0 = ((y0 - l.north) / f.dy).floor().max(0.0) as usize;
-            let r1 = (((y0 - l.south) / f.dy).ceil() as usize).min(height - 1);
-            let c0 = ((l.west - x0) / f.dx).floor().max(0.0) as usize;
-            let c1 = (((l.east - x0) / f.dx).ceil() as usize).min(width - 1);
-            if r0 > r1 || c0 > c1 {
-                pb.inc(1);
-                continue;
-            }
-            values[r0 * width..(r1 + 1) * width]
-                .par_chunks_mut(width)
-                .enumerate()
-                .for_each(|(i, row)| {
-                    let y = y0 - (r0 + i) as f64 * f.dy;
-                    for (c, v) in row.iter_mut().enumerate().take(c1 + 1).skip(c0) {
-                        if v.is_nan()
-                            && let Some(s) = sampler.sample(y, x0 + c as f64 * f.dx)
-                        {
-                            *v = s;
-                        }
-                    }
-                });
-            pb.inc(1);
-        }
-        pb.finish_and_clear();
-        let assembled = reader.finish(&values);
         let georef = Georef {
             crs: finest.georef.crs.clone(),
             west: x0,
@@ -461,6 +423,36 @@ impl Mosaic {
             registration: Registration::Node,
             projection: finest.georef.projection.clone(),
         };
+        let plane = Plane {
+            x0,
+            y0,
+            dx: f.dx,
+            dy: f.dy,
+            width,
+            height,
+        };
+        Ok((plane, georef))
+    }
+
+    /// Resamples the tiles onto one planar grid in memory (see [`Mosaic::rows`] for the
+    /// same values a band of rows at a time).
+    pub fn to_grid(&self) -> Result<(Grid, Georef, Assembled)> {
+        let (plane, georef) = self.plane()?;
+        let (width, height) = (plane.width, plane.height);
+        check_memory(
+            width as u64 * height as u64,
+            "build a planet or fewer tiles",
+        )?;
+        let mut values = vec![f64::NAN; width * height];
+        let mut reader = TileReader::default();
+        let pb = crate::progress::bar(self.tiles.len() as u64, "assembling", "tiles");
+        for tile in &self.tiles {
+            let grid = reader.read(tile)?;
+            plane.paint(tile, &grid, 0, &mut values);
+            pb.inc(1);
+        }
+        pb.finish_and_clear();
+        let assembled = reader.finish(&values);
         Ok((
             Grid {
                 width,
@@ -471,6 +463,198 @@ impl Mosaic {
             georef,
             assembled,
         ))
+    }
+
+    /// The planar grid of [`Mosaic::to_grid`] as a row source for the out-of-core encoder:
+    /// each band of rows reads the tiles it meets (kept while later bands still meet
+    /// them), never the whole grid.
+    pub fn rows(&self) -> Result<(MosaicRows<'_>, Georef)> {
+        let (plane, georef) = self.plane()?;
+        let mut reader = TileReader::default();
+        // The first tile now, so the quantum is known before the first read (the encoder
+        // asks for it first): the same answer as in memory whether the tiles agree or not.
+        let first = match self.tiles.first() {
+            Some(t) => vec![(0, reader.read(t)?)],
+            None => Vec::new(),
+        };
+        let held_bytes = plane.band_tile_bytes(&self.tiles);
+        Ok((
+            MosaicRows {
+                mosaic: self,
+                plane,
+                reader,
+                held: first,
+                next_row: 0,
+                nodata: 0,
+                first_pass: true,
+                held_bytes,
+            },
+            georef,
+        ))
+    }
+}
+
+/// The lattice a planar mosaic resamples onto.
+#[derive(Clone, Copy, Debug)]
+struct Plane {
+    x0: f64,
+    y0: f64,
+    dx: f64,
+    dy: f64,
+    width: usize,
+    height: usize,
+}
+
+impl Plane {
+    /// The output rows `r0 ..= r1` and columns `c0 ..= c1` a tile may give values to (its
+    /// edges with a margin of one sample, which `covers` trims); `None` off the plane.
+    fn footprint(&self, tile: &Tile) -> Option<[usize; 4]> {
+        let l = tile.lattice;
+        let r0 = ((self.y0 - l.north) / self.dy).floor().max(0.0) as usize;
+        let r1 = (((self.y0 - l.south) / self.dy).ceil() as usize).min(self.height - 1);
+        let c0 = ((l.west - self.x0) / self.dx).floor().max(0.0) as usize;
+        let c1 = (((l.east - self.x0) / self.dx).ceil() as usize).min(self.width - 1);
+        (r0 <= r1 && c0 <= c1).then_some([r0, r1, c0, c1])
+    }
+
+    /// Gives the tile's values to the samples of `out` (rows `first ..`) that no tile
+    /// before it gave one.
+    fn paint(&self, tile: &Tile, grid: &Grid, first: usize, out: &mut [f64]) {
+        let Some([r0, r1, c0, c1]) = self.footprint(tile) else {
+            return;
+        };
+        let w = self.width;
+        let rows = out.len() / w;
+        let (from, to) = (r0.max(first), (r1 + 1).min(first + rows));
+        if from >= to {
+            return;
+        }
+        let sampler = Sampler::new(tile, grid, false);
+        out[(from - first) * w..(to - first) * w]
+            .par_chunks_mut(w)
+            .enumerate()
+            .for_each(|(i, row)| {
+                let y = self.y0 - (from + i) as f64 * self.dy;
+                for (c, v) in row.iter_mut().enumerate().take(c1 + 1).skip(c0) {
+                    if v.is_nan()
+                        && let Some(s) = sampler.sample(y, self.x0 + c as f64 * self.dx)
+                    {
+                        *v = s;
+                    }
+                }
+            });
+    }
+
+    /// The most bytes of decoded tiles one output row meets (8 bytes a sample): what a
+    /// [`MosaicRows`] holds at once, about.
+    fn band_tile_bytes(&self, tiles: &[Tile]) -> usize {
+        let mut events: Vec<(usize, bool, usize)> = Vec::new();
+        for t in tiles {
+            if let Some([r0, r1, ..]) = self.footprint(t) {
+                let bytes = t.width * t.height * 8;
+                events.push((r0, true, bytes));
+                events.push((r1 + 1, false, bytes));
+            }
+        }
+        // Ends before starts at the same row.
+        events.sort_by_key(|&(r, start, _)| (r, start));
+        let (mut held, mut most) = (0usize, 0usize);
+        for (_, start, bytes) in events {
+            if start {
+                held += bytes;
+                most = most.max(held);
+            } else {
+                held -= bytes;
+            }
+        }
+        most
+    }
+}
+
+/// A planar mosaic read a band of rows at a time ([`Mosaic::rows`]).
+pub struct MosaicRows<'a> {
+    mosaic: &'a Mosaic,
+    plane: Plane,
+    reader: TileReader,
+    /// Decoded tiles that later rows still meet, by index in priority order.
+    held: Vec<(usize, Grid)>,
+    /// The row after the last read (a read from an earlier row starts a new pass).
+    next_row: usize,
+    /// Samples no tile gave a value, over the rows of the first pass.
+    nodata: usize,
+    /// Whether the reads so far are the first pass (rows in order from 0).
+    first_pass: bool,
+    held_bytes: usize,
+}
+
+impl MosaicRows<'_> {
+    /// About the most bytes of decoded tiles held at once (8 a sample).
+    pub fn held_bytes(&self) -> usize {
+        self.held_bytes
+    }
+
+    /// What the metadata records, once a pass has read every row.
+    pub fn assembled(&self) -> Assembled {
+        Assembled {
+            units: self
+                .reader
+                .units
+                .as_ref()
+                .map_or_else(|| "m".to_owned(), |(u, _)| u.clone()),
+            nodata_count: self.nodata,
+            quantum_m: self.reader.quantum.flatten(),
+        }
+    }
+
+    fn fill(&mut self, first: usize, out: &mut [f64]) -> Result<()> {
+        let rows = out.len() / self.plane.width;
+        let last = first + rows - 1;
+        if first < self.next_row {
+            self.held.clear();
+            self.first_pass = false;
+        }
+        // Drop what no later row meets.
+        let plane = self.plane;
+        let tiles = &self.mosaic.tiles;
+        self.held
+            .retain(|(k, _)| plane.footprint(&tiles[*k]).is_some_and(|f| f[1] >= first));
+        out.iter_mut().for_each(|v| *v = f64::NAN);
+        for (k, tile) in tiles.iter().enumerate() {
+            let Some([r0, r1, ..]) = plane.footprint(tile) else {
+                continue;
+            };
+            if r1 < first || r0 > last {
+                continue;
+            }
+            if !self.held.iter().any(|(j, _)| *j == k) {
+                let grid = self.reader.read(tile)?;
+                self.held.push((k, grid));
+            }
+            if let Some((_, grid)) = self.held.iter().find(|(j, _)| *j == k) {
+                plane.paint(tile, grid, first, out);
+            }
+        }
+        if self.first_pass {
+            self.nodata += out.iter().filter(|v| v.is_nan()).count();
+        }
+        self.next_row = first + rows;
+        Ok(())
+    }
+}
+
+impl quincunx_codec::stream::RowSource for MosaicRows<'_> {
+    fn width(&self) -> usize {
+        self.plane.width
+    }
+    fn height(&self) -> usize {
+        self.plane.height
+    }
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String> {
+        self.fill(first, &mut out[..count * self.plane.width])
+            .map_err(|e| format!("{e:#}"))
+    }
+    fn quantum_m(&self) -> Option<f64> {
+        self.reader.quantum.flatten()
     }
 }
 

@@ -248,6 +248,93 @@ fn finer_tiles_win_and_uncovered_areas_are_holes() {
 }
 
 #[test]
+fn a_planar_mosaic_streams_out_of_core_with_the_in_memory_values() {
+    use quincunx_codec::stream::RowSource;
+    let k = korea();
+    let g = &k.grid;
+    let dir = tempfile::tempdir().unwrap();
+    four_tiles(dir.path(), &k, true);
+    let coarse = crop(&g.values_m, g.width, 0..=1024, 0..=1024, 2);
+    write_raw(dir.path(), "a_coarse", &coarse, 126.0, 38.0, 2.0 * SRTM3);
+    let mosaic = Mosaic::open(dir.path()).unwrap();
+    let (grid, georef, assembled) = mosaic.to_grid().unwrap();
+    // Bands of rows (three passes, the third in other bands) give the same values.
+    let (mut rows, streamed_georef) = mosaic.rows().unwrap();
+    assert_eq!((rows.width(), rows.height()), (grid.width, grid.height));
+    assert_eq!(
+        (streamed_georef.west, streamed_georef.north),
+        (georef.west, georef.north)
+    );
+    assert!(rows.held_bytes() > 0);
+    for band in [100, 333, 1025] {
+        let mut all = Vec::new();
+        let mut first = 0;
+        while first < rows.height() {
+            let count = band.min(rows.height() - first);
+            let mut out = vec![0.0; count * rows.width()];
+            rows.read_rows(first, count, &mut out).unwrap();
+            all.extend(out);
+            first += count;
+        }
+        assert!(same_values(&all, &grid.values_m), "bands of {band} rows");
+    }
+    let streamed = rows.assembled();
+    assert_eq!(streamed.nodata_count, assembled.nodata_count);
+    assert_eq!(streamed.quantum_m, assembled.quantum_m);
+    assert_eq!(streamed.units, assembled.units);
+
+    // Built out of core within a budget below the in-memory estimate: sparse, bounded, and
+    // the same data as the in-memory mosaic build (within the bound, the same blobs but
+    // where the hole's border fills differ).
+    four_tiles(dir.path(), &k, true);
+    std::fs::remove_file(dir.path().join("a_coarse.json")).unwrap();
+    let out = tempfile::tempdir().unwrap();
+    let build = |name: &str, extra: &[&str]| -> serde_json::Value {
+        let o = bin()
+            .args(["build", "--max-error-m", "2", "--json", "-o"])
+            .arg(out.path().join(name))
+            .args(extra)
+            .arg(dir.path())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice(&o.stdout).unwrap()
+    };
+    let ooc = build("ooc", &["--memory-budget-mb", "24"]);
+    let mem = build("mem", &[]);
+    println!("mosaic out of core {ooc}\nin memory {mem}");
+    assert_eq!(ooc["out_of_core"], true);
+    assert!(ooc["peak_rss_mb"].as_f64().unwrap() <= 24.0, "{ooc}");
+    assert_eq!(ooc["source_samples"], mem["source_samples"]);
+    assert!(ooc["max_abs"].as_f64().unwrap() <= 2.0);
+    let (a, b) = (
+        ooc["bits_per_sample"].as_f64().unwrap(),
+        mem["bits_per_sample"].as_f64().unwrap(),
+    );
+    assert!(
+        (a - b).abs() / b < 0.01,
+        "out of core {a} vs in memory {b} bits/sample"
+    );
+    let info = bin()
+        .arg("info")
+        .arg(out.path().join("ooc"))
+        .arg("--json")
+        .output()
+        .unwrap();
+    let info: serde_json::Value = serde_json::from_slice(&info.stdout).unwrap();
+    assert!(
+        info["metadata"]["coverage"].is_array(),
+        "a sparse repository"
+    );
+    let v = bin()
+        .args(["verify", "--json"])
+        .arg(out.path().join("ooc"))
+        .output()
+        .unwrap();
+    assert!(v.status.success(), "{}", String::from_utf8_lossy(&v.stderr));
+}
+
+#[test]
 fn among_tiles_of_one_spacing_the_first_in_order_wins() {
     let k = korea();
     let g = &k.grid;
