@@ -44,6 +44,8 @@ use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::lifting::{self, DiamondMask};
 use crate::raster::{DiamondSlot, RasterGeometry, read_lattice, write_lattice};
 
+mod synth;
+
 /// Rows of a planar raster, read on demand (row 0 = north). May be called several times
 /// over the same rows (the encoder makes more than one pass).
 pub trait RowSource {
@@ -255,12 +257,72 @@ pub fn encode_streaming(
     })
 }
 
+/// Receives decoded rows in order: `(row, values)`.
+pub type RowSink<'a> = dyn FnMut(usize, &[i32]) -> Result<(), String> + 'a;
+
+/// What [`decode_rows`] decodes: a planar encoding without its blobs.
+#[derive(Clone, Copy, Debug)]
+pub struct RowDecode<'a> {
+    /// The geometry (with the encoding's coverage, if any).
+    pub geom: &'a RasterGeometry,
+    /// Root vertex grid.
+    pub root: &'a [i32],
+    /// Quantiser step per detail level (1/256 units).
+    pub steps: &'a [u32],
+    /// The entropy model.
+    pub model: &'a CodecModel,
+}
+
+/// Decodes a planar encoding to integers a band of rows at a time, in memory bounded by a
+/// few diamond heights of rows per octave: `blob(level, index)` gives a diamond's blob
+/// (`None`: no blob), `emit(row, values)` receives the rows in order, invalid points 0,
+/// the same integers as [`crate::encode::decode_integers`].
+pub fn decode_rows(
+    d: RowDecode<'_>,
+    blob: &(dyn Fn(usize, usize) -> Result<Option<Vec<u8>>, String> + Sync),
+    emit: &mut RowSink<'_>,
+) -> Result<(), EncodeError> {
+    let n = d.geom.n();
+    let details = |l: usize, i: usize, h: &mut [i32]| -> Result<bool, EncodeError> {
+        let Some(bytes) = blob(l, i).map_err(EncodeError::Source)? else {
+            return Ok(false);
+        };
+        let step = d.steps.get(l).copied().unwrap_or(256);
+        let ctx = blob::BlobContext {
+            step,
+            ..d.geom.blob_context(l, i)
+        };
+        let mut q = Vec::with_capacity(n * n);
+        blob::decode_into(&bytes, &ctx, d.model, &mut q)
+            .map_err(|e| EncodeError::Source(format!("blob ({l}, {i}): {e}")))?;
+        let mut any = false;
+        for (dst, &x) in h.iter_mut().zip(q.iter()) {
+            any |= x != 0;
+            *dst = crate::encode::dequantize(x, step);
+        }
+        Ok(any)
+    };
+    let mut row = 0;
+    let mut line = Vec::new();
+    synth::synthesize_rows(d.geom, d.root, &details, &mut |_| {}, &mut |r: &[i32]| {
+        line.clear();
+        line.extend(
+            r.iter()
+                .enumerate()
+                .map(|(x, &v)| if d.geom.is_valid(x, row) { v } else { 0 }),
+        );
+        emit(row, &line).map_err(EncodeError::Sink)?;
+        row += 1;
+        Ok(())
+    })
+}
+
 /// Samples per parallel piece of the per-sample passes (fixed, so sums do not depend
 /// on the thread count).
 const PIECE: usize = 1 << 14;
 
 /// Buffer sizes, fixed from the dimensions and the budget.
-struct Plan {
+pub(crate) struct Plan {
     width: usize,
     height: usize,
     n: usize,
@@ -268,13 +330,13 @@ struct Plan {
     chunk_rows: usize,
     /// `(width, height)` of the octave rasters `R_0 ..= R_k` (`R_o`: every `2^o`-th row
     /// and column).
-    dims: Vec<(usize, usize)>,
+    pub(crate) dims: Vec<(usize, usize)>,
     /// Row capacity of each octave's window.
     caps: Vec<usize>,
 }
 
 impl Plan {
-    fn new(geom: &RasterGeometry, budget: usize) -> Result<Self, EncodeError> {
+    pub(crate) fn new(geom: &RasterGeometry, budget: usize) -> Result<Self, EncodeError> {
         let (width, height, n) = (geom.width(), geom.height(), geom.n());
         let octaves = geom.detail_levels() / 2;
         let mut dims = vec![(width, height)];
@@ -674,14 +736,14 @@ impl Reader {
 /// Where a diamond's points are in an octave raster `R_o` (point `(x, y)` of `R_o` is
 /// raster point `(x 2^o, y 2^o)`): vertex `(i, j)` at `v0 + i a + j b`, cell `(i, j)` at
 /// vertex `(i, j)` + `(a + b) / 2`.
-struct Frame {
+pub(crate) struct Frame {
     v0: [i64; 2],
     a: [i64; 2],
     b: [i64; 2],
 }
 
 impl Frame {
-    fn of(s: &DiamondSlot, shift: u32) -> Self {
+    pub(crate) fn of(s: &DiamondSlot, shift: u32) -> Self {
         let f = 1i64 << shift;
         let (v0, a, b) = s.frame();
         Frame {
@@ -702,7 +764,7 @@ impl Frame {
         [v0 as isize, c0 as isize, si as isize, sj as isize]
     }
 
-    fn gather_vertices(
+    pub(crate) fn gather_vertices(
         &self,
         n: usize,
         mask: Option<&DiamondMask>,
@@ -726,7 +788,7 @@ impl Frame {
         );
     }
 
-    fn gather_cells(
+    pub(crate) fn gather_cells(
         &self,
         n: usize,
         mask: Option<&DiamondMask>,
@@ -751,7 +813,7 @@ impl Frame {
     }
 
     /// Writes the interior vertices (all lifting changes).
-    fn scatter_interior(
+    pub(crate) fn scatter_interior(
         &self,
         n: usize,
         mask: Option<&DiamondMask>,
@@ -775,6 +837,56 @@ impl Frame {
     }
 }
 
+impl Frame {
+    /// Writes every vertex (valid ones, with a mask) into rows from 0 of width `w`.
+    pub(crate) fn scatter_all(
+        &self,
+        n: usize,
+        mask: Option<&DiamondMask>,
+        v: &[i32],
+        buf: &mut [i32],
+        w: usize,
+    ) {
+        let [v0, _, si, sj] = self.lin(0, w);
+        for i in 0..=n {
+            let start = v0 + i as isize * si;
+            for j in 0..=n {
+                if mask.is_none_or(|m| m.vertex(i, j)) {
+                    buf[(start + j as isize * sj) as usize] = v[i * (n + 1) + j];
+                }
+            }
+        }
+    }
+
+    /// Writes the cells (valid ones, with a mask).
+    pub(crate) fn scatter_cells(
+        &self,
+        n: usize,
+        mask: Option<&DiamondMask>,
+        c: &[i32],
+        buf: &mut [i32],
+        base: usize,
+        w: usize,
+    ) {
+        let [_, c0, si, sj] = self.lin(base, w);
+        if mask.is_none() {
+            return write_lattice(buf, 0, n, 0, c0, si, sj, c);
+        }
+        for i in 0..n {
+            let start = c0 + i as isize * si;
+            for j in 0..n {
+                if mask.is_none_or(|m| m.cell(i, j)) {
+                    buf[(start + j as isize * sj) as usize] = c[i * n + j];
+                }
+            }
+        }
+    }
+}
+
+/// The diamonds of octave `o`'s two levels, grouped by rows of `R_o`: `(level_a,
+/// level_b, a_groups, b_groups)` (see [`Octave`]).
+pub(crate) type OctaveGroups = (usize, usize, Vec<Vec<usize>>, Vec<Vec<usize>>);
+
 /// Reads a `side x side` lattice starting at buffer index `start` with steps `si`, `sj`
 /// into `out` (row-major); points where `valid(i, j)` is false read as 0.
 fn gather_strided(
@@ -796,6 +908,58 @@ fn gather_strided(
             };
         }
     }
+}
+
+/// Groups octave `o`'s diamonds by rows of `R_o` (see [`Octave`]) and checks that their
+/// points lie on `R_o`.
+pub(crate) fn octave_groups(
+    geom: &RasterGeometry,
+    n: usize,
+    o: usize,
+) -> Result<OctaveGroups, EncodeError> {
+    let levels = geom.detail_levels();
+    let (level_a, level_b) = (levels - 1 - 2 * o, levels - 2 - 2 * o);
+    let f = 1i64 << o;
+    let ni = n as i64;
+    let mut a_groups: Vec<Vec<usize>> = Vec::new();
+    for (i, s) in geom.level(level_a).iter().enumerate() {
+        let cy = s.id.y / f;
+        if cy < 0 || cy % ni != 0 {
+            return Err(EncodeError::Internal("level A centre off its lattice"));
+        }
+        let g = (cy / ni) as usize;
+        if a_groups.len() <= g {
+            a_groups.resize(g + 1, Vec::new());
+        }
+        a_groups[g].push(i);
+    }
+    let mut b_groups: Vec<Vec<usize>> = Vec::new();
+    for (i, s) in geom.level(level_b).iter().enumerate() {
+        let cy = s.id.y / f;
+        if cy < ni || (cy - ni) % (2 * ni) != 0 {
+            return Err(EncodeError::Internal("level B centre off its lattice"));
+        }
+        let j = ((cy - ni) / (2 * ni)) as usize;
+        if b_groups.len() <= j {
+            b_groups.resize(j + 1, Vec::new());
+        }
+        b_groups[j].push(i);
+    }
+    // Every point of these levels must lie on the 2^o lattice, i.e. in `R_o`.
+    let on_lattice = |s: &DiamondSlot| {
+        let (v0, a, b) = s.frame();
+        v0.iter()
+            .chain(&a)
+            .chain(&b)
+            .chain(&[(a[0] + b[0]) / 2, (a[1] + b[1]) / 2])
+            .all(|c| c % f == 0)
+    };
+    if !geom.level(level_a).iter().all(on_lattice) || !geom.level(level_b).iter().all(on_lattice) {
+        return Err(EncodeError::Internal(
+            "octave points off the decimated lattice",
+        ));
+    }
+    Ok((level_a, level_b, a_groups, b_groups))
 }
 
 /// One octave of the chain: levels `A = 2k - 1 - 2o` (rotated, refines the quincunx of
@@ -828,50 +992,7 @@ struct Octave {
 impl Octave {
     fn new(geom: &RasterGeometry, plan: &Plan, o: usize) -> Result<Self, EncodeError> {
         let n = plan.n;
-        let levels = geom.detail_levels();
-        let (level_a, level_b) = (levels - 1 - 2 * o, levels - 2 - 2 * o);
-        let f = 1i64 << o;
-        let ni = n as i64;
-        let mut a_groups: Vec<Vec<usize>> = Vec::new();
-        for (i, s) in geom.level(level_a).iter().enumerate() {
-            let cy = s.id.y / f;
-            if cy < 0 || cy % ni != 0 {
-                return Err(EncodeError::Internal("level A centre off its lattice"));
-            }
-            let g = (cy / ni) as usize;
-            if a_groups.len() <= g {
-                a_groups.resize(g + 1, Vec::new());
-            }
-            a_groups[g].push(i);
-        }
-        let mut b_groups: Vec<Vec<usize>> = Vec::new();
-        for (i, s) in geom.level(level_b).iter().enumerate() {
-            let cy = s.id.y / f;
-            if cy < ni || (cy - ni) % (2 * ni) != 0 {
-                return Err(EncodeError::Internal("level B centre off its lattice"));
-            }
-            let j = ((cy - ni) / (2 * ni)) as usize;
-            if b_groups.len() <= j {
-                b_groups.resize(j + 1, Vec::new());
-            }
-            b_groups[j].push(i);
-        }
-        // Every point of these levels must lie on the 2^o lattice, i.e. in `R_o`.
-        let on_lattice = |s: &DiamondSlot| {
-            let (v0, a, b) = s.frame();
-            v0.iter()
-                .chain(&a)
-                .chain(&b)
-                .chain(&[(a[0] + b[0]) / 2, (a[1] + b[1]) / 2])
-                .all(|c| c % f == 0)
-        };
-        if !geom.level(level_a).iter().all(on_lattice)
-            || !geom.level(level_b).iter().all(on_lattice)
-        {
-            return Err(EncodeError::Internal(
-                "octave points off the decimated lattice",
-            ));
-        }
+        let (level_a, level_b, a_groups, b_groups) = octave_groups(geom, n, o)?;
         let (width, height) = plan.dims[o];
         Ok(Octave {
             shift: o as u32,
