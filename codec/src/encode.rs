@@ -915,10 +915,6 @@ const TRAIN_STRIDE: usize = 8;
 /// The nonzero quantised matrices of one rate-control attempt, per level and diamond.
 type Kept = Vec<Vec<OnceLock<Box<[i32]>>>>;
 
-/// One rate-control attempt: scale, steps, measures, `(rms, max)`, quantised details
-/// (rate-distortion quantiser only).
-type Attempt = (f64, Vec<u32>, Vec<Vec<Measure>>, (f64, f64), Option<Kept>);
-
 /// The first guess of the ratio of a real decode's RMS to the open-loop estimate, for
 /// steps at which a fraction `nonzero` of the detail indices round to nonzero, with the
 /// plain or the rate-distortion quantiser (`rdo`). The estimate treats every level's
@@ -1414,133 +1410,131 @@ fn code_blobs<G: Layout>(
 }
 
 /// What the RMS rate control settled on.
-struct RmsOutcome {
+pub(crate) struct RmsOutcome {
     /// Quantiser step per level (1/256 units).
-    steps: Vec<u32>,
+    pub(crate) steps: Vec<u32>,
     /// Every diamond's measures in the kept attempt's verification decode.
-    measures: Vec<Vec<Measure>>,
+    pub(crate) measures: Vec<Vec<Measure>>,
     /// RMS and largest error of that decode.
-    errors: (f64, f64),
+    pub(crate) errors: (f64, f64),
     /// Whether the rate-distortion quantiser chose the indices.
-    rdo_used: bool,
+    pub(crate) rdo_used: bool,
     /// Verification decodes made.
-    decodes: usize,
+    pub(crate) decodes: usize,
 }
 
-/// The RMS rate-control stage: searches the quantiser scale whose verification decode
-/// meets `target` with the fewest bits (the steps per level follow the synthesis gains),
-/// and leaves the kept attempt's indices in `details`. `unit` is the source quantum (or
-/// the integer scale), `error_of` measures a decoded raster against the source, and
-/// `raster` is a buffer for the decodes.
-#[allow(clippy::too_many_arguments)]
-fn control_rms<G: Layout>(
-    geom: &G,
-    details: &mut [Vec<Vec<i32>>],
-    roots: &[Vec<i32>],
-    mut raster: Vec<i32>,
-    (target, unit, scale): (f64, f64, f64),
-    valid_count: usize,
-    rdo: RdoMode,
-    error_of: &(dyn Fn(&[i32]) -> (f64, f64) + Sync),
-) -> Result<RmsOutcome, EncodeError> {
-    let n = geom.n();
-    let levels = geom.slot_levels().len();
-    let level_len = |l: usize| geom.slot_levels()[l].len();
-    let slot = |l: usize, i: usize| &geom.slot_levels()[l][i];
-    let offset = rounding_offset(target / unit);
-    // Quantises one diamond's details in place by rounding (pruned and sign-hiding on
-    // quantised RMS levels).
-    let round_matrix = |steps: &[u32], l: usize, h: &mut [i32]| {
-        let s = steps[l];
-        let quantizer = Quantizer::new(s, offset);
+/// One verification decode: every diamond's measures, whether any index was nonzero, and
+/// `(rms, max)` against the source.
+pub(crate) type Attempt = (Vec<Vec<Measure>>, bool, (f64, f64));
+
+/// Where the RMS rate control's data lives: the whole raster in memory
+/// ([`control_rms`]), or passes over a streamed source (`stream.rs`). The search itself
+/// ([`search_scale`]) is the same for both.
+pub(crate) trait Verifier {
+    /// The rate-distortion quantiser's probabilities: a model trained (on the diamonds
+    /// [`trains_on`] samples) on the details rounded with `steps` by
+    /// [`Quantise::round`].
+    fn train_cost(&mut self, q: &Quantise, steps: &[u32]) -> Result<CodecModel, EncodeError>;
+    /// Quantises every diamond's details ([`Quantise::matrix`] with `cost_model`,
+    /// `steps`), decodes, and measures.
+    fn attempt(
+        &mut self,
+        q: &Quantise,
+        cost_model: Option<&CodecModel>,
+        steps: &[u32],
+    ) -> Result<Attempt, EncodeError>;
+    /// The last attempt is the best so far: its indices are the ones to code.
+    fn keep_last(&mut self);
+}
+
+/// How details become indices: rounding (pruned and sign-hiding on quantised levels),
+/// or rate-distortion choices under a cost model.
+pub(crate) struct Quantise {
+    n: usize,
+    offset: u64,
+}
+
+impl Quantise {
+    pub(crate) fn new(n: usize, target: f64, unit: f64) -> Self {
+        Quantise {
+            n,
+            offset: rounding_offset(target / unit),
+        }
+    }
+
+    /// Rounds one diamond's details in place at step `s`.
+    pub(crate) fn round(&self, s: u32, h: &mut [i32]) {
+        let quantizer = Quantizer::new(s, self.offset);
         if s > 256 {
-            quantize_pruned(n, h, &quantizer, s);
+            quantize_pruned(self.n, h, &quantizer, s);
         } else {
             for x in h.iter_mut() {
                 *x = quantizer.apply(*x);
             }
         }
-    };
-    // Diamond `(l, i)`'s indices into `out`: by rate and distortion under `cost_model`
-    // on quantised RMS levels when one is given, else by rounding.
-    let quantize_matrix =
-        |cost_model: Option<&CodecModel>, steps: &[u32], l: usize, i: usize, out: &mut [i32]| {
-            let s = steps[l];
-            match cost_model {
-                Some(model) if s > 256 => {
-                    let ctx = geom.blob_context(l, i);
-                    let step_units = s as f32 / 256.0;
-                    entropy::rdo::quantize_matrix(
-                        model,
-                        &entropy::rdo::Matrix {
-                            group: ctx.group,
-                            n,
-                            valid: ctx.mask.map(crate::lifting::DiamondMask::cells),
-                            step: s,
-                            lambda: RDO_LAMBDA * step_units * step_units,
-                        },
-                        &details[l][i],
-                        out,
-                        |q, dd| fix_parity(q, dd, s),
-                    );
-                }
-                _ => {
-                    out.copy_from_slice(&details[l][i]);
-                    round_matrix(steps, l, out);
-                }
-            }
-        };
-    // Decodes the details quantised with `steps` into `out` (reused between attempts)
-    // and measures every diamond; also says whether any index was nonzero. Quantising on
-    // the fly keeps no quantised copy of all the details; with the rate-distortion
-    // quantiser, whose second run would cost more than the memory, `keep` receives the
-    // nonzero matrices of the attempt.
-    let decode_measure = |cost_model: Option<&CodecModel>,
-                          steps: &[u32],
-                          out: &mut Vec<i32>,
-                          keep: Option<&Kept>|
-     -> Result<(Vec<Vec<Measure>>, bool), EncodeError> {
-        out.clear();
-        out.resize(geom.raster_len(), 0);
-        geom.scatter_roots(roots, out)?;
-        let coded = AtomicBool::new(false);
-        let measures = synthesize_levels_par(
-            geom,
-            out,
-            |l, i, h| {
-                quantize_matrix(cost_model, steps, l, i, h);
-                let any = h.iter().any(|&x| x != 0);
-                if any {
-                    coded.store(true, Ordering::Relaxed);
-                    if let Some(keep) = keep {
-                        let _ = keep[l][i].set(h.into());
-                    }
-                }
-                for x in h.iter_mut() {
-                    *x = dequantize(*x, steps[l]);
-                }
-                any
-            },
-            |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
-        )?;
-        Ok((measures, coded.into_inner()))
-    };
-    let new_kept = |rdo: bool| -> Option<Kept> {
-        rdo.then(|| {
-            (0..levels)
-                .map(|l| (0..level_len(l)).map(|_| OnceLock::new()).collect())
-                .collect()
-        })
-    };
+    }
 
+    /// One diamond's indices into `out`: by rate and distortion under `cost_model` on
+    /// quantised levels when one is given, else by rounding. `ctx` gives its group and
+    /// mask.
+    pub(crate) fn matrix(
+        &self,
+        cost_model: Option<&CodecModel>,
+        ctx: &BlobContext<'_>,
+        s: u32,
+        details: &[i32],
+        out: &mut [i32],
+    ) {
+        match cost_model {
+            Some(model) if s > 256 => {
+                let step_units = s as f32 / 256.0;
+                entropy::rdo::quantize_matrix(
+                    model,
+                    &entropy::rdo::Matrix {
+                        group: ctx.group,
+                        n: self.n,
+                        valid: ctx.mask.map(crate::lifting::DiamondMask::cells),
+                        step: s,
+                        lambda: RDO_LAMBDA * step_units * step_units,
+                    },
+                    details,
+                    out,
+                    |q, dd| fix_parity(q, dd, s),
+                );
+            }
+            _ => {
+                out.copy_from_slice(details);
+                self.round(s, out);
+            }
+        }
+    }
+}
+
+/// The best attempt of a search: scale, steps, measures, errors.
+type Best = (f64, Vec<u32>, Vec<Vec<Measure>>, (f64, f64));
+
+/// The RMS rate-control policy: from the details' magnitude histograms per level
+/// (`hist`, coarsest level first), searches the quantiser scale whose verification
+/// decode meets `target` with the fewest bits (the steps per level follow the synthesis
+/// gains). `unit` is the source quantum (or the integer scale), `scale` metres per
+/// integer. The verifier decodes; its last kept attempt holds the indices to code.
+pub(crate) fn search_scale(
+    n: usize,
+    hist: &[Vec<(u32, u64)>],
+    (target, unit, scale): (f64, f64, f64),
+    valid_count: usize,
+    rdo: RdoMode,
+    verifier: &mut dyn Verifier,
+) -> Result<RmsOutcome, EncodeError> {
+    let levels = hist.len();
+    let quantise = Quantise::new(n, target, unit);
+    let offset = quantise.offset;
     let mut decodes = 0;
     let gains = synthesis_gains(n, levels);
     let step_of = |q: f64, l: usize, exponent: f64| -> u32 {
         let g = gains[levels - 1 - l].max(1e-6);
         ((q / g.powf(exponent)) * 256.0).round().clamp(256.0, 1e9) as u32
     };
-    // Histogram of |detail| per level for fast error estimates.
-    let hist: Vec<Vec<(u32, u64)>> = details.iter().map(|ds| magnitude_histogram(ds)).collect();
     let estimate = |q: f64, exponent: f64| -> f64 {
         let mut mse = 0.0;
         for (l, hl) in hist.iter().enumerate() {
@@ -1604,15 +1598,74 @@ fn control_rms<G: Layout>(
     let steps_at = |q: f64| -> Vec<u32> { (0..levels).map(|l| step_of(q, l, exponent)).collect() };
     // The rate-distortion quantiser's probabilities: a model trained on the plain
     // quantisation at the first guess's steps.
-    let cost_model = rdo_used.then(|| {
+    let cost_model = if rdo_used {
+        Some(verifier.train_cost(&quantise, &steps_at(q))?)
+    } else {
+        None
+    };
+    let cost_model = cost_model.as_ref();
+    // The attempt kept: scale, steps, measures, errors.
+    let mut best: Option<Best> = None;
+    for _ in 0..8 {
         let st = steps_at(q);
-        train_model(
+        let (ms, coded, (rms, max)) = verifier.attempt(&quantise, cost_model, &st)?;
+        decodes += 1;
+        let est = estimate(q, exponent);
+        let improves = rms <= target && best.as_ref().is_none_or(|b| q > b.0);
+        if improves {
+            verifier.keep_last();
+            best = Some((q, st, ms, (rms, max)));
+        }
+        match search.next(q, rms, est, coded, &|goal, ratio| {
+            solve(goal, ratio, exponent)
+        }) {
+            Some(next) => q = next,
+            None => break,
+        }
+    }
+    let (steps, measures, errors) = match best {
+        Some((_, st, ms, errors)) => (st, ms, errors),
+        None => {
+            // Fall back to the finest steps (integer lossless) if nothing met the target.
+            let st = vec![256; levels];
+            let (ms, _, errors) = verifier.attempt(&quantise, None, &st)?;
+            verifier.keep_last();
+            decodes += 1;
+            (st, ms, errors)
+        }
+    };
+    Ok(RmsOutcome {
+        steps,
+        measures,
+        errors,
+        rdo_used,
+        decodes,
+    })
+}
+
+/// The in-memory verifier: decodes into a raster buffer reused between attempts.
+struct InMemory<'a, G: Layout> {
+    geom: &'a G,
+    details: &'a [Vec<Vec<i32>>],
+    roots: &'a [Vec<i32>],
+    raster: Vec<i32>,
+    error_of: &'a (dyn Fn(&[i32]) -> (f64, f64) + Sync),
+    /// The last attempt's rate-distortion indices (quantising again would cost more
+    /// than the memory), and the best attempt's.
+    last: Option<Kept>,
+    kept: Option<Kept>,
+}
+
+impl<G: Layout> Verifier for InMemory<'_, G> {
+    fn train_cost(&mut self, q: &Quantise, st: &[u32]) -> Result<CodecModel, EncodeError> {
+        let (geom, details, n) = (self.geom, self.details, self.geom.n());
+        Ok(train_model(
             geom,
             |_, _| true,
             |acc, l, i| {
                 let ctx = geom.blob_context(l, i);
                 let mut h = details[l][i].clone();
-                round_matrix(&st, l, &mut h);
+                q.round(st[l], &mut h);
                 entropy::write_matrix(
                     acc,
                     ctx.group,
@@ -1622,42 +1675,106 @@ fn control_rms<G: Layout>(
                     st[l] > 256,
                 );
             },
-        )
-    });
-    let cost_model = cost_model.as_ref();
-    // The attempt kept: scale, steps, measures, errors, indices.
-    let mut best: Option<Attempt> = None;
-    for _ in 0..8 {
-        let st = steps_at(q);
-        let kept = new_kept(rdo_used);
-        let (ms, coded) = decode_measure(cost_model, &st, &mut raster, kept.as_ref())?;
-        decodes += 1;
-        let (rms, max) = error_of(&raster);
-        let est = estimate(q, exponent);
-        let improves = rms <= target && best.as_ref().is_none_or(|b| q > b.0);
-        if improves {
-            best = Some((q, st, ms, (rms, max), kept));
-        }
-        match search.next(q, rms, est, coded, &|goal, ratio| {
-            solve(goal, ratio, exponent)
-        }) {
-            Some(next) => q = next,
-            None => break,
-        }
+        ))
     }
-    let (_, st, ms, errors, kept) = match best {
-        Some(b) => b,
-        None => {
-            // Fall back to the finest steps (integer lossless) if nothing met the target.
-            let st = vec![256; levels];
-            let kept = None;
-            let (ms, _) = decode_measure(None, &st, &mut raster, None)?;
-            decodes += 1;
-            let errors = error_of(&raster);
-            (0.0, st, ms, errors, kept)
-        }
+
+    fn attempt(
+        &mut self,
+        q: &Quantise,
+        cost_model: Option<&CodecModel>,
+        steps: &[u32],
+    ) -> Result<Attempt, EncodeError> {
+        let (geom, details, n) = (self.geom, self.details, self.geom.n());
+        let levels = geom.slot_levels().len();
+        let slot = |l: usize, i: usize| &geom.slot_levels()[l][i];
+        // Quantising on the fly keeps no quantised copy of all the details; with the
+        // rate-distortion quantiser, whose second run would cost more than the memory,
+        // `keep` receives the nonzero matrices of the attempt.
+        let keep: Option<Kept> = cost_model.map(|_| {
+            (0..levels)
+                .map(|l| {
+                    (0..geom.slot_levels()[l].len())
+                        .map(|_| OnceLock::new())
+                        .collect()
+                })
+                .collect()
+        });
+        let out = &mut self.raster;
+        out.clear();
+        out.resize(geom.raster_len(), 0);
+        geom.scatter_roots(self.roots, out)?;
+        let coded = AtomicBool::new(false);
+        let measures = synthesize_levels_par(
+            geom,
+            out,
+            |l, i, h| {
+                q.matrix(
+                    cost_model,
+                    &geom.blob_context(l, i),
+                    steps[l],
+                    &details[l][i],
+                    h,
+                );
+                let any = h.iter().any(|&x| x != 0);
+                if any {
+                    coded.store(true, Ordering::Relaxed);
+                    if let Some(keep) = &keep {
+                        let _ = keep[l][i].set(h.into());
+                    }
+                }
+                for x in h.iter_mut() {
+                    *x = dequantize(*x, steps[l]);
+                }
+                any
+            },
+            |l, i, coarse, fine, cells| measure(n, geom.mask(slot(l, i)), coarse, fine, cells),
+        )?;
+        let errors = (self.error_of)(out);
+        self.last = keep;
+        Ok((measures, coded.into_inner(), errors))
+    }
+
+    fn keep_last(&mut self) {
+        self.kept = self.last.take();
+    }
+}
+
+/// The RMS rate-control stage in memory: [`search_scale`] over the details held in
+/// `details`, which then hold the kept attempt's indices. `error_of` measures a decoded
+/// raster against the source, and `raster` is a buffer for the decodes.
+#[allow(clippy::too_many_arguments)]
+fn control_rms<G: Layout>(
+    geom: &G,
+    details: &mut [Vec<Vec<i32>>],
+    roots: &[Vec<i32>],
+    raster: Vec<i32>,
+    (target, unit, scale): (f64, f64, f64),
+    valid_count: usize,
+    rdo: RdoMode,
+    error_of: &(dyn Fn(&[i32]) -> (f64, f64) + Sync),
+) -> Result<RmsOutcome, EncodeError> {
+    // Histogram of |detail| per level for fast error estimates.
+    let hist: Vec<Vec<(u32, u64)>> = details.iter().map(|ds| magnitude_histogram(ds)).collect();
+    let mut verifier = InMemory {
+        geom,
+        details,
+        roots,
+        raster,
+        error_of,
+        last: None,
+        kept: None,
     };
-    drop(raster);
+    let out = search_scale(
+        geom.n(),
+        &hist,
+        (target, unit, scale),
+        valid_count,
+        rdo,
+        &mut verifier,
+    )?;
+    let kept = verifier.kept.take();
+    drop(verifier);
+    let quantise = Quantise::new(geom.n(), target, unit);
     // The kept attempt's indices, as its verification decode quantised them.
     match kept {
         Some(kept) => {
@@ -1672,17 +1789,12 @@ fn control_rms<G: Layout>(
         }
         None => {
             for (l, ds) in details.iter_mut().enumerate() {
-                ds.par_iter_mut().for_each(|h| round_matrix(&st, l, h));
+                ds.par_iter_mut()
+                    .for_each(|h| quantise.round(out.steps[l], h));
             }
         }
     }
-    Ok(RmsOutcome {
-        steps: st,
-        measures: ms,
-        errors,
-        rdo_used,
-        decodes,
-    })
+    Ok(out)
 }
 
 /// The source values a rate mode measures its errors against.
