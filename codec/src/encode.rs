@@ -204,11 +204,6 @@ pub enum EncodeError {
     /// The streaming encoder's blob sink failed.
     #[error("writing blobs: {0}")]
     Sink(String),
-    /// A rate mode the streaming (out-of-core) encoder does not support.
-    #[error(
-        "out-of-core encoding needs a lossless or max-error rate mode (RMS rate control needs the whole raster in memory)"
-    )]
-    StreamingMode,
     /// The memory budget is smaller than the streaming encoder's smallest working set.
     #[error(
         "memory budget of {budget} bytes is below the {needed} bytes out-of-core encoding needs"
@@ -556,7 +551,7 @@ fn measure_gains(n: usize) -> Vec<f64> {
 
 /// The integer representation of a grid: `metres = offset + value * scale`.
 /// Samples per parallel task in whole-raster passes.
-const PASS_CHUNK: usize = 1 << 16;
+pub(crate) const PASS_CHUNK: usize = 1 << 16;
 
 struct Integerised {
     values: Vec<i32>,
@@ -1302,9 +1297,9 @@ pub(crate) fn check_tolerance(mode: RateMode) -> Result<(), EncodeError> {
 /// Every diamond's side information, bottom-up (children before parents): the class
 /// byte its owner's blob carries for it (`gamma`, from its subtree's error bounds) and
 /// whether it or anything below it has data (a blob to code).
-struct SideInfo {
+pub(crate) struct SideInfo {
     gamma: Vec<Vec<u64>>,
-    has_data: Vec<Vec<bool>>,
+    pub(crate) has_data: Vec<Vec<bool>>,
 }
 
 impl SideInfo {
@@ -1319,9 +1314,9 @@ impl SideInfo {
 
 /// The side-information stage: from the quantised details (which diamonds have indices)
 /// and each diamond's measures of its decoded surface.
-fn side_information<G: Layout>(
+pub(crate) fn side_information<G: Layout>(
     geom: &G,
-    quantized: &[Vec<Vec<i32>>],
+    has_indices: impl Fn(usize, usize) -> bool,
     measures: &[Vec<Measure>],
 ) -> SideInfo {
     let levels = geom.slot_levels().len();
@@ -1334,7 +1329,7 @@ fn side_information<G: Layout>(
         let mut hd = Vec::with_capacity(slots.len());
         let mut bd = Vec::with_capacity(slots.len());
         for (i, s) in slots.iter().enumerate() {
-            let own = quantized[l][i].iter().any(|&x| x != 0);
+            let own = has_indices(l, i);
             let children: &[usize] = if l + 1 < levels {
                 geom.children(s)
             } else {
@@ -1360,14 +1355,34 @@ fn side_information<G: Layout>(
 
 /// The coding stage: trains the model (on a subsample of the large levels, see
 /// `trains_on`) on what the blobs will hold, then codes every diamond that has data.
-fn code_blobs<G: Layout>(
+pub(crate) fn code_blobs<'q, G: Layout>(
     geom: &G,
     steps: &[u32],
-    quantized: &[Vec<Vec<i32>>],
+    quantized: &(dyn Fn(usize, usize) -> Cow<'q, [i32]> + Sync),
     side: &SideInfo,
 ) -> (CodecModel, Vec<Vec<Option<Vec<u8>>>>) {
+    let model = blob_model(geom, steps, quantized, side);
+    let blobs = (0..geom.slot_levels().len())
+        .map(|l| {
+            (0..geom.slot_levels()[l].len())
+                .into_par_iter()
+                .map(|i| code_blob(geom, steps, &model, &quantized(l, i), side, l, i))
+                .collect()
+        })
+        .collect();
+    (model, blobs)
+}
+
+/// The entropy model the blobs are coded with, trained (on a subsample of the large
+/// levels, see `trains_on`) on what they will hold.
+pub(crate) fn blob_model<'q, G: Layout>(
+    geom: &G,
+    steps: &[u32],
+    quantized: &(dyn Fn(usize, usize) -> Cow<'q, [i32]> + Sync),
+    side: &SideInfo,
+) -> CodecModel {
     let n = geom.n();
-    let model = train_model(
+    train_model(
         geom,
         |l, i| side.has_data[l][i],
         |acc, l, i| {
@@ -1380,33 +1395,35 @@ fn code_blobs<G: Layout>(
                 acc,
                 ctx.group,
                 n,
-                &quantized[l][i],
+                &quantized(l, i),
                 ctx.mask.map(crate::lifting::DiamondMask::cells),
                 ctx.hides_signs(),
             );
         },
-    );
-    let blobs = (0..geom.slot_levels().len())
-        .map(|l| {
-            (0..geom.slot_levels()[l].len())
-                .into_par_iter()
-                .map(|i| {
-                    side.has_data[l][i].then(|| {
-                        blob::encode(
-                            &BlobContext {
-                                step: steps[l],
-                                ..geom.blob_context(l, i)
-                            },
-                            &model,
-                            &side.classes_of(geom, l, i),
-                            &quantized[l][i],
-                        )
-                    })
-                })
-                .collect()
-        })
-        .collect();
-    (model, blobs)
+    )
+}
+
+/// Diamond `(l, i)`'s blob, if it has data.
+pub(crate) fn code_blob<G: Layout>(
+    geom: &G,
+    steps: &[u32],
+    model: &CodecModel,
+    quantized: &[i32],
+    side: &SideInfo,
+    l: usize,
+    i: usize,
+) -> Option<Vec<u8>> {
+    side.has_data[l][i].then(|| {
+        blob::encode(
+            &BlobContext {
+                step: steps[l],
+                ..geom.blob_context(l, i)
+            },
+            model,
+            &side.classes_of(geom, l, i),
+            quantized,
+        )
+    })
 }
 
 /// What the RMS rate control settled on.
@@ -1797,6 +1814,16 @@ fn control_rms<G: Layout>(
     Ok(out)
 }
 
+/// RMS and largest error from per-piece `(sum of squares, max)` of [`PASS_CHUNK`] samples
+/// in sample order, summed in that order (the in-memory and the out-of-core verification
+/// decodes give the same bits).
+pub(crate) fn rms_of_pieces(pieces: &[(f64, f64)], valid_count: usize) -> (f64, f64) {
+    let (sum, max) = pieces
+        .iter()
+        .fold((0.0, 0.0f64), |a, b| (a.0 + b.0, a.1.max(b.1)));
+    ((sum / valid_count.max(1) as f64).sqrt(), max)
+}
+
 /// The source values a rate mode measures its errors against.
 struct Source<'a> {
     values_m: Cow<'a, [f64]>,
@@ -1812,7 +1839,7 @@ impl Source<'_> {
     /// counted samples (in parallel over fixed pieces, so the sums do not depend on the
     /// thread count).
     fn errors(&self, decoded: &[i32]) -> (f64, f64) {
-        let (sum, max) = decoded
+        let pieces: Vec<(f64, f64)> = decoded
             .par_chunks(PASS_CHUNK)
             .zip(self.values_m.par_chunks(PASS_CHUNK))
             .enumerate()
@@ -1826,8 +1853,8 @@ impl Source<'_> {
                 }
                 acc
             })
-            .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1.max(b.1)));
-        ((sum / self.valid_count.max(1) as f64).sqrt(), max)
+            .collect();
+        rms_of_pieces(&pieces, self.valid_count)
     }
 }
 
@@ -1929,9 +1956,18 @@ fn encode_layout<G: Layout>(
     };
     let quantized = details;
     drop(spare_raster);
-    let side = side_information(geom, &quantized, &measures);
+    let side = side_information(
+        geom,
+        |l, i| quantized[l][i].iter().any(|&x| x != 0),
+        &measures,
+    );
     drop(measures);
-    let (model, blobs) = code_blobs(geom, &steps, &quantized, &side);
+    let (model, blobs) = code_blobs(
+        geom,
+        &steps,
+        &|l, i| Cow::Borrowed(&quantized[l][i][..]),
+        &side,
+    );
 
     let blob_bytes: usize = blobs.iter().flatten().flatten().map(Vec::len).sum();
     let blob_count = blobs.iter().flatten().flatten().count();

@@ -12,15 +12,15 @@
 //! it spans are final (diamonds of one level never touch each other's points, so any order
 //! works within a level), and no detail matrix outlives its diamond.
 //!
-//! Rate modes: lossless and max-error only. In both the steps are all 1 (256/256) and the
-//! decoder reproduces the integerised values exactly, so the errors and the side
-//! information can be computed during analysis, without a verification decode. RMS rate
-//! control needs the whole raster and is refused ([`EncodeError::StreamingMode`]).
+//! Lossless and max-error modes: the steps are all 1 (256/256) and the decoder reproduces
+//! the integerised values exactly, so the errors and the side information are computed
+//! during analysis, without a verification decode. Passes over the source: (0) range,
+//! quantum and valid count; (1) analysis, measuring errors, side information (bottom-up,
+//! children always come first) and training counts; (2) the identical analysis again,
+//! coding each diamond's blob into the sink as soon as its details exist.
 //!
-//! Passes over the source: (0) range, quantum and valid count; (1) analysis, measuring
-//! errors, side information (bottom-up, children always come first) and training counts;
-//! (2) the identical analysis again, coding each diamond's blob into the sink as soon as
-//! its details exist.
+//! RMS mode: the in-memory rate control's search over passes of the analysis and of its
+//! inverse, the synthesis, a band of rows at a time (`rms.rs`, `synth.rs`).
 //!
 //! Sparse mode: pass 0 also finds the coverage ([`RasterCoverage`], one row at a time),
 //! and the geometry masks the blocks without data as the in-memory sparse encoder does.
@@ -37,13 +37,14 @@ use rayon::prelude::*;
 use crate::blob;
 use crate::coverage::{Coverage, RasterCoverage};
 use crate::encode::{
-    EncodeError, EncodeReport, Encoded, EncodedDomain, Measure, RateMode, ValueMap,
+    EncodeError, EncodeReport, Encoded, EncodedDomain, Measure, RateMode, RdoMode, ValueMap,
     check_tolerance, measure, native_quantum, on_quantum, root_grid_bytes, side_info,
 };
 use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::lifting::{self, DiamondMask};
 use crate::raster::{DiamondSlot, RasterGeometry, read_lattice, write_lattice};
 
+mod rms;
 mod synth;
 
 /// Rows of a planar raster, read on demand (row 0 = north). May be called several times
@@ -80,6 +81,8 @@ pub struct StreamOptions {
     /// Sparse mode ([`crate::encode::EncodeOptions::sparse`]): blocks without data are
     /// holes. The coverage is found in the first pass, one row at a time.
     pub sparse: bool,
+    /// The rate-distortion quantiser (RMS mode), as [`crate::encode::EncodeOptions::rdo`].
+    pub rdo: RdoMode,
 }
 
 /// Everything a decoder needs besides the blobs (which went to the [`BlobSink`]).
@@ -141,15 +144,78 @@ const BATCH: usize = 16;
 /// Bytes of push-pull's own work arrays per sample filled over (pyramid and passes).
 const FILL_BYTES_PER_SAMPLE: usize = 10;
 
-/// Encodes a planar raster out of core. See the module docs.
+/// Encodes a planar raster out of core. See the module docs. In RMS mode the quantised
+/// indices of two attempts are kept in memory ([`MemorySpill`], about 0.02-0.4 bytes a
+/// sample); [`encode_streaming_with`] takes another [`IndexSpill`].
 pub fn encode_streaming(
     source: &mut dyn RowSource,
     opts: StreamOptions,
     sink: &mut dyn BlobSink,
 ) -> Result<StreamEncoded, EncodeError> {
-    if let RateMode::RmsM(_) = opts.mode {
-        return Err(EncodeError::StreamingMode);
+    encode_streaming_with(source, opts, sink, &mut MemorySpill::default())
+}
+
+/// Storage for the RMS rate control's quantised indices between passes: two slots (0
+/// and 1), each appended to and read back by offset. Only RMS mode uses it.
+pub trait IndexSpill: Sync {
+    /// Empties slot `slot`.
+    fn clear(&mut self, slot: usize) -> Result<(), String>;
+    /// Appends `bytes` to slot `slot`; their offset in it.
+    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, String>;
+    /// Reads `len` bytes at `offset` of slot `slot`.
+    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, String>;
+    /// Bytes held in memory (for the encoder's accounting).
+    fn held(&self) -> usize;
+}
+
+/// An [`IndexSpill`] in memory.
+#[derive(Debug, Default)]
+pub struct MemorySpill {
+    slots: [Vec<u8>; 2],
+}
+
+impl IndexSpill for MemorySpill {
+    fn clear(&mut self, slot: usize) -> Result<(), String> {
+        self.slots
+            .get_mut(slot)
+            .ok_or_else(|| format!("no spill slot {slot}"))?
+            .clear();
+        Ok(())
     }
+
+    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, String> {
+        let s = self
+            .slots
+            .get_mut(slot)
+            .ok_or_else(|| format!("no spill slot {slot}"))?;
+        let at = s.len() as u64;
+        s.extend_from_slice(bytes);
+        Ok(at)
+    }
+
+    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, String> {
+        let s = self
+            .slots
+            .get(slot)
+            .ok_or_else(|| format!("no spill slot {slot}"))?;
+        let start = usize::try_from(offset).map_err(|e| e.to_string())?;
+        s.get(start..start + len)
+            .map(<[u8]>::to_vec)
+            .ok_or_else(|| format!("spill slot {slot} has no bytes {start}..{}", start + len))
+    }
+
+    fn held(&self) -> usize {
+        self.slots.iter().map(Vec::capacity).sum()
+    }
+}
+
+/// [`encode_streaming`] with the RMS mode's indices in `spill`.
+pub fn encode_streaming_with(
+    source: &mut dyn RowSource,
+    opts: StreamOptions,
+    sink: &mut dyn BlobSink,
+    spill: &mut dyn IndexSpill,
+) -> Result<StreamEncoded, EncodeError> {
     check_tolerance(opts.mode)?;
     let (width, height, n) = (source.width(), source.height(), opts.n);
     let geom = RasterGeometry::new(width, height, n)?;
@@ -175,6 +241,18 @@ pub fn encode_streaming(
         hi: scan.hi,
         mean: scan.sum / scan.valid as f64,
     };
+    if let RateMode::RmsM(target) = opts.mode {
+        let passes = rms::Passes {
+            source,
+            plan: &plan,
+            geom: &geom,
+            map: &map,
+            fill: &fill,
+            meter: &mut meter,
+        };
+        let enc = rms::encode_rms(passes, target, opts.rdo, scan.valid, (sink, spill))?;
+        return Ok(StreamEncoded { coverage, ..enc });
+    }
 
     // Pass 1: errors, side information, training counts.
     let mut side = Side::new(&geom);
@@ -576,6 +654,20 @@ enum Work<'a> {
         sink: &'a mut dyn BlobSink,
         coded: &'a mut Coded,
     },
+    /// Hands every batch of details to a visitor (the RMS rate control's passes).
+    Visit(&'a mut dyn DetailVisitor),
+}
+
+/// Receives the details of every diamond of a streamed analysis, a batch at a time.
+pub(crate) trait DetailVisitor {
+    /// Diamonds `batch` of `level` and their details (same order).
+    fn visit(
+        &mut self,
+        geom: &RasterGeometry,
+        level: usize,
+        batch: &[usize],
+        details: &[&[i32]],
+    ) -> Result<(), EncodeError>;
 }
 
 /// One streaming analysis of the whole raster; returns the root grid.
@@ -604,7 +696,7 @@ fn run_pass(
         let base = held(&octs, &last, &reader);
         let errors = match work {
             Work::Analyse { errors, .. } => Some(&mut **errors),
-            Work::Code { .. } => None,
+            Work::Code { .. } | Work::Visit(_) => None,
         };
         let target = match octs.first_mut() {
             Some(o) => &mut o.rows,
@@ -1115,9 +1207,9 @@ impl Octave {
         let levels = geom.detail_levels();
         let coder: Option<(&Side, &CodecModel)> = match &*work {
             Work::Code { side, model, .. } => Some((*side, *model)),
-            Work::Analyse { .. } => None,
+            Work::Analyse { .. } | Work::Visit(_) => None,
         };
-        let measuring = coder.is_none();
+        let measuring = matches!(work, Work::Analyse { .. });
         for batch in group.chunks(BATCH) {
             let (rows, base, width, shift) = (&self.rows, self.base, self.width, self.shift);
             let results: Vec<Analysed> = batch
@@ -1229,6 +1321,10 @@ impl Octave {
                             coded.bytes += b.len();
                         }
                     }
+                }
+                Work::Visit(visitor) => {
+                    let details: Vec<&[i32]> = results.iter().map(|r| &r.h[..]).collect();
+                    visitor.visit(geom, level, batch, &details)?;
                 }
             }
         }

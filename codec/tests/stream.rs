@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use common::{bundled_korea, grid, shared_file};
 use quincunx_codec::encode::decode_integers;
-use quincunx_codec::encode::{EncodeError, EncodeOptions, Grid, RateMode, decode, encode};
+use quincunx_codec::encode::{EncodeError, EncodeOptions, Grid, RateMode, RdoMode, decode, encode};
 use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::stream::{
     BlobSink, RowDecode, RowSource, StreamEncoded, StreamOptions, decode_rows, encode_streaming,
@@ -99,6 +99,7 @@ fn stream(g: &Grid, n: usize, mode: RateMode, budget: usize) -> (StreamEncoded, 
             mode,
             memory_budget_bytes: budget,
             sparse: false,
+            rdo: Default::default(),
         },
     )
 }
@@ -185,6 +186,7 @@ fn smallest_budget(g: &Grid, n: usize, start: usize) -> usize {
             mode: RateMode::Lossless,
             memory_budget_bytes: budget,
             sparse: false,
+            rdo: Default::default(),
         };
         match encode_streaming(&mut src, opts, &mut sink) {
             Err(EncodeError::Budget { needed, .. }) => {
@@ -293,6 +295,7 @@ fn sparse_opts(n: usize, mode: RateMode, budget: usize) -> StreamOptions {
         mode,
         memory_budget_bytes: budget,
         sparse: true,
+        rdo: Default::default(),
     }
 }
 
@@ -467,6 +470,7 @@ fn float_data_off_any_grid_is_refused_losslessly_and_bounded_in_max_error() {
             mode: RateMode::Lossless,
             memory_budget_bytes: 1 << 20,
             sparse: false,
+            rdo: Default::default(),
         },
         &mut sink,
     )
@@ -484,6 +488,7 @@ fn a_failing_source_or_sink_is_an_error_not_a_panic() {
         mode: RateMode::Lossless,
         memory_budget_bytes: 1_000_000,
         sparse: false,
+        rdo: Default::default(),
     };
     for fail_at_row in [1, 100, 199] {
         let mut src = GridSource::new(&g);
@@ -501,7 +506,7 @@ fn a_failing_source_or_sink_is_an_error_not_a_panic() {
 }
 
 #[test]
-fn rms_mode_and_tiny_budgets_are_refused_clearly() {
+fn bad_tolerances_and_tiny_budgets_are_refused_clearly() {
     let g = synthetic(100, 100, 4);
     let run = |mode, budget| {
         encode_streaming(
@@ -511,13 +516,15 @@ fn rms_mode_and_tiny_budgets_are_refused_clearly() {
                 mode,
                 memory_budget_bytes: budget,
                 sparse: false,
+                rdo: Default::default(),
             },
             &mut Blobs::new(&g, 32),
         )
     };
-    let err = run(RateMode::RmsM(1.0), 1 << 20).unwrap_err();
-    assert_eq!(err, EncodeError::StreamingMode);
-    assert!(err.to_string().contains("lossless or max-error"));
+    assert!(matches!(
+        run(RateMode::RmsM(-1.0), 1 << 20),
+        Err(EncodeError::BadTolerance(_))
+    ));
     assert!(matches!(
         run(RateMode::Lossless, 1000),
         Err(EncodeError::Budget { .. })
@@ -537,6 +544,7 @@ fn rms_mode_and_tiny_budgets_are_refused_clearly() {
             mode: RateMode::Lossless,
             memory_budget_bytes: 1 << 20,
             sparse: false,
+            rdo: Default::default(),
         },
         &mut Blobs::new(&g, 32),
     )
@@ -652,4 +660,93 @@ fn rows_decoded_out_of_core_equal_the_in_memory_decode_bit_for_bit() {
         .unwrap();
         rows_match_the_in_memory_decode(&enc, what);
     }
+}
+
+/// Streams at an RMS target and checks the output against the in-memory encoder's.
+fn rms_matches_in_memory(g: &Grid, target: f64, budget: usize, rdo: RdoMode, what: &str) {
+    let (enc, sink, max_rows) = stream_with(
+        g,
+        StreamOptions {
+            n: 32,
+            mode: RateMode::RmsM(target),
+            memory_budget_bytes: budget,
+            sparse: false,
+            rdo,
+        },
+    );
+    let mem = encode(
+        g,
+        EncodeOptions {
+            n: 32,
+            mode: RateMode::RmsM(target),
+            sparse: false,
+            rdo,
+        },
+    )
+    .unwrap();
+    println!(
+        "{what}: {} rows a read, {} decodes, rdo {}, rms {:.4}, {:.4} bits/sample, peak {} bytes",
+        max_rows,
+        enc.report.verification_decodes,
+        enc.report.rdo,
+        enc.report.rms_m,
+        enc.report.bits_per_sample,
+        enc.peak_buffer_bytes
+    );
+    assert!(enc.report.rms_m <= target, "{what}");
+    assert_eq!(enc.steps, mem.steps, "{what}");
+    assert_eq!(enc.root, mem.root, "{what}");
+    assert_eq!(enc.model, mem.model, "{what}");
+    assert_eq!(sink.blobs, mem.blobs, "{what}");
+    assert_eq!(enc.report, mem.report, "{what}");
+    let decoded = decode(&enc.clone().into_encoded(sink.blobs)).unwrap();
+    let (mut sum, mut count) = (0.0, 0);
+    for (v, d) in g.values_m.iter().zip(&decoded) {
+        if v.is_finite() {
+            sum += (v - d) * (v - d);
+            count += 1;
+        }
+    }
+    let rms = (sum / count as f64).sqrt();
+    assert!(
+        (rms - enc.report.rms_m).abs() < 1e-9,
+        "{what}: decoded rms {rms}"
+    );
+}
+
+#[test]
+fn rms_mode_streams_to_the_in_memory_encoders_bytes() {
+    // Several chunks and no nodata: every byte must agree (the search, the
+    // rate-distortion quantiser, the side information and the model).
+    let g = synthetic(300, 200, 11);
+    let budget = smallest_budget(&g, 32, 100_000);
+    for (target, rdo) in [
+        (2.0, RdoMode::Auto),
+        (8.0, RdoMode::Auto),
+        (8.0, RdoMode::On),
+        (0.6, RdoMode::Off),
+    ] {
+        rms_matches_in_memory(
+            &g,
+            target,
+            budget,
+            rdo,
+            &format!("300x200 rms {target} {rdo:?}"),
+        );
+    }
+    let korea = grid(&bundled_korea());
+    rms_matches_in_memory(
+        &korea,
+        2.0,
+        64 << 20,
+        RdoMode::Auto,
+        "korea_srtm3_1025 rms 2, one chunk",
+    );
+    rms_matches_in_memory(
+        &korea,
+        9.0,
+        64 << 20,
+        RdoMode::Auto,
+        "korea_srtm3_1025 rms 9, one chunk",
+    );
 }

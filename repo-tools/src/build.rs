@@ -9,7 +9,7 @@ use quincunx_codec::colour::rgb_to_ycocg_r;
 use quincunx_codec::encode::{self, CubeGrid, EncodeOptions, Encoded, Grid, RateMode, RdoMode};
 use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::sphere_raster::SphereGeometry;
-use quincunx_codec::stream::{self, BlobSink, RowSource, StreamOptions};
+use quincunx_codec::stream::{self, BlobSink, IndexSpill, RowSource, StreamOptions};
 use quincunx_store::{
     Attribute, AttributeKind, ChannelCoding, Metadata, NodataHandling, NodataPolicy,
     RepositoryBuilder,
@@ -271,8 +271,7 @@ fn check_budget(args: &BuildArgs, samples: usize, channels: usize) -> Result<()>
         bail!(
             "this build needs about {need_mb} MB in memory but --memory-budget-mb is {budget}; \
              out-of-core builds cover planar elevation (dense or --sparse) from a raw grid + JSON \
-             sidecar or a tile mosaic in --lossless or --max-error-m mode (convert other formats \
-             to raw, or raise the budget)"
+             sidecar or a tile mosaic (convert other formats to raw, or raise the budget)"
         );
     }
     Ok(())
@@ -347,6 +346,7 @@ fn build_streaming<S: RowSource>(
         mode,
         memory_budget_bytes: budget - reserve,
         sparse: args.sparse || mosaic::is_mosaic(&args.input),
+        rdo: args.rdo.mode(),
     };
     let (meta, description, encode_seconds) = with_builder(args, |builder| {
         let mut builder = builder
@@ -361,8 +361,9 @@ fn build_streaming<S: RowSource>(
             stored: 0,
             spin: spin.clone(),
         };
-        let enc =
-            stream::encode_streaming(rows, opts, &mut sink).context("encoding out of core")?;
+        let mut spill = FileSpill::beside(&args.output)?;
+        let enc = stream::encode_streaming_with(rows, opts, &mut sink, &mut spill)
+            .context("encoding out of core")?;
         let StreamFacts {
             units,
             georef,
@@ -401,7 +402,7 @@ fn build_streaming<S: RowSource>(
             }],
             rms: enc.report.rms_m,
             max_abs: enc.report.max_abs_m,
-            rdo_used: false,
+            rdo_used: enc.report.rdo,
         };
         let meta = publish(args, builder, &description, n, mode)?;
         Ok((meta, description, encode_seconds))
@@ -409,6 +410,67 @@ fn build_streaming<S: RowSource>(
     let mut summary = summarise(args, &meta, &description, started, (0.0, encode_seconds))?;
     summary.out_of_core = true;
     Ok(summary)
+}
+
+/// The RMS rate control's quantised indices between passes, in two unnamed temporary
+/// files beside the output (gone when the build ends, however it ends).
+struct FileSpill {
+    files: [std::fs::File; 2],
+    lens: [u64; 2],
+}
+
+impl FileSpill {
+    fn beside(output: &Path) -> Result<FileSpill> {
+        let dir = output
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let file = || {
+            tempfile::tempfile_in(dir)
+                .with_context(|| format!("creating a temporary file in {}", dir.display()))
+        };
+        Ok(FileSpill {
+            files: [file()?, file()?],
+            lens: [0; 2],
+        })
+    }
+
+    fn slot(&self, slot: usize) -> Result<&std::fs::File, String> {
+        self.files
+            .get(slot)
+            .ok_or_else(|| format!("no spill slot {slot}"))
+    }
+}
+
+impl IndexSpill for FileSpill {
+    fn clear(&mut self, slot: usize) -> Result<(), String> {
+        self.slot(slot)?.set_len(0).map_err(|e| e.to_string())?;
+        self.lens[slot] = 0;
+        Ok(())
+    }
+
+    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, String> {
+        use std::os::unix::fs::FileExt;
+        let at = self.lens[slot.min(1)];
+        self.slot(slot)?
+            .write_all_at(bytes, at)
+            .map_err(|e| format!("writing the index spill: {e}"))?;
+        self.lens[slot] = at + bytes.len() as u64;
+        Ok(at)
+    }
+
+    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, String> {
+        use std::os::unix::fs::FileExt;
+        let mut buf = vec![0; len];
+        self.slot(slot)?
+            .read_exact_at(&mut buf, offset)
+            .map_err(|e| format!("reading the index spill: {e}"))?;
+        Ok(buf)
+    }
+
+    fn held(&self) -> usize {
+        0
+    }
 }
 
 /// What the metadata says of an out-of-core build's input (asked once it has been read).
