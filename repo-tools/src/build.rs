@@ -412,6 +412,224 @@ fn build_streaming<S: RowSource>(
     Ok(summary)
 }
 
+/// One colour channel (YCoCg-R) of an image, as rows.
+struct ChannelRows<'a> {
+    image: &'a input::RgbImage,
+    channel: usize,
+}
+
+impl RowSource for ChannelRows<'_> {
+    fn width(&self) -> usize {
+        self.image.width
+    }
+    fn height(&self) -> usize {
+        self.image.height
+    }
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String> {
+        let w = self.image.width;
+        let pixels = self
+            .image
+            .pixels
+            .get(first * w..(first + count) * w)
+            .ok_or("rows past the image")?;
+        for (o, &[r, g, b]) in out.iter_mut().zip(pixels) {
+            let (y, co, cg) = rgb_to_ycocg_r(r as i32, g as i32, b as i32);
+            *o = [y, co, cg][self.channel] as f64;
+        }
+        Ok(())
+    }
+    fn quantum_m(&self) -> Option<f64> {
+        Some(1.0)
+    }
+}
+
+/// Keeps one channel's blobs by diamond until the three are framed together.
+#[derive(Default)]
+struct ChannelBlobs {
+    blobs: std::collections::HashMap<(usize, usize), Vec<u8>>,
+}
+
+impl BlobSink for ChannelBlobs {
+    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), String> {
+        self.blobs.insert((level, index), blob.to_vec());
+        Ok(())
+    }
+}
+
+/// The out-of-core colour build (planar): each YCoCg-R channel streams from the decoded
+/// image (3 bytes a pixel, against about 72 in memory), its blobs are kept (the coded
+/// size) until the three are framed per diamond, and the RGB error is measured on the
+/// three channels decoded a band of rows at a time in step.
+fn build_colour_streaming(
+    args: &BuildArgs,
+    image: &input::RgbImage,
+    (n, mode, budget_mb): (usize, RateMode, u64),
+    started: Instant,
+) -> Result<BuildSummary> {
+    let (width, height) = (image.width, image.height);
+    let channel_mode = match mode {
+        RateMode::MaxErrorM(e) => {
+            colour_channel_bound(e).map_or(RateMode::Lossless, RateMode::MaxErrorM)
+        }
+        m => m,
+    };
+    let diamonds = 2 * width * height / (n * n) + 64;
+    let program = layout::rss_bytes()
+        .max(PROGRAM_BYTES)
+        .next_multiple_of(1 << 20);
+    let image_bytes = width * height * 3;
+    let reserve = program + diamonds * 400 + (3 << 20) + image_bytes;
+    let budget = (budget_mb as usize) << 20;
+    if budget <= reserve {
+        bail!(
+            "out-of-core build: --memory-budget-mb {budget_mb} leaves nothing for sample buffers: the program, \
+             the image ({} MB decoded) and the bookkeeping of {diamonds} diamonds already take about {} MB",
+            image_bytes.div_ceil(1 << 20),
+            reserve.div_ceil(1 << 20)
+        );
+    }
+    let opts = StreamOptions {
+        n,
+        mode: channel_mode,
+        memory_budget_bytes: budget - reserve,
+        sparse: args.sparse,
+        rdo: args.rdo.mode(),
+    };
+    tracing::info!(width, height, budget_mb, "out-of-core colour build");
+    let encode_started = Instant::now();
+    let pb = progress::bar(3, "encoding", "channels");
+    let mut channels = Vec::new();
+    for (c, name) in COLOUR_CHANNELS.iter().enumerate() {
+        let mut rows = ChannelRows { image, channel: c };
+        let mut sink = ChannelBlobs::default();
+        let mut spill = FileSpill::beside(&args.output)?;
+        let enc = stream::encode_streaming_with(&mut rows, opts, &mut sink, &mut spill)
+            .with_context(|| format!("encoding colour channel {name} out of core"))?;
+        channels.push((name.to_string(), enc, sink));
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    let geom = match &channels[0].1.coverage {
+        Some(c) => RasterGeometry::with_coverage(width, height, n, c),
+        None => RasterGeometry::new(width, height, n),
+    }
+    .context("raster geometry")?;
+    let (rms, max_abs) = streamed_rgb_error(image, &geom, &channels)?;
+    let encode_seconds = encode_started.elapsed().as_secs_f64();
+    let description = Description {
+        coverage: channels[0].1.coverage.as_ref().map(|c| c.to_bytes()),
+        geometry: Geometry::Planar(geom.clone()),
+        radius_m: None,
+        kind: AttributeKind::Colour,
+        units: "srgb8".into(),
+        samples: width * height,
+        source_samples: width * height,
+        nodata_count: 0,
+        georef: image.georef.clone(),
+        channels: channels
+            .iter()
+            .map(|(name, e, _)| ChannelCoding {
+                name: name.clone(),
+                value_scale: e.value_scale_m,
+                value_offset: e.value_offset_m,
+                steps: e.steps.clone(),
+                model: e.model.to_bytes(),
+                roots: vec![e.root.clone()],
+                rate: layout::rate_label(channel_mode),
+            })
+            .collect(),
+        rms,
+        max_abs,
+        rdo_used: channels.iter().any(|(_, e, _)| e.report.rdo),
+    };
+    let meta = with_builder(args, |mut builder| {
+        let mut stored = 0u64;
+        for level in 0..geom.detail_levels() {
+            for index in 0..geom.level(level).len() {
+                let parts: Vec<Option<&[u8]>> = channels
+                    .iter()
+                    .map(|(_, _, b)| b.blobs.get(&(level, index)).map(Vec::as_slice))
+                    .collect();
+                if let Some(blob) = layout::frame_channels(&parts) {
+                    builder.put(level as u32, &geom.level(level)[index].key, &blob)?;
+                    stored += 1;
+                    stall_hook(args, stored);
+                }
+            }
+        }
+        publish(args, builder, &description, n, mode)
+    })?;
+    let read_seconds = encode_started.duration_since(started).as_secs_f64();
+    let mut summary = summarise(
+        args,
+        &meta,
+        &description,
+        started,
+        (read_seconds, encode_seconds),
+    )?;
+    summary.out_of_core = true;
+    Ok(summary)
+}
+
+/// RMS and largest RGB error of streamed colour channels: the three decoded a band of
+/// rows at a time on three threads, compared in pixel order as [`rgb_error`] does.
+fn streamed_rgb_error(
+    image: &input::RgbImage,
+    geom: &RasterGeometry,
+    channels: &[(String, stream::StreamEncoded, ChannelBlobs)],
+) -> Result<(f64, f64)> {
+    let w = image.width;
+    std::thread::scope(|scope| {
+        let mut receivers = Vec::new();
+        for (_, enc, blobs) in channels {
+            let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<i32>>(16);
+            receivers.push(rx);
+            scope.spawn(move || {
+                stream::decode_rows(
+                    stream::RowDecode {
+                        geom,
+                        root: &enc.root,
+                        steps: &enc.steps,
+                        model: &enc.model,
+                    },
+                    &|l, i| Ok(blobs.blobs.get(&(l, i)).cloned()),
+                    // As `encode::decode` and the in-memory measurement map them.
+                    &mut |_, row| {
+                        let values = row
+                            .iter()
+                            .map(|&v| {
+                                (enc.value_offset_m + v as f64 * enc.value_scale_m).round() as i32
+                            })
+                            .collect();
+                        tx.send(values).map_err(|e| e.to_string())
+                    },
+                )
+            });
+        }
+        let (mut sum, mut max) = (0.0, 0i32);
+        for r in 0..image.height {
+            let rows: Vec<Vec<i32>> = receivers
+                .iter()
+                .map(|rx| rx.recv())
+                .collect::<Result<_, _>>()
+                .map_err(|_| anyhow::anyhow!("decoding colour row {r} for measurement failed"))?;
+            for (x, src) in image.pixels[r * w..(r + 1) * w].iter().enumerate() {
+                let (cr, cg, cb) =
+                    quincunx_codec::colour::ycocg_r_to_rgb(rows[0][x], rows[1][x], rows[2][x]);
+                for (got, want) in [cr, cg, cb].into_iter().zip(src) {
+                    let d = (got.clamp(0, 255) - *want as i32).abs();
+                    max = max.max(d);
+                    sum += (d * d) as f64;
+                }
+            }
+        }
+        Ok((
+            (sum / (3 * image.pixels.len().max(1)) as f64).sqrt(),
+            max as f64,
+        ))
+    })
+}
+
 /// The RMS rate control's quantised indices between passes, in two unnamed temporary
 /// files beside the output (gone when the build ends, however it ends).
 struct FileSpill {
@@ -638,7 +856,11 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
                 ColourDomain::Sphere(geom),
             )
         } else {
-            check_budget(args, image.width * image.height, 3)?;
+            if let Some(budget_mb) = args.memory_budget_mb
+                && in_memory_mb(image.width * image.height, 3) > budget_mb
+            {
+                return build_colour_streaming(args, &image, (n, mode, budget_mb), started);
+            }
             (
                 image.pixels,
                 ColourDomain::Planar(image.width, image.height),
