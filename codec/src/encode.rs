@@ -246,6 +246,43 @@ pub struct EncodeReport {
     pub verification_decodes: usize,
 }
 
+/// What a build's outputs add up to: `(blob count, blob bytes)`, the root grids, the
+/// model and steps, `(rms, max)` of the kept decode.
+pub(crate) struct Tally<'a> {
+    pub(crate) samples: usize,
+    pub(crate) valid_samples: usize,
+    pub(crate) blobs: (usize, usize),
+    pub(crate) roots: &'a [Vec<i32>],
+    pub(crate) model: &'a CodecModel,
+    pub(crate) steps: usize,
+    pub(crate) errors: (f64, f64),
+    pub(crate) rdo: bool,
+    pub(crate) decodes: usize,
+}
+
+impl EncodeReport {
+    /// The report of a build from its outputs (every encoder path).
+    pub(crate) fn tally(t: Tally<'_>) -> Self {
+        let root_bytes: usize = t.roots.iter().map(|r| root_grid_bytes(r).len()).sum();
+        let model_bytes = t.model.to_bytes().len() + 4 * t.steps + 16;
+        let (blob_count, blob_bytes) = t.blobs;
+        EncodeReport {
+            samples: t.samples,
+            valid_samples: t.valid_samples,
+            blob_count,
+            blob_bytes,
+            root_bytes,
+            model_bytes,
+            bits_per_sample: 8.0 * (blob_bytes + root_bytes + model_bytes) as f64
+                / t.samples as f64,
+            rms_m: t.errors.0,
+            max_abs_m: t.errors.1,
+            rdo: t.rdo,
+            verification_decodes: t.decodes,
+        }
+    }
+}
+
 /// A planet to encode: a cube raster of heights (see [`crate::sphere_raster`]).
 #[derive(Clone, Debug)]
 pub struct CubeGrid {
@@ -1969,24 +2006,20 @@ fn encode_layout<G: Layout>(
         &side,
     );
 
-    let blob_bytes: usize = blobs.iter().flatten().flatten().map(Vec::len).sum();
-    let blob_count = blobs.iter().flatten().flatten().count();
-    let root_bytes: usize = roots.iter().map(|r| root_grid_bytes(r).len()).sum();
-    let model_bytes = model.to_bytes().len() + 4 * steps.len() + 16;
-    let samples = geom.distinct_len();
-    let report = EncodeReport {
-        samples,
+    let report = EncodeReport::tally(Tally {
+        samples: geom.distinct_len(),
         valid_samples: valid_count,
-        blob_count,
-        blob_bytes,
-        root_bytes,
-        model_bytes,
-        bits_per_sample: 8.0 * (blob_bytes + root_bytes + model_bytes) as f64 / samples as f64,
-        rms_m,
-        max_abs_m,
+        blobs: (
+            blobs.iter().flatten().flatten().count(),
+            blobs.iter().flatten().flatten().map(Vec::len).sum(),
+        ),
+        roots: &roots,
+        model: &model,
+        steps: steps.len(),
+        errors: (rms_m, max_abs_m),
         rdo: rdo_used,
-        verification_decodes: decodes,
-    };
+        decodes,
+    });
     let (width, height, root) = match domain {
         EncodedDomain::Planar { width, height } => {
             (width, height, roots.first().cloned().unwrap_or_default())

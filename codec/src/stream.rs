@@ -37,8 +37,8 @@ use rayon::prelude::*;
 use crate::blob;
 use crate::coverage::{Coverage, RasterCoverage};
 use crate::encode::{
-    EncodeError, EncodeReport, Encoded, EncodedDomain, Measure, RateMode, RdoMode, ValueMap,
-    check_tolerance, measure, native_quantum, on_quantum, root_grid_bytes, side_info,
+    EncodeError, EncodeReport, Encoded, EncodedDomain, Measure, RateMode, RdoMode, Tally, ValueMap,
+    check_tolerance, measure, native_quantum, on_quantum, side_info,
 };
 use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::lifting::{self, DiamondMask};
@@ -304,22 +304,17 @@ pub fn encode_streaming_with(
     }
 
     let steps = vec![256u32; levels];
-    let samples = width * height;
-    let root_bytes = root_grid_bytes(&root).len();
-    let model_bytes = model.to_bytes().len() + 4 * steps.len() + 16;
-    let report = EncodeReport {
-        samples,
+    let report = EncodeReport::tally(Tally {
+        samples: width * height,
         valid_samples: scan.valid,
-        blob_count: coded.count,
-        blob_bytes: coded.bytes,
-        root_bytes,
-        model_bytes,
-        bits_per_sample: 8.0 * (coded.bytes + root_bytes + model_bytes) as f64 / samples as f64,
-        rms_m: (errors.sum2 / scan.valid as f64).sqrt(),
-        max_abs_m: errors.max,
+        blobs: (coded.count, coded.bytes),
+        roots: std::slice::from_ref(&root),
+        model: &model,
+        steps: steps.len(),
+        errors: ((errors.sum2 / scan.valid as f64).sqrt(), errors.max),
         rdo: false,
-        verification_decodes: 0,
-    };
+        decodes: 0,
+    });
     Ok(StreamEncoded {
         width,
         height,
@@ -918,14 +913,14 @@ impl Frame {
         if mask.is_none() {
             return write_lattice(buf, 0, n + 1, 1, v0, si, sj, v);
         }
-        for i in 1..n {
-            let start = v0 + i as isize * si;
-            for j in 1..n {
-                if mask.is_none_or(|m| m.vertex(i, j)) {
-                    buf[(start + j as isize * sj) as usize] = v[i * (n + 1) + j];
-                }
-            }
-        }
+        scatter_strided(
+            n + 1,
+            1,
+            (v0, si, sj),
+            |i, j| mask.is_none_or(|m| m.vertex(i, j)),
+            v,
+            buf,
+        );
     }
 }
 
@@ -940,14 +935,14 @@ impl Frame {
         w: usize,
     ) {
         let [v0, _, si, sj] = self.lin(0, w);
-        for i in 0..=n {
-            let start = v0 + i as isize * si;
-            for j in 0..=n {
-                if mask.is_none_or(|m| m.vertex(i, j)) {
-                    buf[(start + j as isize * sj) as usize] = v[i * (n + 1) + j];
-                }
-            }
-        }
+        scatter_strided(
+            n + 1,
+            0,
+            (v0, si, sj),
+            |i, j| mask.is_none_or(|m| m.vertex(i, j)),
+            v,
+            buf,
+        );
     }
 
     /// Writes the cells (valid ones, with a mask).
@@ -964,20 +959,40 @@ impl Frame {
         if mask.is_none() {
             return write_lattice(buf, 0, n, 0, c0, si, sj, c);
         }
-        for i in 0..n {
-            let start = c0 + i as isize * si;
-            for j in 0..n {
-                if mask.is_none_or(|m| m.cell(i, j)) {
-                    buf[(start + j as isize * sj) as usize] = c[i * n + j];
-                }
-            }
-        }
+        scatter_strided(
+            n,
+            0,
+            (c0, si, sj),
+            |i, j| mask.is_none_or(|m| m.cell(i, j)),
+            c,
+            buf,
+        );
     }
 }
 
 /// The diamonds of octave `o`'s two levels, grouped by rows of `R_o`: `(level_a,
 /// level_b, a_groups, b_groups)` (see [`Octave`]).
 pub(crate) type OctaveGroups = (usize, usize, Vec<Vec<usize>>, Vec<Vec<usize>>);
+
+/// Writes points `margin .. side - margin` of a `side x side` grid `values` (row-major)
+/// where `valid(i, j)`, point `(i, j)` at buffer index `start + i si + j sj`.
+fn scatter_strided(
+    side: usize,
+    margin: usize,
+    (start, si, sj): (isize, isize, isize),
+    valid: impl Fn(usize, usize) -> bool,
+    values: &[i32],
+    buf: &mut [i32],
+) {
+    for i in margin..side - margin {
+        let row = start + i as isize * si;
+        for j in margin..side - margin {
+            if valid(i, j) {
+                buf[(row + j as isize * sj) as usize] = values[i * side + j];
+            }
+        }
+    }
+}
 
 /// Reads a `side x side` lattice starting at buffer index `start` with steps `si`, `sj`
 /// into `out` (row-major); points where `valid(i, j)` is false read as 0.

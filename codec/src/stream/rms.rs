@@ -25,8 +25,8 @@ use super::{
     run_pass, synth,
 };
 use crate::encode::{
-    Attempt, EncodeError, EncodeReport, Measure, PASS_CHUNK, Quantise, RdoMode, ValueMap, Verifier,
-    blob_model, code_blob, dequantize, measure, rms_of_pieces, root_grid_bytes, search_scale,
+    Attempt, EncodeError, EncodeReport, Measure, PASS_CHUNK, Quantise, RdoMode, Tally, ValueMap,
+    Verifier, blob_model, code_blob, dequantize, measure, rms_of_pieces, search_scale,
     side_information, trains_on,
 };
 use crate::entropy::{self, CodecModel, ContextCounts};
@@ -533,22 +533,17 @@ pub(crate) fn encode_rms<'a>(
             }
         }
     }
-    let samples = geom.width() * geom.height();
-    let root_bytes = root_grid_bytes(&root).len();
-    let model_bytes = model.to_bytes().len() + 4 * out.steps.len() + 16;
-    let report = EncodeReport {
-        samples,
+    let report = EncodeReport::tally(Tally {
+        samples: geom.width() * geom.height(),
         valid_samples: valid_count,
-        blob_count,
-        blob_bytes,
-        root_bytes,
-        model_bytes,
-        bits_per_sample: 8.0 * (blob_bytes + root_bytes + model_bytes) as f64 / samples as f64,
-        rms_m: out.errors.0,
-        max_abs_m: out.errors.1,
+        blobs: (blob_count, blob_bytes),
+        roots: std::slice::from_ref(&root),
+        model: &model,
+        steps: out.steps.len(),
+        errors: out.errors,
         rdo: out.rdo_used,
-        verification_decodes: out.decodes,
-    };
+        decodes: out.decodes,
+    });
     Ok(StreamEncoded {
         width: geom.width(),
         height: geom.height(),
