@@ -28,6 +28,8 @@ run korea_rms_1m "$korea" --rms-m 1
 run korea_rms_9m "$korea" --rms-m 9
 run korea_out_of_core_32mb "$korea" --max-error-m 1 --memory-budget-mb 32
 run korea_lossless_out_of_core_32mb "$korea" --lossless --memory-budget-mb 32
+run korea_rms_9m_out_of_core_32mb "$korea" --rms-m 9 --memory-budget-mb 32
+run bmng_colour_rms_4_out_of_core_128mb "$data/bmng_global_5400x2700.jpg" --colour --rms-m 4 --memory-budget-mb 128
 run etopo5_planet_lossless "$data/etopo5_global.json" --planet --lossless
 run etopo5_planet_rms_9m "$data/etopo5_global.json" --planet --rms-m 9
 run bmng_planet_colour_max_8 "$data/bmng_global_5400x2700.jpg" --planet --colour --max-error-m 8
