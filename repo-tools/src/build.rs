@@ -19,6 +19,7 @@ use serde::Serialize;
 
 use crate::input::{self, Georef};
 use crate::layout::{self, COLOUR_CHANNELS, Geometry};
+use crate::rows;
 use crate::{info, mosaic, planet, progress};
 
 /// What the program itself is assumed to keep resident during an out-of-core build.
@@ -572,62 +573,52 @@ fn build_colour_streaming(
 }
 
 /// RMS and largest RGB error of streamed colour channels: the three decoded a band of
-/// rows at a time on three threads, compared in pixel order as [`rgb_error`] does.
+/// rows at a time in step, compared in pixel order as [`rgb_error`] does.
 fn streamed_rgb_error(
     image: &input::RgbImage,
     geom: &RasterGeometry,
     channels: &[(String, stream::StreamEncoded, ChannelBlobs)],
 ) -> Result<(f64, f64)> {
     let w = image.width;
-    std::thread::scope(|scope| {
-        let mut receivers = Vec::new();
-        for (_, enc, blobs) in channels {
-            let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<i32>>(16);
-            receivers.push(rx);
-            scope.spawn(move || {
-                stream::decode_rows(
-                    stream::RowDecode {
-                        geom,
-                        root: &enc.root,
-                        steps: &enc.steps,
-                        model: &enc.model,
-                    },
-                    &|l, i| Ok(blobs.blobs.get(&(l, i)).cloned()),
-                    // As `encode::decode` and the in-memory measurement map them.
-                    &mut |_, row| {
-                        let values = row
-                            .iter()
-                            .map(|&v| {
-                                (enc.value_offset_m + v as f64 * enc.value_scale_m).round() as i32
-                            })
-                            .collect();
-                        tx.send(values).map_err(|e| e.to_string())
-                    },
-                )
-            });
-        }
-        let (mut sum, mut max) = (0.0, 0i32);
-        for r in 0..image.height {
-            let rows: Vec<Vec<i32>> = receivers
-                .iter()
-                .map(|rx| rx.recv())
-                .collect::<Result<_, _>>()
-                .map_err(|_| anyhow::anyhow!("decoding colour row {r} for measurement failed"))?;
-            for (x, src) in image.pixels[r * w..(r + 1) * w].iter().enumerate() {
-                let (cr, cg, cb) =
-                    quincunx_codec::colour::ycocg_r_to_rgb(rows[0][x], rows[1][x], rows[2][x]);
-                for (got, want) in [cr, cg, cb].into_iter().zip(src) {
-                    let d = (got.clamp(0, 255) - *want as i32).abs();
-                    max = max.max(d);
-                    sum += (d * d) as f64;
-                }
-            }
-        }
-        Ok((
-            (sum / (3 * image.pixels.len().max(1)) as f64).sqrt(),
-            max as f64,
-        ))
+    let fetchers: Vec<Box<rows::BlobOf<'_>>> = channels
+        .iter()
+        .map(|(_, _, blobs)| {
+            Box::new(move |l: usize, i: usize| Ok(blobs.blobs.get(&(l, i)).cloned()))
+                as Box<rows::BlobOf<'_>>
+        })
+        .collect();
+    let steps: Vec<rows::StepChannel<'_>> = channels
+        .iter()
+        .zip(&fetchers)
+        .map(|((_, enc, _), blob)| rows::StepChannel {
+            decode: stream::RowDecode {
+                geom,
+                root: &enc.root,
+                steps: &enc.steps,
+                model: &enc.model,
+            },
+            blob: &**blob,
+            scale: enc.value_scale_m,
+            offset: enc.value_offset_m,
+        })
+        .collect();
+    let mut error = rows::RgbError::default();
+    rows::decode_in_step(&steps, image.height, &mut |r, values| {
+        // As `encode::decode` and the in-memory measurement round them.
+        let ints: Vec<Vec<i32>> = values
+            .iter()
+            .map(|row| row.iter().map(|v| v.round() as i32).collect())
+            .collect();
+        error.add(
+            &image.pixels[r * w..(r + 1) * w],
+            &ints[0],
+            &ints[1],
+            &ints[2],
+        );
+        Ok(())
     })
+    .context("decoding colour for measurement")?;
+    Ok(error.finish())
 }
 
 /// The RMS rate control's quantised indices between passes, in two unnamed temporary
@@ -1347,17 +1338,9 @@ fn encode_colour(
 /// RMS and largest absolute error over all RGB components of decoded YCoCg-R planes
 /// (clamped to 0..=255) against the source image.
 pub fn rgb_error(pixels: &[[u8; 3]], y: &[i32], co: &[i32], cg: &[i32]) -> (f64, f64) {
-    let mut sum = 0.0;
-    let mut max = 0i32;
-    for (k, src) in pixels.iter().enumerate() {
-        let (r, g, b) = quincunx_codec::colour::ycocg_r_to_rgb(y[k], co[k], cg[k]);
-        for (got, want) in [r, g, b].into_iter().zip(src) {
-            let d = (got.clamp(0, 255) - *want as i32).abs();
-            max = max.max(d);
-            sum += (d * d) as f64;
-        }
-    }
-    ((sum / (3 * pixels.len().max(1)) as f64).sqrt(), max as f64)
+    let mut error = rows::RgbError::default();
+    error.add(pixels, y, co, cg);
+    error.finish()
 }
 
 fn write_blobs(args: &BuildArgs, builder: &mut RepositoryBuilder, coded: &Coded) -> Result<()> {

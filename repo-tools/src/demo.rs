@@ -96,6 +96,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             repo: repo.clone(),
             source: Some(source),
             json: false,
+            stream: false,
         })?;
     }
     let earth = dir.join("earth");

@@ -33,6 +33,7 @@ pub mod preview;
 pub mod progress;
 pub mod query;
 pub mod render;
+pub mod rows;
 pub mod trade;
 pub mod verify;
 pub mod view;

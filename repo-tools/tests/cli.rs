@@ -739,6 +739,53 @@ fn colour_builds_out_of_core_are_the_in_memory_repositories() {
 }
 
 #[test]
+fn verify_by_rows_reports_what_verify_in_memory_does() {
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data");
+    let dir = tempfile::tempdir().unwrap();
+    let cases: [(&str, &[&str]); 4] = [
+        ("korea_srtm3_1025.json", &["--rms-m", "2"]),
+        ("korea_srtm3_1025.json", &["--lossless", "--sparse"]),
+        ("fixture_gsi_dem_256.json", &["--max-error-m", "0.5"]),
+        ("bmng_global_1080x540.jpg", &["--colour", "--rms-m", "4"]),
+    ];
+    for (k, (file, rate)) in cases.iter().enumerate() {
+        let input = data.join(file);
+        let repo = dir.path().join(format!("r{k}"));
+        ok_json(
+            bin()
+                .arg("build")
+                .args(*rate)
+                .args(["--json", "-o"])
+                .arg(&repo)
+                .arg(&input),
+        );
+        let verify = |flags: &[&str]| {
+            ok_json(
+                bin()
+                    .arg("verify")
+                    .arg(&repo)
+                    .arg("--source")
+                    .arg(&input)
+                    .arg("--json")
+                    .args(flags),
+            )
+        };
+        let (rows, whole) = (verify(&["--stream"]), verify(&[]));
+        println!("{file} {rate:?}: by rows {rows}\nin memory {whole}");
+        for key in [
+            "rms_m",
+            "max_abs_m",
+            "blobs_checked",
+            "blob_errors",
+            "content_hash_ok",
+        ] {
+            assert_eq!(rows[key], whole[key], "{file} {rate:?}: {key}");
+        }
+        assert!(rows["rms_m"].as_f64().is_some(), "{file}: measured");
+    }
+}
+
+#[test]
 fn korea_at_rms_9_out_of_core_is_the_in_memory_repository() {
     let Some(input) = shared_data(
         "korea_at_rms_9_out_of_core_is_the_in_memory_repository",
