@@ -13,7 +13,8 @@ use quincunx_codec::encode::decode_integers;
 use quincunx_codec::encode::{EncodeError, EncodeOptions, Grid, RateMode, RdoMode, decode, encode};
 use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::stream::{
-    BlobSink, RowDecode, RowSource, StreamEncoded, StreamOptions, decode_rows, encode_streaming,
+    BlobSink, IndexSpill, MemorySpill, RowDecode, RowSource, StreamEncoded, StreamOptions,
+    decode_rows, encode_streaming, encode_streaming_with,
 };
 
 /// An in-memory row source that records the largest request.
@@ -749,4 +750,64 @@ fn rms_mode_streams_to_the_in_memory_encoders_bytes() {
         RdoMode::Auto,
         "korea_srtm3_1025 rms 9, one chunk",
     );
+}
+
+/// A spill whose reads or writes fail.
+struct BrokenSpill {
+    inner: MemorySpill,
+    fail_reads: bool,
+}
+
+impl IndexSpill for BrokenSpill {
+    fn clear(&mut self, slot: usize) -> Result<(), String> {
+        self.inner.clear(slot)
+    }
+    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, String> {
+        if self.fail_reads {
+            self.inner.append(slot, bytes)
+        } else {
+            Err("disk full".into())
+        }
+    }
+    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, String> {
+        if self.fail_reads {
+            Err("bad sector".into())
+        } else {
+            self.inner.read(slot, offset, len)
+        }
+    }
+    fn held(&self) -> usize {
+        0
+    }
+}
+
+#[test]
+fn a_failing_index_spill_is_an_error_not_a_panic() {
+    let g = synthetic(300, 200, 11);
+    for fail_reads in [true, false] {
+        let mut spill = BrokenSpill {
+            inner: MemorySpill::default(),
+            fail_reads,
+        };
+        let err = encode_streaming_with(
+            &mut GridSource::new(&g),
+            StreamOptions {
+                n: 32,
+                mode: RateMode::RmsM(2.0),
+                memory_budget_bytes: 1 << 20,
+                sparse: false,
+                rdo: RdoMode::Auto,
+            },
+            &mut Blobs::new(&g, 32),
+            &mut spill,
+        )
+        .unwrap_err()
+        .to_string();
+        let want = if fail_reads {
+            "bad sector"
+        } else {
+            "disk full"
+        };
+        assert!(err.contains(want), "{err}");
+    }
 }

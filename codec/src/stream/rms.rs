@@ -507,9 +507,21 @@ pub(crate) fn encode_rms<'a>(
     } = verifier;
     let store: &dyn IndexSpill = store;
     let side = side_information(geom, |l, i| kept.has(l, i), &out.measures);
-    // A spill that cannot be read back fails the coding below, which reads it again.
-    let matrix = |l: usize, i: usize| Cow::Owned(kept.matrix(store, l, i).unwrap_or_default());
+    // Training cannot stop half-way: a spill read that fails trains on zeros and is
+    // reported once the model is done.
+    let failed = std::sync::Mutex::new(None);
+    let matrix = |l: usize, i: usize| {
+        Cow::Owned(kept.matrix(store, l, i).unwrap_or_else(|e| {
+            if let Ok(mut f) = failed.lock() {
+                f.get_or_insert(e);
+            }
+            vec![0; n * n]
+        }))
+    };
     let model = blob_model(geom, &out.steps, &matrix, &side);
+    if let Some(e) = failed.into_inner().ok().flatten() {
+        return Err(e);
+    }
     // Coded and handed to the sink a piece of a level at a time.
     let (mut blob_count, mut blob_bytes) = (0, 0);
     for l in 0..levels {
