@@ -489,6 +489,12 @@ fn magnitude_histogram(details: &[Vec<i32>]) -> Vec<(u32, u64)> {
                 (d1, s1)
             },
         );
+    histogram_entries(dense, sparse)
+}
+
+/// `(|h|, count)` ascending from counts of the small magnitudes by value (`dense`) and of
+/// the rest in a map.
+pub(crate) fn histogram_entries(dense: Vec<u64>, sparse: BTreeMap<u32, u64>) -> Vec<(u32, u64)> {
     dense
         .into_iter()
         .enumerate()

@@ -255,7 +255,7 @@ fn in_memory_mb(samples: usize, channels: usize) -> u64 {
     (samples as u64 * BUILD_BYTES_PER_SAMPLE * channels as u64).div_ceil(1 << 20)
 }
 
-fn is_raw(path: &Path) -> bool {
+pub(crate) fn is_raw(path: &Path) -> bool {
     let ext = path
         .extension()
         .map(|e| e.to_string_lossy().to_ascii_lowercase())
@@ -328,24 +328,10 @@ fn build_streaming<S: RowSource>(
     //
     // Checked before the partial database and the spill are created, so a budget that
     // is too small leaves nothing behind.
-    let diamonds = 2 * width * height / (n * n) + 64;
-    let program = layout::rss_bytes()
-        .max(PROGRAM_BYTES)
-        .next_multiple_of(1 << 20);
-    let reserve = program + diamonds * 400 + (3 << 20) + source_bytes;
-    let budget = (budget_mb as usize) << 20;
-    if budget <= reserve {
-        bail!(
-            "out-of-core build: --memory-budget-mb {budget_mb} leaves nothing for sample buffers: the program, \
-             the geometry of {diamonds} diamonds, the blob spill and the source's own buffers \
-             already take about {} MB",
-            reserve.div_ceil(1 << 20)
-        );
-    }
     let opts = StreamOptions {
         n,
         mode,
-        memory_budget_bytes: budget - reserve,
+        memory_budget_bytes: encoder_budget(budget_mb, width * height, n, source_bytes)?,
         sparse: args.sparse || mosaic::is_mosaic(&args.input),
         rdo: args.rdo.mode(),
     };
@@ -474,25 +460,11 @@ fn build_colour_streaming(
         }
         m => m,
     };
-    let diamonds = 2 * width * height / (n * n) + 64;
-    let program = layout::rss_bytes()
-        .max(PROGRAM_BYTES)
-        .next_multiple_of(1 << 20);
-    let image_bytes = width * height * 3;
-    let reserve = program + diamonds * 400 + (3 << 20) + image_bytes;
-    let budget = (budget_mb as usize) << 20;
-    if budget <= reserve {
-        bail!(
-            "out-of-core build: --memory-budget-mb {budget_mb} leaves nothing for sample buffers: the program, \
-             the image ({} MB decoded) and the bookkeeping of {diamonds} diamonds already take about {} MB",
-            image_bytes.div_ceil(1 << 20),
-            reserve.div_ceil(1 << 20)
-        );
-    }
     let opts = StreamOptions {
         n,
         mode: channel_mode,
-        memory_budget_bytes: budget - reserve,
+        // The decoded image stays in memory.
+        memory_budget_bytes: encoder_budget(budget_mb, width * height, n, width * height * 3)?,
         sparse: args.sparse,
         rdo: args.rdo.mode(),
     };
@@ -579,7 +551,6 @@ fn streamed_rgb_error(
     geom: &RasterGeometry,
     channels: &[(String, stream::StreamEncoded, ChannelBlobs)],
 ) -> Result<(f64, f64)> {
-    let w = image.width;
     let fetchers: Vec<Box<rows::BlobOf<'_>>> = channels
         .iter()
         .map(|(_, _, blobs)| {
@@ -602,23 +573,7 @@ fn streamed_rgb_error(
             offset: enc.value_offset_m,
         })
         .collect();
-    let mut error = rows::RgbError::default();
-    rows::decode_in_step(&steps, image.height, &mut |r, values| {
-        // As `encode::decode` and the in-memory measurement round them.
-        let ints: Vec<Vec<i32>> = values
-            .iter()
-            .map(|row| row.iter().map(|v| v.round() as i32).collect())
-            .collect();
-        error.add(
-            &image.pixels[r * w..(r + 1) * w],
-            &ints[0],
-            &ints[1],
-            &ints[2],
-        );
-        Ok(())
-    })
-    .context("decoding colour for measurement")?;
-    Ok(error.finish())
+    rows::rgb_error_in_step(&steps, image).context("decoding colour for measurement")
 }
 
 /// The RMS rate control's quantised indices between passes, in two unnamed temporary
@@ -687,6 +642,28 @@ struct StreamFacts {
     units: String,
     georef: Option<Georef>,
     source_samples: usize,
+}
+
+/// What `--memory-budget-mb` leaves the streaming encoder's sample buffers once the
+/// program, the per-diamond bookkeeping (about 400 bytes a diamond), the blob spill's
+/// index and `source_bytes` the input holds itself are counted (see `build_streaming`).
+fn encoder_budget(budget_mb: u64, samples: usize, n: usize, source_bytes: usize) -> Result<usize> {
+    let diamonds = 2 * samples / (n * n) + 64;
+    let program = layout::rss_bytes()
+        .max(PROGRAM_BYTES)
+        .next_multiple_of(1 << 20);
+    let reserve = program + diamonds * 400 + (3 << 20) + source_bytes;
+    let budget = (budget_mb as usize) << 20;
+    if budget <= reserve {
+        bail!(
+            "out-of-core build: --memory-budget-mb {budget_mb} leaves nothing for sample buffers: the program, \
+             the geometry of {diamonds} diamonds, the blob spill and the input's own buffers \
+             ({} MB) already take about {} MB",
+            source_bytes.div_ceil(1 << 20),
+            reserve.div_ceil(1 << 20)
+        );
+    }
+    Ok(budget - reserve)
 }
 
 /// Runs `quincunx build`.

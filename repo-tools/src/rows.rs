@@ -78,6 +78,34 @@ pub fn decode_in_step(
     })
 }
 
+/// RMS and largest RGB error of three decoded YCoCg-R channels against `image`: the
+/// channels decoded in step, rounded as `encode::decode` and the in-memory measurement
+/// round them, compared in pixel order.
+pub fn rgb_error_in_step(
+    channels: &[StepChannel<'_>],
+    image: &crate::input::RgbImage,
+) -> Result<(f64, f64)> {
+    if channels.len() != 3 {
+        return Err(anyhow!("a colour repository needs 3 channels"));
+    }
+    let w = image.width;
+    let mut error = RgbError::default();
+    decode_in_step(channels, image.height, &mut |r, values| {
+        let ints: Vec<Vec<i32>> = values
+            .iter()
+            .map(|row| row.iter().map(|v| v.round() as i32).collect())
+            .collect();
+        error.add(
+            &image.pixels[r * w..(r + 1) * w],
+            &ints[0],
+            &ints[1],
+            &ints[2],
+        );
+        Ok(())
+    })?;
+    Ok(error.finish())
+}
+
 /// RMS and largest absolute error over all RGB components of decoded YCoCg-R values
 /// (clamped to 0..=255) against the source pixels, added up in pixel order.
 #[derive(Debug, Default)]

@@ -90,14 +90,18 @@ pub fn run(args: &VerifyArgs) -> Result<()> {
     Ok(())
 }
 
-fn check_blobs(repo: &Repository, geom: &Geometry) -> Result<(u64, u64)> {
-    let meta = repo.metadata();
-    let models = meta
-        .channels
+/// Every channel's stored entropy model.
+fn models(meta: &quincunx_store::Metadata) -> Result<Vec<CodecModel>> {
+    meta.channels
         .iter()
         .map(|c| CodecModel::from_bytes(&c.model))
         .collect::<Result<Vec<_>, _>>()
-        .context("stored entropy model")?;
+        .context("stored entropy model")
+}
+
+fn check_blobs(repo: &Repository, geom: &Geometry) -> Result<(u64, u64)> {
+    let meta = repo.metadata();
+    let models = models(meta)?;
     let mut index = HashMap::new();
     for level in 0..geom.detail_levels() {
         for i in 0..geom.level_len(level) {
@@ -305,12 +309,7 @@ fn verify_rows(
 ) -> Result<()> {
     let meta = repo.metadata();
     let count = meta.channels.len();
-    let models = meta
-        .channels
-        .iter()
-        .map(|c| CodecModel::from_bytes(&c.model))
-        .collect::<Result<Vec<_>, _>>()
-        .context("stored entropy model")?;
+    let models = models(meta)?;
     let n = meta.n as usize;
     for (c, coding) in meta.channels.iter().enumerate() {
         if coding.roots.len() != 1 || coding.roots[0].len() != (n + 1) * (n + 1) {
@@ -349,7 +348,7 @@ fn verify_rows(
             offset: coding.value_offset,
         })
         .collect();
-    let (w, h) = (geom.width(), geom.height());
+    let h = geom.height();
     let check_size = |sw: usize, sh: usize| -> Result<()> {
         if [sw as u64, sh as u64] != meta.extent {
             bail!("source is {sw} x {sh}, repository {:?}", meta.extent);
@@ -361,27 +360,10 @@ fn verify_rows(
     match &args.source {
         None => rows::decode_in_step(&channels, h, &mut |_, _| Ok(()))?,
         Some(source) if colour => {
-            if count != 3 {
-                bail!("a colour repository needs 3 channels");
-            }
             let image =
                 input::read_rgb(source).with_context(|| format!("reading {}", source.display()))?;
             check_size(image.width, image.height)?;
-            let mut error = rows::RgbError::default();
-            rows::decode_in_step(&channels, h, &mut |r, values| {
-                let ints: Vec<Vec<i32>> = values
-                    .iter()
-                    .map(|row| row.iter().map(|v| v.round() as i32).collect())
-                    .collect();
-                error.add(
-                    &image.pixels[r * w..(r + 1) * w],
-                    &ints[0],
-                    &ints[1],
-                    &ints[2],
-                );
-                Ok(())
-            })?;
-            let (rms, max) = error.finish();
+            let (rms, max) = rows::rgb_error_in_step(&channels, &image)?;
             (report.rms_m, report.max_abs_m) = (Some(rms), Some(max));
         }
         Some(source) => {
@@ -421,13 +403,7 @@ struct SourceRows {
 impl SourceRows {
     fn open(path: &std::path::Path) -> Result<SourceRows> {
         let context = || format!("reading {}", path.display());
-        let is_raw = path.extension().is_some_and(|e| {
-            matches!(
-                e.to_string_lossy().to_ascii_lowercase().as_str(),
-                "json" | "i16" | "f32"
-            )
-        });
-        if is_raw {
+        if build::is_raw(path) {
             let raw = input::RawRows::open(path).with_context(context)?;
             let (width, height) = (raw.width(), raw.height());
             return Ok(SourceRows {

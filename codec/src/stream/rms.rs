@@ -26,8 +26,8 @@ use super::{
 };
 use crate::encode::{
     Attempt, EncodeError, EncodeReport, Measure, PASS_CHUNK, Quantise, RdoMode, Tally, ValueMap,
-    Verifier, blob_model, code_blob, dequantize, measure, rms_of_pieces, search_scale,
-    side_information, trains_on,
+    Verifier, blob_model, code_blob, dequantize, histogram_entries, measure, rms_of_pieces,
+    search_scale, side_information, trains_on,
 };
 use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::raster::RasterGeometry;
@@ -97,15 +97,7 @@ impl Histograms {
         self.dense
             .into_iter()
             .zip(self.sparse)
-            .map(|(dense, sparse)| {
-                dense
-                    .into_iter()
-                    .enumerate()
-                    .filter(|&(_, c)| c > 0)
-                    .map(|(a, c)| (a as u32, c))
-                    .chain(sparse)
-                    .collect()
-            })
+            .map(|(dense, sparse)| histogram_entries(dense, sparse))
             .collect()
     }
 }
