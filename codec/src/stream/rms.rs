@@ -147,6 +147,7 @@ impl DetailVisitor for RoundCounts<'_> {
 
 /// The nonzero index matrices of one attempt, each as LEB128 pairs (zeros before, zigzag
 /// value), in slot `slot` of an [`IndexSpill`]; the index is in memory.
+#[derive(Default)]
 struct Spill {
     n: usize,
     slot: usize,
@@ -433,7 +434,7 @@ impl Verifier for StreamVerifier<'_> {
         cost_model: Option<&CodecModel>,
         steps: &[u32],
     ) -> Result<Attempt, EncodeError> {
-        let mut last = std::mem::replace(&mut self.last, Spill::new(self.passes.geom, 2));
+        let mut last = std::mem::take(&mut self.last);
         last.clear(self.store)?;
         let mut into = QuantiseInto {
             quantise: q,
