@@ -125,23 +125,14 @@ impl Coverage {
     /// data, with consistent copies of edge points), blocks as the encoder chooses them
     /// for diamond size `n`.
     pub fn of_cube(face_side: usize, n: usize, data: impl Fn(usize) -> bool) -> Coverage {
-        let mut b = n.max(1).next_power_of_two().min(face_side.max(1));
-        while 6 * (face_side / b) * (face_side / b) > MAX_BITS {
-            b *= 2;
-        }
-        let side = (face_side / b).max(1);
-        let mut cov = Coverage::empty(6, b.trailing_zeros() as u8, side as u32, side as u32);
+        let mut cov = CubeCoverage::new(face_side, n);
         let w = face_side + 1;
         for face in 0..6 {
             for v in 0..w {
-                for u in 0..w {
-                    if data((face * w + v) * w + u) {
-                        cov.set(face, (u / b).min(side - 1), (v / b).min(side - 1));
-                    }
-                }
+                cov.mark_row(face, v, |u| data((face * w + v) * w + u));
             }
         }
-        cov
+        cov.finish()
     }
 
     fn bit(&self, face: usize, col: usize, row: usize) -> usize {
@@ -380,5 +371,47 @@ mod tests {
         let mut huge = bytes.clone();
         huge[3..7].copy_from_slice(&u32::MAX.to_le_bytes());
         assert!(Coverage::from_bytes(&huge).is_err());
+    }
+}
+
+/// [`Coverage::of_cube`] built one face row at a time (the out-of-core planet encoder's
+/// first pass).
+pub struct CubeCoverage {
+    cov: Coverage,
+    block: usize,
+    side: usize,
+    width: usize,
+}
+
+impl CubeCoverage {
+    /// An all-uncovered coverage of a planet of `face_side`, blocks as the encoder
+    /// chooses them for diamond size `n`.
+    pub fn new(face_side: usize, n: usize) -> Self {
+        let mut b = n.max(1).next_power_of_two().min(face_side.max(1));
+        while 6 * (face_side / b) * (face_side / b) > MAX_BITS {
+            b *= 2;
+        }
+        let side = (face_side / b).max(1);
+        CubeCoverage {
+            cov: Coverage::empty(6, b.trailing_zeros() as u8, side as u32, side as u32),
+            block: b,
+            side,
+            width: face_side + 1,
+        }
+    }
+
+    /// Marks the blocks of face `face`'s row `v` where `data(u)` holds data.
+    pub fn mark_row(&mut self, face: usize, v: usize, data: impl Fn(usize) -> bool) {
+        let (b, last) = (self.block, self.side - 1);
+        for u in 0..self.width {
+            if data(u) {
+                self.cov.set(face, (u / b).min(last), (v / b).min(last));
+            }
+        }
+    }
+
+    /// The coverage.
+    pub fn finish(self) -> Coverage {
+        self.cov
     }
 }

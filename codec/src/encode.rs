@@ -214,6 +214,9 @@ pub enum EncodeError {
         /// the budget given
         budget: usize,
     },
+    /// A combination of options the encoder cannot serve (the message says which).
+    #[error("{0}")]
+    Unsupported(&'static str),
     /// The streaming encoder broke one of its own invariants (a bug).
     #[error("internal error of the streaming encoder: {0}")]
     Internal(&'static str),

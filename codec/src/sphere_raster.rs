@@ -122,6 +122,46 @@ impl SphereSlot {
         self.upper.is_some()
     }
 
+    /// Cube-raster indices of the copies of interior vertex `(i, j)` that analysis
+    /// writes: one, or two for an edge diamond's diagonal points (as [`Layout`]'s
+    /// `scatter_interior_part`).
+    pub(crate) fn vertex_copies(&self, i: usize, j: usize) -> (usize, Option<usize>) {
+        let lo = self.lower.at(self.lower.v0, i, j);
+        match &self.upper {
+            None => (lo, None),
+            Some(up) => {
+                let u = up.at(up.v0, i, j);
+                match j.cmp(&i) {
+                    std::cmp::Ordering::Less => (lo, None),
+                    std::cmp::Ordering::Greater => (u, None),
+                    std::cmp::Ordering::Equal => (lo, Some(u)),
+                }
+            }
+        }
+    }
+
+    /// The cube-raster indices of the corners of the flat pieces the `N`-diamond's points
+    /// lie in: its square on one face, or an edge diamond's triangle on each of two faces.
+    /// Every vertex and cell lies in the bounding box (in its face's chart) of one piece.
+    pub(crate) fn piece_corners(&self, n: usize) -> Vec<Vec<usize>> {
+        let at = |p: &Placement, i: usize, j: usize| p.at(p.v0, i, j);
+        match &self.upper {
+            None => vec![
+                (0..4)
+                    .map(|k| at(&self.lower, (k & 1) * n, (k >> 1) * n))
+                    .collect(),
+            ],
+            Some(up) => vec![
+                vec![
+                    at(&self.lower, 0, 0),
+                    at(&self.lower, n, 0),
+                    at(&self.lower, n, n),
+                ],
+                vec![at(up, 0, 0), at(up, 0, n), at(up, n, n)],
+            ],
+        }
+    }
+
     /// Reads a `side x side` grid (vertices: `N + 1`, cells: `N`), canonical copies.
     fn gather(&self, side: usize, cell: bool, raster: &[i32], out: &mut [i32]) {
         let lo = &self.lower;
@@ -672,22 +712,28 @@ impl SphereGeometry {
 
     /// Reads the six root vertex grids (`(N+1)^2` each, canonical copies), in face order.
     pub fn gather_roots(&self, raster: &[i32]) -> Vec<Vec<i32>> {
+        self.gather_roots_with(|k| raster[k])
+    }
+
+    /// [`SphereGeometry::gather_roots`] from any store of the cube raster: `read(index)`
+    /// is the value of cube-raster entry `index`.
+    pub(crate) fn gather_roots_with(&self, read: impl Fn(usize) -> i32) -> Vec<Vec<i32>> {
+        let side = self.n + 1;
         self.roots
             .iter()
             .map(|s| {
-                let mut v = vec![0; (self.n + 1) * (self.n + 1)];
-                s.gather(self.n + 1, false, raster, &mut v);
-                // Border vertices lie on cube edges: read their canonical copies.
-                for (k, x) in v.iter_mut().enumerate() {
-                    let (i, j) = (k / (self.n + 1), k % (self.n + 1));
-                    if i == 0 || j == 0 || i == self.n || j == self.n {
+                (0..side * side)
+                    .map(|k| {
+                        let (i, j) = (k / side, k % side);
                         let here = s.vertex_index(i, j);
-                        if let Some(first) = self.canonical_of(here) {
-                            *x = raster[first];
+                        // Border vertices lie on cube edges: read their canonical copies.
+                        if i == 0 || j == 0 || i == self.n || j == self.n {
+                            read(self.canonical_of(here).unwrap_or(here))
+                        } else {
+                            read(here)
                         }
-                    }
-                }
-                v
+                    })
+                    .collect()
             })
             .collect()
     }

@@ -44,8 +44,11 @@ use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::lifting::{self, DiamondMask};
 use crate::raster::{DiamondSlot, RasterGeometry, read_lattice, write_lattice};
 
+mod cube;
 mod rms;
 mod synth;
+
+pub use cube::{CubeEncoded, CubeOptions, CubeSource, MemoryTiles, TileStore, encode_cube};
 
 /// Rows of a planar raster, read on demand (row 0 = north). May be called several times
 /// over the same rows (the encoder makes more than one pass).
@@ -582,6 +585,27 @@ struct Fill {
     mean: f64,
 }
 
+impl Fill {
+    /// Fills the invalid samples of `vals` (rows of `w`, the first `context` of them
+    /// filled context) with push-pull over all of them, clamped to the valid range, or
+    /// the valid mean where nothing is valid; the bytes of push-pull's work arrays (0 when
+    /// nothing needed filling).
+    fn rows(&self, w: usize, context: usize, vals: &mut [f64], valid: &[bool]) -> usize {
+        if valid[context * w..].iter().all(|&b| b) {
+            return 0;
+        }
+        let clamp = crate::fill::push_pull(w, vals.len() / w, vals, valid);
+        for (v, _) in vals.iter_mut().zip(valid).filter(|(_, b)| !**b) {
+            *v = if clamp {
+                v.clamp(self.lo, self.hi)
+            } else {
+                self.mean
+            };
+        }
+        vals.len() * FILL_BYTES_PER_SAMPLE
+    }
+}
+
 /// Errors of the integerised values against the source, over valid samples.
 #[derive(Default)]
 struct Errors {
@@ -793,19 +817,7 @@ impl Reader {
                 e.max = e.max.max(max);
             }
         }
-        let mut fill_bytes = 0;
-        if valid[ctx..].iter().any(|b| !b) {
-            fill_bytes = total * FILL_BYTES_PER_SAMPLE;
-            if crate::fill::push_pull(w, self.context + count, vals, valid) {
-                for (v, _) in vals.iter_mut().zip(valid.iter()).filter(|(_, b)| !**b) {
-                    *v = v.clamp(fill.lo, fill.hi);
-                }
-            } else {
-                for (v, _) in vals.iter_mut().zip(valid.iter()).filter(|(_, b)| !**b) {
-                    *v = fill.mean;
-                }
-            }
-        }
+        let fill_bytes = fill.rows(w, self.context, vals, valid);
         out.par_extend(
             vals[ctx..]
                 .par_iter()

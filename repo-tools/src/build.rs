@@ -8,8 +8,11 @@ use clap::{Args, ValueEnum};
 use quincunx_codec::colour::rgb_to_ycocg_r;
 use quincunx_codec::encode::{self, CubeGrid, EncodeOptions, Encoded, Grid, RateMode, RdoMode};
 use quincunx_codec::raster::RasterGeometry;
+use quincunx_codec::sphere_raster::SphereFrame;
 use quincunx_codec::sphere_raster::SphereGeometry;
-use quincunx_codec::stream::{self, BlobSink, IndexSpill, RowSource, StreamOptions};
+use quincunx_codec::stream::{
+    self, BlobSink, CubeOptions, CubeSource, IndexSpill, RowSource, StreamOptions, TileStore,
+};
 use quincunx_store::{
     Attribute, AttributeKind, ChannelCoding, Metadata, NodataHandling, NodataPolicy,
     RepositoryBuilder,
@@ -271,7 +274,7 @@ fn check_budget(args: &BuildArgs, samples: usize, channels: usize) -> Result<()>
     if need_mb > budget {
         bail!(
             "this build needs about {need_mb} MB in memory but --memory-budget-mb is {budget}; \
-             out-of-core builds cover planar elevation (dense or --sparse) from a raw grid + JSON \
+             out-of-core builds cover elevation (planar or planet) from a raw grid + JSON \
              sidecar or a tile mosaic (convert other formats to raw, or raise the budget)"
         );
     }
@@ -397,6 +400,114 @@ fn build_streaming<S: RowSource>(
     let mut summary = summarise(args, &meta, &description, started, (0.0, encode_seconds))?;
     summary.out_of_core = true;
     Ok(summary)
+}
+
+/// The out-of-core planet build: [`stream::encode_cube`] from `cube`, the tiles of the
+/// cube raster in an unnamed temporary file beside the output, blobs straight into the
+/// repository. `source_bytes` is what the source holds itself (the global grid, or a
+/// mosaic's decoded tiles).
+fn build_cube_streaming<S: CubeSource>(
+    args: &BuildArgs,
+    cube: &mut S,
+    source_bytes: usize,
+    facts: impl Fn(&S) -> Source,
+    (n, mode, budget_mb, sparse): (usize, RateMode, u64, bool),
+    started: Instant,
+) -> Result<BuildSummary> {
+    let face_side = cube.face_side();
+    let samples = 6 * (face_side + 1) * (face_side + 1);
+    tracing::info!(face_side, budget_mb, "out-of-core planet build");
+    let opts = CubeOptions {
+        n,
+        mode,
+        memory_budget_bytes: encoder_budget(budget_mb, samples, n, source_bytes)?,
+        sparse,
+    };
+    let radius = radius_m(args)?;
+    let (meta, description, encode_seconds) = with_builder(args, |builder| {
+        let mut builder = builder
+            .spill_to_disk()
+            .with_context(|| format!("creating {}", args.output.display()))?;
+        let encode_started = Instant::now();
+        let spin = progress::spinner("streaming");
+        spin.set_message(format!(
+            "6 faces of {face_side} x {face_side} in {budget_mb} MB"
+        ));
+        let mut sink = StoreSink {
+            args,
+            builder: &mut builder,
+            stored: 0,
+            spin: spin.clone(),
+        };
+        let mut spill = FileSpill::beside(&args.output)?;
+        let mut tiles = FileTiles::beside(&args.output)?;
+        let enc = stream::encode_cube(cube, opts, &mut sink, &mut spill, &mut tiles)
+            .context("encoding the planet out of core")?;
+        spin.finish_and_clear();
+        let encode_seconds = encode_started.elapsed().as_secs_f64();
+        tracing::info!(
+            peak_buffer_bytes = enc.peak_buffer_bytes,
+            tile_store_bytes = enc.tile_store_bytes,
+            peak_rss_mb = layout::peak_rss_mb(),
+            "streamed"
+        );
+        let description = elevation(
+            facts(cube),
+            enc.into_encoded(Vec::new()),
+            Some(radius),
+            mode,
+        )?
+        .desc;
+        let meta = publish(args, builder, &description, n, mode)?;
+        Ok((meta, description, encode_seconds))
+    })?;
+    let mut summary = summarise(args, &meta, &description, started, (0.0, encode_seconds))?;
+    summary.out_of_core = true;
+    Ok(summary)
+}
+
+/// The out-of-core planet encoder's tiles: an unnamed temporary file beside the output
+/// (gone when the build ends, however it ends).
+struct FileTiles {
+    file: std::fs::File,
+    bytes: Vec<u8>,
+}
+
+impl FileTiles {
+    fn beside(output: &Path) -> Result<FileTiles> {
+        let dir = output
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        Ok(FileTiles {
+            file: tempfile::tempfile_in(dir)
+                .with_context(|| format!("creating a temporary file in {}", dir.display()))?,
+            bytes: Vec::new(),
+        })
+    }
+}
+
+impl TileStore for FileTiles {
+    fn read(&mut self, offset: u64, out: &mut [i32]) -> Result<(), String> {
+        use std::os::unix::fs::FileExt;
+        self.bytes.resize(out.len() * 4, 0);
+        self.file
+            .read_exact_at(&mut self.bytes, offset * 4)
+            .map_err(|e| format!("reading the planet's tiles: {e}"))?;
+        for (x, b) in out.iter_mut().zip(self.bytes.chunks_exact(4)) {
+            *x = i32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        }
+        Ok(())
+    }
+
+    fn write(&mut self, offset: u64, data: &[i32]) -> Result<(), String> {
+        use std::os::unix::fs::FileExt;
+        self.bytes.clear();
+        self.bytes.extend(data.iter().flat_map(|x| x.to_le_bytes()));
+        self.file
+            .write_all_at(&self.bytes, offset * 4)
+            .map_err(|e| format!("writing the planet's tiles: {e}"))
+    }
 }
 
 /// One colour channel (YCoCg-R) of an image, as rows.
@@ -862,9 +973,27 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         );
         if args.planet {
             let g = &raster.grid;
-            let geom = planet_geometry(args, raster.georef.as_ref(), g.width, g.height, n)?;
+            let face_side = planet_face_side(args, raster.georef.as_ref(), g.width, g.height, n)?;
+            let frame = SphereFrame::new(face_side, n, None)
+                .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
             let source = g.width * g.height / SOURCE_SAMPLES_PER_CODED;
-            check_budget(args, geom.distinct_points() + source, 1)?;
+            if let Some(budget_mb) = args.memory_budget_mb
+                && in_memory_mb(frame.distinct_points() + source, 1) > budget_mb
+            {
+                let mut cube = planet::EquirectRows::new(&raster, &frame)?;
+                let facts = |_: &planet::EquirectRows| Source::of(&raster);
+                // The grid is resident already: the budget's measure of the program has it.
+                return build_cube_streaming(
+                    args,
+                    &mut cube,
+                    0,
+                    facts,
+                    (n, mode, budget_mb, args.sparse),
+                    started,
+                );
+            }
+            check_budget(args, frame.distinct_points() + source, 1)?;
+            let geom = SphereGeometry::new(face_side, n)?;
             let spin = progress::spinner("resampling");
             let resample_started = Instant::now();
             let cube = planet::resample_heights(&raster, &geom)?;
@@ -964,6 +1093,25 @@ fn build_mosaic(
             .unwrap_or_else(|| planet::default_face_side(mosaic.finest_spacing(), n));
         // Before the geometry, whose tables grow with the face side too.
         let samples = 6 * (face_side as u64 + 1).pow(2);
+        if let Some(budget_mb) = args.memory_budget_mb
+            && in_memory_mb(samples as usize, 1) > budget_mb
+        {
+            let frame = SphereFrame::new(face_side, n, None)
+                .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
+            let mut cube = mosaic.cube_rows(&frame)?;
+            let held = cube.held_bytes();
+            let facts = |c: &mosaic::MosaicCube<'_>| {
+                let a = c.assembled();
+                Source {
+                    units: a.units,
+                    source_samples: mosaic.source_samples,
+                    nodata_count: a.nodata_count,
+                    georef: None,
+                }
+            };
+            let how = (n, mode, budget_mb, true);
+            return build_cube_streaming(args, &mut cube, held, facts, how, started);
+        }
         mosaic::check_memory(samples, &format!("choose a --face-side below {face_side}"))?;
         check_budget(args, samples as usize, 1)?;
         let geom = SphereGeometry::new(face_side, n)
@@ -1171,15 +1319,26 @@ fn planet_geometry(
     height: usize,
     n: usize,
 ) -> Result<SphereGeometry> {
+    let face_side = planet_face_side(args, georef, width, height, n)?;
+    SphereGeometry::new(face_side, n)
+        .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))
+}
+
+/// `--face-side`, or the default for a global grid's spacing.
+fn planet_face_side(
+    args: &BuildArgs,
+    georef: Option<&Georef>,
+    width: usize,
+    height: usize,
+    n: usize,
+) -> Result<usize> {
     let georef = georef.context(
         "planet builds need a georeferenced latitude/longitude grid (sidecar `georef`, GeoTIFF tags)",
     )?;
     let spacing = planet::Equirect::new(width, height, &[], georef)?.spacing_deg();
-    let face_side = args
+    Ok(args
         .face_side
-        .unwrap_or_else(|| planet::default_face_side(spacing, n));
-    SphereGeometry::new(face_side, n)
-        .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))
+        .unwrap_or_else(|| planet::default_face_side(spacing, n)))
 }
 
 fn encode_planet(

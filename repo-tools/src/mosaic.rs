@@ -22,7 +22,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use quincunx_codec::encode::{CubeGrid, Grid, round};
-use quincunx_codec::sphere_raster::SphereGeometry;
+use quincunx_codec::sphere_raster::{SphereFrame, SphereGeometry};
+use quincunx_codec::stream::CubeSource;
 use rayon::prelude::*;
 
 use crate::build::BUILD_BYTES_PER_SAMPLE;
@@ -658,6 +659,173 @@ impl quincunx_codec::stream::RowSource for MosaicRows<'_> {
     }
 }
 
+impl Mosaic {
+    /// The cube raster of [`Mosaic::to_cube`] as a source for the out-of-core planet
+    /// encoder: each band of a face's rows reads the tiles whose footprint on that face it
+    /// meets (kept while later bands still meet them), never the whole cube.
+    pub fn cube_rows(&self, frame: &SphereFrame) -> Result<MosaicCube<'_>> {
+        self.check_planet()?;
+        let borders = FaceBorders::new(frame);
+        let boxes: Vec<[Option<[usize; 4]>; 6]> =
+            self.tiles.iter().map(|t| borders.boxes(t, frame)).collect();
+        let mut reader = TileReader::default();
+        // The first tile now, so the quantum is known before the first read.
+        if let Some(t) = self.tiles.first() {
+            reader.read(t)?;
+        }
+        // The most bytes of decoded tiles a band of up to 256 rows meets.
+        let w = frame.face_side() + 1;
+        let mut held_bytes = 0;
+        for face in 0..6 {
+            for first in (0..w).step_by(256) {
+                let last = (first + 255).min(w - 1);
+                let bytes: usize = boxes
+                    .iter()
+                    .zip(&self.tiles)
+                    .filter(|(b, _)| {
+                        b[face].is_some_and(|[_, _, v0, v1]| v1 >= first && v0 <= last)
+                    })
+                    .map(|(_, t)| t.width * t.height * 8)
+                    .sum();
+                held_bytes = held_bytes.max(bytes);
+            }
+        }
+        Ok(MosaicCube {
+            mosaic: self,
+            angles: CubeAngles::new(frame),
+            face_side: frame.face_side(),
+            boxes,
+            reader,
+            held: Vec::new(),
+            next: (0, 0),
+            nodata: 0,
+            first_pass: true,
+            held_bytes,
+        })
+    }
+}
+
+/// A planet mosaic's cube raster, a band of face rows at a time ([`Mosaic::cube_rows`]).
+pub struct MosaicCube<'a> {
+    mosaic: &'a Mosaic,
+    angles: CubeAngles,
+    face_side: usize,
+    /// Per tile, its footprint `[u0, u1, v0, v1]` on each face.
+    boxes: Vec<[Option<[usize; 4]>; 6]>,
+    reader: TileReader,
+    /// Decoded tiles that later bands of the face still meet, by index in priority order.
+    held: Vec<(usize, Grid)>,
+    /// `(face, row)` after the last read (a read before it starts a new pass).
+    next: (usize, usize),
+    nodata: usize,
+    first_pass: bool,
+    held_bytes: usize,
+}
+
+impl MosaicCube<'_> {
+    /// About the most bytes of decoded tiles held at once (8 a sample).
+    pub fn held_bytes(&self) -> usize {
+        self.held_bytes
+    }
+
+    /// What the metadata records, once a pass has read every row.
+    pub fn assembled(&self) -> Assembled {
+        Assembled {
+            units: self
+                .reader
+                .units
+                .as_ref()
+                .map_or_else(|| "m".to_owned(), |(u, _)| u.clone()),
+            nodata_count: self.nodata,
+            quantum_m: self.reader.quantum.flatten(),
+        }
+    }
+
+    fn fill(&mut self, face: usize, first: usize, out: &mut [f64]) -> Result<()> {
+        let w = self.face_side + 1;
+        let rows = out.len() / w;
+        let last = first + rows - 1;
+        if (face, first) < self.next {
+            self.first_pass = false;
+        }
+        if (face, first) < self.next || face != self.next.0 {
+            self.held.clear();
+        }
+        let boxes = &self.boxes;
+        self.held
+            .retain(|(k, _)| boxes[*k][face].is_some_and(|b| b[3] >= first));
+        out.iter_mut().for_each(|v| *v = f64::NAN);
+        for (k, tile) in self.mosaic.tiles.iter().enumerate() {
+            let Some([u0, u1, v0, v1]) = self.boxes[k][face] else {
+                continue;
+            };
+            if v1 < first || v0 > last {
+                continue;
+            }
+            if !self.held.iter().any(|(j, _)| *j == k) {
+                let grid = self.reader.read(tile)?;
+                self.held.push((k, grid));
+            }
+            let Some((_, grid)) = self.held.iter().find(|(j, _)| *j == k) else {
+                continue;
+            };
+            let sampler = Sampler::new(tile, grid, true);
+            let (r0, r1) = (v0.max(first), v1.min(last));
+            let angles = &self.angles;
+            out[(r0 - first) * w..(r1 + 1 - first) * w]
+                .par_chunks_mut(w)
+                .enumerate()
+                .for_each_init(
+                    || vec![(0.0, 0.0); u1 + 1 - u0],
+                    |span, (i, row)| {
+                        angles.row_span(face, r0 + i, u0, span);
+                        for u in u0..=u1 {
+                            let (lat, lon) = span[u - u0];
+                            if row[u].is_nan()
+                                && let Some(s) = sampler.sample(lat, lon)
+                            {
+                                row[u] = s;
+                            }
+                        }
+                    },
+                );
+        }
+        if self.first_pass {
+            self.nodata += out.iter().filter(|v| v.is_nan()).count();
+        }
+        self.next = (face, first + rows);
+        Ok(())
+    }
+}
+
+impl CubeSource for MosaicCube<'_> {
+    fn face_side(&self) -> usize {
+        self.face_side
+    }
+
+    fn read_face_rows(
+        &mut self,
+        face: usize,
+        first: usize,
+        count: usize,
+        out: &mut [f64],
+    ) -> Result<(), String> {
+        let w = self.face_side + 1;
+        if face >= 6 || count == 0 || first + count > w || out.len() < count * w {
+            return Err(format!(
+                "rows {first}..{} of face {face}: outside the cube",
+                first + count
+            ));
+        }
+        self.fill(face, first, &mut out[..count * w])
+            .map_err(|e| format!("{e:#}"))
+    }
+
+    fn quantum_m(&self) -> Option<f64> {
+        self.reader.quantum.flatten()
+    }
+}
+
 /// Refuses an output of `samples` larger than this machine's memory can build in core.
 pub fn check_memory(samples: u64, advice: &str) -> Result<()> {
     let need = samples.saturating_mul(BUILD_BYTES_PER_SAMPLE);
@@ -825,7 +993,7 @@ fn degree_cell(lat: i64, lon: i64) -> usize {
 }
 
 impl FaceBorders {
-    fn new(geom: &SphereGeometry) -> Self {
+    fn new(geom: &SphereFrame) -> Self {
         let s = geom.face_side();
         let mut cells = vec![Vec::new(); 180 * 360];
         for face in 0..6u8 {
@@ -868,7 +1036,7 @@ impl FaceBorders {
     /// the tile: the first are walked at a quarter of the cube's sample spacing, the second
     /// sample by sample (those in the degree cells around the tile), and the box grows by
     /// one sample each way.
-    fn boxes(&self, tile: &Tile, geom: &SphereGeometry) -> [Option<[usize; 4]>; 6] {
+    fn boxes(&self, tile: &Tile, geom: &SphereFrame) -> [Option<[usize; 4]>; 6] {
         let s = geom.face_side();
         let mut bounds = [[
             f64::INFINITY,

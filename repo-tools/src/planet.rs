@@ -13,7 +13,8 @@
 use anyhow::{Context, Result, bail};
 use quincunx_codec::diamond::sphere::{cube_to_unit_sphere, unit_sphere_to_cube};
 use quincunx_codec::encode::{CubeGrid, round};
-use quincunx_codec::sphere_raster::SphereGeometry;
+use quincunx_codec::sphere_raster::{SphereFrame, SphereGeometry};
+use quincunx_codec::stream::CubeSource;
 use rayon::prelude::*;
 
 use crate::input::{Georef, HeightRaster, Projection, Registration, RgbImage};
@@ -233,13 +234,80 @@ impl<'a> Equirect<'a> {
     pub fn to_cube(&self, geom: &SphereGeometry, quantum: Option<f64>) -> Vec<f64> {
         let mut out = vec![f64::NAN; geom.cube_len()];
         for_each_cube_sample(geom, &mut out, |lat, lon| {
-            let s = self.sample(lat, lon);
-            match quantum {
-                Some(q) if s.is_finite() => round(s / q) * q,
-                _ => s,
-            }
+            self.cube_sample(lat, lon, quantum)
         });
         out
+    }
+
+    /// One cube sample: bilinear, rounded to `quantum` when given.
+    fn cube_sample(&self, lat: f64, lon: f64, quantum: Option<f64>) -> f64 {
+        let s = self.sample(lat, lon);
+        match quantum {
+            Some(q) if s.is_finite() => round(s / q) * q,
+            _ => s,
+        }
+    }
+}
+
+/// A global grid resampled onto a cube a band of face rows at a time (the out-of-core
+/// planet build's source): the values [`Equirect::to_cube`] gives, bit for bit.
+pub struct EquirectRows<'a> {
+    grid: Equirect<'a>,
+    angles: CubeAngles,
+    face_side: usize,
+    quantum: Option<f64>,
+}
+
+impl<'a> EquirectRows<'a> {
+    /// The rows of `raster` on the cube of `frame`.
+    pub fn new(raster: &'a HeightRaster, frame: &SphereFrame) -> Result<Self> {
+        let g = &raster.grid;
+        let georef = raster
+            .georef
+            .as_ref()
+            .context("planet builds need a georeferenced latitude/longitude grid")?;
+        Ok(EquirectRows {
+            grid: Equirect::new(g.width, g.height, &g.values_m, georef)?,
+            angles: CubeAngles::new(frame),
+            face_side: frame.face_side(),
+            quantum: g.quantum_m,
+        })
+    }
+}
+
+impl CubeSource for EquirectRows<'_> {
+    fn face_side(&self) -> usize {
+        self.face_side
+    }
+
+    fn read_face_rows(
+        &mut self,
+        face: usize,
+        first: usize,
+        count: usize,
+        out: &mut [f64],
+    ) -> Result<(), String> {
+        let w = self.face_side + 1;
+        if face >= 6 || first + count > w || out.len() != count * w {
+            return Err(format!(
+                "rows {first}..{} of face {face}: outside the cube",
+                first + count
+            ));
+        }
+        out.par_chunks_mut(w).enumerate().for_each_init(
+            || vec![(0.0, 0.0); w],
+            |angles, (r, dst)| {
+                self.angles.row(face, first + r, angles);
+                for (x, &(lat, lon)) in dst.iter_mut().zip(angles.iter()) {
+                    *x = self.grid.cube_sample(lat, lon, self.quantum);
+                }
+            },
+        );
+        Ok(())
+    }
+
+    fn quantum_m(&self) -> Option<f64> {
+        self.quantum
     }
 }
 
@@ -305,7 +373,7 @@ struct FaceFrame {
 }
 
 impl FaceFrame {
-    fn of(geom: &SphereGeometry, face: u8) -> Self {
+    fn of(geom: &SphereFrame, face: u8) -> Self {
         let o = geom.sample_position(face, 0, 0);
         let du = geom.sample_position(face, 1, 0);
         let dv = geom.sample_position(face, 0, 1);
@@ -322,7 +390,7 @@ impl FaceFrame {
 }
 
 impl CubeAngles {
-    pub(crate) fn new(geom: &SphereGeometry) -> Self {
+    pub(crate) fn new(geom: &SphereFrame) -> Self {
         let half = (geom.face_side() / 2) as i64;
         let big = half as f64;
         // The expression of `cube_to_unit_sphere`, made odd by construction (the mirrored

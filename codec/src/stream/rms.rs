@@ -148,7 +148,7 @@ impl DetailVisitor for RoundCounts<'_> {
 /// The nonzero index matrices of one attempt, each as LEB128 pairs (zeros before, zigzag
 /// value), in slot `slot` of an [`IndexSpill`]; the index is in memory.
 #[derive(Default)]
-struct Spill {
+pub(super) struct Spill {
     n: usize,
     slot: usize,
     /// Per level and diamond: `(offset, length)` in the slot.
@@ -157,27 +157,38 @@ struct Spill {
 
 impl Spill {
     fn new(geom: &RasterGeometry, slot: usize) -> Self {
-        Spill {
-            n: geom.n(),
+        Self::with_levels(
+            geom.n(),
             slot,
-            index: (0..geom.detail_levels())
-                .map(|l| vec![None; geom.level(l).len()])
-                .collect(),
+            (0..geom.detail_levels()).map(|l| geom.level(l).len()),
+        )
+    }
+
+    /// An empty spill in slot `slot` of levels of `lens` diamonds of `N = n`.
+    pub(super) fn with_levels(
+        n: usize,
+        slot: usize,
+        lens: impl IntoIterator<Item = usize>,
+    ) -> Self {
+        Spill {
+            n,
+            slot,
+            index: lens.into_iter().map(|len| vec![None; len]).collect(),
         }
     }
 
-    fn clear(&mut self, store: &mut dyn IndexSpill) -> Result<(), EncodeError> {
+    pub(super) fn clear(&mut self, store: &mut dyn IndexSpill) -> Result<(), EncodeError> {
         store.clear(self.slot).map_err(EncodeError::Sink)?;
         self.index.iter_mut().flatten().for_each(|e| *e = None);
         Ok(())
     }
 
-    fn held(&self) -> usize {
+    pub(super) fn held(&self) -> usize {
         self.index.iter().map(|l| l.capacity() * 16).sum()
     }
 
     /// Stores the matrices of diamonds `(level, index)` of one batch.
-    fn put_batch(
+    pub(super) fn put_batch(
         &mut self,
         store: &mut dyn IndexSpill,
         level: usize,
@@ -206,13 +217,13 @@ impl Spill {
         Ok(())
     }
 
-    fn has(&self, level: usize, index: usize) -> bool {
+    pub(super) fn has(&self, level: usize, index: usize) -> bool {
         self.index[level][index].is_some()
     }
 
     /// Diamond `(level, index)`'s indices into `out` (zeros when it has none); whether
     /// it has any.
-    fn get(
+    pub(super) fn get(
         &self,
         store: &dyn IndexSpill,
         level: usize,
@@ -239,7 +250,7 @@ impl Spill {
         Ok(true)
     }
 
-    fn matrix(
+    pub(super) fn matrix(
         &self,
         store: &dyn IndexSpill,
         level: usize,

@@ -1,0 +1,1021 @@
+//! Out-of-core encoder of planets: the cube raster lives in tiles of a [`TileStore`]
+//! (a file, for `quincunx build`), a bounded cache of them in memory.
+//!
+//! Why it works: a detail level's diamonds never touch each other's written points (their
+//! interiors are disjoint; they only read shared borders), so a level can be analysed in
+//! any order, a batch of diamonds at a time, each batch reading and writing only the tiles
+//! its diamonds' points lie in. The batches follow the tiles (row of tiles by row of
+//! tiles, face by face), so the cache holds about two rows of tiles of a face, plus the
+//! tiles beside the cube edges that the diamonds straddling them reach on the other face.
+//! After the two levels of an octave only every second point of every second row is read
+//! again, so the tiles are compacted into a raster of a quarter the size (`R_o`), and
+//! every octave's diamonds span about `2N` points of its own raster.
+//!
+//! Passes over the source, face by face, rows in order: (0) range, quantum, coverage and
+//! the canonical copies of the cube-edge points; (1) the integers, written as tiles, with
+//! the errors of the integerisation. Then the analysis (details to an [`IndexSpill`],
+//! measures in memory), the side information, the model, and every blob to the sink.
+//!
+//! The bytes equal the in-memory planet encoder's ([`crate::encode::encode_sphere`]) when
+//! the source has no nodata inside covered blocks: the same integers, the same diamonds,
+//! the same model. Nodata is filled band by band of a face with push-pull (as the planar
+//! streaming encoder does), where the in-memory encoder fills whole faces, so voids' fills
+//! may differ. Lossless and max-error modes; RMS out of core is planar only.
+
+use std::borrow::Cow;
+use std::collections::HashMap;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use rayon::prelude::*;
+
+use super::rms::Spill;
+use super::{BlobSink, Fill, IndexSpill, Meter};
+use crate::coverage::{Coverage, CubeCoverage};
+use crate::encode::{
+    DECIMAL_QUANTA, EncodeError, EncodeReport, Encoded, EncodedDomain, Measure, PASS_CHUNK,
+    RateMode, Tally, ValueMap, blob_model, check_tolerance, code_blob, measure, native_quantum,
+    on_quantum, rms_of_pieces, side_information,
+};
+use crate::entropy::CodecModel;
+use crate::lifting;
+use crate::raster::Layout;
+use crate::sphere_raster::SphereGeometry;
+
+/// A planet's heights, read a band of rows of one face at a time. Faces are read in
+/// order, rows in order within a face; a source may be read more than once (the encoder
+/// makes two passes).
+pub trait CubeSource {
+    /// Samples per face side `2S` (`N 2^k`).
+    fn face_side(&self) -> usize;
+    /// Fills `out` (`count x (face_side + 1)`) with face `face`'s rows
+    /// `first .. first + count` in metres (cube-raster order, see
+    /// [`crate::sphere_raster`]), NaN = nodata. Copies of cube-edge points need not agree:
+    /// the lowest face's copy is used.
+    fn read_face_rows(
+        &mut self,
+        face: usize,
+        first: usize,
+        count: usize,
+        out: &mut [f64],
+    ) -> Result<(), String>;
+    /// Known quantum, like [`crate::encode::CubeGrid::quantum_m`].
+    fn quantum_m(&self) -> Option<f64>;
+}
+
+/// Where the encoder keeps the cube raster's tiles: `i32` values at offsets counted in
+/// values. Reads only what was written.
+pub trait TileStore: Send {
+    /// Reads `out.len()` values from `offset`.
+    fn read(&mut self, offset: u64, out: &mut [i32]) -> Result<(), String>;
+    /// Writes `data` at `offset`.
+    fn write(&mut self, offset: u64, data: &[i32]) -> Result<(), String>;
+}
+
+/// Tiles in memory (tests; small planets).
+#[derive(Default)]
+pub struct MemoryTiles(Vec<i32>);
+
+impl TileStore for MemoryTiles {
+    fn read(&mut self, offset: u64, out: &mut [i32]) -> Result<(), String> {
+        let start = offset as usize;
+        let src = self
+            .0
+            .get(start..start + out.len())
+            .ok_or("read past the tiles written")?;
+        out.copy_from_slice(src);
+        Ok(())
+    }
+
+    fn write(&mut self, offset: u64, data: &[i32]) -> Result<(), String> {
+        let start = offset as usize;
+        if self.0.len() < start + data.len() {
+            self.0.resize(start + data.len(), 0);
+        }
+        self.0[start..start + data.len()].copy_from_slice(data);
+        Ok(())
+    }
+}
+
+/// Settings of the out-of-core planet encoder.
+#[derive(Clone, Copy, Debug)]
+pub struct CubeOptions {
+    /// Diamond size `N`.
+    pub n: usize,
+    /// [`RateMode::Lossless`] or [`RateMode::MaxErrorM`].
+    pub mode: RateMode,
+    /// Bound on the sample buffers held at once (row bands, the tile cache, diamonds in
+    /// flight). The geometry's tables and a few bytes per diamond come on top.
+    pub memory_budget_bytes: usize,
+    /// Sparse mode: blocks without data are holes.
+    pub sparse: bool,
+}
+
+/// Everything a decoder needs besides the blobs (which went to the [`BlobSink`]).
+#[derive(Clone, Debug)]
+pub struct CubeEncoded {
+    /// Samples per face side.
+    pub face_side: usize,
+    /// Diamond size.
+    pub n: usize,
+    /// Metres per integer unit.
+    pub value_scale_m: f64,
+    /// Metres at integer 0.
+    pub value_offset_m: f64,
+    /// Quantiser step per detail level (all 256).
+    pub steps: Vec<u32>,
+    /// The six root vertex grids.
+    pub roots: Vec<Vec<i32>>,
+    /// Trained starting probabilities.
+    pub model: CodecModel,
+    /// Measured results.
+    pub report: EncodeReport,
+    /// Largest number of bytes of sample buffers held at once.
+    pub peak_buffer_bytes: usize,
+    /// Bytes of tiles written to the [`TileStore`] at most (its size).
+    pub tile_store_bytes: u64,
+    /// The coverage (sparse mode).
+    pub coverage: Option<Coverage>,
+}
+
+impl CubeEncoded {
+    /// The in-memory form, with the blobs the sink received (`blobs[level][index]`).
+    pub fn into_encoded(self, blobs: Vec<Vec<Option<Vec<u8>>>>) -> Encoded {
+        Encoded {
+            domain: EncodedDomain::Sphere {
+                face_side: self.face_side,
+            },
+            width: self.face_side + 1,
+            height: 6 * (self.face_side + 1),
+            n: self.n,
+            value_scale_m: self.value_scale_m,
+            value_offset_m: self.value_offset_m,
+            steps: self.steps,
+            root: Vec::new(),
+            roots: self.roots,
+            model: self.model,
+            blobs,
+            coverage: self.coverage,
+            report: self.report,
+        }
+    }
+}
+
+/// Diamonds analysed in one batch at most.
+const BATCH: usize = 256;
+/// Filled rows of a face kept as context for the next band's fill.
+const CONTEXT_ROWS: usize = super::CONTEXT_ROWS;
+
+/// Encodes a planet out of core (see the module docs).
+pub fn encode_cube(
+    source: &mut dyn CubeSource,
+    opts: CubeOptions,
+    sink: &mut dyn BlobSink,
+    spill: &mut dyn IndexSpill,
+    tiles: &mut dyn TileStore,
+) -> Result<CubeEncoded, EncodeError> {
+    check_tolerance(opts.mode)?;
+    if matches!(opts.mode, RateMode::RmsM(_)) {
+        return Err(EncodeError::Unsupported(
+            "RMS rate control out of core is planar only: build this planet in memory or with --max-error-m",
+        ));
+    }
+    let (face_side, n) = (source.face_side(), opts.n);
+    let geom = SphereGeometry::new(face_side, n)?;
+    let w = face_side + 1;
+    let tile = tile_side(w, opts.memory_budget_bytes)?;
+    let mut meter = Meter::default();
+    let borders = Borders::new(&geom);
+
+    // Pass 0: range, quanta, coverage, the canonical copies of edge points.
+    let mut coverage = opts.sparse.then(|| CubeCoverage::new(face_side, n));
+    let mut scan = Scan::new(source.quantum_m());
+    let mut canon = HashMap::new();
+    let mut vals = vec![0.0; tile * w];
+    meter.note(vals.len() * 8);
+    for face in 0..6 {
+        for first in (0..w).step_by(tile) {
+            let count = tile.min(w - first);
+            let band = &mut vals[..count * w];
+            read_band(source, &borders, &mut canon, (face, first, count), band)?;
+            if let Some(cov) = coverage.as_mut() {
+                for (r, row) in band.chunks_exact(w).enumerate() {
+                    cov.mark_row(face, first + r, |u| row[u].is_finite());
+                }
+            }
+            scan.add(band);
+        }
+    }
+    if scan.valid == 0 {
+        return Err(EncodeError::AllNodata);
+    }
+    let coverage = coverage.map(CubeCoverage::finish);
+    let geom = match &coverage {
+        Some(c) => geom.covered(c)?,
+        None => geom,
+    };
+    let native = native_quantum(source.quantum_m(), |q| scan.integral(q));
+    let map = ValueMap::new(scan.lo, scan.hi, native, opts.mode)?;
+    let fill = Fill {
+        lo: scan.lo,
+        hi: scan.hi,
+        mean: scan.sum / scan.valid as f64,
+    };
+
+    // Pass 1: the integers, as tiles of R_0, and the integerisation's errors.
+    let lattice = Lattice::new(face_side, tile, 0, 0);
+    drop((vals, canon));
+    let errors = write_integers(
+        source,
+        &geom,
+        &borders,
+        (&map, &fill),
+        &lattice,
+        tiles,
+        &mut meter,
+    )?;
+    let tile_store_bytes = (lattice.len() + Lattice::new(face_side, tile, 1, 0).len()) * 4;
+
+    // The analysis, octave by octave.
+    let levels = geom.slot_levels().len();
+    let mut store = Spill::with_levels(n, 0, (0..levels).map(|l| geom.level(l).len()));
+    store.clear(spill)?;
+    let mut measures: Vec<Vec<Option<Measure>>> = (0..levels)
+        .map(|l| vec![None; geom.level(l).len()])
+        .collect();
+    let cache_bytes = opts.memory_budget_bytes / 2;
+    let second = lattice.len();
+    let mut lattice = lattice;
+    let mut cache = Cache::new(&lattice, cache_bytes);
+    for o in 0..levels / 2 {
+        if o > 0 {
+            let next = Lattice::new(face_side, tile, o, if o % 2 == 1 { second } else { 0 });
+            cache.flush(&lattice, tiles)?;
+            compact(&lattice, &next, tiles, &mut meter)?;
+            lattice = next;
+            cache = Cache::new(&lattice, cache_bytes);
+        }
+        for level in [levels - 1 - 2 * o, levels - 2 - 2 * o] {
+            analyse_level(
+                &geom,
+                level,
+                (&lattice, &mut cache, &mut *tiles),
+                (&mut store, &mut *spill),
+                &mut measures[level],
+                &mut meter,
+            )?;
+        }
+    }
+    // The root lattice: every tile of the last raster (a few per face).
+    let all: Vec<usize> = (0..lattice.tiles()).collect();
+    cache.ensure(&lattice, &all, tiles)?;
+    meter.note(cache.held_bytes());
+    let missed = AtomicBool::new(false);
+    let roots = geom.gather_roots_with(|k| cache.get(&lattice, k, &missed));
+    if missed.load(Ordering::Relaxed) {
+        return Err(EncodeError::Internal(
+            "a root vertex outside the loaded tiles",
+        ));
+    }
+    drop(cache);
+
+    // Side information, model and blobs.
+    let measures: Vec<Vec<Measure>> = measures
+        .into_iter()
+        .map(|l| l.into_iter().collect::<Option<Vec<_>>>())
+        .collect::<Option<_>>()
+        .ok_or(EncodeError::Internal("a diamond was not analysed"))?;
+    let side = side_information(&geom, |l, i| store.has(l, i), &measures);
+    drop(measures);
+    let steps = vec![256u32; levels];
+    let failed: Mutex<Option<EncodeError>> = Mutex::new(None);
+    let spill_ref: &dyn IndexSpill = spill;
+    let matrix = |l: usize, i: usize| -> Vec<i32> {
+        store.matrix(spill_ref, l, i).unwrap_or_else(|e| {
+            if let Ok(mut f) = failed.lock() {
+                f.get_or_insert(e);
+            }
+            vec![0; n * n]
+        })
+    };
+    let model = blob_model(&geom, &steps, &|l, i| Cow::Owned(matrix(l, i)), &side);
+    let (mut count, mut bytes) = (0usize, 0usize);
+    for l in 0..levels {
+        let len = geom.level(l).len();
+        for start in (0..len).step_by(4 * BATCH) {
+            let coded: Vec<(usize, Option<Vec<u8>>)> = (start..(start + 4 * BATCH).min(len))
+                .into_par_iter()
+                .map(|i| {
+                    let blob = side.has_data[l][i]
+                        .then(|| code_blob(&geom, &steps, &model, &matrix(l, i), &side, l, i));
+                    (i, blob.flatten())
+                })
+                .collect();
+            for (i, blob) in coded {
+                if let Some(b) = blob {
+                    count += 1;
+                    bytes += b.len();
+                    sink.put(l, i, &geom.level(l)[i].key, &b)
+                        .map_err(EncodeError::Sink)?;
+                }
+            }
+        }
+    }
+    if let Some(e) = failed.into_inner().ok().flatten() {
+        return Err(e);
+    }
+    let (pieces, valid_count) = errors;
+    let report = EncodeReport::tally(Tally {
+        samples: geom.distinct_len(),
+        valid_samples: valid_count,
+        blobs: (count, bytes),
+        roots: &roots,
+        model: &model,
+        steps: levels,
+        errors: rms_of_pieces(&pieces, valid_count),
+        rdo: false,
+        decodes: 0,
+    });
+    Ok(CubeEncoded {
+        face_side,
+        n,
+        value_scale_m: map.scale,
+        value_offset_m: map.offset,
+        steps,
+        roots,
+        model,
+        report,
+        peak_buffer_bytes: meter.peak,
+        tile_store_bytes: tile_store_bytes as u64,
+        coverage,
+    })
+}
+
+/// The tile side: the largest of 256, 128, 64, 32 whose band of rows (values, validity,
+/// fill context and integers, about 20 bytes a sample) takes at most a quarter of the
+/// budget.
+fn tile_side(w: usize, budget: usize) -> Result<usize, EncodeError> {
+    let band = |t: usize| (t + CONTEXT_ROWS) * w * 20;
+    [256, 128, 64, 32]
+        .into_iter()
+        .find(|&t| 4 * band(t) <= budget)
+        .ok_or(EncodeError::Budget {
+            needed: 4 * band(32),
+            budget,
+        })
+}
+
+/// The cube-edge points: every face's border entries, and which of them are not the
+/// canonical (lowest face) copy of their point, with that copy's index.
+struct Borders {
+    /// Per face: `(row, column, canonical index)` of its non-canonical border entries.
+    copies: Vec<Vec<(usize, usize, usize)>>,
+    /// Per face: the cube indices of its border entries that are canonical.
+    canonical: Vec<Vec<usize>>,
+    w: usize,
+}
+
+impl Borders {
+    fn new(geom: &SphereGeometry) -> Self {
+        let w = geom.face_side() + 1;
+        let mut copies = vec![Vec::new(); 6];
+        let mut canonical = vec![Vec::new(); 6];
+        for face in 0..6u8 {
+            for v in 0..w {
+                let step = if v == 0 || v == w - 1 { 1 } else { w - 1 };
+                for u in (0..w).step_by(step) {
+                    let here = geom.cube_index(face, u, v);
+                    let first = geom
+                        .point_indices(geom.sample_position(face, u, v))
+                        .next()
+                        .unwrap_or(here);
+                    if first == here {
+                        canonical[face as usize].push(here);
+                    } else {
+                        copies[face as usize].push((v, u, first));
+                    }
+                }
+            }
+        }
+        Borders {
+            copies,
+            canonical,
+            w,
+        }
+    }
+
+    /// Gives the non-canonical entries of face `face`'s rows `first..first + count` (in
+    /// `band`) their canonical copies' values from `known`, then records the band's
+    /// canonical border entries in `known` (faces come in order, so every canonical copy
+    /// is known before its copies are read).
+    fn apply<T: Copy>(
+        &self,
+        face: usize,
+        (first, count): (usize, usize),
+        band: &mut [T],
+        known: &mut HashMap<usize, T>,
+        record: bool,
+    ) -> Result<(), EncodeError> {
+        let w = self.w;
+        let rows = first..first + count;
+        for &(v, u, canon) in &self.copies[face] {
+            if rows.contains(&v) {
+                band[(v - first) * w + u] = *known.get(&canon).ok_or(EncodeError::Internal(
+                    "an edge point's canonical copy unread",
+                ))?;
+            }
+        }
+        if record {
+            let base = (face * w + first) * w;
+            for &k in &self.canonical[face] {
+                if (base..base + count * w).contains(&k) {
+                    known.insert(k, band[k - base]);
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Reads a band of rows and gives edge points their canonical copies' values (recording
+/// the band's own canonical border values).
+fn read_band(
+    source: &mut dyn CubeSource,
+    borders: &Borders,
+    canon: &mut HashMap<usize, f64>,
+    (face, first, count): (usize, usize, usize),
+    band: &mut [f64],
+) -> Result<(), EncodeError> {
+    source
+        .read_face_rows(face, first, count, band)
+        .map_err(EncodeError::Source)?;
+    borders.apply(face, (first, count), band, canon, true)
+}
+
+/// Pass 0's findings.
+struct Scan {
+    valid: usize,
+    lo: f64,
+    hi: f64,
+    sum: f64,
+    quanta: Vec<(f64, bool)>,
+}
+
+impl Scan {
+    fn new(known: Option<f64>) -> Self {
+        let mut candidates: Vec<f64> = DECIMAL_QUANTA.to_vec();
+        if let Some(q) = known.filter(|&q| q > 0.0) {
+            candidates.insert(0, q);
+        }
+        Scan {
+            valid: 0,
+            lo: f64::INFINITY,
+            hi: f64::NEG_INFINITY,
+            sum: 0.0,
+            quanta: candidates.into_iter().map(|q| (q, true)).collect(),
+        }
+    }
+
+    fn integral(&self, q: f64) -> bool {
+        self.quanta.iter().any(|&(c, ok)| c == q && ok)
+    }
+
+    /// Adds a band's values (fixed pieces in parallel, merged in order).
+    fn add(&mut self, band: &[f64]) {
+        let quanta: Vec<f64> = self.quanta.iter().map(|&(q, _)| q).collect();
+        let pieces: Vec<Scan> = band
+            .par_chunks(PASS_CHUNK)
+            .map(|c| {
+                let mut p = Scan {
+                    valid: 0,
+                    lo: f64::INFINITY,
+                    hi: f64::NEG_INFINITY,
+                    sum: 0.0,
+                    quanta: quanta.iter().map(|&q| (q, true)).collect(),
+                };
+                for &v in c.iter().filter(|v| v.is_finite()) {
+                    p.valid += 1;
+                    p.lo = p.lo.min(v);
+                    p.hi = p.hi.max(v);
+                    for (q, ok) in &mut p.quanta {
+                        *ok = *ok && on_quantum(v, *q);
+                    }
+                }
+                p
+            })
+            .collect();
+        // The mean fill's sum in entry order, as the in-memory encoder adds it.
+        self.sum = band
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold(self.sum, |s, &v| s + v);
+        for p in pieces {
+            self.valid += p.valid;
+            self.lo = self.lo.min(p.lo);
+            self.hi = self.hi.max(p.hi);
+            for (a, b) in self.quanta.iter_mut().zip(&p.quanta) {
+                a.1 = a.1 && b.1;
+            }
+        }
+    }
+}
+
+/// The integerisation's errors: `(sum of squares, max)` per [`PASS_CHUNK`] entries of
+/// the cube raster (as the in-memory encoder sums them), and the samples counted.
+type Errors = (Vec<(f64, f64)>, usize);
+
+/// Pass 1: reads every face again, fills nodata band by band, writes the integers as the
+/// tiles of `R_0`, and measures the integerisation's errors over the valid canonical
+/// entries, in the in-memory encoder's pieces and order.
+#[allow(clippy::too_many_arguments)]
+fn write_integers(
+    source: &mut dyn CubeSource,
+    geom: &SphereGeometry,
+    borders: &Borders,
+    (map, fill): (&ValueMap, &Fill),
+    lattice: &Lattice,
+    tiles: &mut dyn TileStore,
+    meter: &mut Meter,
+) -> Result<Errors, EncodeError> {
+    let w = geom.face_side() + 1;
+    let t = lattice.t;
+    let mut canon = HashMap::new();
+    let mut canon_ints: HashMap<usize, i32> = HashMap::new();
+    let mut vals = vec![0.0; (CONTEXT_ROWS + t) * w];
+    let mut valid = vec![false; (CONTEXT_ROWS + t) * w];
+    let mut ints = vec![0i32; t * w];
+    let mut tile = vec![0i32; t * t];
+    let mut pieces: Vec<(f64, f64)> = Vec::new();
+    let mut current = (0.0, 0.0f64);
+    let mut counted_total = 0usize;
+    for face in 0..6 {
+        let mut context = 0usize;
+        for first in (0..w).step_by(t) {
+            let count = t.min(w - first);
+            let (ctx, total) = (context * w, (context + count) * w);
+            read_band(
+                source,
+                borders,
+                &mut canon,
+                (face, first, count),
+                &mut vals[ctx..total],
+            )?;
+            let start = (face * w + first) * w;
+            for (b, v) in valid[ctx..total].iter_mut().zip(&vals[ctx..total]) {
+                *b = v.is_finite();
+            }
+            // Errors of the valid canonical entries, in pieces of the whole cube raster.
+            let (band_pieces, band_counted) =
+                piece_errors(geom, map, start, &vals[ctx..total], &mut current);
+            pieces.extend(band_pieces);
+            counted_total += band_counted;
+            valid[..ctx].iter_mut().for_each(|b| *b = true);
+            let fill_bytes = fill.rows(w, context, &mut vals[..total], &valid[..total]);
+            meter.note(
+                (vals.len() + ints.len() / 2 + tile.len() / 2) * 8 + valid.len() + fill_bytes,
+            );
+            ints[..count * w]
+                .par_chunks_mut(PASS_CHUNK)
+                .zip(vals[ctx..total].par_chunks(PASS_CHUNK))
+                .for_each(|(out, vs)| {
+                    for (o, &v) in out.iter_mut().zip(vs) {
+                        *o = map.int_of(v);
+                    }
+                });
+            borders.apply(
+                face,
+                (first, count),
+                &mut ints[..count * w],
+                &mut canon_ints,
+                true,
+            )?;
+            // The band is one row of tiles.
+            let tv = first / t;
+            for tu in 0..lattice.per {
+                tile.iter_mut().for_each(|x| *x = 0);
+                let (u0, u1) = (tu * t, ((tu + 1) * t).min(w));
+                for r in 0..count {
+                    tile[r * t..r * t + (u1 - u0)].copy_from_slice(&ints[r * w + u0..r * w + u1]);
+                }
+                tiles
+                    .write(lattice.offset(lattice.tile_no(face, tv, tu)), &tile)
+                    .map_err(EncodeError::Sink)?;
+            }
+            let keep = CONTEXT_ROWS.min(context + count);
+            vals.copy_within(total - keep * w..total, 0);
+            context = keep;
+        }
+    }
+    if (6 * w * w) % PASS_CHUNK != 0 {
+        pieces.push(current);
+    }
+    Ok((pieces, counted_total))
+}
+
+/// The error pieces completed by a band of the cube raster starting at entry `start`:
+/// `current` is the piece in progress when the band begins (and when it ends). Each
+/// piece sums its entries in order, as the in-memory encoder's does.
+fn piece_errors(
+    geom: &SphereGeometry,
+    map: &ValueMap,
+    start: usize,
+    band: &[f64],
+    current: &mut (f64, f64),
+) -> (Vec<(f64, f64)>, usize) {
+    let end = start + band.len();
+    // Segments of the band split at piece boundaries.
+    let mut cuts = vec![start];
+    let mut next = (start / PASS_CHUNK + 1) * PASS_CHUNK;
+    while next < end {
+        cuts.push(next);
+        next += PASS_CHUNK;
+    }
+    cuts.push(end);
+    let first = *current;
+    let sums: Vec<((f64, f64), usize)> = cuts
+        .par_windows(2)
+        .enumerate()
+        .map(|(s, c)| {
+            let mut acc = if s == 0 { first } else { (0.0, 0.0f64) };
+            let mut counted = 0;
+            for k in c[0]..c[1] {
+                let v = band[k - start];
+                if v.is_finite() && geom.is_canonical(k) {
+                    let e = (map.offset + map.int_of(v) as f64 * map.scale - v).abs();
+                    acc = (acc.0 + e * e, acc.1.max(e));
+                    counted += 1;
+                }
+            }
+            (acc, counted)
+        })
+        .collect();
+    let counted = sums.iter().map(|s| s.1).sum();
+    let mut done: Vec<(f64, f64)> = sums.into_iter().map(|s| s.0).collect();
+    // The last segment is complete only if the band ends on a piece boundary.
+    *current = if end.is_multiple_of(PASS_CHUNK) {
+        (0.0, 0.0)
+    } else {
+        done.pop().unwrap_or((0.0, 0.0))
+    };
+    (done, counted)
+}
+
+/// The tiled raster `R_o` of one octave: point `(x, y)` of face `f` is cube sample
+/// `(x 2^o, y 2^o)`; tiles of `t x t` points, `per` to a face side, stored from value
+/// offset `base`.
+struct Lattice {
+    t: usize,
+    shift: u32,
+    per: usize,
+    base: u64,
+    /// The full-resolution cube raster's width `2S + 1`.
+    w: usize,
+}
+
+impl Lattice {
+    fn new(face_side: usize, t: usize, o: usize, base: usize) -> Self {
+        let side = (face_side >> o) + 1;
+        Lattice {
+            t,
+            shift: o as u32,
+            per: side.div_ceil(t),
+            base: base as u64,
+            w: face_side + 1,
+        }
+    }
+
+    fn tiles(&self) -> usize {
+        6 * self.per * self.per
+    }
+
+    /// Values the tiles take.
+    fn len(&self) -> usize {
+        self.tiles() * self.t * self.t
+    }
+
+    fn tile_no(&self, face: usize, tv: usize, tu: usize) -> usize {
+        (face * self.per + tv) * self.per + tu
+    }
+
+    fn offset(&self, tile: usize) -> u64 {
+        self.base + (tile * self.t * self.t) as u64
+    }
+
+    /// `(face, x, y)` of cube-raster entry `index` in this raster.
+    #[inline]
+    fn point(&self, index: usize) -> (usize, usize, usize) {
+        let w2 = self.w * self.w;
+        let (face, rest) = (index / w2, index % w2);
+        let (v, u) = (rest / self.w, rest % self.w);
+        (face, u >> self.shift, v >> self.shift)
+    }
+
+    /// Tile number and offset in the tile of cube-raster entry `index`.
+    #[inline]
+    fn locate(&self, index: usize) -> (usize, usize) {
+        let (face, x, y) = self.point(index);
+        let t = self.t;
+        (self.tile_no(face, y / t, x / t), (y % t) * t + x % t)
+    }
+}
+
+/// The tiles of one raster held in memory, least recently used dropped first.
+struct Cache {
+    slots: Vec<Option<Box<[i32]>>>,
+    dirty: Vec<bool>,
+    used: Vec<u64>,
+    clock: u64,
+    held: usize,
+    cap: usize,
+    tile_values: usize,
+}
+
+impl Cache {
+    fn new(lattice: &Lattice, bytes: usize) -> Self {
+        let tiles = lattice.tiles();
+        let tile_values = lattice.t * lattice.t;
+        Cache {
+            slots: (0..tiles).map(|_| None).collect(),
+            dirty: vec![false; tiles],
+            used: vec![0; tiles],
+            clock: 0,
+            held: 0,
+            cap: (bytes / (4 * tile_values)).max(16),
+            tile_values,
+        }
+    }
+
+    fn held_bytes(&self) -> usize {
+        self.held * self.tile_values * 4 + self.slots.len() * 24
+    }
+
+    /// Loads the tiles `needed` (dropping others, least recently used first, to stay
+    /// within the capacity when it can).
+    fn ensure(
+        &mut self,
+        lattice: &Lattice,
+        needed: &[usize],
+        store: &mut dyn TileStore,
+    ) -> Result<(), EncodeError> {
+        self.clock += 1;
+        for &k in needed {
+            self.used[k] = self.clock;
+        }
+        let missing = needed.iter().filter(|&&k| self.slots[k].is_none()).count();
+        if self.held + missing > self.cap {
+            let mut held: Vec<usize> = (0..self.slots.len())
+                .filter(|&k| self.slots[k].is_some() && self.used[k] < self.clock)
+                .collect();
+            held.sort_by_key(|&k| self.used[k]);
+            for k in held.into_iter().take(self.held + missing - self.cap) {
+                self.drop_tile(lattice, k, store)?;
+            }
+        }
+        for &k in needed {
+            if self.slots[k].is_none() {
+                let mut data = vec![0i32; self.tile_values].into_boxed_slice();
+                store
+                    .read(lattice.offset(k), &mut data)
+                    .map_err(EncodeError::Source)?;
+                self.slots[k] = Some(data);
+                self.held += 1;
+            }
+        }
+        Ok(())
+    }
+
+    fn drop_tile(
+        &mut self,
+        lattice: &Lattice,
+        k: usize,
+        store: &mut dyn TileStore,
+    ) -> Result<(), EncodeError> {
+        if let Some(data) = self.slots[k].take() {
+            if self.dirty[k] {
+                store
+                    .write(lattice.offset(k), &data)
+                    .map_err(EncodeError::Sink)?;
+                self.dirty[k] = false;
+            }
+            self.held -= 1;
+        }
+        Ok(())
+    }
+
+    /// Writes every changed tile back.
+    fn flush(&mut self, lattice: &Lattice, store: &mut dyn TileStore) -> Result<(), EncodeError> {
+        for k in 0..self.slots.len() {
+            if let (true, Some(data)) = (self.dirty[k], &self.slots[k]) {
+                store
+                    .write(lattice.offset(k), data)
+                    .map_err(EncodeError::Sink)?;
+                self.dirty[k] = false;
+            }
+        }
+        Ok(())
+    }
+
+    /// Cube-raster entry `index`; 0 and `missed` set if its tile is not loaded (a bug).
+    #[inline]
+    fn get(&self, lattice: &Lattice, index: usize, missed: &AtomicBool) -> i32 {
+        let (tile, at) = lattice.locate(index);
+        match self.slots.get(tile).and_then(|s| s.as_deref()) {
+            Some(data) => data[at],
+            None => {
+                missed.store(true, Ordering::Relaxed);
+                0
+            }
+        }
+    }
+
+    #[inline]
+    fn set(&mut self, lattice: &Lattice, index: usize, x: i32) -> bool {
+        let (tile, at) = lattice.locate(index);
+        match self.slots.get_mut(tile).and_then(|s| s.as_deref_mut()) {
+            Some(data) => {
+                data[at] = x;
+                self.dirty[tile] = true;
+                true
+            }
+            None => false,
+        }
+    }
+}
+
+/// The tiles a diamond's points lie in.
+fn diamond_tiles(lattice: &Lattice, corners: &[Vec<usize>], out: &mut Vec<usize>) {
+    let t = lattice.t;
+    for piece in corners {
+        let pts: Vec<(usize, usize, usize)> = piece.iter().map(|&k| lattice.point(k)).collect();
+        let face = pts[0].0;
+        let (x0, x1) = (
+            pts.iter().map(|p| p.1).min().unwrap_or(0),
+            pts.iter().map(|p| p.1).max().unwrap_or(0),
+        );
+        let (y0, y1) = (
+            pts.iter().map(|p| p.2).min().unwrap_or(0),
+            pts.iter().map(|p| p.2).max().unwrap_or(0),
+        );
+        debug_assert!(pts.iter().all(|p| p.0 == face));
+        for tv in y0 / t..=y1 / t {
+            for tu in x0 / t..=x1 / t {
+                out.push(lattice.tile_no(face, tv, tu));
+            }
+        }
+    }
+}
+
+/// Analyses every diamond of `level` on the raster of its octave, batch by batch in tile
+/// order: details to the spill, measures into `measures`, the lifted vertices back into
+/// the tiles.
+fn analyse_level(
+    geom: &SphereGeometry,
+    level: usize,
+    (lattice, cache, tiles): (&Lattice, &mut Cache, &mut dyn TileStore),
+    (store, spill): (&mut Spill, &mut dyn IndexSpill),
+    measures: &mut [Option<Measure>],
+    meter: &mut Meter,
+) -> Result<(), EncodeError> {
+    let n = geom.n();
+    let slots = geom.level(level);
+    let corners: Vec<Vec<Vec<usize>>> = slots.par_iter().map(|s| s.piece_corners(n)).collect();
+    let mut order: Vec<(usize, usize)> = corners
+        .par_iter()
+        .enumerate()
+        .map(|(i, c)| (lattice.locate(c[0][0]).0, i))
+        .collect();
+    order.par_sort_unstable();
+    let (vlen, clen) = ((n + 1) * (n + 1), n * n);
+    let mut next = 0;
+    while next < order.len() {
+        // A batch: up to BATCH diamonds whose tiles fit in half the cache.
+        let mut needed: Vec<usize> = Vec::new();
+        let mut batch = Vec::new();
+        let mut own = Vec::new();
+        while next < order.len() && batch.len() < BATCH {
+            let i = order[next].1;
+            own.clear();
+            diamond_tiles(lattice, &corners[i], &mut own);
+            let mut merged: Vec<usize> = needed.iter().chain(&own).copied().collect();
+            merged.sort_unstable();
+            merged.dedup();
+            if !batch.is_empty() && merged.len() > cache.cap / 2 {
+                break;
+            }
+            needed = merged;
+            batch.push(i);
+            next += 1;
+        }
+        cache.ensure(lattice, &needed, tiles)?;
+        let missed = AtomicBool::new(false);
+        let shared: &Cache = cache;
+        let results: Vec<(usize, Vec<i32>, Vec<i32>, Measure)> = batch
+            .par_iter()
+            .map(|&i| {
+                let s = &slots[i];
+                let mut v = vec![0; vlen];
+                let mut c = vec![0; clen];
+                let mut h = vec![0; clen];
+                for a in 0..=n {
+                    for b in 0..=n {
+                        v[a * (n + 1) + b] = shared.get(lattice, s.vertex_index(a, b), &missed);
+                    }
+                }
+                for a in 0..n {
+                    for b in 0..n {
+                        c[a * n + b] = shared.get(lattice, s.cell_index(a, b), &missed);
+                    }
+                }
+                let fine = v.clone();
+                lifting::analyze(n, &mut v, &c, &mut h, geom.mask(s));
+                let m = measure(n, geom.mask(s), &v, &fine, &c);
+                (i, h, v, m)
+            })
+            .collect();
+        if missed.load(Ordering::Relaxed) {
+            return Err(EncodeError::Internal("a diamond point outside its tiles"));
+        }
+        meter.note(cache.held_bytes() + results.len() * (vlen + 2 * clen) * 4);
+        let mut lost = false;
+        for (i, _, v, _) in &results {
+            let s = &slots[*i];
+            for a in 1..n {
+                for b in 1..n {
+                    let x = v[a * (n + 1) + b];
+                    let (k, other) = s.vertex_copies(a, b);
+                    lost |= !cache.set(lattice, k, x);
+                    if let Some(k) = other {
+                        lost |= !cache.set(lattice, k, x);
+                    }
+                }
+            }
+        }
+        if lost {
+            return Err(EncodeError::Internal("a lifted vertex outside its tiles"));
+        }
+        let matrices: Vec<(usize, &[i32])> = results
+            .iter()
+            .filter(|r| r.1.iter().any(|&x| x != 0))
+            .map(|r| (r.0, &r.1[..]))
+            .collect();
+        if !matrices.is_empty() {
+            store.put_batch(spill, level, &matrices)?;
+        }
+        for (i, _, _, m) in results {
+            measures[i] = Some(m);
+        }
+    }
+    Ok(())
+}
+
+/// Writes `R_{o+1}` (`to`) from `R_o` (`from`): every second point of every second row,
+/// a row of output tiles from two rows of input tiles.
+fn compact(
+    from: &Lattice,
+    to: &Lattice,
+    store: &mut dyn TileStore,
+    meter: &mut Meter,
+) -> Result<(), EncodeError> {
+    let t = from.t;
+    let tv_len = t * t;
+    let mut rows = vec![0i32; 2 * from.per * tv_len];
+    let mut out = vec![0i32; tv_len];
+    meter.note((rows.len() + out.len()) * 4);
+    for face in 0..6 {
+        for tv in 0..to.per {
+            for r in 0..2 {
+                let src = 2 * tv + r;
+                for tu in 0..from.per {
+                    let buf =
+                        &mut rows[(r * from.per + tu) * tv_len..(r * from.per + tu + 1) * tv_len];
+                    if src < from.per {
+                        store
+                            .read(from.offset(from.tile_no(face, src, tu)), buf)
+                            .map_err(EncodeError::Source)?;
+                    } else {
+                        buf.iter_mut().for_each(|x| *x = 0);
+                    }
+                }
+            }
+            for tu in 0..to.per {
+                for y in 0..t {
+                    // Row 2y of the two input rows of tiles.
+                    let (r, yy) = (2 * y / t, 2 * y % t);
+                    for x in 0..t {
+                        let sx = 2 * (tu * t + x);
+                        let (stu, xx) = (sx / t, sx % t);
+                        out[y * t + x] = if stu < from.per {
+                            rows[(r * from.per + stu) * tv_len + yy * t + xx]
+                        } else {
+                            0
+                        };
+                    }
+                }
+                store
+                    .write(to.offset(to.tile_no(face, tv, tu)), &out)
+                    .map_err(EncodeError::Sink)?;
+            }
+        }
+    }
+    Ok(())
+}
