@@ -1349,6 +1349,12 @@ pub(crate) struct SideInfo {
 }
 
 impl SideInfo {
+    /// Side information computed elsewhere (the out-of-core planet encoder's, level by
+    /// level during its analysis).
+    pub(crate) fn from_parts(gamma: Vec<Vec<u64>>, has_data: Vec<Vec<bool>>) -> Self {
+        SideInfo { gamma, has_data }
+    }
+
     /// The class bytes the blob of diamond `(l, i)` carries for its owned children.
     fn classes_of<G: Layout>(&self, geom: &G, l: usize, i: usize) -> Vec<u8> {
         geom.owned(&geom.slot_levels()[l][i])

@@ -82,19 +82,55 @@ pub struct SphereSlot {
     /// Storage key of the diamond ([`SphereDomain::key`]).
     pub key: Vec<u8>,
     /// Indices (in the next detail level) of its children.
-    pub children: Vec<usize>,
+    pub children: Kids,
     /// The subset of `children` whose side information this diamond's blob carries
     /// (children whose first parent is this diamond), in side order.
-    pub owned: Vec<usize>,
+    pub owned: Kids,
     /// Points with `i >= j` (all points of a diamond inside one face): `P1`'s face.
     lower: Placement,
-    /// Edge diamonds: points with `i <= j`, on `P2`'s face.
-    upper: Option<Placement>,
+    /// Edge diamonds: points with `i <= j`, on `P2`'s face (boxed: few diamonds straddle
+    /// an edge, and a planet's geometry holds one slot per diamond).
+    upper: Option<Box<Placement>>,
     /// Whether the canonical copy of a diagonal point is the `upper` one.
     diag_upper: bool,
     /// Valid points; `None` when every vertex and cell is valid (always without a
     /// coverage).
     pub mask: Option<DiamondMask>,
+}
+
+/// Up to four diamond indices (a diamond has at most four children), held inline: a
+/// planet's geometry holds two of these per diamond, where two `Vec`s took 144 bytes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Kids {
+    ids: [usize; 4],
+    len: u8,
+}
+
+impl Kids {
+    /// Appends `k`; ignored past four (a diamond never has more children).
+    fn push(&mut self, k: usize) {
+        if let Some(slot) = self.ids.get_mut(self.len as usize) {
+            *slot = k;
+            self.len += 1;
+        }
+    }
+}
+
+impl<'a> IntoIterator for &'a Kids {
+    type Item = &'a usize;
+    type IntoIter = std::slice::Iter<'a, usize>;
+
+    fn into_iter(self) -> Self::IntoIter {
+        self.iter()
+    }
+}
+
+impl std::ops::Deref for Kids {
+    type Target = [usize];
+
+    fn deref(&self) -> &[usize] {
+        &self.ids[..self.len as usize]
+    }
 }
 
 impl SphereSlot {
@@ -203,7 +239,7 @@ impl SphereSlot {
             let (lo, hi) = p.span(p.base(cell), side);
             hi < start as isize || lo >= end as isize
         };
-        if misses(&self.lower) && self.upper.as_ref().is_none_or(misses) {
+        if misses(&self.lower) && self.upper.as_deref().is_none_or(misses) {
             return;
         }
         let lo = &self.lower;
@@ -521,10 +557,10 @@ impl SphereFrame {
         Ok(SphereSlot {
             id,
             key: d.key(id)?,
-            children: Vec::new(),
-            owned: Vec::new(),
+            children: Kids::default(),
+            owned: Kids::default(),
             lower,
-            upper,
+            upper: upper.map(Box::new),
             diag_upper,
             mask: None,
         })
@@ -857,7 +893,7 @@ impl Layout for SphereGeometry {
 
     fn index_span(&self, s: &SphereSlot) -> (usize, usize) {
         let (mut lo, mut hi) = (isize::MAX, isize::MIN);
-        for p in std::iter::once(&s.lower).chain(&s.upper) {
+        for p in std::iter::once(&s.lower).chain(s.upper.as_deref()) {
             for (base, side) in [(p.v0, self.n + 1), (p.c0, self.n)] {
                 let (l, h) = p.span(base, side);
                 (lo, hi) = (lo.min(l), hi.max(h));

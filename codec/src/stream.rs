@@ -48,7 +48,9 @@ mod cube;
 mod rms;
 mod synth;
 
-pub use cube::{CubeEncoded, CubeOptions, CubeSource, MemoryTiles, TileStore, encode_cube};
+pub use cube::{
+    CUBE_PHASES, CubeEncoded, CubeOptions, CubeSource, MemoryTiles, TileStore, encode_cube,
+};
 
 /// Rows of a planar raster, read on demand (row 0 = north). May be called several times
 /// over the same rows (the encoder makes more than one pass).

@@ -216,6 +216,25 @@ pub struct BuildSummary {
     /// Built out of core (streaming, bounded memory) because the in-memory estimate
     /// exceeded `--memory-budget-mb`.
     pub out_of_core: bool,
+    /// Out-of-core planet builds: each phase of the encoder (`stream::CUBE_PHASES`), its
+    /// seconds and the peak resident memory sampled during it.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub phases: Vec<PhaseFigure>,
+    /// Out-of-core planet builds: bytes of temporary files (tiles and index spill) at
+    /// most, beside the output.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scratch_bytes: Option<u64>,
+}
+
+/// One phase of an out-of-core planet build.
+#[derive(Serialize, Debug, Clone)]
+pub struct PhaseFigure {
+    /// Its name (`stream::CUBE_PHASES`).
+    pub name: &'static str,
+    /// Wall-clock seconds.
+    pub seconds: f64,
+    /// Peak resident memory sampled during it (every 50 ms), MB.
+    pub peak_rss_mb: f64,
 }
 
 fn rate_mode(args: &BuildArgs) -> Result<RateMode> {
@@ -334,7 +353,11 @@ fn build_streaming<S: RowSource>(
     let opts = StreamOptions {
         n,
         mode,
-        memory_budget_bytes: encoder_budget(budget_mb, width * height, n, source_bytes)?,
+        memory_budget_bytes: encoder_budget(
+            budget_mb,
+            planar_diamonds(width * height, n),
+            source_bytes,
+        )?,
         sparse: args.sparse || mosaic::is_mosaic(&args.input),
         rdo: args.rdo.mode(),
     };
@@ -420,11 +443,11 @@ fn build_cube_streaming<S: CubeSource>(
     let opts = CubeOptions {
         n,
         mode,
-        memory_budget_bytes: encoder_budget(budget_mb, samples, n, source_bytes)?,
+        memory_budget_bytes: encoder_budget(budget_mb, cube_diamonds(samples, n), source_bytes)?,
         sparse,
     };
     let radius = radius_m(args)?;
-    let (meta, description, encode_seconds) = with_builder(args, |builder| {
+    let built = with_builder(args, |builder| {
         let mut builder = builder
             .spill_to_disk()
             .with_context(|| format!("creating {}", args.output.display()))?;
@@ -441,8 +464,21 @@ fn build_cube_streaming<S: CubeSource>(
         };
         let mut spill = FileSpill::beside(&args.output)?;
         let mut tiles = FileTiles::beside(&args.output)?;
-        let enc = stream::encode_cube(cube, opts, &mut sink, &mut spill, &mut tiles)
+        let sampler = layout::RssSampler::start();
+        let mut last = Instant::now();
+        let mut phases = Vec::new();
+        let mut phase = |name: &'static str| {
+            phases.push(PhaseFigure {
+                name,
+                seconds: last.elapsed().as_secs_f64(),
+                peak_rss_mb: sampler.take_peak_mb(),
+            });
+            last = Instant::now();
+        };
+        let enc = stream::encode_cube(cube, opts, &mut sink, &mut spill, &mut tiles, &mut phase)
             .context("encoding the planet out of core")?;
+        tracing::info!(?phases, "phases");
+        let scratch_bytes = enc.tile_store_bytes + spill.len();
         spin.finish_and_clear();
         let encode_seconds = encode_started.elapsed().as_secs_f64();
         tracing::info!(
@@ -459,10 +495,13 @@ fn build_cube_streaming<S: CubeSource>(
         )?
         .desc;
         let meta = publish(args, builder, &description, n, mode)?;
-        Ok((meta, description, encode_seconds))
+        Ok((meta, description, encode_seconds, phases, scratch_bytes))
     })?;
+    let (meta, description, encode_seconds, phases, scratch_bytes) = built;
     let mut summary = summarise(args, &meta, &description, started, (0.0, encode_seconds))?;
     summary.out_of_core = true;
+    summary.phases = phases;
+    summary.scratch_bytes = Some(scratch_bytes);
     Ok(summary)
 }
 
@@ -575,7 +614,11 @@ fn build_colour_streaming(
         n,
         mode: channel_mode,
         // The decoded image stays in memory.
-        memory_budget_bytes: encoder_budget(budget_mb, width * height, n, width * height * 3)?,
+        memory_budget_bytes: encoder_budget(
+            budget_mb,
+            planar_diamonds(width * height, n),
+            width * height * 3,
+        )?,
         sparse: args.sparse,
         rdo: args.rdo.mode(),
     };
@@ -748,6 +791,13 @@ impl IndexSpill for FileSpill {
     }
 }
 
+impl FileSpill {
+    /// Bytes in the spill's files now.
+    fn len(&self) -> u64 {
+        self.lens.iter().sum()
+    }
+}
+
 /// What the metadata says of an out-of-core build's input (asked once it has been read).
 struct StreamFacts {
     units: String,
@@ -756,14 +806,18 @@ struct StreamFacts {
 }
 
 /// What `--memory-budget-mb` leaves the streaming encoder's sample buffers once the
-/// program, the per-diamond bookkeeping (about 400 bytes a diamond), the blob spill's
-/// index and `source_bytes` the input holds itself are counted (see `build_streaming`).
-fn encoder_budget(budget_mb: u64, samples: usize, n: usize, source_bytes: usize) -> Result<usize> {
-    let diamonds = 2 * samples / (n * n) + 64;
+/// program, the per-diamond bookkeeping (`diamonds` at `per_diamond` bytes: the geometry,
+/// side information and spill index), the blob spill's buffers and `source_bytes` the
+/// input holds itself are counted (see `build_streaming`).
+fn encoder_budget(
+    budget_mb: u64,
+    (diamonds, per_diamond): (usize, usize),
+    source_bytes: usize,
+) -> Result<usize> {
     let program = layout::rss_bytes()
         .max(PROGRAM_BYTES)
         .next_multiple_of(1 << 20);
-    let reserve = program + diamonds * 400 + (3 << 20) + source_bytes;
+    let reserve = program + diamonds * per_diamond + (3 << 20) + source_bytes;
     let budget = (budget_mb as usize) << 20;
     if budget <= reserve {
         bail!(
@@ -775,6 +829,20 @@ fn encoder_budget(budget_mb: u64, samples: usize, n: usize, source_bytes: usize)
         );
     }
     Ok(budget - reserve)
+}
+
+/// Diamonds of a planar raster of `samples` (a bound) and the bookkeeping bytes each
+/// costs the streaming encoder (korea_srtm3_4097 at a 32 MB budget: about 400).
+fn planar_diamonds(samples: usize, n: usize) -> (usize, usize) {
+    (2 * samples / (n * n) + 64, 400)
+}
+
+/// Diamonds of a planet of `samples` cube-raster entries (the levels hold about
+/// `samples / N^2` together) and the bookkeeping bytes each costs the out-of-core planet
+/// encoder: its geometry's slot (about 220 bytes, measured at face side 8192) and its
+/// side information and spill index (about 60).
+fn cube_diamonds(samples: usize, n: usize) -> (usize, usize) {
+    (samples / (n * n) * 21 / 20 + 64, 280)
 }
 
 /// Runs `quincunx build`.
@@ -1230,6 +1298,8 @@ fn summarise(
         content_hash: meta.content_hash.clone(),
         rdo: d.rdo_used,
         out_of_core: false,
+        phases: Vec::new(),
+        scratch_bytes: None,
     })
 }
 

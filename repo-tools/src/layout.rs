@@ -257,6 +257,46 @@ pub fn peak_rss_mb() -> f64 {
     proc_status_kb("VmHWM:").map_or(0.0, |kb| kb / 1024.0)
 }
 
+/// Samples this process's resident memory every 50 ms on a thread of its own (reading
+/// `/proc`, which does not disturb what is measured) and keeps the peak since the last
+/// [`RssSampler::take_peak_mb`]. Stops when dropped.
+pub struct RssSampler {
+    peak_kb: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl RssSampler {
+    /// Starts sampling.
+    pub fn start() -> RssSampler {
+        use std::sync::atomic::Ordering;
+        let peak_kb = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let (p, s) = (peak_kb.clone(), stop.clone());
+        std::thread::spawn(move || {
+            while !s.load(Ordering::Relaxed) {
+                if let Some(kb) = proc_status_kb("VmRSS:") {
+                    p.fetch_max(kb as u64, Ordering::Relaxed);
+                }
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+        });
+        RssSampler { peak_kb, stop }
+    }
+
+    /// The peak since the last call (or the start), MB, including now.
+    pub fn take_peak_mb(&self) -> f64 {
+        use std::sync::atomic::Ordering;
+        let now = proc_status_kb("VmRSS:").unwrap_or(0.0) as u64;
+        self.peak_kb.swap(0, Ordering::Relaxed).max(now) as f64 / 1024.0
+    }
+}
+
+impl Drop for RssSampler {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
 /// Resident memory of this process now, bytes (Linux; 0 elsewhere).
 pub fn rss_bytes() -> usize {
     proc_status_kb("VmRSS:").map_or(0, |kb| (kb * 1024.0) as usize)

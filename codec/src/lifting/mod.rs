@@ -28,9 +28,15 @@ pub use gather::{child_half, scatter_to_child};
 /// diamonds.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct DiamondMask {
+    /// One pointer: a planet's geometry holds an `Option` of this per diamond.
+    bits: Arc<MaskBits>,
+}
+
+#[derive(Debug, PartialEq, Eq)]
+struct MaskBits {
     n: usize,
-    vertex: Arc<[bool]>,
-    cell: Arc<[bool]>,
+    vertex: Box<[bool]>,
+    cell: Box<[bool]>,
 }
 
 impl DiamondMask {
@@ -43,41 +49,45 @@ impl DiamondMask {
         let w = n + 1;
         let vertex = (0..w * w).map(|k| vertex(k / w, k % w)).collect();
         let cell = (0..n * n).map(|k| cell(k / n, k % n)).collect();
-        DiamondMask { n, vertex, cell }
+        DiamondMask {
+            bits: Arc::new(MaskBits { n, vertex, cell }),
+        }
     }
 
     /// The mask of a diamond with no valid point.
     pub fn none(n: usize) -> Self {
         DiamondMask {
-            n,
-            vertex: vec![false; (n + 1) * (n + 1)].into(),
-            cell: vec![false; n * n].into(),
+            bits: Arc::new(MaskBits {
+                n,
+                vertex: vec![false; (n + 1) * (n + 1)].into(),
+                cell: vec![false; n * n].into(),
+            }),
         }
     }
 
     /// Grid size `N`.
     pub fn n(&self) -> usize {
-        self.n
+        self.bits.n
     }
 
     /// Whether vertex `(i, j)` is valid.
     pub fn vertex(&self, i: usize, j: usize) -> bool {
-        self.vertex[i * (self.n + 1) + j]
+        self.bits.vertex[i * (self.bits.n + 1) + j]
     }
 
     /// Whether cell `(i, j)` is valid.
     pub fn cell(&self, i: usize, j: usize) -> bool {
-        self.cell[i * self.n + j]
+        self.bits.cell[i * self.bits.n + j]
     }
 
     /// Cell validity, row-major.
     pub fn cells(&self) -> &[bool] {
-        &self.cell
+        &self.bits.cell
     }
 
     /// Number of valid cells.
     pub fn valid_cells(&self) -> usize {
-        self.cell.iter().filter(|&&b| b).count()
+        self.bits.cell.iter().filter(|&&b| b).count()
     }
 }
 
@@ -88,7 +98,7 @@ pub fn analyze(n: usize, v: &mut [i32], c: &[i32], h: &mut [i32], mask: Option<&
     debug_assert!(v.len() == (n + 1) * (n + 1) && c.len() == n * n && h.len() == n * n);
     predict(n, v, h, mask);
     for k in 0..n * n {
-        let valid = mask.is_none_or(|m| m.cell[k]);
+        let valid = mask.is_none_or(|m| m.bits.cell[k]);
         h[k] = if valid { c[k].wrapping_sub(h[k]) } else { 0 };
     }
     update(n, v, h, mask, false);
@@ -102,7 +112,7 @@ pub fn synthesize(n: usize, v: &mut [i32], h: &[i32], c: &mut [i32], mask: Optio
     update(n, v, h, mask, true);
     predict(n, v, c, mask);
     for k in 0..n * n {
-        let valid = mask.is_none_or(|m| m.cell[k]);
+        let valid = mask.is_none_or(|m| m.bits.cell[k]);
         c[k] = if valid { c[k].wrapping_add(h[k]) } else { 0 };
     }
 }
@@ -114,7 +124,7 @@ pub fn synthesize_zero(n: usize, v: &[i32], c: &mut [i32], mask: Option<&Diamond
     debug_assert!(v.len() == (n + 1) * (n + 1) && c.len() == n * n);
     predict(n, v, c, mask);
     if let Some(m) = mask {
-        for (x, &ok) in c.iter_mut().zip(m.cell.iter()) {
+        for (x, &ok) in c.iter_mut().zip(m.bits.cell.iter()) {
             if !ok {
                 *x = 0;
             }

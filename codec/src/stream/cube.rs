@@ -33,9 +33,9 @@ use super::rms::Spill;
 use super::{BlobSink, Fill, IndexSpill, Meter};
 use crate::coverage::{Coverage, CubeCoverage};
 use crate::encode::{
-    DECIMAL_QUANTA, EncodeError, EncodeReport, Encoded, EncodedDomain, Measure, PASS_CHUNK,
-    RateMode, Tally, ValueMap, blob_model, check_tolerance, code_blob, measure, native_quantum,
-    on_quantum, rms_of_pieces, side_information,
+    DECIMAL_QUANTA, EncodeError, EncodeReport, Encoded, EncodedDomain, PASS_CHUNK, RateMode,
+    SideInfo, Tally, ValueMap, blob_model, check_tolerance, code_blob, measure, native_quantum,
+    on_quantum, rms_of_pieces, side_info,
 };
 use crate::entropy::CodecModel;
 use crate::lifting;
@@ -166,13 +166,19 @@ const BATCH: usize = 256;
 /// Filled rows of a face kept as context for the next band's fill.
 const CONTEXT_ROWS: usize = super::CONTEXT_ROWS;
 
-/// Encodes a planet out of core (see the module docs).
+/// The phases [`encode_cube`] reports as it ends each: pass 0, pass 1, the analysis, and
+/// the side information, model and blobs.
+pub const CUBE_PHASES: [&str; 4] = ["scan", "integers", "analysis", "coding"];
+
+/// Encodes a planet out of core (see the module docs). `phase(name)` is called as each
+/// of [`CUBE_PHASES`] ends (for a caller's timings).
 pub fn encode_cube(
     source: &mut dyn CubeSource,
     opts: CubeOptions,
     sink: &mut dyn BlobSink,
     spill: &mut dyn IndexSpill,
     tiles: &mut dyn TileStore,
+    phase: &mut dyn FnMut(&'static str),
 ) -> Result<CubeEncoded, EncodeError> {
     check_tolerance(opts.mode)?;
     if matches!(opts.mode, RateMode::RmsM(_)) {
@@ -209,6 +215,7 @@ pub fn encode_cube(
     if scan.valid == 0 {
         return Err(EncodeError::AllNodata);
     }
+    phase(CUBE_PHASES[0]);
     let coverage = coverage.map(CubeCoverage::finish);
     let geom = match &coverage {
         Some(c) => geom.covered(c)?,
@@ -235,14 +242,17 @@ pub fn encode_cube(
         &mut meter,
     )?;
     let tile_store_bytes = (lattice.len() + Lattice::new(face_side, tile, 1, 0).len()) * 4;
+    phase(CUBE_PHASES[1]);
 
     // The analysis, octave by octave.
     let levels = geom.slot_levels().len();
     let mut store = Spill::with_levels(n, 0, (0..levels).map(|l| geom.level(l).len()));
     store.clear(spill)?;
-    let mut measures: Vec<Vec<Option<Measure>>> = (0..levels)
-        .map(|l| vec![None; geom.level(l).len()])
-        .collect();
+    let mut side = Side {
+        gamma: vec![Vec::new(); levels],
+        has_data: vec![Vec::new(); levels],
+        bounds: Vec::new(),
+    };
     let cache_bytes = opts.memory_budget_bytes / 2;
     let second = lattice.len();
     let mut lattice = lattice;
@@ -261,7 +271,7 @@ pub fn encode_cube(
                 level,
                 (&lattice, &mut cache, &mut *tiles),
                 (&mut store, &mut *spill),
-                &mut measures[level],
+                &mut side,
                 &mut meter,
             )?;
         }
@@ -279,14 +289,10 @@ pub fn encode_cube(
     }
     drop(cache);
 
-    // Side information, model and blobs.
-    let measures: Vec<Vec<Measure>> = measures
-        .into_iter()
-        .map(|l| l.into_iter().collect::<Option<Vec<_>>>())
-        .collect::<Option<_>>()
-        .ok_or(EncodeError::Internal("a diamond was not analysed"))?;
-    let side = side_information(&geom, |l, i| store.has(l, i), &measures);
-    drop(measures);
+    phase(CUBE_PHASES[2]);
+
+    // The model and the blobs.
+    let side = SideInfo::from_parts(side.gamma, side.has_data);
     let steps = vec![256u32; levels];
     let failed: Mutex<Option<EncodeError>> = Mutex::new(None);
     let spill_ref: &dyn IndexSpill = spill;
@@ -324,6 +330,7 @@ pub fn encode_cube(
     if let Some(e) = failed.into_inner().ok().flatten() {
         return Err(e);
     }
+    phase(CUBE_PHASES[3]);
     let (pieces, valid_count) = errors;
     let report = EncodeReport::tally(Tally {
         samples: geom.distinct_len(),
@@ -865,37 +872,49 @@ fn diamond_tiles(lattice: &Lattice, corners: &[Vec<usize>], out: &mut Vec<usize>
     }
 }
 
+/// Every diamond's side information, computed as the analysis goes up the levels (the
+/// children's before their parents'): the class and data flags for the blobs, and the
+/// value bounds of the level below the one being analysed.
+struct Side {
+    gamma: Vec<Vec<u64>>,
+    has_data: Vec<Vec<bool>>,
+    bounds: Vec<(i64, i64)>,
+}
+
 /// Analyses every diamond of `level` on the raster of its octave, batch by batch in tile
-/// order: details to the spill, measures into `measures`, the lifted vertices back into
-/// the tiles.
+/// order: details to the spill, side information into `side`, the lifted vertices back
+/// into the tiles.
 fn analyse_level(
     geom: &SphereGeometry,
     level: usize,
     (lattice, cache, tiles): (&Lattice, &mut Cache, &mut dyn TileStore),
     (store, spill): (&mut Spill, &mut dyn IndexSpill),
-    measures: &mut [Option<Measure>],
+    side: &mut Side,
     meter: &mut Meter,
 ) -> Result<(), EncodeError> {
     let n = geom.n();
     let slots = geom.level(level);
-    let corners: Vec<Vec<Vec<usize>>> = slots.par_iter().map(|s| s.piece_corners(n)).collect();
-    let mut order: Vec<(usize, usize)> = corners
+    let finest = level + 1 == geom.slot_levels().len();
+    let mut gamma = vec![0u64; slots.len()];
+    let mut has_data = vec![false; slots.len()];
+    let mut bounds = vec![(0i64, 0i64); slots.len()];
+    let mut order: Vec<(usize, usize)> = slots
         .par_iter()
         .enumerate()
-        .map(|(i, c)| (lattice.locate(c[0][0]).0, i))
+        .map(|(i, s)| (lattice.locate(s.vertex_index(0, 0)).0, i))
         .collect();
     order.par_sort_unstable();
     let (vlen, clen) = ((n + 1) * (n + 1), n * n);
     let mut next = 0;
+    let mut own = Vec::new();
     while next < order.len() {
         // A batch: up to BATCH diamonds whose tiles fit in half the cache.
         let mut needed: Vec<usize> = Vec::new();
         let mut batch = Vec::new();
-        let mut own = Vec::new();
         while next < order.len() && batch.len() < BATCH {
             let i = order[next].1;
             own.clear();
-            diamond_tiles(lattice, &corners[i], &mut own);
+            diamond_tiles(lattice, &slots[i].piece_corners(n), &mut own);
             let mut merged: Vec<usize> = needed.iter().chain(&own).copied().collect();
             merged.sort_unstable();
             merged.dedup();
@@ -909,7 +928,7 @@ fn analyse_level(
         cache.ensure(lattice, &needed, tiles)?;
         let missed = AtomicBool::new(false);
         let shared: &Cache = cache;
-        let results: Vec<(usize, Vec<i32>, Vec<i32>, Measure)> = batch
+        let results: Vec<(usize, Vec<i32>, Vec<i32>, bool, (u64, bool, (i64, i64)))> = batch
             .par_iter()
             .map(|&i| {
                 let s = &slots[i];
@@ -929,7 +948,20 @@ fn analyse_level(
                 let fine = v.clone();
                 lifting::analyze(n, &mut v, &c, &mut h, geom.mask(s));
                 let m = measure(n, geom.mask(s), &v, &fine, &c);
-                (i, h, v, m)
+                let nonzero = h.iter().any(|&x| x != 0);
+                let children: &[usize] = if finest { &[] } else { geom.children(s) };
+                let info = side_info(
+                    &m,
+                    nonzero,
+                    children.iter().map(|&k| {
+                        (
+                            side.gamma[level + 1][k],
+                            side.has_data[level + 1][k],
+                            side.bounds[k],
+                        )
+                    }),
+                );
+                (i, h, v, nonzero, info)
             })
             .collect();
         if missed.load(Ordering::Relaxed) {
@@ -937,7 +969,7 @@ fn analyse_level(
         }
         meter.note(cache.held_bytes() + results.len() * (vlen + 2 * clen) * 4);
         let mut lost = false;
-        for (i, _, v, _) in &results {
+        for (i, _, v, _, _) in &results {
             let s = &slots[*i];
             for a in 1..n {
                 for b in 1..n {
@@ -955,16 +987,19 @@ fn analyse_level(
         }
         let matrices: Vec<(usize, &[i32])> = results
             .iter()
-            .filter(|r| r.1.iter().any(|&x| x != 0))
+            .filter(|r| r.3)
             .map(|r| (r.0, &r.1[..]))
             .collect();
         if !matrices.is_empty() {
             store.put_batch(spill, level, &matrices)?;
         }
-        for (i, _, _, m) in results {
-            measures[i] = Some(m);
+        for (i, _, _, _, (g, d, b)) in results {
+            (gamma[i], has_data[i], bounds[i]) = (g, d, b);
         }
     }
+    side.gamma[level] = gamma;
+    side.has_data[level] = has_data;
+    side.bounds = bounds;
     Ok(())
 }
 
