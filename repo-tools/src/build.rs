@@ -439,6 +439,13 @@ fn build_cube_streaming<S: CubeSource>(
 ) -> Result<BuildSummary> {
     let face_side = cube.face_side();
     let samples = 6 * (face_side + 1) * (face_side + 1);
+    if matches!(mode, RateMode::RmsM(_)) {
+        bail!(
+            "this planet needs about {} MB to build in memory but --memory-budget-mb is {budget_mb}: \
+             RMS rate control out of core is planar only; give --max-error-m or --lossless, or raise the budget",
+            in_memory_mb(samples, 1)
+        );
+    }
     tracing::info!(face_side, budget_mb, "out-of-core planet build");
     let opts = CubeOptions {
         n,

@@ -961,6 +961,49 @@ fn demo_builds_and_verifies_the_bundled_samples_once() {
 }
 
 #[test]
+fn planets_out_of_core_are_the_in_memory_repositories() {
+    // The bundled ETOPO20 on a cube of face side 512: about 42 MB to build in memory.
+    let input = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/etopo20_global.json");
+    let dir = tempfile::tempdir().unwrap();
+    let build = |name: &str, rate: &[&str], flags: &[&str]| {
+        let repo = dir.path().join(name);
+        let mut cmd = bin();
+        cmd.args(["build", "--planet", "--face-side", "512", "--json"])
+            .args(rate)
+            .args(flags)
+            .arg("-o")
+            .arg(&repo)
+            .arg(&input);
+        (repo, cmd)
+    };
+    for rate in [&["--lossless"][..], &["--max-error-m", "2"]] {
+        let tag = rate.join("");
+        let (repo, mut cmd) = build(&format!("ooc{tag}"), rate, &["--memory-budget-mb", "32"]);
+        let ooc = ok_json(&mut cmd);
+        let mem = ok_json(&mut build(&format!("mem{tag}"), rate, &[]).1);
+        println!("planet {rate:?} out of core {ooc}\nin memory {mem}");
+        assert_eq!(ooc["out_of_core"], true, "{rate:?}");
+        assert_eq!(mem["out_of_core"], false, "{rate:?}");
+        assert!(ooc["peak_rss_mb"].as_f64().unwrap() <= 32.0, "{ooc}");
+        for key in ["content_hash", "rms", "max_abs", "blob_count"] {
+            assert_eq!(ooc[key], mem[key], "{rate:?}: {key}");
+        }
+        let verified = verify_json(&repo, &input);
+        assert_eq!(verified["blob_errors"], 0, "{rate:?}");
+        assert_eq!(verified["seam_mismatches"], 0, "{rate:?}");
+    }
+    // RMS rate control out of core is planar only: a clear refusal, nothing left behind.
+    let (repo, mut cmd) = build("rms", &["--rms-m", "9"], &["--memory-budget-mb", "32"]);
+    let o = run_refused(&mut cmd);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("RMS rate control out of core is planar only"),
+        "{err}"
+    );
+    assert!(!repo.exists());
+}
+
+#[test]
 fn sparse_planet_codes_only_where_there_is_data() {
     // The bundled ETOPO20 cut to North America (20..60 N, 130..60 W), NaN elsewhere.
     let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data");
