@@ -335,45 +335,6 @@ impl RasterCoverage {
     }
 }
 
-#[cfg(test)]
-#[allow(clippy::unwrap_used, clippy::expect_used)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn closed_blocks_share_their_border_samples() {
-        // 65 x 65 raster, N = 32: blocks of 32, 3 x 3 (the last ones hold the far border).
-        let cov = Coverage::of_raster(65, 65, 32, |k| k % 65 < 10 && k / 65 < 10);
-        assert_eq!((cov.block_side(), cov.cols(), cov.rows()), (32, 3, 3));
-        assert_eq!(cov.covered_blocks(), 1);
-        assert!(cov.covers_point(0, 32, 32));
-        assert!(cov.covers_point(0, 0, 0));
-        assert!(!cov.covers_point(0, 33, 0));
-        assert_eq!(cov.state(0, [0, 31], [0, 31]), BlockState::Full);
-        // Sample 32 is also in the closed block 1.
-        assert_eq!(cov.state(0, [0, 32], [0, 31]), BlockState::Mixed);
-        assert_eq!(cov.state(0, [0, 33], [0, 0]), BlockState::Mixed);
-        assert_eq!(cov.state(0, [33, 64], [0, 64]), BlockState::Empty);
-    }
-
-    #[test]
-    fn bytes_round_trip_and_reject_hostile_input() {
-        let cov = Coverage::of_cube(128, 16, |k| k % 7 == 0 && k % 1000 < 300);
-        assert_eq!(cov.blocks(), 6 * 8 * 8);
-        let bytes = cov.to_bytes();
-        assert_eq!(Coverage::from_bytes(&bytes).unwrap(), cov);
-        for len in 0..bytes.len() {
-            assert!(Coverage::from_bytes(&bytes[..len]).is_err());
-        }
-        let mut long = bytes.clone();
-        long.push(0);
-        assert!(Coverage::from_bytes(&long).is_err());
-        let mut huge = bytes.clone();
-        huge[3..7].copy_from_slice(&u32::MAX.to_le_bytes());
-        assert!(Coverage::from_bytes(&huge).is_err());
-    }
-}
-
 /// [`Coverage::of_cube`] built one face row at a time (the out-of-core planet encoder's
 /// first pass).
 pub struct CubeCoverage {
@@ -413,5 +374,44 @@ impl CubeCoverage {
     /// The coverage.
     pub fn finish(self) -> Coverage {
         self.cov
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used, clippy::expect_used)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn closed_blocks_share_their_border_samples() {
+        // 65 x 65 raster, N = 32: blocks of 32, 3 x 3 (the last ones hold the far border).
+        let cov = Coverage::of_raster(65, 65, 32, |k| k % 65 < 10 && k / 65 < 10);
+        assert_eq!((cov.block_side(), cov.cols(), cov.rows()), (32, 3, 3));
+        assert_eq!(cov.covered_blocks(), 1);
+        assert!(cov.covers_point(0, 32, 32));
+        assert!(cov.covers_point(0, 0, 0));
+        assert!(!cov.covers_point(0, 33, 0));
+        assert_eq!(cov.state(0, [0, 31], [0, 31]), BlockState::Full);
+        // Sample 32 is also in the closed block 1.
+        assert_eq!(cov.state(0, [0, 32], [0, 31]), BlockState::Mixed);
+        assert_eq!(cov.state(0, [0, 33], [0, 0]), BlockState::Mixed);
+        assert_eq!(cov.state(0, [33, 64], [0, 64]), BlockState::Empty);
+    }
+
+    #[test]
+    fn bytes_round_trip_and_reject_hostile_input() {
+        let cov = Coverage::of_cube(128, 16, |k| k % 7 == 0 && k % 1000 < 300);
+        assert_eq!(cov.blocks(), 6 * 8 * 8);
+        let bytes = cov.to_bytes();
+        assert_eq!(Coverage::from_bytes(&bytes).unwrap(), cov);
+        for len in 0..bytes.len() {
+            assert!(Coverage::from_bytes(&bytes[..len]).is_err());
+        }
+        let mut long = bytes.clone();
+        long.push(0);
+        assert!(Coverage::from_bytes(&long).is_err());
+        let mut huge = bytes.clone();
+        huge[3..7].copy_from_slice(&u32::MAX.to_le_bytes());
+        assert!(Coverage::from_bytes(&huge).is_err());
     }
 }

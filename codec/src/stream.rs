@@ -239,13 +239,7 @@ pub fn encode_streaming_with(
         Some(c) => RasterGeometry::with_coverage(width, height, n, c)?,
         None => geom,
     };
-    let native = native_quantum(source.quantum_m(), |q| scan.integral(q));
-    let map = ValueMap::new(scan.lo, scan.hi, native, opts.mode)?;
-    let fill = Fill {
-        lo: scan.lo,
-        hi: scan.hi,
-        mean: scan.sum / scan.valid as f64,
-    };
+    let (map, fill) = scan.mapping(source.quantum_m(), opts.mode)?;
     if let RateMode::RmsM(target) = opts.mode {
         let passes = rms::Passes {
             source,
@@ -504,8 +498,72 @@ struct Scan {
 }
 
 impl Scan {
+    /// Nothing seen yet; the candidate quanta are `known` (when given) and the decimal
+    /// ones.
+    fn new(known: Option<f64>) -> Self {
+        let mut candidates: Vec<f64> = crate::encode::DECIMAL_QUANTA.to_vec();
+        if let Some(q) = known.filter(|&q| q > 0.0) {
+            candidates.insert(0, q);
+        }
+        Scan {
+            valid: 0,
+            lo: f64::INFINITY,
+            hi: f64::NEG_INFINITY,
+            sum: 0.0,
+            quanta: candidates.into_iter().map(|q| (q, true)).collect(),
+        }
+    }
+
     fn integral(&self, q: f64) -> bool {
         self.quanta.iter().any(|&(c, ok)| c == q && ok)
+    }
+
+    /// How the values map to integers (`known`: the source's quantum, asked now, after
+    /// the pass) and how nodata is filled.
+    fn mapping(&self, known: Option<f64>, mode: RateMode) -> Result<(ValueMap, Fill), EncodeError> {
+        let native = native_quantum(known, |q| self.integral(q));
+        let map = ValueMap::new(self.lo, self.hi, native, mode)?;
+        let fill = Fill {
+            lo: self.lo,
+            hi: self.hi,
+            mean: self.sum / self.valid as f64,
+        };
+        Ok((map, fill))
+    }
+
+    /// Adds the values of a band: fixed pieces in parallel, merged in order (the same
+    /// results with any thread count); the sum in value order, as the in-memory planet
+    /// encoder adds it for its mean fill.
+    fn add(&mut self, band: &[f64]) {
+        let quanta: Vec<f64> = self.quanta.iter().map(|&(q, _)| q).collect();
+        let pieces: Vec<Scan> = band
+            .par_chunks(PIECE)
+            .map(|c| {
+                let mut p = Scan::new(None);
+                p.quanta = quanta.iter().map(|&q| (q, true)).collect();
+                for &v in c.iter().filter(|v| v.is_finite()) {
+                    p.valid += 1;
+                    p.lo = p.lo.min(v);
+                    p.hi = p.hi.max(v);
+                    for (q, ok) in &mut p.quanta {
+                        *ok = *ok && on_quantum(v, *q);
+                    }
+                }
+                p
+            })
+            .collect();
+        self.sum = band
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold(self.sum, |s, &v| s + v);
+        for p in pieces {
+            self.valid += p.valid;
+            self.lo = self.lo.min(p.lo);
+            self.hi = self.hi.max(p.hi);
+            for (a, b) in self.quanta.iter_mut().zip(&p.quanta) {
+                a.1 = a.1 && b.1;
+            }
+        }
     }
 }
 
@@ -516,17 +574,7 @@ fn scan(
     meter: &mut Meter,
 ) -> Result<Scan, EncodeError> {
     let w = plan.width;
-    let mut candidates: Vec<f64> = crate::encode::DECIMAL_QUANTA.to_vec();
-    if let Some(q) = source.quantum_m().filter(|&q| q > 0.0) {
-        candidates.insert(0, q);
-    }
-    let mut s = Scan {
-        valid: 0,
-        lo: f64::INFINITY,
-        hi: f64::NEG_INFINITY,
-        sum: 0.0,
-        quanta: candidates.into_iter().map(|q| (q, true)).collect(),
-    };
+    let mut s = Scan::new(source.quantum_m());
     let mut buf = vec![0.0; plan.chunk_rows * w];
     meter.note(buf.capacity() * 8);
     let mut first = 0;
@@ -541,39 +589,7 @@ fn scan(
                 cov.mark_row(first + r, |x| row[x].is_finite());
             }
         }
-        // Fixed pieces in parallel, merged in order (the same sums with any thread count).
-        let quanta: Vec<f64> = s.quanta.iter().map(|&(q, _)| q).collect();
-        let pieces: Vec<Scan> = out
-            .par_chunks(PIECE)
-            .map(|c| {
-                let mut p = Scan {
-                    valid: 0,
-                    lo: f64::INFINITY,
-                    hi: f64::NEG_INFINITY,
-                    sum: 0.0,
-                    quanta: quanta.iter().map(|&q| (q, true)).collect(),
-                };
-                for &v in c.iter().filter(|v| v.is_finite()) {
-                    p.valid += 1;
-                    p.lo = p.lo.min(v);
-                    p.hi = p.hi.max(v);
-                    p.sum += v;
-                    for (q, ok) in &mut p.quanta {
-                        *ok = *ok && on_quantum(v, *q);
-                    }
-                }
-                p
-            })
-            .collect();
-        for p in pieces {
-            s.valid += p.valid;
-            s.lo = s.lo.min(p.lo);
-            s.hi = s.hi.max(p.hi);
-            s.sum += p.sum;
-            for (a, b) in s.quanta.iter_mut().zip(&p.quanta) {
-                a.1 = a.1 && b.1;
-            }
-        }
+        s.add(out);
         first += count;
     }
     Ok(s)

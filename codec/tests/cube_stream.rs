@@ -61,6 +61,16 @@ impl BlobSink for Blobs {
     }
 }
 
+/// An empty sink for a planet of `face_side` coded with `N = n`.
+fn blobs_for(face_side: usize, n: usize) -> Blobs {
+    let geom = SphereGeometry::new(face_side, n).unwrap();
+    Blobs(
+        (0..geom.detail_levels())
+            .map(|l| vec![None; geom.level(l).len()])
+            .collect(),
+    )
+}
+
 fn in_memory(g: &CubeGrid, n: usize, mode: RateMode, sparse: bool) -> Encoded {
     encode::encode_sphere(
         g,
@@ -81,12 +91,7 @@ fn out_of_core(
     sparse: bool,
     budget: usize,
 ) -> Result<(CubeEncoded, Encoded), EncodeError> {
-    let geom = SphereGeometry::new(g.face_side, n).unwrap();
-    let mut sink = Blobs(
-        (0..geom.detail_levels())
-            .map(|l| vec![None; geom.level(l).len()])
-            .collect(),
-    );
+    let mut sink = blobs_for(g.face_side, n);
     let mut src = GridRows {
         g,
         fail_at: None,
@@ -240,10 +245,11 @@ fn bad_settings_and_failing_sources_are_errors_not_panics() {
     let (face_side, n) = (64, 16);
     let g = common::synthetic_planet(face_side, n).unwrap();
     // The error, never an encoding (whose Debug form would flood the log).
-    let refused = |g: &CubeGrid, mode, sparse, budget| {
-        out_of_core(g, n, mode, sparse, budget)
-            .err()
-            .expect("refused")
+    let refused = |g: &CubeGrid, mode: RateMode, sparse, budget| match out_of_core(
+        g, n, mode, sparse, budget,
+    ) {
+        Ok(_) => panic!("{mode:?} at {budget} bytes was not refused"),
+        Err(e) => e,
     };
     let err = refused(&g, RateMode::RmsM(5.0), false, 16 << 20);
     assert!(matches!(err, EncodeError::Unsupported(_)), "{err}");
@@ -257,12 +263,7 @@ fn bad_settings_and_failing_sources_are_errors_not_panics() {
     assert_eq!(err, EncodeError::AllNodata);
     // One band a face (tiles of 128 points): reads 1-6 are pass 0, 7-12 pass 1.
     for fail_at in [1, 4, 9] {
-        let geom = SphereGeometry::new(face_side, n).unwrap();
-        let mut sink = Blobs(
-            (0..geom.detail_levels())
-                .map(|l| vec![None; geom.level(l).len()])
-                .collect(),
-        );
+        let mut sink = blobs_for(face_side, n);
         let mut src = GridRows {
             g: &g,
             fail_at: Some(fail_at),

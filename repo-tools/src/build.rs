@@ -308,6 +308,21 @@ struct StoreSink<'a> {
     spin: indicatif::ProgressBar,
 }
 
+impl<'a> StoreSink<'a> {
+    fn new(
+        args: &'a BuildArgs,
+        builder: &'a mut RepositoryBuilder,
+        spin: &indicatif::ProgressBar,
+    ) -> Self {
+        StoreSink {
+            args,
+            builder,
+            stored: 0,
+            spin: spin.clone(),
+        }
+    }
+}
+
 impl BlobSink for StoreSink<'_> {
     fn put(&mut self, level: usize, _index: usize, key: &[u8], blob: &[u8]) -> Result<(), String> {
         self.builder
@@ -368,12 +383,7 @@ fn build_streaming<S: RowSource>(
         let encode_started = Instant::now();
         let spin = progress::spinner("streaming");
         spin.set_message(format!("{width} x {height} in {budget_mb} MB"));
-        let mut sink = StoreSink {
-            args,
-            builder: &mut builder,
-            stored: 0,
-            spin: spin.clone(),
-        };
+        let mut sink = StoreSink::new(args, &mut builder, &spin);
         let mut spill = FileSpill::beside(&args.output)?;
         let enc = stream::encode_streaming_with(rows, opts, &mut sink, &mut spill)
             .context("encoding out of core")?;
@@ -463,12 +473,7 @@ fn build_cube_streaming<S: CubeSource>(
         spin.set_message(format!(
             "6 faces of {face_side} x {face_side} in {budget_mb} MB"
         ));
-        let mut sink = StoreSink {
-            args,
-            builder: &mut builder,
-            stored: 0,
-            spin: spin.clone(),
-        };
+        let mut sink = StoreSink::new(args, &mut builder, &spin);
         let mut spill = FileSpill::beside(&args.output)?;
         let mut tiles = FileTiles::beside(&args.output)?;
         let sampler = layout::RssSampler::start();
@@ -512,6 +517,17 @@ fn build_cube_streaming<S: CubeSource>(
     Ok(summary)
 }
 
+/// An unnamed temporary file in the output's directory (on the disk the build writes to;
+/// gone when the build ends, however it ends).
+fn temp_beside(output: &Path) -> Result<std::fs::File> {
+    let dir = output
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    tempfile::tempfile_in(dir)
+        .with_context(|| format!("creating a temporary file in {}", dir.display()))
+}
+
 /// The out-of-core planet encoder's tiles: an unnamed temporary file beside the output
 /// (gone when the build ends, however it ends).
 struct FileTiles {
@@ -521,13 +537,8 @@ struct FileTiles {
 
 impl FileTiles {
     fn beside(output: &Path) -> Result<FileTiles> {
-        let dir = output
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
         Ok(FileTiles {
-            file: tempfile::tempfile_in(dir)
-                .with_context(|| format!("creating a temporary file in {}", dir.display()))?,
+            file: temp_beside(output)?,
             bytes: Vec::new(),
         })
     }
@@ -746,16 +757,8 @@ struct FileSpill {
 
 impl FileSpill {
     fn beside(output: &Path) -> Result<FileSpill> {
-        let dir = output
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        let file = || {
-            tempfile::tempfile_in(dir)
-                .with_context(|| format!("creating a temporary file in {}", dir.display()))
-        };
         Ok(FileSpill {
-            files: [file()?, file()?],
+            files: [temp_beside(output)?, temp_beside(output)?],
             lens: [0; 2],
         })
     }

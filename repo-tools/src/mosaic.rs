@@ -596,15 +596,7 @@ impl MosaicRows<'_> {
 
     /// What the metadata records, once a pass has read every row.
     pub fn assembled(&self) -> Assembled {
-        Assembled {
-            units: self
-                .reader
-                .units
-                .as_ref()
-                .map_or_else(|| "m".to_owned(), |(u, _)| u.clone()),
-            nodata_count: self.nodata,
-            quantum_m: self.reader.quantum.flatten(),
-        }
+        self.reader.assembled(self.nodata)
     }
 
     fn fill(&mut self, first: usize, out: &mut [f64]) -> Result<()> {
@@ -730,15 +722,7 @@ impl MosaicCube<'_> {
 
     /// What the metadata records, once a pass has read every row.
     pub fn assembled(&self) -> Assembled {
-        Assembled {
-            units: self
-                .reader
-                .units
-                .as_ref()
-                .map_or_else(|| "m".to_owned(), |(u, _)| u.clone()),
-            nodata_count: self.nodata,
-            quantum_m: self.reader.quantum.flatten(),
-        }
+        self.reader.assembled(self.nodata)
     }
 
     fn fill(&mut self, face: usize, first: usize, out: &mut [f64]) -> Result<()> {
@@ -811,12 +795,7 @@ impl CubeSource for MosaicCube<'_> {
         out: &mut [f64],
     ) -> Result<(), String> {
         let w = self.face_side + 1;
-        if face >= 6 || count == 0 || first + count > w || out.len() < count * w {
-            return Err(format!(
-                "rows {first}..{} of face {face}: outside the cube",
-                first + count
-            ));
-        }
+        planet::check_band(self.face_side, face, (first, count), out.len())?;
         self.fill(face, first, &mut out[..count * w])
             .map_err(|e| format!("{e:#}"))
     }
@@ -882,9 +861,18 @@ impl TileReader {
     }
 
     fn finish(self, values: &[f64]) -> Assembled {
+        self.assembled(values.par_iter().filter(|v| v.is_nan()).count())
+    }
+
+    /// What the metadata records of the tiles read, with `nodata_count` samples no tile
+    /// gave a value.
+    fn assembled(&self, nodata_count: usize) -> Assembled {
         Assembled {
-            units: self.units.map_or_else(|| "m".to_owned(), |(u, _)| u),
-            nodata_count: values.par_iter().filter(|v| v.is_nan()).count(),
+            units: self
+                .units
+                .as_ref()
+                .map_or_else(|| "m".to_owned(), |(u, _)| u.clone()),
+            nodata_count,
             quantum_m: self.quantum.flatten(),
         }
     }

@@ -275,6 +275,24 @@ impl<'a> EquirectRows<'a> {
     }
 }
 
+/// Checks a [`CubeSource`] read: `count > 0` rows from `first` of face `face` of a planet of
+/// `face_side`, into `out_len` values (exactly those rows').
+pub(crate) fn check_band(
+    face_side: usize,
+    face: usize,
+    (first, count): (usize, usize),
+    out_len: usize,
+) -> Result<(), String> {
+    let w = face_side + 1;
+    if face >= 6 || count == 0 || first + count > w || out_len != count * w {
+        return Err(format!(
+            "rows {first}..{} of face {face} into {out_len} values: outside a cube of face side {face_side}",
+            first + count
+        ));
+    }
+    Ok(())
+}
+
 impl CubeSource for EquirectRows<'_> {
     fn face_side(&self) -> usize {
         self.face_side
@@ -288,12 +306,7 @@ impl CubeSource for EquirectRows<'_> {
         out: &mut [f64],
     ) -> Result<(), String> {
         let w = self.face_side + 1;
-        if face >= 6 || first + count > w || out.len() != count * w {
-            return Err(format!(
-                "rows {first}..{} of face {face}: outside the cube",
-                first + count
-            ));
-        }
+        check_band(self.face_side, face, (first, count), out.len())?;
         out.par_chunks_mut(w).enumerate().for_each_init(
             || vec![(0.0, 0.0); w],
             |angles, (r, dst)| {

@@ -30,12 +30,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use rayon::prelude::*;
 
 use super::rms::Spill;
-use super::{BlobSink, Fill, IndexSpill, Meter};
+use super::{BlobSink, Fill, IndexSpill, Meter, Scan};
 use crate::coverage::{Coverage, CubeCoverage};
 use crate::encode::{
-    DECIMAL_QUANTA, EncodeError, EncodeReport, Encoded, EncodedDomain, PASS_CHUNK, RateMode,
-    SideInfo, Tally, ValueMap, blob_model, check_tolerance, code_blob, measure, native_quantum,
-    on_quantum, rms_of_pieces, side_info,
+    EncodeError, EncodeReport, Encoded, EncodedDomain, PASS_CHUNK, RateMode, SideInfo, Tally,
+    ValueMap, blob_model, check_tolerance, code_blob, measure, rms_of_pieces, side_info,
 };
 use crate::entropy::CodecModel;
 use crate::lifting;
@@ -221,13 +220,7 @@ pub fn encode_cube(
         Some(c) => geom.covered(c)?,
         None => geom,
     };
-    let native = native_quantum(source.quantum_m(), |q| scan.integral(q));
-    let map = ValueMap::new(scan.lo, scan.hi, native, opts.mode)?;
-    let fill = Fill {
-        lo: scan.lo,
-        hi: scan.hi,
-        mean: scan.sum / scan.valid as f64,
-    };
+    let (map, fill) = scan.mapping(source.quantum_m(), opts.mode)?;
 
     // Pass 1: the integers, as tiles of R_0, and the integerisation's errors.
     let lattice = Lattice::new(face_side, tile, 0, 0);
@@ -459,74 +452,6 @@ fn read_band(
     borders.apply(face, (first, count), band, canon, true)
 }
 
-/// Pass 0's findings.
-struct Scan {
-    valid: usize,
-    lo: f64,
-    hi: f64,
-    sum: f64,
-    quanta: Vec<(f64, bool)>,
-}
-
-impl Scan {
-    fn new(known: Option<f64>) -> Self {
-        let mut candidates: Vec<f64> = DECIMAL_QUANTA.to_vec();
-        if let Some(q) = known.filter(|&q| q > 0.0) {
-            candidates.insert(0, q);
-        }
-        Scan {
-            valid: 0,
-            lo: f64::INFINITY,
-            hi: f64::NEG_INFINITY,
-            sum: 0.0,
-            quanta: candidates.into_iter().map(|q| (q, true)).collect(),
-        }
-    }
-
-    fn integral(&self, q: f64) -> bool {
-        self.quanta.iter().any(|&(c, ok)| c == q && ok)
-    }
-
-    /// Adds a band's values (fixed pieces in parallel, merged in order).
-    fn add(&mut self, band: &[f64]) {
-        let quanta: Vec<f64> = self.quanta.iter().map(|&(q, _)| q).collect();
-        let pieces: Vec<Scan> = band
-            .par_chunks(PASS_CHUNK)
-            .map(|c| {
-                let mut p = Scan {
-                    valid: 0,
-                    lo: f64::INFINITY,
-                    hi: f64::NEG_INFINITY,
-                    sum: 0.0,
-                    quanta: quanta.iter().map(|&q| (q, true)).collect(),
-                };
-                for &v in c.iter().filter(|v| v.is_finite()) {
-                    p.valid += 1;
-                    p.lo = p.lo.min(v);
-                    p.hi = p.hi.max(v);
-                    for (q, ok) in &mut p.quanta {
-                        *ok = *ok && on_quantum(v, *q);
-                    }
-                }
-                p
-            })
-            .collect();
-        // The mean fill's sum in entry order, as the in-memory encoder adds it.
-        self.sum = band
-            .iter()
-            .filter(|v| v.is_finite())
-            .fold(self.sum, |s, &v| s + v);
-        for p in pieces {
-            self.valid += p.valid;
-            self.lo = self.lo.min(p.lo);
-            self.hi = self.hi.max(p.hi);
-            for (a, b) in self.quanta.iter_mut().zip(&p.quanta) {
-                a.1 = a.1 && b.1;
-            }
-        }
-    }
-}
-
 /// The integerisation's errors: `(sum of squares, max)` per [`PASS_CHUNK`] entries of
 /// the cube raster (as the in-memory encoder sums them), and the samples counted.
 type Errors = (Vec<(f64, f64)>, usize);
@@ -613,7 +538,7 @@ fn write_integers(
             context = keep;
         }
     }
-    if (6 * w * w) % PASS_CHUNK != 0 {
+    if !(6 * w * w).is_multiple_of(PASS_CHUNK) {
         pieces.push(current);
     }
     Ok((pieces, counted_total))
@@ -881,6 +806,16 @@ struct Side {
     bounds: Vec<(i64, i64)>,
 }
 
+/// One diamond's analysis: its details, its lifted vertex grid, whether any detail is
+/// nonzero, and its side information `(class, has data, value bounds)`.
+struct Analysed {
+    index: usize,
+    details: Vec<i32>,
+    lifted: Vec<i32>,
+    nonzero: bool,
+    side: (u64, bool, (i64, i64)),
+}
+
 /// Analyses every diamond of `level` on the raster of its octave, batch by batch in tile
 /// order: details to the spill, side information into `side`, the lifted vertices back
 /// into the tiles.
@@ -928,7 +863,7 @@ fn analyse_level(
         cache.ensure(lattice, &needed, tiles)?;
         let missed = AtomicBool::new(false);
         let shared: &Cache = cache;
-        let results: Vec<(usize, Vec<i32>, Vec<i32>, bool, (u64, bool, (i64, i64)))> = batch
+        let results: Vec<Analysed> = batch
             .par_iter()
             .map(|&i| {
                 let s = &slots[i];
@@ -961,7 +896,13 @@ fn analyse_level(
                         )
                     }),
                 );
-                (i, h, v, nonzero, info)
+                Analysed {
+                    index: i,
+                    details: h,
+                    lifted: v,
+                    nonzero,
+                    side: info,
+                }
             })
             .collect();
         if missed.load(Ordering::Relaxed) {
@@ -969,8 +910,8 @@ fn analyse_level(
         }
         meter.note(cache.held_bytes() + results.len() * (vlen + 2 * clen) * 4);
         let mut lost = false;
-        for (i, _, v, _, _) in &results {
-            let s = &slots[*i];
+        for r in &results {
+            let (s, v) = (&slots[r.index], &r.lifted);
             for a in 1..n {
                 for b in 1..n {
                     let x = v[a * (n + 1) + b];
@@ -987,14 +928,15 @@ fn analyse_level(
         }
         let matrices: Vec<(usize, &[i32])> = results
             .iter()
-            .filter(|r| r.3)
-            .map(|r| (r.0, &r.1[..]))
+            .filter(|r| r.nonzero)
+            .map(|r| (r.index, &r.details[..]))
             .collect();
         if !matrices.is_empty() {
             store.put_batch(spill, level, &matrices)?;
         }
-        for (i, _, _, _, (g, d, b)) in results {
-            (gamma[i], has_data[i], bounds[i]) = (g, d, b);
+        for r in results {
+            let i = r.index;
+            (gamma[i], has_data[i], bounds[i]) = r.side;
         }
     }
     side.gamma[level] = gamma;
