@@ -214,9 +214,6 @@ pub enum EncodeError {
         /// the budget given
         budget: usize,
     },
-    /// A combination of options the encoder cannot serve (the message says which).
-    #[error("{0}")]
-    Unsupported(&'static str),
     /// The streaming encoder broke one of its own invariants (a bug).
     #[error("internal error of the streaming encoder: {0}")]
     Internal(&'static str),
@@ -929,7 +926,7 @@ pub(crate) fn trains_on(level_len: usize, index: usize) -> bool {
 
 /// A model trained on the diamonds `(level, index)` that `include` accepts, among those
 /// [`trains_on`] samples, each diamond's decisions written into the counts by `count`.
-fn train_model<G: Layout>(
+pub(crate) fn train_model<G: Layout>(
     geom: &G,
     include: impl Fn(usize, usize) -> bool + Sync,
     count: impl Fn(&mut ContextCounts, usize, usize) + Sync,

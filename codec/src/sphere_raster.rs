@@ -162,11 +162,21 @@ impl SphereSlot {
     /// writes: one, or two for an edge diamond's diagonal points (as [`Layout`]'s
     /// `scatter_interior_part`).
     pub(crate) fn vertex_copies(&self, i: usize, j: usize) -> (usize, Option<usize>) {
-        let lo = self.lower.at(self.lower.v0, i, j);
+        self.copies(false, i, j)
+    }
+
+    /// Cube-raster indices of the copies of cell `(i, j)` that synthesis writes (as
+    /// [`Layout`]'s `scatter_cells_part`).
+    pub(crate) fn cell_copies(&self, i: usize, j: usize) -> (usize, Option<usize>) {
+        self.copies(true, i, j)
+    }
+
+    fn copies(&self, cell: bool, i: usize, j: usize) -> (usize, Option<usize>) {
+        let lo = self.lower.at(self.lower.base(cell), i, j);
         match &self.upper {
             None => (lo, None),
             Some(up) => {
-                let u = up.at(up.v0, i, j);
+                let u = up.at(up.base(cell), i, j);
                 match j.cmp(&i) {
                     std::cmp::Ordering::Less => (lo, None),
                     std::cmp::Ordering::Greater => (u, None),
@@ -784,6 +794,16 @@ impl SphereGeometry {
     /// Writes the six root vertex grids into the cube raster, every copy of each point (a
     /// point on a cube edge takes the value of its canonical face's root).
     pub fn scatter_roots(&self, roots: &[Vec<i32>], raster: &mut [i32]) -> Result<(), RasterError> {
+        check_len(self, raster)?;
+        self.scatter_roots_with(roots, |k, x| raster[k] = x)
+    }
+
+    /// [`SphereGeometry::scatter_roots`] through `put(cube_index, value)`.
+    pub(crate) fn scatter_roots_with(
+        &self,
+        roots: &[Vec<i32>],
+        mut put: impl FnMut(usize, i32),
+    ) -> Result<(), RasterError> {
         let side = self.n + 1;
         if roots.len() != 6 || roots.iter().any(|r| r.len() != side * side) {
             return Err(RasterError::WrongLength {
@@ -791,9 +811,16 @@ impl SphereGeometry {
                 got: roots.iter().map(Vec::len).sum(),
             });
         }
-        check_len(self, raster)?;
         for (s, grid) in self.roots.iter().zip(roots) {
-            s.scatter(side, 1, false, grid, raster, 0);
+            for i in 1..self.n {
+                for j in 1..self.n {
+                    let (k, other) = s.vertex_copies(i, j);
+                    put(k, grid[i * side + j]);
+                    if let Some(k) = other {
+                        put(k, grid[i * side + j]);
+                    }
+                }
+            }
             for i in 0..side {
                 for j in 0..side {
                     if i != 0 && j != 0 && i != self.n && j != self.n {
@@ -805,9 +832,9 @@ impl SphereGeometry {
                     let pos = self.sample_position(face as u8, rest % w, rest / w);
                     let mut copies = self.point_indices(pos);
                     if copies.next() == Some(here) {
-                        raster[here] = grid[i * side + j];
+                        put(here, grid[i * side + j]);
                         for k in copies {
-                            raster[k] = grid[i * side + j];
+                            put(k, grid[i * side + j]);
                         }
                     }
                 }

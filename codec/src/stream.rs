@@ -160,8 +160,10 @@ pub fn encode_streaming(
     encode_streaming_with(source, opts, sink, &mut MemorySpill::default())
 }
 
-/// Storage for the RMS rate control's quantised indices between passes: two slots (0
-/// and 1), each appended to and read back by offset. Only RMS mode uses it.
+/// Storage for detail and index matrices between passes: three slots (0 to 2), each
+/// appended to and read back by offset. The planar encoder uses it in RMS mode (slots 0
+/// and 1: two attempts); the planet encoder keeps its details in slot 0 and, in RMS mode,
+/// two attempts in slots 1 and 2.
 pub trait IndexSpill: Sync {
     /// Empties slot `slot`.
     fn clear(&mut self, slot: usize) -> Result<(), String>;
@@ -176,7 +178,7 @@ pub trait IndexSpill: Sync {
 /// An [`IndexSpill`] in memory.
 #[derive(Debug, Default)]
 pub struct MemorySpill {
-    slots: [Vec<u8>; 2],
+    slots: [Vec<u8>; 3],
 }
 
 impl IndexSpill for MemorySpill {

@@ -1,5 +1,5 @@
 //! The out-of-core planet encoder ([`encode_cube`]) against the in-memory one: the same
-//! bytes where both run (exact modes, no nodata inside covered blocks), under budgets
+//! bytes where both run (every rate mode, no nodata inside covered blocks), under budgets
 //! that make the tile cache evict, and clear errors for what it cannot do.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -7,7 +7,9 @@
 mod common;
 
 use quincunx_codec::diamond::sphere::cube_to_unit_sphere;
-use quincunx_codec::encode::{self, CubeGrid, EncodeError, EncodeOptions, Encoded, RateMode};
+use quincunx_codec::encode::{
+    self, CubeGrid, EncodeError, EncodeOptions, Encoded, RateMode, RdoMode,
+};
 use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_codec::stream::{
     BlobSink, CubeEncoded, CubeOptions, CubeSource, MemorySpill, MemoryTiles, encode_cube,
@@ -78,7 +80,7 @@ fn in_memory(g: &CubeGrid, n: usize, mode: RateMode, sparse: bool) -> Encoded {
             n,
             mode,
             sparse,
-            rdo: Default::default(),
+            rdo: RdoMode::Auto,
         },
     )
     .unwrap()
@@ -91,6 +93,17 @@ fn out_of_core(
     sparse: bool,
     budget: usize,
 ) -> Result<(CubeEncoded, Encoded), EncodeError> {
+    out_of_core_with(g, n, mode, sparse, budget, RdoMode::Auto)
+}
+
+fn out_of_core_with(
+    g: &CubeGrid,
+    n: usize,
+    mode: RateMode,
+    sparse: bool,
+    budget: usize,
+    rdo: RdoMode,
+) -> Result<(CubeEncoded, Encoded), EncodeError> {
     let mut sink = blobs_for(g.face_side, n);
     let mut src = GridRows {
         g,
@@ -102,6 +115,7 @@ fn out_of_core(
         mode,
         memory_budget_bytes: budget,
         sparse,
+        rdo,
     };
     let enc = encode_cube(
         &mut src,
@@ -169,6 +183,8 @@ fn planets_out_of_core_equal_the_in_memory_encoder_byte_for_byte() {
         (&g, RateMode::Lossless, "lossless"),
         (&g, RateMode::MaxErrorM(2.0), "max error 2 m"),
         (&float, RateMode::MaxErrorM(0.5), "float, max error 0.5 m"),
+        (&g, RateMode::RmsM(3.0), "rms 3 m"),
+        (&float, RateMode::RmsM(1.0), "float, rms 1 m"),
     ];
     // 1 MB: tiles of 32 points and a cache of 128 of the 486 tiles of R_0 (evictions);
     // 64 MB: one band a face... of 256 rows, and every tile cached.
@@ -182,8 +198,32 @@ fn planets_out_of_core_equal_the_in_memory_encoder_byte_for_byte() {
                 facts.peak_buffer_bytes
             );
             assert_same(&got, &want, &format!("{what}, budget {budget}"));
+            if let RateMode::RmsM(target) = mode {
+                let r = &got.report;
+                assert!(r.verification_decodes >= 1, "{what}: no decode");
+                assert!(
+                    r.rms_m <= target && r.rms_m > 0.5 * target,
+                    "{what}: rms {}",
+                    r.rms_m
+                );
+            }
         }
     }
+    // The rate-distortion quantiser's cost model is trained from the spilled details.
+    let (rms, rdo) = (RateMode::RmsM(6.0), RdoMode::On);
+    let want = encode::encode_sphere(
+        &g,
+        EncodeOptions {
+            n,
+            mode: rms,
+            sparse: false,
+            rdo,
+        },
+    )
+    .unwrap();
+    assert!(want.report.rdo);
+    let got = out_of_core_with(&g, n, rms, false, 1 << 20, rdo).unwrap().1;
+    assert_same(&got, &want, "rms 6 m, rate-distortion quantiser");
 }
 
 /// The synthetic planet with data in a cap around a cube corner only (NaN elsewhere).
@@ -217,6 +257,9 @@ fn sparse_planets_out_of_core_code_no_hole_and_match_in_one_band() {
     // One band holds a face (129 rows <= 256): the fills equal the in-memory encoder's.
     let (_, one_band) = out_of_core(&g, n, mode, true, 64 << 20).unwrap();
     assert_same(&one_band, &want, "sparse, one band a face");
+    let rms = RateMode::RmsM(2.0);
+    let (_, got) = out_of_core(&g, n, rms, true, 64 << 20).unwrap();
+    assert_same(&got, &in_memory(&g, n, rms, true), "sparse, rms 2 m");
     // Bands of 32 rows: the fills of the cap's border may differ, the data may not.
     let (facts, banded) = out_of_core(&g, n, mode, true, 1 << 20).unwrap();
     assert_eq!(banded.coverage, want.coverage);
@@ -251,8 +294,8 @@ fn bad_settings_and_failing_sources_are_errors_not_panics() {
         Ok(_) => panic!("{mode:?} at {budget} bytes was not refused"),
         Err(e) => e,
     };
-    let err = refused(&g, RateMode::RmsM(5.0), false, 16 << 20);
-    assert!(matches!(err, EncodeError::Unsupported(_)), "{err}");
+    let err = refused(&g, RateMode::RmsM(0.0), false, 16 << 20);
+    assert!(matches!(err, EncodeError::BadTolerance(_)), "{err}");
     let err = refused(&g, RateMode::Lossless, false, 1000);
     assert!(matches!(err, EncodeError::Budget { .. }), "{err}");
     let err = refused(&g, RateMode::MaxErrorM(-1.0), false, 16 << 20);
@@ -274,6 +317,7 @@ fn bad_settings_and_failing_sources_are_errors_not_panics() {
             mode: RateMode::Lossless,
             memory_budget_bytes: 1 << 20,
             sparse: false,
+            rdo: RdoMode::Auto,
         };
         let err = encode_cube(
             &mut src,

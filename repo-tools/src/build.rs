@@ -449,19 +449,17 @@ fn build_cube_streaming<S: CubeSource>(
 ) -> Result<BuildSummary> {
     let face_side = cube.face_side();
     let samples = 6 * (face_side + 1) * (face_side + 1);
-    if matches!(mode, RateMode::RmsM(_)) {
-        bail!(
-            "this planet needs about {} MB to build in memory but --memory-budget-mb is {budget_mb}: \
-             RMS rate control out of core is planar only; give --max-error-m or --lossless, or raise the budget",
-            in_memory_mb(samples, 1)
-        );
-    }
     tracing::info!(face_side, budget_mb, "out-of-core planet build");
     let opts = CubeOptions {
         n,
         mode,
-        memory_budget_bytes: encoder_budget(budget_mb, cube_diamonds(samples, n), source_bytes)?,
+        memory_budget_bytes: encoder_budget(
+            budget_mb,
+            cube_diamonds(samples, n, mode),
+            source_bytes,
+        )?,
         sparse,
+        rdo: args.rdo.mode(),
     };
     let radius = radius_m(args)?;
     let built = with_builder(args, |builder| {
@@ -748,18 +746,22 @@ fn streamed_rgb_error(
     rows::rgb_error_in_step(&steps, image).context("decoding colour for measurement")
 }
 
-/// The RMS rate control's quantised indices between passes, in two unnamed temporary
-/// files beside the output (gone when the build ends, however it ends).
+/// Detail and index matrices between passes (the RMS rate control's attempts, the planet
+/// encoder's details), in three unnamed temporary files beside the output (gone when the build ends, however it ends).
 struct FileSpill {
-    files: [std::fs::File; 2],
-    lens: [u64; 2],
+    files: [std::fs::File; 3],
+    lens: [u64; 3],
 }
 
 impl FileSpill {
     fn beside(output: &Path) -> Result<FileSpill> {
         Ok(FileSpill {
-            files: [temp_beside(output)?, temp_beside(output)?],
-            lens: [0; 2],
+            files: [
+                temp_beside(output)?,
+                temp_beside(output)?,
+                temp_beside(output)?,
+            ],
+            lens: [0; 3],
         })
     }
 
@@ -779,7 +781,7 @@ impl IndexSpill for FileSpill {
 
     fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, String> {
         use std::os::unix::fs::FileExt;
-        let at = self.lens[slot.min(1)];
+        let at = self.lens[slot.min(2)];
         self.slot(slot)?
             .write_all_at(bytes, at)
             .map_err(|e| format!("writing the index spill: {e}"))?;
@@ -850,9 +852,15 @@ fn planar_diamonds(samples: usize, n: usize) -> (usize, usize) {
 /// Diamonds of a planet of `samples` cube-raster entries (the levels hold about
 /// `samples / N^2` together) and the bookkeeping bytes each costs the out-of-core planet
 /// encoder: its geometry's slot (about 220 bytes, measured at face side 8192) and its
-/// side information and spill index (about 60).
-fn cube_diamonds(samples: usize, n: usize) -> (usize, usize) {
-    (samples / (n * n) * 21 / 20 + 64, 280)
+/// side information and spill index (about 60); in RMS mode also two attempts' spill
+/// indexes and measures (about 130).
+fn cube_diamonds(samples: usize, n: usize, mode: RateMode) -> (usize, usize) {
+    let rms = if matches!(mode, RateMode::RmsM(_)) {
+        130
+    } else {
+        0
+    };
+    (samples / (n * n) * 21 / 20 + 64, 280 + rms)
 }
 
 /// Runs `quincunx build`.

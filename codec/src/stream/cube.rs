@@ -14,13 +14,23 @@
 //! Passes over the source, face by face, rows in order: (0) range, quantum, coverage and
 //! the canonical copies of the cube-edge points; (1) the integers, written as tiles, with
 //! the errors of the integerisation. Then the analysis (details to an [`IndexSpill`],
-//! measures in memory), the side information, the model, and every blob to the sink.
+//! side information as it goes up the levels), the side information, the model, and
+//! every blob to the sink.
 //!
-//! The bytes equal the in-memory planet encoder's ([`crate::encode::encode_sphere`]) when
-//! the source has no nodata inside covered blocks: the same integers, the same diamonds,
-//! the same model. Nodata is filled band by band of a face with push-pull (as the planar
-//! streaming encoder does), where the in-memory encoder fills whole faces, so voids' fills
-//! may differ. Lossless and max-error modes; RMS out of core is planar only.
+//! RMS mode runs the in-memory encoder's search ([`crate::encode::search_scale`]) with a
+//! verifier out of core (`CubeVerifier`): the analysis' details stay in slot 0 of the
+//! spill; each verification decode quantises them into its own slot while it synthesises
+//! through the tiles coarse to fine (each octave's raster expanded from the next coarser
+//! one, the inverse of the compaction), measures every diamond, and reads the source once
+//! more to measure the decoded integers against it. The kept attempt's indices and
+//! measures give the side information and the blobs.
+//!
+//! The bytes equal the in-memory planet encoder's ([`crate::encode::encode_sphere`]) in
+//! every rate mode when the source has no nodata inside covered blocks: the same
+//! integers, the same diamonds, the same errors summed in the same pieces and order, the
+//! same model. Nodata is filled band by band of a face with push-pull (as the planar
+//! streaming encoder does), where the in-memory encoder fills whole faces, so voids'
+//! fills may differ.
 
 use std::borrow::Cow;
 use std::collections::HashMap;
@@ -29,21 +39,22 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use rayon::prelude::*;
 
-use super::rms::Spill;
+use super::rms::{Histograms, Spill};
 use super::{BlobSink, Fill, IndexSpill, Meter, Scan};
 use crate::coverage::{Coverage, CubeCoverage};
 use crate::encode::{
-    EncodeError, EncodeReport, Encoded, EncodedDomain, PASS_CHUNK, RateMode, SideInfo, Tally,
-    ValueMap, blob_model, check_tolerance, code_blob, measure, rms_of_pieces, side_info,
+    Attempt, EncodeError, EncodeReport, Encoded, EncodedDomain, Measure, PASS_CHUNK, Quantise,
+    RateMode, RdoMode, SideInfo, Tally, ValueMap, Verifier, blob_model, check_tolerance, code_blob,
+    dequantize, measure, rms_of_pieces, search_scale, side_info, side_information, train_model,
 };
-use crate::entropy::CodecModel;
+use crate::entropy::{self, CodecModel};
 use crate::lifting;
 use crate::raster::Layout;
 use crate::sphere_raster::SphereGeometry;
 
 /// A planet's heights, read a band of rows of one face at a time. Faces are read in
-/// order, rows in order within a face; a source may be read more than once (the encoder
-/// makes two passes).
+/// order, rows in order within a face; a source is read more than once (two passes, and
+/// one more per verification decode in RMS mode).
 pub trait CubeSource {
     /// Samples per face side `2S` (`N 2^k`).
     fn face_side(&self) -> usize;
@@ -101,13 +112,15 @@ impl TileStore for MemoryTiles {
 pub struct CubeOptions {
     /// Diamond size `N`.
     pub n: usize,
-    /// [`RateMode::Lossless`] or [`RateMode::MaxErrorM`].
+    /// Any rate mode.
     pub mode: RateMode,
     /// Bound on the sample buffers held at once (row bands, the tile cache, diamonds in
     /// flight). The geometry's tables and a few bytes per diamond come on top.
     pub memory_budget_bytes: usize,
     /// Sparse mode: blocks without data are holes.
     pub sparse: bool,
+    /// Rate-distortion quantisation in the RMS mode.
+    pub rdo: RdoMode,
 }
 
 /// Everything a decoder needs besides the blobs (which went to the [`BlobSink`]).
@@ -165,9 +178,10 @@ const BATCH: usize = 256;
 /// Filled rows of a face kept as context for the next band's fill.
 const CONTEXT_ROWS: usize = super::CONTEXT_ROWS;
 
-/// The phases [`encode_cube`] reports as it ends each: pass 0, pass 1, the analysis, and
-/// the side information, model and blobs.
-pub const CUBE_PHASES: [&str; 4] = ["scan", "integers", "analysis", "coding"];
+/// The phases [`encode_cube`] reports as it ends each: pass 0, pass 1, the analysis, the
+/// RMS rate control's search (nothing in the exact modes), and the side information,
+/// model and blobs.
+pub const CUBE_PHASES: [&str; 5] = ["scan", "integers", "analysis", "rate control", "coding"];
 
 /// Encodes a planet out of core (see the module docs). `phase(name)` is called as each
 /// of [`CUBE_PHASES`] ends (for a caller's timings).
@@ -180,11 +194,6 @@ pub fn encode_cube(
     phase: &mut dyn FnMut(&'static str),
 ) -> Result<CubeEncoded, EncodeError> {
     check_tolerance(opts.mode)?;
-    if matches!(opts.mode, RateMode::RmsM(_)) {
-        return Err(EncodeError::Unsupported(
-            "RMS rate control out of core is planar only: build this planet in memory or with --max-error-m",
-        ));
-    }
     let (face_side, n) = (source.face_side(), opts.n);
     let geom = SphereGeometry::new(face_side, n)?;
     let w = face_side + 1;
@@ -246,6 +255,7 @@ pub fn encode_cube(
         has_data: vec![Vec::new(); levels],
         bounds: Vec::new(),
     };
+    let mut hist = matches!(opts.mode, RateMode::RmsM(_)).then(|| Histograms::new(levels));
     let cache_bytes = opts.memory_budget_bytes / 2;
     let second = lattice.len();
     let mut lattice = lattice;
@@ -264,7 +274,7 @@ pub fn encode_cube(
                 level,
                 (&lattice, &mut cache, &mut *tiles),
                 (&mut store, &mut *spill),
-                &mut side,
+                (&mut side, hist.as_mut()),
                 &mut meter,
             )?;
         }
@@ -284,13 +294,62 @@ pub fn encode_cube(
 
     phase(CUBE_PHASES[2]);
 
+    // The RMS rate control: the search of the in-memory encoder, each verification
+    // decode a synthesis through the tiles (see `CubeVerifier`).
+    let (pieces, valid_count) = errors;
+    let mut rate = Rate {
+        steps: vec![256u32; levels],
+        errors: rms_of_pieces(&pieces, valid_count),
+        rdo: false,
+        decodes: 0,
+    };
+    let (side, kept) = match (opts.mode, hist) {
+        (RateMode::RmsM(target), Some(hist)) => {
+            let mut verifier = CubeVerifier {
+                geom: &geom,
+                roots: &roots,
+                source,
+                borders: &borders,
+                map: &map,
+                tiles,
+                spill,
+                details: &store,
+                last: Spill::with_levels(n, 1, (0..levels).map(|l| geom.level(l).len())),
+                kept: Spill::with_levels(n, 2, (0..levels).map(|l| geom.level(l).len())),
+                shape: (tile, second),
+                cache_bytes,
+                valid_count,
+                meter: &mut meter,
+            };
+            let unit = verifier.source.quantum_m().unwrap_or(map.scale);
+            let out = search_scale(
+                n,
+                &hist.finish(),
+                (target, unit, map.scale),
+                valid_count,
+                opts.rdo,
+                &mut verifier,
+            )?;
+            let kept = verifier.kept;
+            let side = side_information(&geom, |l, i| kept.has(l, i), &out.measures);
+            rate = Rate {
+                steps: out.steps,
+                errors: out.errors,
+                rdo: out.rdo_used,
+                decodes: out.decodes,
+            };
+            (side, kept)
+        }
+        _ => (SideInfo::from_parts(side.gamma, side.has_data), store),
+    };
+    phase(CUBE_PHASES[3]);
+
     // The model and the blobs.
-    let side = SideInfo::from_parts(side.gamma, side.has_data);
-    let steps = vec![256u32; levels];
+    let steps = rate.steps;
     let failed: Mutex<Option<EncodeError>> = Mutex::new(None);
     let spill_ref: &dyn IndexSpill = spill;
     let matrix = |l: usize, i: usize| -> Vec<i32> {
-        store.matrix(spill_ref, l, i).unwrap_or_else(|e| {
+        kept.matrix(spill_ref, l, i).unwrap_or_else(|e| {
             if let Ok(mut f) = failed.lock() {
                 f.get_or_insert(e);
             }
@@ -323,18 +382,17 @@ pub fn encode_cube(
     if let Some(e) = failed.into_inner().ok().flatten() {
         return Err(e);
     }
-    phase(CUBE_PHASES[3]);
-    let (pieces, valid_count) = errors;
+    phase(CUBE_PHASES[4]);
     let report = EncodeReport::tally(Tally {
         samples: geom.distinct_len(),
         valid_samples: valid_count,
         blobs: (count, bytes),
         roots: &roots,
         model: &model,
-        steps: levels,
-        errors: rms_of_pieces(&pieces, valid_count),
-        rdo: false,
-        decodes: 0,
+        steps: steps.len(),
+        errors: rate.errors,
+        rdo: rate.rdo,
+        decodes: rate.decodes,
     });
     Ok(CubeEncoded {
         face_side,
@@ -498,7 +556,7 @@ fn write_integers(
             }
             // Errors of the valid canonical entries, in pieces of the whole cube raster.
             let (band_pieces, band_counted) =
-                piece_errors(geom, map, start, &vals[ctx..total], &mut current);
+                piece_errors(geom, map, (start, &vals[ctx..total], None), &mut current);
             pieces.extend(band_pieces);
             counted_total += band_counted;
             valid[..ctx].iter_mut().for_each(|b| *b = true);
@@ -544,14 +602,14 @@ fn write_integers(
     Ok((pieces, counted_total))
 }
 
-/// The error pieces completed by a band of the cube raster starting at entry `start`:
-/// `current` is the piece in progress when the band begins (and when it ends). Each
+/// The error pieces completed by a band of the cube raster starting at entry `start`,
+/// of the integerisation or of `decoded` (the band's decoded integers): `current` is the
+/// piece in progress when the band begins (and when it ends). Each
 /// piece sums its entries in order, as the in-memory encoder's does.
 fn piece_errors(
     geom: &SphereGeometry,
     map: &ValueMap,
-    start: usize,
-    band: &[f64],
+    (start, band, decoded): (usize, &[f64], Option<&[i32]>),
     current: &mut (f64, f64),
 ) -> (Vec<(f64, f64)>, usize) {
     let end = start + band.len();
@@ -573,7 +631,8 @@ fn piece_errors(
             for k in c[0]..c[1] {
                 let v = band[k - start];
                 if v.is_finite() && geom.is_canonical(k) {
-                    let e = (map.offset + map.int_of(v) as f64 * map.scale - v).abs();
+                    let d = decoded.map_or_else(|| map.int_of(v), |d| d[k - start]);
+                    let e = (map.offset + d as f64 * map.scale - v).abs();
                     acc = (acc.0 + e * e, acc.1.max(e));
                     counted += 1;
                 }
@@ -824,7 +883,7 @@ fn analyse_level(
     level: usize,
     (lattice, cache, tiles): (&Lattice, &mut Cache, &mut dyn TileStore),
     (store, spill): (&mut Spill, &mut dyn IndexSpill),
-    side: &mut Side,
+    (side, mut hist): (&mut Side, Option<&mut Histograms>),
     meter: &mut Meter,
 ) -> Result<(), EncodeError> {
     let n = geom.n();
@@ -833,34 +892,8 @@ fn analyse_level(
     let mut gamma = vec![0u64; slots.len()];
     let mut has_data = vec![false; slots.len()];
     let mut bounds = vec![(0i64, 0i64); slots.len()];
-    let mut order: Vec<(usize, usize)> = slots
-        .par_iter()
-        .enumerate()
-        .map(|(i, s)| (lattice.locate(s.vertex_index(0, 0)).0, i))
-        .collect();
-    order.par_sort_unstable();
     let (vlen, clen) = ((n + 1) * (n + 1), n * n);
-    let mut next = 0;
-    let mut own = Vec::new();
-    while next < order.len() {
-        // A batch: up to BATCH diamonds whose tiles fit in half the cache.
-        let mut needed: Vec<usize> = Vec::new();
-        let mut batch = Vec::new();
-        while next < order.len() && batch.len() < BATCH {
-            let i = order[next].1;
-            own.clear();
-            diamond_tiles(lattice, &slots[i].piece_corners(n), &mut own);
-            let mut merged: Vec<usize> = needed.iter().chain(&own).copied().collect();
-            merged.sort_unstable();
-            merged.dedup();
-            if !batch.is_empty() && merged.len() > cache.cap / 2 {
-                break;
-            }
-            needed = merged;
-            batch.push(i);
-            next += 1;
-        }
-        cache.ensure(lattice, &needed, tiles)?;
+    for_each_batch(geom, level, (lattice, cache, tiles), |batch, cache| {
         let missed = AtomicBool::new(false);
         let shared: &Cache = cache;
         let results: Vec<Analysed> = batch
@@ -870,11 +903,7 @@ fn analyse_level(
                 let mut v = vec![0; vlen];
                 let mut c = vec![0; clen];
                 let mut h = vec![0; clen];
-                for a in 0..=n {
-                    for b in 0..=n {
-                        v[a * (n + 1) + b] = shared.get(lattice, s.vertex_index(a, b), &missed);
-                    }
-                }
+                gather_vertices(n, s, (lattice, shared), &missed, &mut v);
                 for a in 0..n {
                     for b in 0..n {
                         c[a * n + b] = shared.get(lattice, s.cell_index(a, b), &missed);
@@ -934,11 +963,17 @@ fn analyse_level(
         if !matrices.is_empty() {
             store.put_batch(spill, level, &matrices)?;
         }
+        if let Some(h) = hist.as_deref_mut() {
+            for r in &results {
+                h.add(level, &r.details);
+            }
+        }
         for r in results {
             let i = r.index;
             (gamma[i], has_data[i], bounds[i]) = r.side;
         }
-    }
+        Ok(())
+    })?;
     side.gamma[level] = gamma;
     side.has_data[level] = has_data;
     side.bounds = bounds;
@@ -991,6 +1026,431 @@ fn compact(
                 store
                     .write(to.offset(to.tile_no(face, tv, tu)), &out)
                     .map_err(EncodeError::Sink)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Calls `f(batch, cache)` for the diamonds of `level` a batch at a time in tile order,
+/// each batch's tiles loaded: up to [`BATCH`] diamonds whose tiles fit in half the cache.
+fn for_each_batch(
+    geom: &SphereGeometry,
+    level: usize,
+    (lattice, cache, tiles): (&Lattice, &mut Cache, &mut dyn TileStore),
+    mut f: impl FnMut(&[usize], &mut Cache) -> Result<(), EncodeError>,
+) -> Result<(), EncodeError> {
+    let n = geom.n();
+    let slots = geom.level(level);
+    let mut order: Vec<(usize, usize)> = slots
+        .par_iter()
+        .enumerate()
+        .map(|(i, s)| (lattice.locate(s.vertex_index(0, 0)).0, i))
+        .collect();
+    order.par_sort_unstable();
+    let mut next = 0;
+    let mut own = Vec::new();
+    let mut batch = Vec::new();
+    while next < order.len() {
+        let mut needed: Vec<usize> = Vec::new();
+        batch.clear();
+        while next < order.len() && batch.len() < BATCH {
+            let i = order[next].1;
+            own.clear();
+            diamond_tiles(lattice, &slots[i].piece_corners(n), &mut own);
+            let mut merged: Vec<usize> = needed.iter().chain(&own).copied().collect();
+            merged.sort_unstable();
+            merged.dedup();
+            if !batch.is_empty() && merged.len() > cache.cap / 2 {
+                break;
+            }
+            needed = merged;
+            batch.push(i);
+            next += 1;
+        }
+        cache.ensure(lattice, &needed, tiles)?;
+        f(&batch, cache)?;
+    }
+    Ok(())
+}
+
+/// A diamond's `(N + 1)^2` vertices from the loaded tiles.
+fn gather_vertices(
+    n: usize,
+    s: &crate::sphere_raster::SphereSlot,
+    (lattice, cache): (&Lattice, &Cache),
+    missed: &AtomicBool,
+    v: &mut [i32],
+) {
+    for a in 0..=n {
+        for b in 0..=n {
+            v[a * (n + 1) + b] = cache.get(lattice, s.vertex_index(a, b), missed);
+        }
+    }
+}
+
+/// What the rate control settled: steps, errors, and how it got there.
+struct Rate {
+    steps: Vec<u32>,
+    errors: (f64, f64),
+    rdo: bool,
+    decodes: usize,
+}
+
+/// The RMS rate control's verifier out of core: every diamond's details are in slot 0
+/// of the spill (from the analysis); an attempt quantises them into its own slot as a
+/// synthesis goes through the tiles coarse to fine (the analysis' octaves in reverse,
+/// each raster `R_o` expanded from `R_{o+1}`), measuring each diamond, then reads the
+/// source once more and measures the decoded integers against it in the in-memory
+/// encoder's pieces and order. The same indices, measures and errors as the in-memory
+/// verifier's, so the same search.
+struct CubeVerifier<'a> {
+    geom: &'a SphereGeometry,
+    roots: &'a [Vec<i32>],
+    source: &'a mut dyn CubeSource,
+    borders: &'a Borders,
+    map: &'a ValueMap,
+    tiles: &'a mut dyn TileStore,
+    spill: &'a mut dyn IndexSpill,
+    details: &'a Spill,
+    last: Spill,
+    kept: Spill,
+    /// Tile side, and the value offset of the odd octaves' rasters.
+    shape: (usize, usize),
+    cache_bytes: usize,
+    valid_count: usize,
+    meter: &'a mut Meter,
+}
+
+impl CubeVerifier<'_> {
+    fn lattice(&self, o: usize) -> Lattice {
+        let (t, second) = self.shape;
+        Lattice::new(
+            self.geom.face_side(),
+            t,
+            o,
+            if o % 2 == 1 { second } else { 0 },
+        )
+    }
+
+    /// One decode: quantises into `last` and synthesises; the measures per diamond and
+    /// whether any index is nonzero.
+    fn synthesise(
+        &mut self,
+        q: &Quantise,
+        cost_model: Option<&CodecModel>,
+        steps: &[u32],
+    ) -> Result<(Vec<Vec<Measure>>, bool), EncodeError> {
+        let geom = self.geom;
+        let n = geom.n();
+        let levels = geom.slot_levels().len();
+        let octaves = levels / 2;
+        self.last.clear(self.spill)?;
+        let mut measures: Vec<Vec<Option<Measure>>> = (0..levels)
+            .map(|l| vec![None; geom.level(l).len()])
+            .collect();
+        let mut coded = false;
+        // The coarsest raster: zeros, then the roots.
+        let mut lattice = self.lattice(octaves - 1);
+        let zeros = vec![0i32; lattice.t * lattice.t];
+        for k in 0..lattice.tiles() {
+            self.tiles
+                .write(lattice.offset(k), &zeros)
+                .map_err(EncodeError::Sink)?;
+        }
+        let mut cache = Cache::new(&lattice, self.cache_bytes);
+        let all: Vec<usize> = (0..lattice.tiles()).collect();
+        cache.ensure(&lattice, &all, self.tiles)?;
+        let mut lost = false;
+        geom.scatter_roots_with(self.roots, |k, x| lost |= !cache.set(&lattice, k, x))?;
+        if lost {
+            return Err(EncodeError::Internal(
+                "a root vertex outside the loaded tiles",
+            ));
+        }
+        for o in (0..octaves).rev() {
+            if o + 1 < octaves {
+                let finer = self.lattice(o);
+                cache.flush(&lattice, self.tiles)?;
+                drop(cache);
+                expand(&lattice, &finer, self.tiles, self.meter)?;
+                lattice = finer;
+                cache = Cache::new(&lattice, self.cache_bytes);
+            }
+            for level in [levels - 2 - 2 * o, levels - 1 - 2 * o] {
+                let (slots, clen, vlen) = (geom.level(level), n * n, (n + 1) * (n + 1));
+                let details: &Spill = self.details;
+                let last = &mut self.last;
+                let spill = &mut *self.spill;
+                let meter = &mut *self.meter;
+                let measures = &mut measures[level];
+                for_each_batch(
+                    geom,
+                    level,
+                    (&lattice, &mut cache, &mut *self.tiles),
+                    |batch, cache| {
+                        let missed = AtomicBool::new(false);
+                        let shared: &Cache = cache;
+                        let store: &dyn IndexSpill = &*spill;
+                        let results: Vec<Synthesised> = batch
+                            .par_iter()
+                            .map(|&i| -> Result<Synthesised, EncodeError> {
+                                let s = &slots[i];
+                                let mask = geom.mask(s);
+                                let mut h = vec![0; clen];
+                                details.get(store, level, i, &mut h)?;
+                                let mut indices = vec![0; clen];
+                                q.matrix(
+                                    cost_model,
+                                    &geom.blob_context(level, i),
+                                    steps[level],
+                                    &h,
+                                    &mut indices,
+                                );
+                                let nonzero = indices.iter().any(|&x| x != 0);
+                                let mut v = vec![0; vlen];
+                                let mut c = vec![0; clen];
+                                gather_vertices(n, s, (&lattice, shared), &missed, &mut v);
+                                let m = if nonzero {
+                                    for (d, &x) in h.iter_mut().zip(&indices) {
+                                        *d = dequantize(x, steps[level]);
+                                    }
+                                    let coarse = v.clone();
+                                    lifting::synthesize(n, &mut v, &h, &mut c, mask);
+                                    measure(n, mask, &coarse, &v, &c)
+                                } else {
+                                    lifting::synthesize_zero(n, &v, &mut c, mask);
+                                    measure(n, mask, &v, &v, &c)
+                                };
+                                Ok(Synthesised {
+                                    index: i,
+                                    indices,
+                                    fine: v,
+                                    cells: c,
+                                    nonzero,
+                                    measure: m,
+                                })
+                            })
+                            .collect::<Result<_, _>>()?;
+                        if missed.load(Ordering::Relaxed) {
+                            return Err(EncodeError::Internal("a diamond point outside its tiles"));
+                        }
+                        meter.note(cache.held_bytes() + results.len() * (vlen + 3 * clen) * 4);
+                        let mut lost = false;
+                        for r in &results {
+                            let s = &slots[r.index];
+                            let mut put = |(k, other): (usize, Option<usize>), x: i32| {
+                                lost |= !cache.set(&lattice, k, x);
+                                if let Some(k) = other {
+                                    lost |= !cache.set(&lattice, k, x);
+                                }
+                            };
+                            if r.nonzero {
+                                for a in 1..n {
+                                    for b in 1..n {
+                                        put(s.vertex_copies(a, b), r.fine[a * (n + 1) + b]);
+                                    }
+                                }
+                            }
+                            for a in 0..n {
+                                for b in 0..n {
+                                    put(s.cell_copies(a, b), r.cells[a * n + b]);
+                                }
+                            }
+                        }
+                        if lost {
+                            return Err(EncodeError::Internal(
+                                "a synthesised point outside its tiles",
+                            ));
+                        }
+                        let nonzero: Vec<(usize, &[i32])> = results
+                            .iter()
+                            .filter(|r| r.nonzero)
+                            .map(|r| (r.index, &r.indices[..]))
+                            .collect();
+                        if !nonzero.is_empty() {
+                            coded = true;
+                            last.put_batch(spill, level, &nonzero)?;
+                        }
+                        for r in results {
+                            measures[r.index] = Some(r.measure);
+                        }
+                        Ok(())
+                    },
+                )?;
+            }
+        }
+        cache.flush(&lattice, self.tiles)?;
+        let measures = measures
+            .into_iter()
+            .map(|l| l.into_iter().collect::<Option<Vec<Measure>>>())
+            .collect::<Option<Vec<_>>>()
+            .ok_or(EncodeError::Internal("a diamond was not synthesised"))?;
+        Ok((measures, coded))
+    }
+
+    /// The decoded integers (the tiles of `R_0`) against the source, read again face by
+    /// face: `(rms, max)` over the valid canonical entries.
+    fn errors(&mut self) -> Result<(f64, f64), EncodeError> {
+        let geom = self.geom;
+        let w = geom.face_side() + 1;
+        let lattice = self.lattice(0);
+        let t = lattice.t;
+        let mut canon = HashMap::new();
+        let mut vals = vec![0.0; t * w];
+        let mut ints = vec![0i32; t * w];
+        let mut tile = vec![0i32; t * t];
+        self.meter
+            .note(vals.len() * 8 + (ints.len() + tile.len()) * 4);
+        let mut pieces = Vec::new();
+        let mut current = (0.0, 0.0f64);
+        for face in 0..6 {
+            for first in (0..w).step_by(t) {
+                let count = t.min(w - first);
+                let band = &mut vals[..count * w];
+                read_band(
+                    self.source,
+                    self.borders,
+                    &mut canon,
+                    (face, first, count),
+                    band,
+                )?;
+                for tu in 0..lattice.per {
+                    self.tiles
+                        .read(
+                            lattice.offset(lattice.tile_no(face, first / t, tu)),
+                            &mut tile,
+                        )
+                        .map_err(EncodeError::Source)?;
+                    let (u0, u1) = (tu * t, ((tu + 1) * t).min(w));
+                    for r in 0..count {
+                        ints[r * w + u0..r * w + u1]
+                            .copy_from_slice(&tile[r * t..r * t + (u1 - u0)]);
+                    }
+                }
+                let start = (face * w + first) * w;
+                let (done, _) = piece_errors(
+                    geom,
+                    self.map,
+                    (start, &vals[..count * w], Some(&ints[..count * w])),
+                    &mut current,
+                );
+                pieces.extend(done);
+            }
+        }
+        if !(6 * w * w).is_multiple_of(PASS_CHUNK) {
+            pieces.push(current);
+        }
+        Ok(rms_of_pieces(&pieces, self.valid_count))
+    }
+}
+
+/// One diamond's synthesis: its indices, fine vertices, cells and measures.
+struct Synthesised {
+    index: usize,
+    indices: Vec<i32>,
+    fine: Vec<i32>,
+    cells: Vec<i32>,
+    nonzero: bool,
+    measure: Measure,
+}
+
+impl Verifier for CubeVerifier<'_> {
+    fn train_cost(&mut self, q: &Quantise, steps: &[u32]) -> Result<CodecModel, EncodeError> {
+        let (geom, n) = (self.geom, self.geom.n());
+        let store: &dyn IndexSpill = &*self.spill;
+        let details = self.details;
+        let failed: Mutex<Option<EncodeError>> = Mutex::new(None);
+        let model = train_model(
+            geom,
+            |_, _| true,
+            |acc, l, i| {
+                let mut h = details.matrix(store, l, i).unwrap_or_else(|e| {
+                    if let Ok(mut f) = failed.lock() {
+                        f.get_or_insert(e);
+                    }
+                    vec![0; n * n]
+                });
+                let ctx = geom.blob_context(l, i);
+                q.round(steps[l], &mut h);
+                entropy::write_matrix(
+                    acc,
+                    ctx.group,
+                    n,
+                    &h,
+                    ctx.mask.map(lifting::DiamondMask::cells),
+                    steps[l] > 256,
+                );
+            },
+        );
+        match failed.into_inner().ok().flatten() {
+            Some(e) => Err(e),
+            None => Ok(model),
+        }
+    }
+
+    fn attempt(
+        &mut self,
+        q: &Quantise,
+        cost_model: Option<&CodecModel>,
+        steps: &[u32],
+    ) -> Result<Attempt, EncodeError> {
+        let (measures, coded) = self.synthesise(q, cost_model, steps)?;
+        let errors = self.errors()?;
+        Ok((measures, coded, errors))
+    }
+
+    fn keep_last(&mut self) {
+        std::mem::swap(&mut self.last, &mut self.kept);
+    }
+}
+
+/// Writes `R_{o-1}` (`to`) from `R_o` (`from`), the inverse of [`compact`]: the points
+/// of `R_o` at every second point of every second row, zeros between (the synthesis of
+/// `to`'s octave writes them).
+fn expand(
+    from: &Lattice,
+    to: &Lattice,
+    store: &mut dyn TileStore,
+    meter: &mut Meter,
+) -> Result<(), EncodeError> {
+    let t = from.t;
+    let tv_len = t * t;
+    let mut src = vec![0i32; from.per * tv_len];
+    let mut out = vec![0i32; tv_len];
+    meter.note((src.len() + out.len()) * 4);
+    for face in 0..6 {
+        for stv in 0..from.per {
+            for tu in 0..from.per {
+                store
+                    .read(
+                        from.offset(from.tile_no(face, stv, tu)),
+                        &mut src[tu * tv_len..(tu + 1) * tv_len],
+                    )
+                    .map_err(EncodeError::Source)?;
+            }
+            // Output rows of tiles 2 stv and 2 stv + 1 take source rows of tiles stv.
+            for r in 0..2 {
+                let tv = 2 * stv + r;
+                if tv >= to.per {
+                    continue;
+                }
+                for tu in 0..to.per {
+                    out.iter_mut().for_each(|x| *x = 0);
+                    for y in (0..t).step_by(2) {
+                        let sy = (tv * t + y) / 2 - stv * t;
+                        for x in (0..t).step_by(2) {
+                            let sx = (tu * t + x) / 2;
+                            let (stu, xx) = (sx / t, sx % t);
+                            if stu < from.per {
+                                out[y * t + x] = src[stu * tv_len + sy * t + xx];
+                            }
+                        }
+                    }
+                    store
+                        .write(to.offset(to.tile_no(face, tv, tu)), &out)
+                        .map_err(EncodeError::Sink)?;
+                }
             }
         }
     }

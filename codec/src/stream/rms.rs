@@ -64,7 +64,7 @@ const CODE_PIECE: usize = 4096;
 const DENSE: usize = 1 << 12;
 
 /// Counts of each detail magnitude per level.
-struct Histograms {
+pub(super) struct Histograms {
     dense: Vec<Vec<u64>>,
     sparse: Vec<BTreeMap<u32, u64>>,
 }
@@ -77,23 +77,35 @@ impl DetailVisitor for Histograms {
         _: &[usize],
         details: &[&[i32]],
     ) -> Result<(), EncodeError> {
-        let (dense, sparse) = (&mut self.dense[level], &mut self.sparse[level]);
         for h in details {
-            for &x in *h {
-                let a = x.unsigned_abs();
-                match dense.get_mut(a as usize) {
-                    Some(c) => *c += 1,
-                    None => *sparse.entry(a).or_insert(0) += 1,
-                }
-            }
+            self.add(level, h);
         }
         Ok(())
     }
 }
 
 impl Histograms {
+    pub(super) fn new(levels: usize) -> Self {
+        Histograms {
+            dense: vec![vec![0; DENSE]; levels],
+            sparse: vec![BTreeMap::new(); levels],
+        }
+    }
+
+    /// Counts the magnitudes of one diamond's details.
+    pub(super) fn add(&mut self, level: usize, h: &[i32]) {
+        let (dense, sparse) = (&mut self.dense[level], &mut self.sparse[level]);
+        for &x in h {
+            let a = x.unsigned_abs();
+            match dense.get_mut(a as usize) {
+                Some(c) => *c += 1,
+                None => *sparse.entry(a).or_insert(0) += 1,
+            }
+        }
+    }
+
     /// `(|h|, count)` ascending per level, as the in-memory encoder's histograms.
-    fn finish(self) -> Vec<Vec<(u32, u64)>> {
+    pub(super) fn finish(self) -> Vec<Vec<(u32, u64)>> {
         self.dense
             .into_iter()
             .zip(self.sparse)
@@ -480,10 +492,7 @@ pub(crate) fn encode_rms<'a>(
     let (n, levels) = (geom.n(), geom.detail_levels());
     let map = *passes.map;
     let unit = passes.source.quantum_m().unwrap_or(map.scale);
-    let mut hist = Histograms {
-        dense: vec![vec![0; DENSE]; levels],
-        sparse: vec![BTreeMap::new(); levels],
-    };
+    let mut hist = Histograms::new(levels);
     let root = passes.analyse(&mut hist)?;
     let hist = hist.finish();
     let mut verifier = StreamVerifier {
