@@ -294,7 +294,8 @@ fn check_budget(args: &BuildArgs, samples: usize, channels: usize) -> Result<()>
         bail!(
             "this build needs about {need_mb} MB in memory but --memory-budget-mb is {budget}; \
              out-of-core builds cover elevation (planar or planet) from a raw grid + JSON \
-             sidecar or a tile mosaic (convert other formats to raw, or raise the budget)"
+             sidecar or a tile mosaic, and planar colour (convert other elevation formats \
+             to raw, or raise the budget)"
         );
     }
     Ok(())
