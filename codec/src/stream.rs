@@ -49,7 +49,8 @@ mod rms;
 mod synth;
 
 pub use cube::{
-    CUBE_PHASES, CubeEncoded, CubeOptions, CubeSource, MemoryTiles, TileStore, encode_cube,
+    CUBE_PHASES, CubeEncoded, CubeOptions, CubeSource, DecodedTiles, MemoryTiles, TileStore,
+    encode_cube,
 };
 
 /// Rows of a planar raster, read on demand (row 0 = north). May be called several times

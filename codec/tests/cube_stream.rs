@@ -12,7 +12,8 @@ use quincunx_codec::encode::{
 };
 use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_codec::stream::{
-    BlobSink, CubeEncoded, CubeOptions, CubeSource, MemorySpill, MemoryTiles, encode_cube,
+    BlobSink, CubeEncoded, CubeOptions, CubeSource, MemorySpill, MemoryTiles, TileStore,
+    encode_cube,
 };
 
 /// A [`CubeGrid`] read a band of rows at a time.
@@ -116,6 +117,7 @@ fn out_of_core_with(
         memory_budget_bytes: budget,
         sparse,
         rdo,
+        keep_decoded: false,
     };
     let enc = encode_cube(
         &mut src,
@@ -318,6 +320,7 @@ fn bad_settings_and_failing_sources_are_errors_not_panics() {
             memory_budget_bytes: 1 << 20,
             sparse: false,
             rdo: RdoMode::Auto,
+            keep_decoded: false,
         };
         let err = encode_cube(
             &mut src,
@@ -333,5 +336,63 @@ fn bad_settings_and_failing_sources_are_errors_not_panics() {
             EncodeError::Source("disk on fire".into()),
             "read {fail_at}"
         );
+    }
+}
+
+#[test]
+fn the_decoded_planet_left_in_the_tiles_is_the_decoders() {
+    let (face_side, n) = (128, 16);
+    let g = disturbed_planet(face_side, n);
+    let w = face_side + 1;
+    for mode in [
+        RateMode::Lossless,
+        RateMode::MaxErrorM(3.0),
+        RateMode::RmsM(4.0),
+    ] {
+        let mut sink = blobs_for(face_side, n);
+        let mut src = GridRows {
+            g: &g,
+            fail_at: None,
+            reads: 0,
+        };
+        let mut tiles = MemoryTiles::default();
+        let opts = CubeOptions {
+            n,
+            mode,
+            memory_budget_bytes: 1 << 20,
+            sparse: false,
+            rdo: RdoMode::Auto,
+            keep_decoded: true,
+        };
+        let enc = encode_cube(
+            &mut src,
+            opts,
+            &mut sink,
+            &mut MemorySpill::default(),
+            &mut tiles,
+            &mut |_| {},
+        )
+        .unwrap();
+        let layout = enc.decoded.expect("decoded tiles");
+        let want = encode::decode_sphere_integers(&enc.into_encoded(sink.0)).unwrap();
+        // Bands that do not follow the tiles: 50 rows, the last shorter.
+        let mut got = vec![0; 6 * w * w];
+        for face in 0..6 {
+            for first in (0..w).step_by(50) {
+                let count = 50.min(w - first);
+                let at = (face * w + first) * w;
+                layout
+                    .read_rows(
+                        &mut tiles,
+                        (face, first, count),
+                        &mut got[at..at + count * w],
+                    )
+                    .unwrap();
+            }
+        }
+        assert_eq!(got, want, "{mode:?}");
+        let tiles_dyn: &mut dyn TileStore = &mut tiles;
+        let err = layout.read_rows(tiles_dyn, (6, 0, 1), &mut vec![0; w]);
+        assert!(err.is_err());
     }
 }

@@ -461,6 +461,7 @@ fn build_cube_streaming<S: CubeSource>(
         )?,
         sparse,
         rdo: args.rdo.mode(),
+        keep_decoded: false,
     };
     let radius = radius_m(args)?;
     let built = with_builder(args, |builder| {
@@ -621,20 +622,16 @@ fn build_colour_streaming(
     started: Instant,
 ) -> Result<BuildSummary> {
     let (width, height) = (image.width, image.height);
-    let channel_mode = match mode {
-        RateMode::MaxErrorM(e) => {
-            colour_channel_bound(e).map_or(RateMode::Lossless, RateMode::MaxErrorM)
-        }
-        m => m,
-    };
+    let channel_mode = colour_channel_mode(mode);
     let opts = StreamOptions {
         n,
         mode: channel_mode,
-        // The decoded image stays in memory.
+        // The decoded image stays in memory, and the channels' blobs until they are
+        // framed (counted at a byte a sample: colour channels code below 8 bits).
         memory_budget_bytes: encoder_budget(
             budget_mb,
             planar_diamonds(width * height, n),
-            width * height * 3,
+            width * height * 6,
         )?,
         sparse: args.sparse,
         rdo: args.rdo.mode(),
@@ -1015,8 +1012,22 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
             bail!("the image is empty");
         }
         let (pixels, domain) = if args.planet {
+            let face_side =
+                planet_face_side(args, image.georef.as_ref(), image.width, image.height, n)?;
+            let frame = SphereFrame::new(face_side, n, None)
+                .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
+            if let Some(budget_mb) = args.memory_budget_mb
+                && in_memory_mb(frame.distinct_points(), 3) > budget_mb
+            {
+                encode_started = Instant::now();
+                let mut coded = encode_colour_cube(args, &image, &frame, mode, budget_mb)?;
+                coded.desc.radius_m = Some(radius_m(args)?);
+                coded.desc.source_samples = image.width * image.height;
+                let mut summary = store(args, &coded, n, mode, started, encode_started)?;
+                summary.out_of_core = true;
+                return Ok(summary);
+            }
             let geom = planet_geometry(args, image.georef.as_ref(), image.width, image.height, n)?;
-            check_budget(args, geom.distinct_points(), 3)?;
             (
                 planet::resample_rgb(&image, &geom)?,
                 ColourDomain::Sphere(geom),
@@ -1490,13 +1501,7 @@ fn encode_colour(
         planes[1].push(co as f64);
         planes[2].push(cg as f64);
     }
-    let channel_mode = match mode {
-        RateMode::Lossless => RateMode::Lossless,
-        RateMode::RmsM(t) => RateMode::RmsM(t),
-        RateMode::MaxErrorM(e) => {
-            colour_channel_bound(e).map_or(RateMode::Lossless, RateMode::MaxErrorM)
-        }
-    };
+    let channel_mode = colour_channel_mode(mode);
     let pb = progress::bar(3, "encoding", "channels");
     let mut channels = Vec::new();
     for (name, values) in COLOUR_CHANNELS.iter().zip(planes) {
@@ -1536,7 +1541,27 @@ fn encode_colour(
         .map(|(_, e)| encode::decode(e).map(|v| v.into_iter().map(|x| x.round() as i32).collect()))
         .collect::<Result<Vec<Vec<i32>>, _>>()
         .context("decoding colour for measurement")?;
-    let (rms, max_abs) = rgb_error(pixels, &decoded[0], &decoded[1], &decoded[2]);
+    let errors = rgb_error(pixels, &decoded[0], &decoded[1], &decoded[2]);
+    colour_coded(channels, channel_mode, georef, errors)
+}
+
+/// The colour channels' per-channel rate mode for a build's `mode`.
+fn colour_channel_mode(mode: RateMode) -> RateMode {
+    match mode {
+        RateMode::MaxErrorM(e) => {
+            colour_channel_bound(e).map_or(RateMode::Lossless, RateMode::MaxErrorM)
+        }
+        m => m,
+    }
+}
+
+/// A colour repository's description and channels, with its measured RGB errors.
+fn colour_coded(
+    channels: Vec<(String, Encoded)>,
+    channel_mode: RateMode,
+    georef: Option<Georef>,
+    (rms, max_abs): (f64, f64),
+) -> Result<Coded> {
     Ok(Coded {
         desc: Description {
             coverage: channels[0].1.coverage.as_ref().map(|c| c.to_bytes()),
@@ -1558,6 +1583,112 @@ fn encode_colour(
         },
         encoded: channels.into_iter().map(|(_, e)| e).collect(),
     })
+}
+
+/// The out-of-core colour planet build: each YCoCg-R channel streams from the image
+/// (`planet::EquirectRgbRows`, the in-memory resampling bit for bit) through the planet
+/// encoder out of core, which leaves its decoded raster in its tiles; the channels'
+/// blobs are kept (their coded size) until they are framed, and the RGB error is measured
+/// on the three decoded rasters read in step with the pixels, a band of rows at a time,
+/// as in memory.
+fn encode_colour_cube(
+    args: &BuildArgs,
+    image: &input::RgbImage,
+    frame: &SphereFrame,
+    mode: RateMode,
+    budget_mb: u64,
+) -> Result<Coded> {
+    let (face_side, n) = (frame.face_side(), frame.n());
+    let channel_mode = colour_channel_mode(mode);
+    let samples = 6 * (face_side + 1) * (face_side + 1);
+    let opts = CubeOptions {
+        n,
+        mode: channel_mode,
+        // The decoded image stays in memory, and the channels' blobs until they are
+        // framed (counted at a byte a sample: colour channels code below 8 bits).
+        memory_budget_bytes: encoder_budget(
+            budget_mb,
+            cube_diamonds(samples, n, channel_mode),
+            image.width * image.height * 3 + samples * 3,
+        )?,
+        sparse: args.sparse,
+        rdo: args.rdo.mode(),
+        keep_decoded: true,
+    };
+    tracing::info!(face_side, budget_mb, "out-of-core colour planet build");
+    let mut rows = planet::EquirectRgbRows::new(image, frame)?;
+    let pb = progress::bar(3, "encoding", "channels");
+    let mut channels = Vec::new();
+    for (c, name) in COLOUR_CHANNELS.iter().enumerate() {
+        rows.channel = c;
+        let mut sink = ChannelBlobs::default();
+        let mut spill = FileSpill::beside(&args.output)?;
+        let mut tiles = FileTiles::beside(&args.output)?;
+        let enc = stream::encode_cube(
+            &mut rows,
+            opts,
+            &mut sink,
+            &mut spill,
+            &mut tiles,
+            &mut |_| {},
+        )
+        .with_context(|| format!("encoding colour channel {name} out of core"))?;
+        channels.push((name.to_string(), enc, sink, tiles));
+        pb.inc(1);
+    }
+    pb.finish_and_clear();
+    // The RGB error, a band of rows at a time in cube-raster order.
+    let w = face_side + 1;
+    let band = 64.min(w);
+    let mut error = rows::RgbError::default();
+    let mut pixels = vec![[0u8; 3]; band * w];
+    let mut ints = vec![0i32; band * w];
+    let mut decoded = vec![vec![0i32; band * w]; 3];
+    for face in 0..6 {
+        for first in (0..w).step_by(band) {
+            let count = band.min(w - first);
+            let len = count * w;
+            rows.rgb_rows(face, (first, count), &mut pixels[..len])
+                .map_err(|e| anyhow::anyhow!(e))?;
+            for ((_, enc, _, tiles), out) in channels.iter_mut().zip(&mut decoded) {
+                let layout = enc
+                    .decoded
+                    .context("the planet encoder left no decoded raster")?;
+                layout
+                    .read_rows(tiles, (face, first, count), &mut ints[..len])
+                    .map_err(|e| anyhow::anyhow!(e))
+                    .context("decoding colour for measurement")?;
+                // As `encode::decode` and the in-memory measurement round them.
+                for (o, &v) in out.iter_mut().zip(&ints[..len]) {
+                    *o = (enc.value_offset_m + v as f64 * enc.value_scale_m).round() as i32;
+                }
+            }
+            error.add(
+                &pixels[..len],
+                &decoded[0][..len],
+                &decoded[1][..len],
+                &decoded[2][..len],
+            );
+        }
+    }
+    let geom = match &channels[0].1.coverage {
+        Some(c) => SphereGeometry::with_coverage(face_side, n, c)?,
+        None => SphereGeometry::new(face_side, n)?,
+    };
+    let encoded = channels
+        .into_iter()
+        .map(|(name, enc, mut sink, _)| {
+            let blobs = (0..geom.detail_levels())
+                .map(|l| {
+                    (0..geom.level(l).len())
+                        .map(|i| sink.blobs.remove(&(l, i)))
+                        .collect()
+                })
+                .collect();
+            (name, enc.into_encoded(blobs))
+        })
+        .collect();
+    colour_coded(encoded, channel_mode, image.georef.clone(), error.finish())
 }
 
 /// RMS and largest absolute error over all RGB components of decoded YCoCg-R planes

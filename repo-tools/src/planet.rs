@@ -11,6 +11,7 @@
 //! source spans 360°.
 
 use anyhow::{Context, Result, bail};
+use quincunx_codec::colour::rgb_to_ycocg_r;
 use quincunx_codec::diamond::sphere::{cube_to_unit_sphere, unit_sphere_to_cube};
 use quincunx_codec::encode::{CubeGrid, round};
 use quincunx_codec::sphere_raster::{SphereFrame, SphereGeometry};
@@ -546,25 +547,105 @@ pub fn resample_heights(raster: &HeightRaster, geom: &SphereGeometry) -> Result<
 /// Resamples global RGB imagery onto the cube raster of `geom` (bilinear per channel,
 /// rounded to 8 bits), all three channels in one pass over the cube.
 pub fn resample_rgb(image: &RgbImage, geom: &SphereGeometry) -> Result<Vec<[u8; 3]>> {
+    // One lookup of the four neighbours for all three channels, straight from the
+    // interleaved pixels (no per-channel copy of the image).
+    let e = rgb_equirect(image)?;
+    let mut cube = vec![[0u8; 3]; geom.cube_len()];
+    for_each_cube_sample(geom, &mut cube, |lat, lon| rgb_at(&e, image, lat, lon));
+    Ok(cube)
+}
+
+fn rgb_equirect(image: &RgbImage) -> Result<Equirect<'static>> {
     let georef = image
         .georef
         .as_ref()
         .context("planet builds need georeferenced imagery (a sidecar with `georef`)")?;
-    // One lookup of the four neighbours for all three channels, straight from the
-    // interleaved pixels (no per-channel copy of the image).
-    let e = Equirect::new(image.width, image.height, &[], georef)?;
-    let mut cube = vec![[0u8; 3]; geom.cube_len()];
-    for_each_cube_sample(geom, &mut cube, |lat, lon| {
-        let Some(b) = e.locate(lat, lon) else {
-            return [0; 3];
-        };
-        let p = b.at.map(|k| image.pixels[k]);
-        std::array::from_fn(|c| {
-            let v = b.mix(p.map(|px| f64::from(px[c])));
-            round(v).clamp(0.0, 255.0) as u8
+    Equirect::new(image.width, image.height, &[], georef)
+}
+
+/// The image's colour at a latitude/longitude (black outside its extent).
+fn rgb_at(e: &Equirect<'_>, image: &RgbImage, lat: f64, lon: f64) -> [u8; 3] {
+    let Some(b) = e.locate(lat, lon) else {
+        return [0; 3];
+    };
+    let p = b.at.map(|k| image.pixels[k]);
+    std::array::from_fn(|c| {
+        let v = b.mix(p.map(|px| f64::from(px[c])));
+        round(v).clamp(0.0, 255.0) as u8
+    })
+}
+
+/// An RGB image resampled onto a cube a band of face rows at a time (the out-of-core
+/// colour planet build's source): the pixels [`resample_rgb`] gives, bit for bit. As a
+/// [`CubeSource`] it reads one YCoCg-R channel (`channel`: 0 Y, 1 Co, 2 Cg).
+pub struct EquirectRgbRows<'a> {
+    image: &'a RgbImage,
+    grid: Equirect<'static>,
+    angles: CubeAngles,
+    face_side: usize,
+    /// The channel read as a [`CubeSource`].
+    pub channel: usize,
+}
+
+impl<'a> EquirectRgbRows<'a> {
+    /// The rows of `image` on the cube of `frame`.
+    pub fn new(image: &'a RgbImage, frame: &SphereFrame) -> Result<Self> {
+        Ok(EquirectRgbRows {
+            image,
+            grid: rgb_equirect(image)?,
+            angles: CubeAngles::new(frame),
+            face_side: frame.face_side(),
+            channel: 0,
         })
-    });
-    Ok(cube)
+    }
+
+    /// Face `face`'s rows `first .. first + count` of pixels, every copy of every point.
+    pub fn rgb_rows(
+        &self,
+        face: usize,
+        (first, count): (usize, usize),
+        out: &mut [[u8; 3]],
+    ) -> Result<(), String> {
+        let w = self.face_side + 1;
+        check_band(self.face_side, face, (first, count), out.len())?;
+        out.par_chunks_mut(w).enumerate().for_each_init(
+            || vec![(0.0, 0.0); w],
+            |angles, (r, dst)| {
+                self.angles.row(face, first + r, angles);
+                for (x, &(lat, lon)) in dst.iter_mut().zip(angles.iter()) {
+                    *x = rgb_at(&self.grid, self.image, lat, lon);
+                }
+            },
+        );
+        Ok(())
+    }
+}
+
+impl CubeSource for EquirectRgbRows<'_> {
+    fn face_side(&self) -> usize {
+        self.face_side
+    }
+
+    fn read_face_rows(
+        &mut self,
+        face: usize,
+        first: usize,
+        count: usize,
+        out: &mut [f64],
+    ) -> Result<(), String> {
+        let mut rgb = vec![[0u8; 3]; out.len()];
+        self.rgb_rows(face, (first, count), &mut rgb)?;
+        let c = self.channel;
+        out.par_iter_mut().zip(&rgb).for_each(|(x, &[r, g, b])| {
+            let (y, co, cg) = rgb_to_ycocg_r(i32::from(r), i32::from(g), i32::from(b));
+            *x = f64::from([y, co, cg][c]);
+        });
+        Ok(())
+    }
+
+    fn quantum_m(&self) -> Option<f64> {
+        Some(1.0)
+    }
 }
 
 /// The default face side for a source of `spacing_deg`: the power-of-two multiple of `n`

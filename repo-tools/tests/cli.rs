@@ -702,39 +702,45 @@ fn rms_builds_stream_out_of_core_within_their_budget() {
 
 #[test]
 fn colour_builds_out_of_core_are_the_in_memory_repositories() {
-    // The bundled Blue Marble as a planar image: about 42 MB to build in memory.
+    // The bundled Blue Marble as a planar image (about 42 MB to build in memory) and as
+    // a planet of face side 512 (about 117 MB at RMS 4).
     let input = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/bmng_global_1080x540.jpg");
     let dir = tempfile::tempdir().unwrap();
-    for rate in [
-        &["--lossless"][..],
-        &["--max-error-m", "8"],
-        &["--rms-m", "4"],
-    ] {
-        let build = |name: &str, flags: &[&str]| {
-            let repo = dir.path().join(name);
-            let built = ok_json(
-                bin()
-                    .args(["build", "--colour", "--json"])
-                    .args(rate)
-                    .args(flags)
-                    .arg("-o")
-                    .arg(&repo)
-                    .arg(&input),
-            );
-            (repo, built)
-        };
-        let tag = rate.join("");
-        let (repo, ooc) = build(&format!("ooc{tag}"), &["--memory-budget-mb", "32"]);
-        let (_, mem) = build(&format!("mem{tag}"), &[]);
-        println!("colour {rate:?} out of core {ooc}\nin memory {mem}");
-        assert_eq!(ooc["out_of_core"], true, "{rate:?}");
-        assert_eq!(mem["out_of_core"], false, "{rate:?}");
-        assert!(ooc["peak_rss_mb"].as_f64().unwrap() <= 32.0, "{ooc}");
-        for key in ["content_hash", "rms", "max_abs", "blob_count"] {
-            assert_eq!(ooc[key], mem[key], "{rate:?}: {key}");
+    let planet = &["--planet", "--face-side", "512"][..];
+    for domain in [&[][..], planet] {
+        for rate in [
+            &["--lossless"][..],
+            &["--max-error-m", "8"],
+            &["--rms-m", "4"],
+        ] {
+            let build = |name: &str, flags: &[&str]| {
+                let repo = dir.path().join(name);
+                let built = ok_json(
+                    bin()
+                        .args(["build", "--colour", "--json"])
+                        .args(domain)
+                        .args(rate)
+                        .args(flags)
+                        .arg("-o")
+                        .arg(&repo)
+                        .arg(&input),
+                );
+                (repo, built)
+            };
+            let tag = format!("{}{}", domain.len(), rate.join(""));
+            let (repo, ooc) = build(&format!("ooc{tag}"), &["--memory-budget-mb", "32"]);
+            let (_, mem) = build(&format!("mem{tag}"), &[]);
+            println!("colour {domain:?} {rate:?} out of core {ooc}\nin memory {mem}");
+            assert_eq!(ooc["out_of_core"], true, "{domain:?} {rate:?}");
+            assert_eq!(mem["out_of_core"], false, "{domain:?} {rate:?}");
+            assert!(ooc["peak_rss_mb"].as_f64().unwrap() <= 32.0, "{ooc}");
+            for key in ["content_hash", "rms", "max_abs", "blob_count"] {
+                assert_eq!(ooc[key], mem[key], "{domain:?} {rate:?}: {key}");
+            }
+            let verified = verify_json(&repo, &input);
+            assert_eq!(verified["blob_errors"], 0, "{domain:?} {rate:?}");
+            assert_eq!(verified["rms_m"], ooc["rms"], "{domain:?} {rate:?}");
         }
-        let verified = verify_json(&repo, &input);
-        assert_eq!(verified["blob_errors"], 0, "{rate:?}");
     }
 }
 

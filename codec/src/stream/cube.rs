@@ -121,6 +121,9 @@ pub struct CubeOptions {
     pub sparse: bool,
     /// Rate-distortion quantisation in the RMS mode.
     pub rdo: RdoMode,
+    /// Leave the decoded cube raster in the [`TileStore`] at the end (one more synthesis;
+    /// see [`CubeEncoded::decoded`]).
+    pub keep_decoded: bool,
 }
 
 /// Everything a decoder needs besides the blobs (which went to the [`BlobSink`]).
@@ -148,6 +151,52 @@ pub struct CubeEncoded {
     pub tile_store_bytes: u64,
     /// The coverage (sparse mode).
     pub coverage: Option<Coverage>,
+    /// With [`CubeOptions::keep_decoded`]: where the decoded integers are.
+    pub decoded: Option<DecodedTiles>,
+}
+
+/// The decoded integers of a planet, left by [`encode_cube`] in its [`TileStore`] (what a
+/// decoder of the blobs gives, every copy of every point).
+#[derive(Clone, Copy, Debug)]
+pub struct DecodedTiles {
+    face_side: usize,
+    t: usize,
+}
+
+impl DecodedTiles {
+    /// Reads face `face`'s rows `first .. first + count` (`count x (face_side + 1)`
+    /// integers, cube-raster order) from `tiles`.
+    pub fn read_rows(
+        &self,
+        tiles: &mut dyn TileStore,
+        (face, first, count): (usize, usize, usize),
+        out: &mut [i32],
+    ) -> Result<(), String> {
+        let w = self.face_side + 1;
+        if face >= 6 || first + count > w || out.len() != count * w {
+            return Err(format!(
+                "rows {first}..{} of face {face} into {} values: outside a cube of face side {}",
+                first + count,
+                out.len(),
+                self.face_side
+            ));
+        }
+        let lattice = Lattice::new(self.face_side, self.t, 0, 0);
+        let t = self.t;
+        let mut tile = vec![0i32; t * t];
+        for tv in first / t..(first + count).div_ceil(t) {
+            for tu in 0..lattice.per {
+                tiles.read(lattice.offset(lattice.tile_no(face, tv, tu)), &mut tile)?;
+                let (u0, u1) = (tu * t, ((tu + 1) * t).min(w));
+                for y in (tv * t).max(first)..((tv + 1) * t).min(first + count) {
+                    let r = y - first;
+                    let ty = y - tv * t;
+                    out[r * w + u0..r * w + u1].copy_from_slice(&tile[ty * t..ty * t + (u1 - u0)]);
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 impl CubeEncoded {
@@ -306,20 +355,22 @@ pub fn encode_cube(
     let (side, kept) = match (opts.mode, hist) {
         (RateMode::RmsM(target), Some(hist)) => {
             let mut verifier = CubeVerifier {
-                geom: &geom,
-                roots: &roots,
+                synth: Synth {
+                    geom: &geom,
+                    roots: &roots,
+                    tiles: &mut *tiles,
+                    spill: &mut *spill,
+                    shape: (tile, second),
+                    cache_bytes,
+                    meter: &mut meter,
+                },
                 source,
                 borders: &borders,
                 map: &map,
-                tiles,
-                spill,
                 details: &store,
                 last: Spill::with_levels(n, 1, (0..levels).map(|l| geom.level(l).len())),
                 kept: Spill::with_levels(n, 2, (0..levels).map(|l| geom.level(l).len())),
-                shape: (tile, second),
-                cache_bytes,
                 valid_count,
-                meter: &mut meter,
             };
             let unit = verifier.source.quantum_m().unwrap_or(map.scale);
             let out = search_scale(
@@ -382,6 +433,21 @@ pub fn encode_cube(
     if let Some(e) = failed.into_inner().ok().flatten() {
         return Err(e);
     }
+    let decoded = if opts.keep_decoded {
+        let mut synth = Synth {
+            geom: &geom,
+            roots: &roots,
+            tiles,
+            spill,
+            shape: (tile, second),
+            cache_bytes,
+            meter: &mut meter,
+        };
+        synth.run(&steps, Indices::Coded(&kept))?;
+        Some(DecodedTiles { face_side, t: tile })
+    } else {
+        None
+    };
     phase(CUBE_PHASES[4]);
     let report = EncodeReport::tally(Tally {
         samples: geom.distinct_len(),
@@ -406,6 +472,7 @@ pub fn encode_cube(
         peak_buffer_bytes: meter.peak,
         tile_store_bytes: tile_store_bytes as u64,
         coverage,
+        decoded,
     })
 }
 
@@ -1099,30 +1166,48 @@ struct Rate {
 
 /// The RMS rate control's verifier out of core: every diamond's details are in slot 0
 /// of the spill (from the analysis); an attempt quantises them into its own slot as a
-/// synthesis goes through the tiles coarse to fine (the analysis' octaves in reverse,
-/// each raster `R_o` expanded from `R_{o+1}`), measuring each diamond, then reads the
+/// synthesis goes through the tiles ([`Synth`]), measuring each diamond, then reads the
 /// source once more and measures the decoded integers against it in the in-memory
 /// encoder's pieces and order. The same indices, measures and errors as the in-memory
 /// verifier's, so the same search.
 struct CubeVerifier<'a> {
-    geom: &'a SphereGeometry,
-    roots: &'a [Vec<i32>],
+    synth: Synth<'a>,
     source: &'a mut dyn CubeSource,
     borders: &'a Borders,
     map: &'a ValueMap,
-    tiles: &'a mut dyn TileStore,
-    spill: &'a mut dyn IndexSpill,
     details: &'a Spill,
     last: Spill,
     kept: Spill,
+    valid_count: usize,
+}
+
+/// Where a synthesis takes each diamond's indices from.
+enum Indices<'s> {
+    /// Quantised from the analysis' details and stored into `into` (an attempt).
+    Quantise {
+        q: &'s Quantise,
+        cost_model: Option<&'s CodecModel>,
+        details: &'s Spill,
+        into: &'s mut Spill,
+    },
+    /// Read from a spill of indices (the coded ones).
+    Coded(&'s Spill),
+}
+
+/// A synthesis through the tiles, coarse to fine: the analysis' octaves in reverse, each
+/// raster `R_o` expanded from `R_{o+1}`, the roots first; `R_0` is left in the tiles.
+struct Synth<'a> {
+    geom: &'a SphereGeometry,
+    roots: &'a [Vec<i32>],
+    tiles: &'a mut dyn TileStore,
+    spill: &'a mut dyn IndexSpill,
     /// Tile side, and the value offset of the odd octaves' rasters.
     shape: (usize, usize),
     cache_bytes: usize,
-    valid_count: usize,
     meter: &'a mut Meter,
 }
 
-impl CubeVerifier<'_> {
+impl Synth<'_> {
     fn lattice(&self, o: usize) -> Lattice {
         let (t, second) = self.shape;
         Lattice::new(
@@ -1133,19 +1218,20 @@ impl CubeVerifier<'_> {
         )
     }
 
-    /// One decode: quantises into `last` and synthesises; the measures per diamond and
-    /// whether any index is nonzero.
-    fn synthesise(
+    /// Synthesises every level with `steps`; the measures per diamond and whether any
+    /// index is nonzero.
+    fn run(
         &mut self,
-        q: &Quantise,
-        cost_model: Option<&CodecModel>,
         steps: &[u32],
+        mut indices: Indices<'_>,
     ) -> Result<(Vec<Vec<Measure>>, bool), EncodeError> {
         let geom = self.geom;
         let n = geom.n();
         let levels = geom.slot_levels().len();
         let octaves = levels / 2;
-        self.last.clear(self.spill)?;
+        if let Indices::Quantise { into, .. } = &mut indices {
+            into.clear(self.spill)?;
+        }
         let mut measures: Vec<Vec<Option<Measure>>> = (0..levels)
             .map(|l| vec![None; geom.level(l).len()])
             .collect();
@@ -1179,9 +1265,8 @@ impl CubeVerifier<'_> {
             }
             for level in [levels - 2 - 2 * o, levels - 1 - 2 * o] {
                 let (slots, clen, vlen) = (geom.level(level), n * n, (n + 1) * (n + 1));
-                let details: &Spill = self.details;
-                let last = &mut self.last;
                 let spill = &mut *self.spill;
+                let indices = &mut indices;
                 let meter = &mut *self.meter;
                 let measures = &mut measures[level];
                 for_each_batch(
@@ -1192,21 +1277,34 @@ impl CubeVerifier<'_> {
                         let missed = AtomicBool::new(false);
                         let shared: &Cache = cache;
                         let store: &dyn IndexSpill = &*spill;
+                        let from: &Indices<'_> = indices;
                         let results: Vec<Synthesised> = batch
                             .par_iter()
                             .map(|&i| -> Result<Synthesised, EncodeError> {
                                 let s = &slots[i];
                                 let mask = geom.mask(s);
                                 let mut h = vec![0; clen];
-                                details.get(store, level, i, &mut h)?;
                                 let mut indices = vec![0; clen];
-                                q.matrix(
-                                    cost_model,
-                                    &geom.blob_context(level, i),
-                                    steps[level],
-                                    &h,
-                                    &mut indices,
-                                );
+                                match from {
+                                    Indices::Quantise {
+                                        q,
+                                        cost_model,
+                                        details,
+                                        ..
+                                    } => {
+                                        details.get(store, level, i, &mut h)?;
+                                        q.matrix(
+                                            *cost_model,
+                                            &geom.blob_context(level, i),
+                                            steps[level],
+                                            &h,
+                                            &mut indices,
+                                        );
+                                    }
+                                    Indices::Coded(coded) => {
+                                        coded.get(store, level, i, &mut indices)?;
+                                    }
+                                }
                                 let nonzero = indices.iter().any(|&x| x != 0);
                                 let mut v = vec![0; vlen];
                                 let mut c = vec![0; clen];
@@ -1270,7 +1368,9 @@ impl CubeVerifier<'_> {
                             .collect();
                         if !nonzero.is_empty() {
                             coded = true;
-                            last.put_batch(spill, level, &nonzero)?;
+                            if let Indices::Quantise { into, .. } = indices {
+                                into.put_batch(spill, level, &nonzero)?;
+                            }
                         }
                         for r in results {
                             measures[r.index] = Some(r.measure);
@@ -1288,20 +1388,25 @@ impl CubeVerifier<'_> {
             .ok_or(EncodeError::Internal("a diamond was not synthesised"))?;
         Ok((measures, coded))
     }
+}
 
+impl CubeVerifier<'_> {
     /// The decoded integers (the tiles of `R_0`) against the source, read again face by
     /// face: `(rms, max)` over the valid canonical entries.
     fn errors(&mut self) -> Result<(f64, f64), EncodeError> {
-        let geom = self.geom;
+        let geom = self.synth.geom;
         let w = geom.face_side() + 1;
-        let lattice = self.lattice(0);
-        let t = lattice.t;
+        let decoded = DecodedTiles {
+            face_side: geom.face_side(),
+            t: self.synth.shape.0,
+        };
+        let t = decoded.t;
         let mut canon = HashMap::new();
         let mut vals = vec![0.0; t * w];
         let mut ints = vec![0i32; t * w];
-        let mut tile = vec![0i32; t * t];
-        self.meter
-            .note(vals.len() * 8 + (ints.len() + tile.len()) * 4);
+        self.synth
+            .meter
+            .note(vals.len() * 8 + (ints.len() + t * t) * 4);
         let mut pieces = Vec::new();
         let mut current = (0.0, 0.0f64);
         for face in 0..6 {
@@ -1315,19 +1420,13 @@ impl CubeVerifier<'_> {
                     (face, first, count),
                     band,
                 )?;
-                for tu in 0..lattice.per {
-                    self.tiles
-                        .read(
-                            lattice.offset(lattice.tile_no(face, first / t, tu)),
-                            &mut tile,
-                        )
-                        .map_err(EncodeError::Source)?;
-                    let (u0, u1) = (tu * t, ((tu + 1) * t).min(w));
-                    for r in 0..count {
-                        ints[r * w + u0..r * w + u1]
-                            .copy_from_slice(&tile[r * t..r * t + (u1 - u0)]);
-                    }
-                }
+                decoded
+                    .read_rows(
+                        self.synth.tiles,
+                        (face, first, count),
+                        &mut ints[..count * w],
+                    )
+                    .map_err(EncodeError::Source)?;
                 let start = (face * w + first) * w;
                 let (done, _) = piece_errors(
                     geom,
@@ -1357,8 +1456,8 @@ struct Synthesised {
 
 impl Verifier for CubeVerifier<'_> {
     fn train_cost(&mut self, q: &Quantise, steps: &[u32]) -> Result<CodecModel, EncodeError> {
-        let (geom, n) = (self.geom, self.geom.n());
-        let store: &dyn IndexSpill = &*self.spill;
+        let (geom, n) = (self.synth.geom, self.synth.geom.n());
+        let store: &dyn IndexSpill = &*self.synth.spill;
         let details = self.details;
         let failed: Mutex<Option<EncodeError>> = Mutex::new(None);
         let model = train_model(
@@ -1395,7 +1494,15 @@ impl Verifier for CubeVerifier<'_> {
         cost_model: Option<&CodecModel>,
         steps: &[u32],
     ) -> Result<Attempt, EncodeError> {
-        let (measures, coded) = self.synthesise(q, cost_model, steps)?;
+        let (measures, coded) = self.synth.run(
+            steps,
+            Indices::Quantise {
+                q,
+                cost_model,
+                details: self.details,
+                into: &mut self.last,
+            },
+        )?;
         let errors = self.errors()?;
         Ok((measures, coded, errors))
     }
