@@ -1540,6 +1540,28 @@ impl Quantise {
         }
     }
 
+    /// Counts diamond `(l, i)`'s details `h`, rounded at step `s` in place, into `acc`
+    /// (the rate-distortion cost model's training).
+    pub(crate) fn count_rounded<G: Layout>(
+        &self,
+        acc: &mut entropy::ContextCounts,
+        geom: &G,
+        (l, i): (usize, usize),
+        s: u32,
+        h: &mut [i32],
+    ) {
+        let ctx = geom.blob_context(l, i);
+        self.round(s, h);
+        entropy::write_matrix(
+            acc,
+            ctx.group,
+            self.n,
+            h,
+            ctx.mask.map(crate::lifting::DiamondMask::cells),
+            s > 256,
+        );
+    }
+
     /// One diamond's indices into `out`: by rate and distortion under `cost_model` on
     /// quantised levels when one is given, else by rounding. `ctx` gives its group and
     /// mask.
@@ -1724,23 +1746,11 @@ struct InMemory<'a, G: Layout> {
 
 impl<G: Layout> Verifier for InMemory<'_, G> {
     fn train_cost(&mut self, q: &Quantise, st: &[u32]) -> Result<CodecModel, EncodeError> {
-        let (geom, details, n) = (self.geom, self.details, self.geom.n());
+        let (geom, details) = (self.geom, self.details);
         Ok(train_model(
             geom,
             |_, _| true,
-            |acc, l, i| {
-                let ctx = geom.blob_context(l, i);
-                let mut h = details[l][i].clone();
-                q.round(st[l], &mut h);
-                entropy::write_matrix(
-                    acc,
-                    ctx.group,
-                    n,
-                    &h,
-                    ctx.mask.map(crate::lifting::DiamondMask::cells),
-                    st[l] > 256,
-                );
-            },
+            |acc, l, i| q.count_rounded(acc, geom, (l, i), st[l], &mut details[l][i].clone()),
         ))
     }
 

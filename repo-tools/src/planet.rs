@@ -306,17 +306,10 @@ impl CubeSource for EquirectRows<'_> {
         count: usize,
         out: &mut [f64],
     ) -> Result<(), String> {
-        let w = self.face_side + 1;
         check_band(self.face_side, face, (first, count), out.len())?;
-        out.par_chunks_mut(w).enumerate().for_each_init(
-            || vec![(0.0, 0.0); w],
-            |angles, (r, dst)| {
-                self.angles.row(face, first + r, angles);
-                for (x, &(lat, lon)) in dst.iter_mut().zip(angles.iter()) {
-                    *x = self.grid.cube_sample(lat, lon, self.quantum);
-                }
-            },
-        );
+        self.angles.map_rows(face, first, out, |lat, lon| {
+            self.grid.cube_sample(lat, lon, self.quantum)
+        });
         Ok(())
     }
 
@@ -453,6 +446,27 @@ impl CubeAngles {
         q
     }
 
+    /// `out[k] = f(lat, lon)` over face `face`'s whole rows from `first` (`out`'s length
+    /// a multiple of the row length), rows in parallel.
+    pub(crate) fn map_rows<T: Send>(
+        &self,
+        face: usize,
+        first: usize,
+        out: &mut [T],
+        f: impl Fn(f64, f64) -> T + Sync,
+    ) {
+        let w = self.tans.len();
+        out.par_chunks_mut(w).enumerate().for_each_init(
+            || vec![(0.0, 0.0); w],
+            |angles, (r, dst)| {
+                self.row(face, first + r, angles);
+                for (x, &(lat, lon)) in dst.iter_mut().zip(angles.iter()) {
+                    *x = f(lat, lon);
+                }
+            },
+        );
+    }
+
     /// Latitude and longitude (degrees) of row `v` of face `face`, into `out`.
     pub(crate) fn row(&self, face: usize, v: usize, out: &mut [(f64, f64)]) {
         let f = self.frames[face];
@@ -517,15 +531,9 @@ fn for_each_cube_sample<T: Send>(
 ) {
     let side = geom.face_side() + 1;
     let angles = CubeAngles::new(geom);
-    out.par_chunks_mut(side).enumerate().for_each_init(
-        || vec![(0.0, 0.0); side],
-        |row_angles, (row, dst)| {
-            angles.row(row / side, row % side, row_angles);
-            for (x, &(lat, lon)) in dst.iter_mut().zip(row_angles.iter()) {
-                *x = f(lat, lon);
-            }
-        },
-    );
+    for (face, rows) in out.chunks_mut(side * side).enumerate() {
+        angles.map_rows(face, 0, rows, &f);
+    }
 }
 
 /// Resamples a global height grid onto the cube raster of `geom` (values rounded to the
@@ -606,17 +614,10 @@ impl<'a> EquirectRgbRows<'a> {
         (first, count): (usize, usize),
         out: &mut [[u8; 3]],
     ) -> Result<(), String> {
-        let w = self.face_side + 1;
         check_band(self.face_side, face, (first, count), out.len())?;
-        out.par_chunks_mut(w).enumerate().for_each_init(
-            || vec![(0.0, 0.0); w],
-            |angles, (r, dst)| {
-                self.angles.row(face, first + r, angles);
-                for (x, &(lat, lon)) in dst.iter_mut().zip(angles.iter()) {
-                    *x = rgb_at(&self.grid, self.image, lat, lon);
-                }
-            },
-        );
+        self.angles.map_rows(face, first, out, |lat, lon| {
+            rgb_at(&self.grid, self.image, lat, lon)
+        });
         Ok(())
     }
 }

@@ -898,7 +898,14 @@ fn etopo5_planet_at_rms_9_builds_within_a_256_mb_budget() {
     assert!(peak <= 256.0, "peak {peak} MB over the 256 MB budget");
     assert!(budgeted["rms"].as_f64().unwrap() <= 9.0);
     assert_eq!(budgeted["content_hash"], free["content_hash"]);
-    // Below what the estimate allows, the build is refused before it starts.
+    // Under 128 MB it does not fit in memory: out of core, the same repository.
+    let ooc = build("ooc", &["--memory-budget-mb", "128"]);
+    let peak = ooc["peak_rss_mb"].as_f64().unwrap();
+    println!("etopo5 planet RMS 9 m out of core under 128 MB: peak {peak:.1} MB");
+    assert_eq!(ooc["out_of_core"], true);
+    assert!(peak <= 128.0, "peak {peak} MB over the 128 MB budget");
+    assert_eq!(ooc["content_hash"], free["content_hash"]);
+    // Below what the program and the geometry take, it is refused before it starts.
     let out = run(bin()
         .args([
             "build",
@@ -912,7 +919,12 @@ fn etopo5_planet_at_rms_9_builds_within_a_256_mb_budget() {
         .arg(dir.path().join("small"))
         .arg(&input));
     assert_eq!(out.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("--memory-budget-mb is 64"));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--memory-budget-mb 64 leaves nothing for sample buffers"),
+        "{err}"
+    );
+    assert!(!dir.path().join("small").exists());
 }
 
 #[test]

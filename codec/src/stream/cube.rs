@@ -47,7 +47,7 @@ use crate::encode::{
     RateMode, RdoMode, SideInfo, Tally, ValueMap, Verifier, blob_model, check_tolerance, code_blob,
     dequantize, measure, rms_of_pieces, search_scale, side_info, side_information, train_model,
 };
-use crate::entropy::{self, CodecModel};
+use crate::entropy::CodecModel;
 use crate::lifting;
 use crate::raster::Layout;
 use crate::sphere_raster::SphereGeometry;
@@ -1470,16 +1470,7 @@ impl Verifier for CubeVerifier<'_> {
                     }
                     vec![0; n * n]
                 });
-                let ctx = geom.blob_context(l, i);
-                q.round(steps[l], &mut h);
-                entropy::write_matrix(
-                    acc,
-                    ctx.group,
-                    n,
-                    &h,
-                    ctx.mask.map(lifting::DiamondMask::cells),
-                    steps[l] > 256,
-                );
+                q.count_rounded(acc, geom, (l, i), steps[l], &mut h);
             },
         );
         match failed.into_inner().ok().flatten() {

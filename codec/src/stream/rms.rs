@@ -29,7 +29,7 @@ use crate::encode::{
     Verifier, blob_model, code_blob, dequantize, histogram_entries, measure, rms_of_pieces,
     search_scale, side_information, trains_on,
 };
-use crate::entropy::{self, CodecModel, ContextCounts};
+use crate::entropy::{CodecModel, ContextCounts};
 use crate::raster::RasterGeometry;
 
 /// What the passes read and hold.
@@ -129,23 +129,14 @@ impl DetailVisitor for RoundCounts<'_> {
         batch: &[usize],
         details: &[&[i32]],
     ) -> Result<(), EncodeError> {
-        let (n, len, s) = (geom.n(), geom.level(level).len(), self.steps[level]);
+        let (len, s) = (geom.level(level).len(), self.steps[level]);
         let counts = batch
             .par_iter()
             .zip(details)
             .filter(|(i, _)| trains_on(len, **i))
             .fold(ContextCounts::default, |mut acc, (&i, h)| {
-                let ctx = geom.blob_context(level, i);
-                let mut q = h.to_vec();
-                self.quantise.round(s, &mut q);
-                entropy::write_matrix(
-                    &mut acc,
-                    ctx.group,
-                    n,
-                    &q,
-                    ctx.mask.map(crate::lifting::DiamondMask::cells),
-                    s > 256,
-                );
+                self.quantise
+                    .count_rounded(&mut acc, geom, (level, i), s, &mut h.to_vec());
                 acc
             })
             .reduce(ContextCounts::default, |mut a, b| {
