@@ -82,7 +82,9 @@ pub struct BuildArgs {
     /// Worker threads, 1 to 1024 (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Memory budget in MB: the build refuses to start if its estimate exceeds it.
+    /// Memory budget in MB: a build whose in-memory estimate exceeds it runs out of core
+    /// (elevation from a raw grid + sidecar or a tile mosaic, planar or planet; colour
+    /// images, planar or planet); other inputs over it are refused before they start.
     #[arg(long)]
     pub memory_budget_mb: Option<u64>,
     /// Replace an existing repository at the output path (atomically). Without it an
