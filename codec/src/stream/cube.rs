@@ -14,8 +14,8 @@
 //! Passes over the source, face by face, rows in order: (0) range, quantum, coverage and
 //! the canonical copies of the cube-edge points; (1) the integers, written as tiles, with
 //! the errors of the integerisation. Then the analysis (details to an [`IndexSpill`],
-//! side information as it goes up the levels), the side information, the model, and
-//! every blob to the sink.
+//! side information as it goes up the levels), the model, every blob to the sink, and
+//! on request ([`CubeOptions::keep_decoded`]) the decoded raster left in the tiles.
 //!
 //! RMS mode runs the in-memory encoder's search ([`crate::encode::search_scale`]) with a
 //! verifier out of core (`CubeVerifier`): the analysis' details stay in slot 0 of the
@@ -137,7 +137,7 @@ pub struct CubeEncoded {
     pub value_scale_m: f64,
     /// Metres at integer 0.
     pub value_offset_m: f64,
-    /// Quantiser step per detail level (all 256).
+    /// Quantiser step per detail level (1/256 units; all 256 in the exact modes).
     pub steps: Vec<u32>,
     /// The six root vertex grids.
     pub roots: Vec<Vec<i32>>,
