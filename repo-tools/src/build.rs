@@ -628,12 +628,11 @@ fn build_colour_streaming(
     let opts = StreamOptions {
         n,
         mode: channel_mode,
-        // The decoded image stays in memory, and the channels' blobs until they are
-        // framed (counted at a byte a sample: colour channels code below 8 bits).
+        // The decoded image stays in memory.
         memory_budget_bytes: encoder_budget(
             budget_mb,
             planar_diamonds(width * height, n),
-            width * height * 6,
+            width * height * 3,
         )?,
         sparse: args.sparse,
         rdo: args.rdo.mode(),
@@ -1606,12 +1605,11 @@ fn encode_colour_cube(
     let opts = CubeOptions {
         n,
         mode: channel_mode,
-        // The decoded image stays in memory, and the channels' blobs until they are
-        // framed (counted at a byte a sample: colour channels code below 8 bits).
+        // The decoded image stays in memory.
         memory_budget_bytes: encoder_budget(
             budget_mb,
             cube_diamonds(samples, n, channel_mode),
-            image.width * image.height * 3 + samples * 3,
+            image.width * image.height * 3,
         )?,
         sparse: args.sparse,
         rdo: args.rdo.mode(),
