@@ -217,6 +217,9 @@ pub enum EncodeError {
     /// The streaming encoder broke one of its own invariants (a bug).
     #[error("internal error of the streaming encoder: {0}")]
     Internal(&'static str),
+    /// A sharded build's parts are bad or do not belong together.
+    #[error("{0}")]
+    Shard(String),
 }
 
 /// What the encoder achieved, measured on a real decode.

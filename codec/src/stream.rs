@@ -32,6 +32,8 @@
 //! and so every byte, equal the in-memory encoder's; with more chunks the voids' fills
 //! (not the data) may differ.
 
+use std::ops::Range;
+
 use rayon::prelude::*;
 
 use crate::blob;
@@ -46,12 +48,14 @@ use crate::raster::{DiamondSlot, RasterGeometry, read_lattice, write_lattice};
 
 mod cube;
 mod rms;
+mod shard;
 mod synth;
 
 pub use cube::{
     CUBE_PHASES, CubeEncoded, CubeOptions, CubeSource, DecodedTiles, MemoryTiles, TileStore,
     encode_cube,
 };
+pub use shard::{Merge, ShardFigures, ShardPart, ShardSpec, encode_shard};
 
 /// Rows of a planar raster, read on demand (row 0 = north). May be called several times
 /// over the same rows (the encoder makes more than one pass).
@@ -224,25 +228,17 @@ pub fn encode_streaming_with(
     sink: &mut dyn BlobSink,
     spill: &mut dyn IndexSpill,
 ) -> Result<StreamEncoded, EncodeError> {
-    check_tolerance(opts.mode)?;
-    let (width, height, n) = (source.width(), source.height(), opts.n);
-    let geom = RasterGeometry::new(width, height, n)?;
-    let plan = Plan::new(&geom, opts.memory_budget_bytes)?;
-    let mut meter = Meter::default();
-
-    let mut coverage = opts.sparse.then(|| RasterCoverage::new(width, height, n));
-    let scan = scan(source, &plan, coverage.as_mut(), &mut meter)?;
-    if scan.valid == 0 {
-        return Err(EncodeError::AllNodata);
-    }
-    // Sparse: the same diamonds, masked where blocks hold no data (the plan's buffers
-    // depend on the dimensions only).
-    let coverage = coverage.map(RasterCoverage::finish);
-    let geom = match &coverage {
-        Some(c) => RasterGeometry::with_coverage(width, height, n, c)?,
-        None => geom,
-    };
-    let (map, fill) = scan.mapping(source.quantum_m(), opts.mode)?;
+    let Prepared {
+        geom,
+        plan,
+        mut meter,
+        coverage,
+        valid,
+        map,
+        fill,
+        ..
+    } = prepare(source, &opts)?;
+    let (width, height, n) = (plan.width, plan.height, plan.n);
     if let RateMode::RmsM(target) = opts.mode {
         let passes = rms::Passes {
             source,
@@ -252,7 +248,7 @@ pub fn encode_streaming_with(
             fill: &fill,
             meter: &mut meter,
         };
-        let enc = rms::encode_rms(passes, target, opts.rdo, scan.valid, (sink, spill))?;
+        let enc = rms::encode_rms(passes, target, opts.rdo, valid, (sink, spill))?;
         return Ok(StreamEncoded { coverage, ..enc });
     }
 
@@ -268,20 +264,12 @@ pub fn encode_streaming_with(
         &mut Work::Analyse {
             side: &mut side,
             errors: &mut errors,
+            keep: None,
         },
         &mut meter,
     )?;
     let levels = geom.detail_levels();
-    let mut counts = side.counts.clone();
-    for l in 0..levels {
-        for i in 0..geom.level(l).len() {
-            if side.trains(&geom, l, i) {
-                let group = entropy::group(levels - 1 - l);
-                entropy::write_gammas(&mut counts, group, &side.classes(&geom, l, i));
-            }
-        }
-    }
-    let model = CodecModel::from_counts(&counts);
+    let model = side.model(&geom);
 
     // Pass 2: code every blob.
     let mut coded = Coded::default();
@@ -308,12 +296,12 @@ pub fn encode_streaming_with(
     let steps = vec![256u32; levels];
     let report = EncodeReport::tally(Tally {
         samples: width * height,
-        valid_samples: scan.valid,
+        valid_samples: valid,
         blobs: (coded.count, coded.bytes),
         roots: std::slice::from_ref(&root),
         model: &model,
         steps: steps.len(),
-        errors: ((errors.sum2 / scan.valid as f64).sqrt(), errors.max),
+        errors: ((errors.sum2 / valid as f64).sqrt(), errors.max),
         rdo: false,
         decodes: 0,
     });
@@ -329,6 +317,52 @@ pub fn encode_streaming_with(
         report,
         peak_buffer_bytes: meter.peak,
         coverage,
+    })
+}
+
+/// What every streamed build starts from: the geometry (masked by the coverage in sparse
+/// mode), the plan, and what pass 0 (the scan) found.
+struct Prepared {
+    geom: RasterGeometry,
+    plan: Plan,
+    meter: Meter,
+    coverage: Option<Coverage>,
+    valid: usize,
+    map: ValueMap,
+    fill: Fill,
+    /// The scan's range and sum (a shard's parts must agree on them).
+    scan: [f64; 3],
+}
+
+fn prepare(source: &mut dyn RowSource, opts: &StreamOptions) -> Result<Prepared, EncodeError> {
+    check_tolerance(opts.mode)?;
+    let (width, height, n) = (source.width(), source.height(), opts.n);
+    let geom = RasterGeometry::new(width, height, n)?;
+    let plan = Plan::new(&geom, opts.memory_budget_bytes)?;
+    let mut meter = Meter::default();
+
+    let mut coverage = opts.sparse.then(|| RasterCoverage::new(width, height, n));
+    let scan = scan(source, &plan, coverage.as_mut(), &mut meter)?;
+    if scan.valid == 0 {
+        return Err(EncodeError::AllNodata);
+    }
+    // Sparse: the same diamonds, masked where blocks hold no data (the plan's buffers
+    // depend on the dimensions only).
+    let coverage = coverage.map(RasterCoverage::finish);
+    let geom = match &coverage {
+        Some(c) => RasterGeometry::with_coverage(width, height, n, c)?,
+        None => geom,
+    };
+    let (map, fill) = scan.mapping(source.quantum_m(), opts.mode)?;
+    Ok(Prepared {
+        geom,
+        plan,
+        meter,
+        coverage,
+        valid: scan.valid,
+        map,
+        fill,
+        scan: [scan.lo, scan.hi, scan.sum],
     })
 }
 
@@ -627,11 +661,20 @@ impl Fill {
     }
 }
 
+/// A piece's error sum with the offset of its first sample.
+type Piece = (u64, f64);
+
+/// Receives the details of a shard's diamonds: `(level, index, details)`.
+pub type DetailsOut<'a> = dyn FnMut(usize, usize, &[i32]) -> Result<(), String> + 'a;
+
 /// Errors of the integerised values against the source, over valid samples.
 #[derive(Default)]
 struct Errors {
     sum2: f64,
     max: f64,
+    /// Shards: only the pieces whose first sample is in these rows count, each piece's
+    /// sum kept with its first sample's offset, for the merge to add them in order.
+    pieces: Option<(Range<usize>, Vec<Piece>)>,
 }
 
 /// Side information of every diamond, from pass 1.
@@ -664,6 +707,22 @@ impl Side {
         self.has_data[l][i] && crate::encode::trains_on(len, i)
     }
 
+    /// The trained model: the detail counts and the side information's, now that every
+    /// class is known.
+    fn model(&self, geom: &RasterGeometry) -> CodecModel {
+        let levels = geom.detail_levels();
+        let mut counts = self.counts.clone();
+        for l in 0..levels {
+            for i in 0..geom.level(l).len() {
+                if self.trains(geom, l, i) {
+                    let group = entropy::group(levels - 1 - l);
+                    entropy::write_gammas(&mut counts, group, &self.classes(geom, l, i));
+                }
+            }
+        }
+        CodecModel::from_counts(&counts)
+    }
+
     fn classes(&self, geom: &RasterGeometry, l: usize, i: usize) -> Vec<u8> {
         geom.level(l)[i]
             .owned
@@ -686,6 +745,8 @@ enum Work<'a> {
     Analyse {
         side: &'a mut Side,
         errors: &'a mut Errors,
+        /// Shards: which diamonds are theirs, and where their details go.
+        keep: Option<Keep<'a>>,
     },
     /// Pass 2: code blobs into the sink.
     Code {
@@ -696,6 +757,18 @@ enum Work<'a> {
     },
     /// Hands every batch of details to a visitor (the RMS rate control's passes).
     Visit(&'a mut dyn DetailVisitor),
+}
+
+/// What a shard keeps of its analysis: the side information and training counts of the
+/// diamonds it owns (it analyses others, in its halo, only for their effect on its own),
+/// and their details.
+pub(crate) struct Keep<'a> {
+    /// Whether diamond `(level, index)` is the shard's.
+    pub(crate) owns: &'a (dyn Fn(usize, usize) -> bool + Sync),
+    /// Receives the details of each owned diamond with data.
+    pub(crate) details: &'a mut DetailsOut<'a>,
+    /// Diamonds analysed, per level (an owned diamond's children must be).
+    pub(crate) analysed: Vec<Vec<bool>>,
 }
 
 /// Receives the details of every diamond of a streamed analysis, a batch at a time.
@@ -721,15 +794,116 @@ fn run_pass(
     meter: &mut Meter,
 ) -> Result<Vec<i32>, EncodeError> {
     let octaves = plan.dims.len() - 1;
-    let mut octs: Vec<Octave> = (0..octaves)
+    let feed = Feed::Source {
+        source,
+        map,
+        fill,
+        window: None,
+    };
+    let last = run_octaves(feed, plan, geom, 0..octaves, work, meter)?;
+    Ok(root_grid(plan, geom, &last))
+}
+
+/// The root grid, from the last octave raster `R_k`.
+fn root_grid(plan: &Plan, geom: &RasterGeometry, last: &[i32]) -> Vec<i32> {
+    let octaves = plan.dims.len() - 1;
+    let wk = plan.dims[octaves].0;
+    let root = geom.root_slot();
+    let f = Frame::of(&root, octaves as u32);
+    let mut v = vec![0; (plan.n + 1) * (plan.n + 1)];
+    f.gather_vertices(plan.n, root.mask.as_ref(), last, 0, wk, &mut v);
+    v
+}
+
+/// Where the rows of an octave chain come from.
+enum Feed<'a> {
+    /// The source, a chunk at a time (`R_0`).
+    Source {
+        source: &'a mut dyn RowSource,
+        map: &'a ValueMap,
+        fill: &'a Fill,
+        /// Shards: what they read and analyse.
+        window: Option<&'a Window>,
+    },
+    /// An octave raster in memory, all at once (the merge's `R_m`).
+    Rows(&'a [i32]),
+}
+
+/// What a shard reads and analyses of the chain: the chunks starting in `read` are read
+/// and filled (from a chunk whose fill context needs no earlier fill), the others are
+/// zeros; each octave analyses only its `allow`ed groups; of the last raster only the
+/// rows `keep` are kept.
+struct Window {
+    read: Range<usize>,
+    allow: Vec<(Range<usize>, Range<usize>)>,
+    keep: Range<usize>,
+}
+
+/// Runs octaves `range` of the chain over `feed` (rows of `R_{range.start}`); returns
+/// `R_{range.end}` (with a window, only its kept rows).
+fn run_octaves(
+    feed: Feed<'_>,
+    plan: &Plan,
+    geom: &RasterGeometry,
+    range: Range<usize>,
+    work: &mut Work<'_>,
+    meter: &mut Meter,
+) -> Result<Vec<i32>, EncodeError> {
+    let mut octs: Vec<Octave> = range
+        .clone()
         .map(|o| Octave::new(geom, plan, o))
         .collect::<Result<_, _>>()?;
-    let (wk, hk) = plan.dims[octaves];
-    let mut last: Vec<i32> = Vec::with_capacity(wk * hk);
-    let mut reader = Reader::new(plan);
+    let (wk, hk) = plan.dims[range.end];
+    let mut last: Vec<i32> = Vec::new();
     let held = |octs: &[Octave], last: &Vec<i32>, reader: &Reader| {
         reader.bytes() + last.capacity() * 4 + octs.iter().map(Octave::bytes).sum::<usize>()
     };
+    let advance = |octs: &mut Vec<Octave>,
+                   last: &mut Vec<i32>,
+                   reader: &Reader,
+                   work: &mut Work<'_>,
+                   meter: &mut Meter|
+     -> Result<(), EncodeError> {
+        for o in 0..octs.len() {
+            let base = held(octs, last, reader);
+            let (head, tail) = octs.split_at_mut(o + 1);
+            let out = match tail.first_mut() {
+                Some(next) => &mut next.rows,
+                None => &mut *last,
+            };
+            head[o].advance(geom, out, work, meter, base)?;
+        }
+        meter.note(held(octs, last, reader));
+        Ok(())
+    };
+    let (source, map, fill, window) = match feed {
+        Feed::Rows(rows) => {
+            let reader = Reader::empty();
+            match octs.first_mut() {
+                Some(o) => o.rows.extend_from_slice(rows),
+                None => last.extend_from_slice(rows),
+            }
+            advance(&mut octs, &mut last, &reader, work, meter)?;
+            if octs.iter().any(|o| !o.done()) || last.len() != wk * hk {
+                return Err(EncodeError::Internal("rows left unprocessed"));
+            }
+            return Ok(last);
+        }
+        Feed::Source {
+            source,
+            map,
+            fill,
+            window,
+        } => (source, map, fill, window),
+    };
+    if let Some(w) = window {
+        for (o, allow) in octs.iter_mut().zip(&w.allow) {
+            o.allow = Some(allow.clone());
+        }
+    }
+    // Shards: rows of the last raster emitted so far, and those kept.
+    let (mut emitted, mut kept) = (0, Vec::new());
+    let mut reader = Reader::new(plan);
     let mut first = 0;
     while first < plan.height {
         let count = plan.chunk_rows.min(plan.height - first);
@@ -742,29 +916,37 @@ fn run_pass(
             Some(o) => &mut o.rows,
             None => &mut last,
         };
-        let fill_bytes = reader.load(source, first, count, map, fill, errors, target)?;
-        meter.note(base + fill_bytes);
-        first += count;
-        for o in 0..octaves {
-            let base = held(&octs, &last, &reader);
-            let (head, tail) = octs.split_at_mut(o + 1);
-            let out = match tail.first_mut() {
-                Some(next) => &mut next.rows,
-                None => &mut last,
-            };
-            head[o].advance(geom, out, work, meter, base)?;
+        if window.is_none_or(|w| w.read.contains(&first)) {
+            if let Some(w) = window
+                && first == w.read.start
+            {
+                reader.prime(source, first).map_err(EncodeError::Source)?;
+            }
+            let fill_bytes = reader.load(source, first, count, map, fill, errors, target)?;
+            meter.note(base + fill_bytes);
+        } else {
+            target.resize(target.len() + count * plan.width, 0);
         }
-        meter.note(held(&octs, &last, &reader));
+        first += count;
+        advance(&mut octs, &mut last, &reader, work, meter)?;
+        if let Some(w) = window {
+            for row in last.chunks_exact(wk) {
+                if w.keep.contains(&emitted) {
+                    kept.extend_from_slice(row);
+                }
+                emitted += 1;
+            }
+            last.clear();
+        }
     }
-    if octs.iter().any(|o| !o.done()) || last.len() != wk * hk {
+    if octs.iter().any(|o| !o.done()) {
         return Err(EncodeError::Internal("rows left unprocessed"));
     }
-    // The root grid, from the last octave raster `R_k`.
-    let root = geom.root_slot();
-    let f = Frame::of(&root, octaves as u32);
-    let mut v = vec![0; (plan.n + 1) * (plan.n + 1)];
-    f.gather_vertices(plan.n, root.mask.as_ref(), &last, 0, wk, &mut v);
-    Ok(v)
+    match window {
+        Some(w) if emitted == hk && kept.len() == w.keep.len() * wk => Ok(kept),
+        None if last.len() == wk * hk => Ok(last),
+        _ => Err(EncodeError::Internal("rows left unprocessed")),
+    }
 }
 
 /// Reads chunks of rows, fills their nodata and integerises them.
@@ -777,6 +959,30 @@ struct Reader {
 }
 
 impl Reader {
+    /// A reader that reads nothing (chains fed from memory).
+    fn empty() -> Self {
+        Reader {
+            width: 0,
+            vals: Vec::new(),
+            valid: Vec::new(),
+            context: 0,
+        }
+    }
+
+    /// Starts reading at row `first` as a reader that had read every row before it would:
+    /// its context rows, which the caller has checked hold no nodata (so their fills are
+    /// their values).
+    fn prime(&mut self, source: &mut dyn RowSource, first: usize) -> Result<(), String> {
+        let w = self.width;
+        let k = CONTEXT_ROWS.min(first);
+        source.read_rows(first - k, k, &mut self.vals[..k * w])?;
+        if self.vals[..k * w].iter().any(|v| !v.is_finite()) {
+            return Err("a shard's fill context holds nodata".into());
+        }
+        self.context = k;
+        Ok(())
+    }
+
     fn new(plan: &Plan) -> Self {
         let len = (CONTEXT_ROWS + plan.chunk_rows) * plan.width;
         Reader {
@@ -833,9 +1039,20 @@ impl Reader {
                     (sum2, max)
                 })
                 .collect();
-            for (sum2, max) in pieces {
-                e.sum2 += sum2;
-                e.max = e.max.max(max);
+            for (p, (sum2, max)) in pieces.into_iter().enumerate() {
+                let at = first * w + p * PIECE;
+                match &mut e.pieces {
+                    None => {
+                        e.sum2 += sum2;
+                        e.max = e.max.max(max);
+                    }
+                    Some((rows, kept)) => {
+                        if rows.contains(&(at / w)) {
+                            kept.push((at as u64, sum2));
+                            e.max = e.max.max(max);
+                        }
+                    }
+                }
             }
         }
         let fill_bytes = fill.rows(w, self.context, vals, valid);
@@ -1127,6 +1344,9 @@ struct Octave {
     base: usize,
     /// Next row of `R_o` that may be emitted (even rows only are).
     next_emit: usize,
+    /// Shards: the `A` groups and `B` bands analysed (the others are skipped: their rows
+    /// are outside the shard's window or depend on rows that are).
+    allow: Option<(Range<usize>, Range<usize>)>,
 }
 
 impl Octave {
@@ -1148,6 +1368,7 @@ impl Octave {
             rows: Vec::with_capacity(plan.caps[o] * width),
             base: 0,
             next_emit: 0,
+            allow: None,
         })
     }
 
@@ -1181,9 +1402,11 @@ impl Octave {
             if self.next_a < self.a_groups.len() {
                 let g = self.next_a;
                 if loaded >= (n * (g + 1) + 1).min(self.height) {
-                    let group = std::mem::take(&mut self.a_groups[g]);
-                    self.run(geom, self.level_a, &group, work, meter, held)?;
-                    self.a_groups[g] = group;
+                    if self.allow.as_ref().is_none_or(|(a, _)| a.contains(&g)) {
+                        let group = std::mem::take(&mut self.a_groups[g]);
+                        self.run(geom, self.level_a, &group, work, meter, held)?;
+                        self.a_groups[g] = group;
+                    }
                     self.next_a += 1;
                     continue;
                 }
@@ -1192,9 +1415,11 @@ impl Octave {
                 && self.next_a >= (2 * self.next_b + 3).min(self.a_groups.len())
             {
                 let j = self.next_b;
-                let group = std::mem::take(&mut self.b_groups[j]);
-                self.run(geom, self.level_b, &group, work, meter, held)?;
-                self.b_groups[j] = group;
+                if self.allow.as_ref().is_none_or(|(_, b)| b.contains(&j)) {
+                    let group = std::mem::take(&mut self.b_groups[j]);
+                    self.run(geom, self.level_b, &group, work, meter, held)?;
+                    self.b_groups[j] = group;
+                }
                 self.next_b += 1;
                 self.emit(out);
                 continue;
@@ -1307,7 +1532,7 @@ impl Octave {
                 );
             }
             match work {
-                Work::Analyse { side, .. } => {
+                Work::Analyse { side, keep, .. } => {
                     for (&i, r) in batch.iter().zip(&results) {
                         let m =
                             r.m.as_ref()
@@ -1335,13 +1560,29 @@ impl Octave {
                         side.gamma[level][i] = gamma;
                         side.has_data[level][i] = data;
                         side.bounds[level][i] = bound;
+                        if let Some(keep) = keep.as_mut() {
+                            keep.analysed[level][i] = true;
+                            if (keep.owns)(level, i) {
+                                if kids.iter().any(|&k| !keep.analysed[level + 1][k]) {
+                                    return Err(EncodeError::Internal(
+                                        "a shard's diamond lacks an analysed child (halo too small)",
+                                    ));
+                                }
+                                if data {
+                                    (keep.details)(level, i, &r.h).map_err(EncodeError::Sink)?;
+                                }
+                            }
+                        }
                     }
                     let group_ctx = entropy::group(levels - 1 - level);
                     let side_ref: &Side = side;
+                    let owns = keep.as_ref().map(|k| k.owns);
                     let counts = batch
                         .par_iter()
                         .zip(&results)
-                        .filter(|(i, _)| side_ref.trains(geom, level, **i))
+                        .filter(|(i, _)| {
+                            side_ref.trains(geom, level, **i) && owns.is_none_or(|o| o(level, **i))
+                        })
                         .fold(ContextCounts::default, |mut acc, (&i, r)| {
                             entropy::write_matrix(
                                 &mut acc,

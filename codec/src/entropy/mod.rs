@@ -200,6 +200,16 @@ impl Default for ContextCounts {
 }
 
 impl ContextCounts {
+    /// The counts, `[zeros, ones]` per context (a sharded build's parts carry them).
+    pub(crate) fn to_pairs(&self) -> Vec<[u64; 2]> {
+        self.counts.clone()
+    }
+
+    /// Counts from [`ContextCounts::to_pairs`]; `None` if the context count differs.
+    pub(crate) fn from_pairs(counts: Vec<[u64; 2]>) -> Option<Self> {
+        (counts.len() == CONTEXTS).then_some(ContextCounts { counts })
+    }
+
     /// Adds another set of counts.
     pub fn merge(&mut self, other: &ContextCounts) {
         for (a, b) in self.counts.iter_mut().zip(&other.counts) {
