@@ -102,6 +102,11 @@ pub struct BuildArgs {
     /// Test hook: stop making progress after storing this many blobs (to be killed).
     #[arg(long, hide = true)]
     pub stall_after_blobs: Option<u64>,
+    /// Build shard `K` of `N` (`K` from 0) into a part directory at `--output`, for
+    /// `quincunx merge` to publish: planar elevation from a raw grid, lossless or max
+    /// error, with `--memory-budget-mb` (docs/building.md, "Sharded builds").
+    #[arg(long, value_parser = crate::shard::parse_spec, requires = "memory_budget_mb")]
+    pub shard: Option<stream::ShardSpec>,
 }
 
 /// `--rdo`: the codec's [`RdoMode`].
@@ -162,6 +167,7 @@ impl BuildArgs {
             json: false,
             inline_bytes: DEFAULT_INLINE_BYTES,
             stall_after_blobs: None,
+            shard: None,
         }
     }
 }
@@ -239,7 +245,7 @@ pub struct PhaseFigure {
     pub peak_rss_mb: f64,
 }
 
-fn rate_mode(args: &BuildArgs) -> Result<RateMode> {
+pub(crate) fn rate_mode(args: &BuildArgs) -> Result<RateMode> {
     let mode = match (args.rms_m, args.max_error_m) {
         (Some(t), _) => RateMode::RmsM(t),
         (_, Some(e)) => RateMode::MaxErrorM(e),
@@ -253,7 +259,7 @@ fn rate_mode(args: &BuildArgs) -> Result<RateMode> {
     }
 }
 
-fn diamond_n(args: &BuildArgs) -> Result<usize> {
+pub(crate) fn diamond_n(args: &BuildArgs) -> Result<usize> {
     let size = args
         .diamond_size
         .unwrap_or(if args.colour { 65 } else { 33 });
@@ -275,7 +281,7 @@ pub(crate) const BUILD_BYTES_PER_SAMPLE: u64 = 24;
 /// of the source grid against [`BUILD_BYTES_PER_SAMPLE`]).
 const SOURCE_SAMPLES_PER_CODED: usize = 3;
 
-fn in_memory_mb(samples: usize, channels: usize) -> u64 {
+pub(crate) fn in_memory_mb(samples: usize, channels: usize) -> u64 {
     (samples as u64 * BUILD_BYTES_PER_SAMPLE * channels as u64).div_ceil(1 << 20)
 }
 
@@ -304,7 +310,7 @@ fn check_budget(args: &BuildArgs, samples: usize, channels: usize) -> Result<()>
 }
 
 /// Receives blobs from the streaming encoder straight into the repository.
-struct StoreSink<'a> {
+pub(crate) struct StoreSink<'a> {
     args: &'a BuildArgs,
     builder: &'a mut RepositoryBuilder,
     stored: u64,
@@ -312,7 +318,7 @@ struct StoreSink<'a> {
 }
 
 impl<'a> StoreSink<'a> {
-    fn new(
+    pub(crate) fn new(
         args: &'a BuildArgs,
         builder: &'a mut RepositoryBuilder,
         spin: &indicatif::ProgressBar,
@@ -390,11 +396,6 @@ fn build_streaming<S: RowSource>(
         let mut spill = FileSpill::beside(&args.output)?;
         let enc = stream::encode_streaming_with(rows, opts, &mut sink, &mut spill)
             .context("encoding out of core")?;
-        let StreamFacts {
-            units,
-            georef,
-            source_samples,
-        } = facts(rows);
         spin.finish_and_clear();
         let encode_seconds = encode_started.elapsed().as_secs_f64();
         tracing::info!(
@@ -402,40 +403,59 @@ fn build_streaming<S: RowSource>(
             peak_rss_mb = layout::peak_rss_mb(),
             "streamed"
         );
-        let geometry = match &enc.coverage {
-            Some(c) => RasterGeometry::with_coverage(width, height, n, c),
-            None => RasterGeometry::new(width, height, n),
-        }
-        .context("raster geometry")?;
-        let description = Description {
-            coverage: enc.coverage.as_ref().map(|c| c.to_bytes()),
-            geometry: Geometry::Planar(geometry),
-            radius_m: None,
-            kind: AttributeKind::Elevation,
-            units,
-            samples: enc.report.samples,
-            source_samples,
-            nodata_count: enc.report.samples - enc.report.valid_samples,
-            georef,
-            channels: vec![ChannelCoding {
-                name: "height".into(),
-                value_scale: enc.value_scale_m,
-                value_offset: enc.value_offset_m,
-                steps: enc.steps.clone(),
-                model: enc.model.to_bytes(),
-                roots: vec![enc.root.clone()],
-                rate: layout::rate_label(mode),
-            }],
-            rms: enc.report.rms_m,
-            max_abs: enc.report.max_abs_m,
-            rdo_used: enc.report.rdo,
-        };
-        let meta = publish(args, builder, &description, n, mode)?;
+        let (meta, description) = publish_streamed(args, builder, enc, facts(rows), (n, mode))?;
         Ok((meta, description, encode_seconds))
     })?;
     let mut summary = summarise(args, &meta, &description, started, (0.0, encode_seconds))?;
     summary.out_of_core = true;
     Ok(summary)
+}
+
+/// Describes and publishes a streamed planar elevation build (`quincunx build` out of
+/// core, `quincunx merge`).
+pub(crate) fn publish_streamed(
+    args: &BuildArgs,
+    builder: RepositoryBuilder,
+    enc: stream::StreamEncoded,
+    facts: StreamFacts,
+    (n, mode): (usize, RateMode),
+) -> Result<(Metadata, Description)> {
+    let StreamFacts {
+        units,
+        georef,
+        source_samples,
+    } = facts;
+    let (width, height) = (enc.width, enc.height);
+    let geometry = match &enc.coverage {
+        Some(c) => RasterGeometry::with_coverage(width, height, n, c),
+        None => RasterGeometry::new(width, height, n),
+    }
+    .context("raster geometry")?;
+    let description = Description {
+        coverage: enc.coverage.as_ref().map(|c| c.to_bytes()),
+        geometry: Geometry::Planar(geometry),
+        radius_m: None,
+        kind: AttributeKind::Elevation,
+        units,
+        samples: enc.report.samples,
+        source_samples,
+        nodata_count: enc.report.samples - enc.report.valid_samples,
+        georef,
+        channels: vec![ChannelCoding {
+            name: "height".into(),
+            value_scale: enc.value_scale_m,
+            value_offset: enc.value_offset_m,
+            steps: enc.steps.clone(),
+            model: enc.model.to_bytes(),
+            roots: vec![enc.root.clone()],
+            rate: layout::rate_label(mode),
+        }],
+        rms: enc.report.rms_m,
+        max_abs: enc.report.max_abs_m,
+        rdo_used: enc.report.rdo,
+    };
+    let meta = publish(args, builder, &description, n, mode)?;
+    Ok((meta, description))
 }
 
 /// The out-of-core planet build: [`stream::encode_cube`] from `cube`, the tiles of the
@@ -810,17 +830,17 @@ impl FileSpill {
 }
 
 /// What the metadata says of an out-of-core build's input (asked once it has been read).
-struct StreamFacts {
-    units: String,
-    georef: Option<Georef>,
-    source_samples: usize,
+pub(crate) struct StreamFacts {
+    pub(crate) units: String,
+    pub(crate) georef: Option<Georef>,
+    pub(crate) source_samples: usize,
 }
 
 /// What `--memory-budget-mb` leaves the streaming encoder's sample buffers once the
 /// program, the per-diamond bookkeeping (`diamonds` at `per_diamond` bytes: the geometry,
 /// side information and spill index), the blob spill's buffers and `source_bytes` the
 /// input holds itself are counted (see `build_streaming`).
-fn encoder_budget(
+pub(crate) fn encoder_budget(
     budget_mb: u64,
     (diamonds, per_diamond): (usize, usize),
     source_bytes: usize,
@@ -844,7 +864,7 @@ fn encoder_budget(
 
 /// Diamonds of a planar raster of `samples` (a bound) and the bookkeeping bytes each
 /// costs the streaming encoder (korea_srtm3_4097 at a 32 MB budget: about 400).
-fn planar_diamonds(samples: usize, n: usize) -> (usize, usize) {
+pub(crate) fn planar_diamonds(samples: usize, n: usize) -> (usize, usize) {
     (2 * samples / (n * n) + 64, 400)
 }
 
@@ -875,6 +895,9 @@ pub fn run(args: &BuildArgs) -> Result<()> {
         builder = builder.num_threads(t);
     }
     let pool = builder.build().context("starting worker threads")?;
+    if let Some(spec) = args.shard {
+        return pool.install(|| crate::shard::build_part(args, spec));
+    }
     let summary = pool.install(|| build(args))?;
     if args.json {
         outln!("{}", serde_json::to_string(&summary)?);
@@ -936,7 +959,7 @@ fn check_args(args: &BuildArgs) -> Result<(RateMode, usize)> {
 
 /// The output must not exist unless `--overwrite` is given, and then it must be a
 /// repository to replace, never a file or a directory holding anything else.
-fn check_output(args: &BuildArgs) -> Result<()> {
+pub(crate) fn check_output(args: &BuildArgs) -> Result<()> {
     match RepositoryBuilder::check_destination(&args.output, args.overwrite) {
         Err(quincunx_store::StoreError::Exists(p)) => bail!(
             "{} already exists (pass --overwrite to replace it)",
@@ -953,7 +976,10 @@ fn check_output(args: &BuildArgs) -> Result<()> {
 /// Creates the builder for the output, runs `f` with it, and removes what the failed
 /// build wrote (`<output>.partial`, `<output>.spill`) if `f` fails. A builder that cannot
 /// be created (another build holds the partial database) is left alone.
-fn with_builder<T>(args: &BuildArgs, f: impl FnOnce(RepositoryBuilder) -> Result<T>) -> Result<T> {
+pub(crate) fn with_builder<T>(
+    args: &BuildArgs,
+    f: impl FnOnce(RepositoryBuilder) -> Result<T>,
+) -> Result<T> {
     let builder = RepositoryBuilder::create(&args.output)
         .with_context(|| format!("creating {}", args.output.display()))?;
     let result = f(builder);
@@ -1274,7 +1300,7 @@ fn build_mosaic(
 }
 
 /// What the metadata and summary say about the coded data (both build paths).
-struct Description {
+pub(crate) struct Description {
     /// Sparse builds: the coverage bitmap's bytes.
     coverage: Option<Vec<u8>>,
     geometry: Geometry,
@@ -1293,7 +1319,7 @@ struct Description {
     rdo_used: bool,
 }
 
-fn summarise(
+pub(crate) fn summarise(
     args: &BuildArgs,
     meta: &Metadata,
     d: &Description,
@@ -1725,7 +1751,7 @@ fn write_blobs(args: &BuildArgs, builder: &mut RepositoryBuilder, coded: &Coded)
 
 /// Test hook (`--stall-after-blobs`): stop making progress so a test can kill the build
 /// mid-way.
-fn stall_hook(args: &BuildArgs, stored: u64) {
+pub(crate) fn stall_hook(args: &BuildArgs, stored: u64) {
     if args.stall_after_blobs == Some(stored) {
         tracing::warn!("stalling after {stored} blobs (test hook)");
         loop {
@@ -1734,7 +1760,7 @@ fn stall_hook(args: &BuildArgs, stored: u64) {
     }
 }
 
-fn publish(
+pub(crate) fn publish(
     args: &BuildArgs,
     builder: RepositoryBuilder,
     d: &Description,

@@ -34,6 +34,7 @@ pub mod progress;
 pub mod query;
 pub mod render;
 pub mod rows;
+pub mod shard;
 pub mod trade;
 pub mod verify;
 pub mod view;

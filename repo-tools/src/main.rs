@@ -8,7 +8,8 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 use quincunx_repo_tools::{
-    build, demo, export, fly, info, loadtest, outln, preview, query, render, trade, verify, view,
+    build, demo, export, fly, info, loadtest, outln, preview, query, render, shard, trade, verify,
+    view,
 };
 
 /// Streams compressed multiresolution terrain: repository tools.
@@ -33,6 +34,9 @@ enum Command {
     /// Build a repository from a DEM (raw + JSON sidecar, GeoTIFF, 16-bit PNG, SRTM .hgt)
     /// or from RGB imagery (JPEG/PNG, `--colour`).
     Build(build::BuildArgs),
+    /// Publish one repository from the parts of a sharded build (`build --shard K/N`):
+    /// the same content hash as one `build` with the same options.
+    Merge(shard::MergeArgs),
     /// Print a repository's metadata, levels, blob counts and sizes.
     Info {
         /// Repository directory.
@@ -122,6 +126,7 @@ fn main() -> ExitCode {
         .init();
     let result = match cli.command {
         Command::Build(args) => build::run(&args),
+        Command::Merge(args) => shard::merge(&args),
         Command::Demo(args) => demo::run(&args),
         Command::Serve(args) => quincunx_server::run_cli(&args, |addr| {
             outln!("serving on http://{addr}/  (repositories: http://{addr}/repos)");

@@ -1,0 +1,475 @@
+//! Sharded builds: `quincunx build --shard K/N` writes a part directory, `quincunx merge`
+//! publishes one repository from all `N` parts, the same bytes (and content hash) as one
+//! `quincunx build` with the same options (docs/building.md, "Sharded builds").
+//!
+//! A part directory holds `part.bin` (what the merge needs besides the details:
+//! [`stream::ShardPart`]) and `details.bin` (each owned diamond's details: level u32,
+//! index u64, then `N^2` zigzag LEB128 integers, little-endian). A shard writes into
+//! `<part>.partial` and renames it when complete, so a killed shard leaves no part, and
+//! its rerun starts afresh.
+
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use quincunx_codec::encode::RateMode;
+use quincunx_codec::stream::{self, Merge, ShardPart, ShardSpec, StreamOptions};
+use serde::{Deserialize, Serialize};
+
+use crate::build::{self, BuildArgs, Rdo, StreamFacts};
+use crate::input::{self, Georef};
+use crate::{layout, progress};
+
+/// Parses `--shard K/N`.
+pub fn parse_spec(s: &str) -> Result<ShardSpec, String> {
+    let (k, n) = s
+        .split_once('/')
+        .ok_or_else(|| format!("--shard {s}: give K/N, e.g. 0/4"))?;
+    let k: usize = k
+        .trim()
+        .parse()
+        .map_err(|_| format!("--shard {s}: K is not a number"))?;
+    let n: usize = n
+        .trim()
+        .parse()
+        .map_err(|_| format!("--shard {s}: N is not a number"))?;
+    if n == 0 || k >= n {
+        return Err(format!(
+            "--shard {s}: K runs from 0 to N - 1 and N from 1 (K/N = {k}/{n})"
+        ));
+    }
+    Ok(ShardSpec { index: k, count: n })
+}
+
+/// What the merge needs to publish what `quincunx build` would: the parts carry it, and
+/// parts whose descriptions differ are from different builds.
+#[derive(Serialize, Deserialize, Debug, PartialEq)]
+struct BuildFacts {
+    input: String,
+    lossless: bool,
+    max_error_m: Option<f64>,
+    diamond_size: Option<usize>,
+    rdo: String,
+    inline_bytes: u64,
+    memory_budget_mb: u64,
+    units: String,
+    georef: Option<Georef>,
+    source_samples: usize,
+}
+
+/// The `--json` summary of a shard.
+#[derive(Serialize, Debug)]
+pub struct ShardSummary {
+    /// Part directory.
+    pub output: String,
+    /// This shard (from 0) and the shard count.
+    pub shard: usize,
+    /// Shards in all.
+    pub shards: usize,
+    /// The split octave (the merge analyses the octaves from it on).
+    pub split: usize,
+    /// Rows the shard owns.
+    pub band_rows: usize,
+    /// Rows it read and analysed (band and halo).
+    pub window_rows: usize,
+    /// Diamonds analysed.
+    pub analysed: usize,
+    /// Diamonds owned.
+    pub owned: usize,
+    /// Wall-clock seconds.
+    pub seconds: f64,
+    /// Peak resident memory, MB.
+    pub peak_rss_mb: f64,
+    /// Bytes of the part directory.
+    pub part_bytes: u64,
+}
+
+const PART_FILE: &str = "part.bin";
+const DETAILS_FILE: &str = "details.bin";
+
+fn partial_dir(out: &Path) -> PathBuf {
+    let mut s = out.as_os_str().to_owned();
+    s.push(".partial");
+    PathBuf::from(s)
+}
+
+/// Runs `quincunx build --shard K/N`.
+pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
+    let started = Instant::now();
+    let mode = build::rate_mode(args)?;
+    let n = build::diamond_n(args)?;
+    if args.planet || args.colour || !build::is_raw(&args.input) {
+        bail!(
+            "--shard builds planar elevation from a raw grid (+ JSON sidecar); planets, colour \
+             and other inputs build in one process"
+        );
+    }
+    if matches!(mode, RateMode::RmsM(_)) {
+        bail!(
+            "--shard takes --lossless or --max-error-m: the RMS rate control searches over the \
+             whole analysis"
+        );
+    }
+    let Some(budget_mb) = args.memory_budget_mb else {
+        bail!("--shard needs --memory-budget-mb (the merge's result equals one build with it)");
+    };
+    let out = &args.output;
+    if out.exists() && !args.overwrite {
+        bail!(
+            "{} already exists (pass --overwrite to replace it)",
+            out.display()
+        );
+    }
+    if out.exists() && !out.join(PART_FILE).is_file() {
+        bail!(
+            "{} exists and is not a shard part: not replacing it",
+            out.display()
+        );
+    }
+    let mut rows = input::RawRows::open(&args.input)
+        .with_context(|| format!("reading {}", args.input.display()))?;
+    let (width, height) = (rows.raw().width, rows.raw().height);
+    let facts = BuildFacts {
+        input: args
+            .input
+            .file_name()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+        lossless: args.lossless,
+        max_error_m: args.max_error_m,
+        diamond_size: args.diamond_size,
+        rdo: rdo_label(args.rdo).into(),
+        inline_bytes: args.inline_bytes,
+        memory_budget_mb: budget_mb,
+        units: rows.raw().units.clone(),
+        georef: rows.raw().georef.clone(),
+        source_samples: width * height,
+    };
+    // The same encoder budget as one out-of-core build of this input.
+    let opts = StreamOptions {
+        n,
+        mode,
+        memory_budget_bytes: build::encoder_budget(
+            budget_mb,
+            build::planar_diamonds(width * height, n),
+            0,
+        )?,
+        sparse: args.sparse,
+        rdo: Default::default(),
+    };
+    let partial = partial_dir(out);
+    if partial.exists() {
+        // A killed run's leftovers: this run starts afresh.
+        std::fs::remove_dir_all(&partial)
+            .with_context(|| format!("removing {}", partial.display()))?;
+    }
+    std::fs::create_dir_all(&partial).with_context(|| format!("creating {}", partial.display()))?;
+    let result = (|| -> Result<ShardSummary> {
+        let details_path = partial.join(DETAILS_FILE);
+        let mut details = BufWriter::with_capacity(
+            1 << 20,
+            File::create(&details_path)
+                .with_context(|| format!("creating {}", details_path.display()))?,
+        );
+        let spin = progress::spinner("shard");
+        spin.set_message(format!(
+            "{}/{} of {width} x {height}",
+            spec.index, spec.count
+        ));
+        let mut record = Vec::new();
+        let mut written = 0u64;
+        let part = stream::encode_shard(
+            &mut rows,
+            opts,
+            spec,
+            serde_json::to_vec(&facts)?,
+            &mut |level, index, h| {
+                record.clear();
+                record.extend_from_slice(&(level as u32).to_le_bytes());
+                record.extend_from_slice(&(index as u64).to_le_bytes());
+                for &x in h {
+                    put_varint(&mut record, ((x << 1) ^ (x >> 31)) as u32);
+                }
+                details.write_all(&record).map_err(|e| e.to_string())?;
+                written += 1;
+                build::stall_hook(args, written);
+                Ok(())
+            },
+        )
+        .context("encoding the shard")?;
+        spin.finish_and_clear();
+        let details = details
+            .into_inner()
+            .map_err(|e| e.into_error())
+            .with_context(|| format!("writing {}", details_path.display()))?;
+        details.sync_all()?;
+        let part_path = partial.join(PART_FILE);
+        let mut f = File::create(&part_path)
+            .with_context(|| format!("creating {}", part_path.display()))?;
+        f.write_all(&part.to_bytes())
+            .and_then(|()| f.sync_all())
+            .with_context(|| format!("writing {}", part_path.display()))?;
+        let fig = &part.figures;
+        Ok(ShardSummary {
+            output: out.display().to_string(),
+            shard: spec.index,
+            shards: spec.count,
+            split: fig.split,
+            band_rows: fig.band_rows,
+            window_rows: fig.window_rows,
+            analysed: fig.analysed,
+            owned: fig.owned,
+            seconds: 0.0,
+            peak_rss_mb: 0.0,
+            part_bytes: quincunx_store::dir_size(&partial)?,
+        })
+    })();
+    let mut summary = match result {
+        Ok(s) => s,
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&partial);
+            return Err(e);
+        }
+    };
+    if out.exists() {
+        std::fs::remove_dir_all(out).with_context(|| format!("replacing {}", out.display()))?;
+    }
+    std::fs::rename(&partial, out).with_context(|| format!("publishing {}", out.display()))?;
+    summary.seconds = started.elapsed().as_secs_f64();
+    summary.peak_rss_mb = layout::peak_rss_mb();
+    if args.json {
+        outln!("{}", serde_json::to_string(&summary)?);
+    } else {
+        outln!(
+            "shard {}/{} -> {}: {} rows of {} read (split octave {}), {} diamonds analysed, \
+             {} own, {:.2} s, peak {:.0} MB, part {:.1} MB",
+            summary.shard,
+            summary.shards,
+            summary.output,
+            summary.window_rows,
+            height,
+            summary.split,
+            summary.analysed,
+            summary.owned,
+            summary.seconds,
+            summary.peak_rss_mb,
+            summary.part_bytes as f64 / 1e6
+        );
+    }
+    Ok(())
+}
+
+fn rdo_label(r: Rdo) -> &'static str {
+    match r {
+        Rdo::Auto => "auto",
+        Rdo::On => "on",
+        Rdo::Off => "off",
+    }
+}
+
+fn put_varint(out: &mut Vec<u8>, mut x: u32) {
+    while x >= 0x80 {
+        out.push((x as u8) | 0x80);
+        x >>= 7;
+    }
+    out.push(x as u8);
+}
+
+/// Options of `quincunx merge`.
+#[derive(Args, Debug, Clone)]
+pub struct MergeArgs {
+    /// Every part directory of the build (`quincunx build --shard K/N`), in any order.
+    #[arg(required = true)]
+    pub parts: Vec<PathBuf>,
+    /// Repository directory to publish.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Replace an existing repository at the output path (atomically).
+    #[arg(long)]
+    pub overwrite: bool,
+    /// Print one JSON summary on stdout (as `quincunx build --json`).
+    #[arg(long)]
+    pub json: bool,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+}
+
+/// Reads the details of a part, `batch` diamonds at a time.
+struct Details {
+    path: PathBuf,
+    r: BufReader<File>,
+    n2: usize,
+}
+
+impl Details {
+    fn open(dir: &Path, n2: usize) -> Result<Details> {
+        let path = dir.join(DETAILS_FILE);
+        let f = File::open(&path).with_context(|| format!("opening {}", path.display()))?;
+        Ok(Details {
+            path,
+            r: BufReader::with_capacity(1 << 20, f),
+            n2,
+        })
+    }
+
+    fn byte(&mut self) -> Result<Option<u8>> {
+        let mut b = [0u8];
+        match self.r.read(&mut b) {
+            Ok(0) => Ok(None),
+            Ok(_) => Ok(Some(b[0])),
+            Err(e) => Err(e).with_context(|| format!("reading {}", self.path.display())),
+        }
+    }
+
+    fn truncated(&self) -> anyhow::Error {
+        anyhow::anyhow!("{} is truncated or corrupt", self.path.display())
+    }
+
+    /// The next record, or `None` at the end.
+    fn next(&mut self) -> Result<Option<(usize, usize, Vec<i32>)>> {
+        let mut head = [0u8; 12];
+        let mut got = 0;
+        while got < head.len() {
+            match self.byte()? {
+                Some(b) => head[got] = b,
+                None if got == 0 => return Ok(None),
+                None => return Err(self.truncated()),
+            }
+            got += 1;
+        }
+        let level = u32::from_le_bytes(head[..4].try_into()?) as usize;
+        let index = usize::try_from(u64::from_le_bytes(head[4..].try_into()?))
+            .map_err(|_| self.truncated())?;
+        let mut h = Vec::with_capacity(self.n2);
+        for _ in 0..self.n2 {
+            let mut x = 0u32;
+            let mut shift = 0;
+            loop {
+                let b = self.byte()?.ok_or_else(|| self.truncated())?;
+                if shift > 28 {
+                    return Err(self.truncated());
+                }
+                x |= u32::from(b & 0x7f) << shift;
+                shift += 7;
+                if b & 0x80 == 0 {
+                    break;
+                }
+            }
+            h.push(((x >> 1) as i32) ^ -((x & 1) as i32));
+        }
+        Ok(Some((level, index, h)))
+    }
+}
+
+/// Runs `quincunx merge`.
+pub fn merge(args: &MergeArgs) -> Result<()> {
+    let mut pool = rayon::ThreadPoolBuilder::new();
+    if let Some(t) = args.threads {
+        if !(1..=build::MAX_THREADS).contains(&t) {
+            bail!(
+                "--threads {t} is out of range: give 1 to {}",
+                build::MAX_THREADS
+            );
+        }
+        pool = pool.num_threads(t);
+    }
+    let pool = pool.build().context("starting worker threads")?;
+    let summary = pool.install(|| merge_parts(args))?;
+    if args.json {
+        outln!("{}", serde_json::to_string(&summary)?);
+    } else {
+        outln!(
+            "merged {} parts into {}: {} samples in {:.2} s, {:.4} bits/sample, rms {:.4}, \
+             max {:.4}, {} blobs, peak {:.0} MB, content hash {}",
+            args.parts.len(),
+            summary.output,
+            summary.samples,
+            summary.seconds,
+            summary.bits_per_sample,
+            summary.rms,
+            summary.max_abs,
+            summary.blob_count,
+            summary.peak_rss_mb,
+            summary.content_hash
+        );
+    }
+    Ok(())
+}
+
+fn merge_parts(args: &MergeArgs) -> Result<build::BuildSummary> {
+    let started = Instant::now();
+    let mut parts = Vec::new();
+    for dir in &args.parts {
+        let path = dir.join(PART_FILE);
+        let bytes = std::fs::read(&path).with_context(|| {
+            format!(
+                "reading {} (is {} a finished shard part?)",
+                path.display(),
+                dir.display()
+            )
+        })?;
+        let part = ShardPart::from_bytes(&bytes).with_context(|| format!("{}", path.display()))?;
+        parts.push((part.index(), dir.clone(), part));
+    }
+    parts.sort_by_key(|p| p.0);
+    let dirs: Vec<PathBuf> = parts.iter().map(|p| p.1.clone()).collect();
+    let mut merge =
+        Merge::new(parts.into_iter().map(|p| p.2).collect()).context("merging the parts")?;
+    let facts: BuildFacts =
+        serde_json::from_slice(merge.extra()).context("the parts' build description")?;
+    let mut bargs = BuildArgs::new(&facts.input, &args.output);
+    bargs.lossless = facts.lossless;
+    bargs.max_error_m = facts.max_error_m;
+    bargs.diamond_size = facts.diamond_size;
+    bargs.rdo = match facts.rdo.as_str() {
+        "on" => Rdo::On,
+        "off" => Rdo::Off,
+        _ => Rdo::Auto,
+    };
+    bargs.inline_bytes = facts.inline_bytes;
+    bargs.memory_budget_mb = Some(facts.memory_budget_mb);
+    bargs.overwrite = args.overwrite;
+    let mode = build::rate_mode(&bargs)?;
+    let n = build::diamond_n(&bargs)?;
+    build::check_output(&bargs)?;
+    let (meta, description) = build::with_builder(&bargs, |builder| {
+        let mut builder = builder
+            .spill_to_disk()
+            .with_context(|| format!("creating {}", args.output.display()))?;
+        let spin = progress::spinner("merging");
+        let mut sink = build::StoreSink::new(&bargs, &mut builder, &spin);
+        let mut batch = Vec::new();
+        for dir in &dirs {
+            let mut details = Details::open(dir, n * n)?;
+            while let Some(rec) = details.next()? {
+                batch.push(rec);
+                if batch.len() == 1024 {
+                    merge
+                        .code(&batch, &mut sink)
+                        .with_context(|| format!("coding {}", details.path.display()))?;
+                    batch.clear();
+                }
+            }
+            merge
+                .code(&batch, &mut sink)
+                .with_context(|| format!("coding {}", details.path.display()))?;
+            batch.clear();
+        }
+        let enc = merge.finish(&mut sink).context("merging the parts")?;
+        spin.finish_and_clear();
+        let facts = StreamFacts {
+            units: facts.units.clone(),
+            georef: facts.georef.clone(),
+            source_samples: facts.source_samples,
+        };
+        build::publish_streamed(&bargs, builder, enc, facts, (n, mode))
+    })?;
+    let seconds = started.elapsed().as_secs_f64();
+    let mut summary = build::summarise(&bargs, &meta, &description, started, (0.0, seconds))?;
+    summary.out_of_core = true;
+    Ok(summary)
+}
