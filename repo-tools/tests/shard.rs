@@ -243,3 +243,28 @@ fn parts_of_different_builds_and_damaged_parts_are_refused() {
     assert!(e.contains("planar elevation"), "{e}");
     assert!(!t.join("x").exists());
 }
+
+#[test]
+fn the_slurm_array_scripts_build_and_merge() {
+    let tmp = tempfile::tempdir().unwrap();
+    let one = single(tmp.path(), &["--max-error-m", "2"]);
+    let deploy = Path::new(env!("CARGO_MANIFEST_DIR")).join("../deploy/slurm");
+    let script = |name: &str| {
+        let mut c = Command::new("bash");
+        c.arg(deploy.join(name))
+            .env("QUINCUNX", env!("CARGO_BIN_EXE_quincunx"))
+            .env("SRC", korea())
+            .env("PARTS", tmp.path().join("parts"))
+            .env("OUT", tmp.path().join("repo"))
+            .env("RATE", "--max-error-m 2")
+            .env("BUDGET_MB", "20")
+            .env("SLURM_ARRAY_TASK_COUNT", "3");
+        c
+    };
+    // Task 1 twice (a rerun replaces its part), as Slurm would run a resubmitted task.
+    for k in ["0", "1", "2", "1"] {
+        ok_json(script("shard.sbatch").env("SLURM_ARRAY_TASK_ID", k));
+    }
+    let merged = ok_json(&mut script("merge.sbatch"));
+    assert_eq!(merged["content_hash"], one["content_hash"]);
+}

@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Sharded build of korea against one build: the single in-memory and out-of-core builds,
+# then N shards (one after another, so each is timed alone on this machine; on a cluster
+# they run at once) and the merge. Prints one JSON object; from the repository root:
+#   benches/scale/shard.sh [shared-data-dir] [shards] [budget-mb] >> benches/scale/shard.jsonl
+# Figures in docs/building.md ("Sharded builds") come from this script.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/../.."
+data="${1:-../shared/data}"
+shards="${2:-4}"
+budget="${3:-40}"
+cargo build --release -q -p quincunx-repo-tools
+q="${CARGO_TARGET_DIR:-target}/release/quincunx"
+out="$(mktemp -d)"
+trap 'rm -rf "$out"' EXIT
+src="$data/korea_srtm3_4097.json"
+rate=(--max-error-m 2)
+in_memory="$("$q" build "$src" "${rate[@]}" -o "$out/in_memory" --json)"
+single="$("$q" build "$src" "${rate[@]}" --memory-budget-mb "$budget" -o "$out/single" --json)"
+parts=()
+for ((k = 0; k < shards; k++)); do
+    parts+=("$("$q" build "$src" "${rate[@]}" --memory-budget-mb "$budget" \
+        --shard "$k/$shards" -o "$out/part$k" --json)")
+done
+merged="$("$q" merge "$out"/part* -o "$out/merged" --json)"
+printf '{"source":"korea_srtm3_4097","rate":"%s","budget_mb":%s,"shards":%s,"in_memory":%s,"single":%s,"parts":[%s],"merge":%s}\n' \
+    "${rate[*]}" "$budget" "$shards" "$in_memory" "$single" "$(IFS=,; echo "${parts[*]}")" "$merged"
