@@ -854,7 +854,9 @@ fn run_octaves(
         .map(|o| Octave::new(geom, plan, o))
         .collect::<Result<_, _>>()?;
     let (wk, hk) = plan.dims[range.end];
-    let mut last: Vec<i32> = Vec::new();
+    // The whole last raster, allocated once (shards keep only their rows of it).
+    let whole = matches!(feed, Feed::Source { window: None, .. }) as usize;
+    let mut last: Vec<i32> = Vec::with_capacity(whole * wk * hk);
     let held = |octs: &[Octave], last: &Vec<i32>, reader: &Reader| {
         reader.bytes() + last.capacity() * 4 + octs.iter().map(Octave::bytes).sum::<usize>()
     };
