@@ -176,11 +176,7 @@ impl<R: Domain> Dag<R> {
                 let node = Node {
                     id: root,
                     corners: refiner.corners(root),
-                    children: refiner
-                        .info(root)
-                        .map(|i| i.children)
-                        .unwrap_or_default()
-                        .into(),
+                    children: refiner.children(root).unwrap_or_default().into(),
                     z_range: z_range(grid, n, [true, true]),
                     generation: 0,
                     grid: Arc::new(grid.to_vec()),
@@ -315,12 +311,7 @@ impl<R: Domain> Dag<R> {
     pub fn children(&self, id: R::Id) -> Arc<[R::Id]> {
         match self.nodes.get(&id) {
             Some(node) => node.children.clone(),
-            None => self
-                .refiner
-                .info(id)
-                .map(|i| i.children)
-                .unwrap_or_default()
-                .into(),
+            None => self.refiner.children(id).unwrap_or_default().into(),
         }
     }
 
@@ -491,12 +482,7 @@ impl<R: Domain> Dag<R> {
                     id: child,
                     generation: 0,
                     corners: self.refiner.corners(child),
-                    children: self
-                        .refiner
-                        .info(child)
-                        .map(|i| i.children)
-                        .unwrap_or_default()
-                        .into(),
+                    children: self.refiner.children(child).unwrap_or_default().into(),
                     z_range: (0, 0),
                     grid: Arc::new(half),
                     present,

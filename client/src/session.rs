@@ -1183,7 +1183,7 @@ impl<R: Domain> DetailSource<R::Id> for FetchSource<'_, R> {
         let channel = &layer.channels()[0];
         let parents = || channel.parents(colour).into_iter().map(R::key_of).collect();
         stream.take(R::key_of(colour), priority, parents, |d| {
-            let children = channel.info(colour).map(|i| i.children).unwrap_or_default();
+            let children = channel.children(colour).unwrap_or_default();
             d.empty_children(&children)
                 .into_iter()
                 .map(R::key_of)

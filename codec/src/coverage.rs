@@ -173,6 +173,33 @@ impl Coverage {
         self.bits[k / 8] >> (k % 8) & 1 == 1
     }
 
+    /// Set bits among bits `start .. end` of the bitmap.
+    fn ones(&self, start: usize, end: usize) -> usize {
+        let mut count = 0;
+        let mut k = start;
+        while k < end && !k.is_multiple_of(8) {
+            count += usize::from(self.bits[k / 8] >> (k % 8) & 1 == 1);
+            k += 1;
+        }
+        let whole = (end - k) / 8;
+        let bytes = &self.bits[k / 8..k / 8 + whole];
+        let mut words = bytes.chunks_exact(8);
+        for w in &mut words {
+            count += u64::from_le_bytes(w.try_into().unwrap_or([0; 8])).count_ones() as usize;
+        }
+        count += words
+            .remainder()
+            .iter()
+            .map(|b| b.count_ones() as usize)
+            .sum::<usize>();
+        k += whole * 8;
+        while k < end {
+            count += usize::from(self.bits[k / 8] >> (k % 8) & 1 == 1);
+            k += 1;
+        }
+        count
+    }
+
     /// Number of covered blocks.
     pub fn covered_blocks(&self) -> usize {
         self.bits.iter().map(|b| b.count_ones() as usize).sum()
@@ -211,16 +238,22 @@ impl Coverage {
             // Blocks `j` with `j B <= t1` and `(j + 1) B >= t0`.
             let lo = |t: usize| if t == 0 { 0 } else { (t - 1) >> b };
             let hi = |t: usize, count: usize| (t >> b).min(count - 1);
+            let (c0, c1) = (lo(x0).min(self.cols() - 1), hi(x1, self.cols()));
+            // A row's blocks are consecutive bits: count them a word at a time (a
+            // planet's root diamonds span thousands of blocks, and a session asks at
+            // open).
             for r in lo(y0).min(self.rows() - 1)..=hi(y1, self.rows()) {
-                for c in lo(x0).min(self.cols() - 1)..=hi(x1, self.cols()) {
-                    if self.is_covered(face, c, r) {
-                        any_in = true;
-                    } else {
-                        any_out = true;
-                    }
-                    if any_in && any_out {
-                        return BlockState::Mixed;
-                    }
+                if face >= self.faces() || c0 > c1 {
+                    any_out = true;
+                } else {
+                    let start = self.bit(face, c0, r);
+                    let len = c1 - c0 + 1;
+                    let ones = self.ones(start, start + len);
+                    any_in |= ones > 0;
+                    any_out |= ones < len;
+                }
+                if any_in && any_out {
+                    return BlockState::Mixed;
                 }
             }
         }
@@ -381,6 +414,81 @@ impl CubeCoverage {
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
+
+    /// `state` by looking at every block, as it did before it counted bits a word at a
+    /// time.
+    fn state_block_by_block(
+        cov: &Coverage,
+        face: usize,
+        [x0, x1]: [usize; 2],
+        [y0, y1]: [usize; 2],
+    ) -> BlockState {
+        let (mut any_in, mut any_out) = (false, false);
+        if x0 <= x1 && y0 <= y1 {
+            let b = cov.block_log2;
+            let lo = |t: usize| if t == 0 { 0 } else { (t - 1) >> b };
+            let hi = |t: usize, count: usize| (t >> b).min(count - 1);
+            for r in lo(y0).min(cov.rows() - 1)..=hi(y1, cov.rows()) {
+                for c in lo(x0).min(cov.cols() - 1)..=hi(x1, cov.cols()) {
+                    if cov.is_covered(face, c, r) {
+                        any_in = true;
+                    } else {
+                        any_out = true;
+                    }
+                }
+            }
+        }
+        match (any_in, any_out) {
+            (true, false) => BlockState::Full,
+            (false, _) => BlockState::Empty,
+            (true, true) => BlockState::Mixed,
+        }
+    }
+
+    #[test]
+    fn block_states_counted_by_words_are_the_blocks_states() {
+        let mut seed = 11u64;
+        let mut next = |m: usize| {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as usize % m
+        };
+        // 6 faces of 37 x 37 blocks of 8 samples (rows straddle bytes and words), some
+        // faces full, some empty, some with runs and holes.
+        let mut cov = Coverage::empty(6, 3, 37, 37);
+        for face in 0..6 {
+            for r in 0..37 {
+                for c in 0..37 {
+                    let on = match face {
+                        0 => true,
+                        1 => false,
+                        2 => (c / 9 + r / 5) % 2 == 0,
+                        _ => next(100) < 60 + 10 * face,
+                    };
+                    if on {
+                        cov.set(face, c, r);
+                    }
+                }
+            }
+        }
+        let side = 37 * 8;
+        let mut seen = [0usize; 3];
+        for _ in 0..20_000 {
+            let face = next(6);
+            let (x0, y0) = (next(side + 1), next(side + 1));
+            let (x1, y1) = (x0 + next(side + 1 - x0), y0 + next(side + 1 - y0));
+            let rect = if next(10) == 0 { [x1, x0] } else { [x0, x1] };
+            let want = state_block_by_block(&cov, face, rect, [y0, y1]);
+            assert_eq!(
+                cov.state(face, rect, [y0, y1]),
+                want,
+                "{face} {rect:?} {y0} {y1}"
+            );
+            seen[want as usize] += 1;
+        }
+        assert!(seen.iter().all(|&k| k > 100), "{seen:?}");
+    }
 
     #[test]
     fn closed_blocks_share_their_border_samples() {

@@ -336,6 +336,12 @@ impl SphereFrame {
         (level < self.detail_levels).then_some(level)
     }
 
+    /// Whether `id` has a slot ([`SphereFrame::coded_slot`] is `Some`), without working
+    /// out its mask.
+    pub fn has_slot(&self, id: SphereId) -> bool {
+        self.coded_level(id).is_some() && self.slot(id).is_ok()
+    }
+
     /// The slot of a diamond that carries details (its level, placement, key and, with a
     /// coverage, mask; no child indices), `None` for others.
     pub fn coded_slot(&self, id: SphereId) -> Option<(usize, SphereSlot)> {

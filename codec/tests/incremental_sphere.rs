@@ -170,3 +170,50 @@ fn wrong_parents_and_planar_encodings_are_errors() {
         Err(RefineError::WrongDomain)
     ));
 }
+
+#[test]
+fn children_alone_are_the_infos_children_on_sparse_and_dense_planets() {
+    let (face_side, n) = (128, 8);
+    let mut g = common::synthetic_planet(face_side, n).unwrap();
+    let w = face_side + 1;
+    // No data on face 1, a quarter of face 2 and a band of face 4: mixed, full and
+    // empty diamonds, across cube edges.
+    for (k, v) in g.values_m.iter_mut().enumerate() {
+        let (face, rest) = (k / (w * w), k % (w * w));
+        let (u, y) = (rest % w, rest / w);
+        if face == 1
+            || (face == 2 && u < w / 2 && y < w / 2)
+            || (face == 4 && (40..70).contains(&y))
+        {
+            *v = f64::NAN;
+        }
+    }
+    let sparse = encode::encode_sphere(
+        &g,
+        EncodeOptions {
+            n,
+            mode: RateMode::MaxErrorM(4.0),
+            sparse: true,
+            rdo: Default::default(),
+        },
+    )
+    .unwrap();
+    assert!(sparse.coverage.is_some());
+    let dense = planet(face_side, n, RateMode::MaxErrorM(4.0));
+    for enc in [&sparse, &dense] {
+        let r = SphereRefiner::from_encoded(enc).unwrap();
+        let mut ids: Vec<SphereId> = r.roots().iter().map(|(id, _)| *id).collect();
+        let (mut checked, mut seen) = (0, std::collections::HashSet::new());
+        while let Some(id) = ids.pop() {
+            if !seen.insert(id) {
+                continue;
+            }
+            let info = r.info(id).map(|i| i.children);
+            assert_eq!(r.children(id), info, "{id:?}");
+            checked += 1;
+            // Leaves too (their children are `None`).
+            ids.extend(info.unwrap_or_default());
+        }
+        assert!(checked > 1000, "{checked}");
+    }
+}

@@ -254,6 +254,11 @@ pub trait Refiner: Send + Sync + std::fmt::Debug + 'static {
     fn roots(&self) -> Vec<(Self::Id, &[i32])>;
     /// What a client needs to know about a refinable diamond (`None` for leaves).
     fn info(&self, id: Self::Id) -> Option<DiamondInfo<Self::Id>>;
+    /// [`Refiner::info`]'s children alone (a sparse planet's mask, which `info` also
+    /// works out, costs far more).
+    fn children(&self, id: Self::Id) -> Option<Vec<Self::Id>> {
+        self.info(id).map(|i| i.children)
+    }
     /// Whether `id` can be refined here (coded or procedural).
     fn is_refinable(&self, id: Self::Id) -> bool;
     /// The parents of `id` inside the domain (none for roots).

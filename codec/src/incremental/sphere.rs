@@ -200,6 +200,20 @@ impl Refiner for SphereRefiner {
         })
     }
 
+    fn children(&self, id: SphereId) -> Option<Vec<SphereId>> {
+        let domain_children = || self.geometry.domain().children(id).unwrap_or_default();
+        match self.geometry.coded_level(id) {
+            Some(level) if self.geometry.has_slot(id) => Some(
+                self.coded_children(id, level)
+                    .unwrap_or_else(domain_children),
+            ),
+            _ => {
+                self.procedural_level(id)?;
+                Some(domain_children())
+            }
+        }
+    }
+
     fn is_refinable(&self, id: SphereId) -> bool {
         self.is_coded(id) || self.procedural_level(id).is_some()
     }
