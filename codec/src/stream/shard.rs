@@ -10,7 +10,7 @@
 //! whose rows are all exact (read, or written only by exact diamonds); the halo is the
 //! smallest for which every diamond it owns is exact ([`Layout`]). Everything a shard
 //! analyses outside its band is analysed again by the owner; that redundancy is the
-//! price of independence (korea, 4 shards: 1.6x the rows of a band).
+//! price of independence (korea, 4 shards: 1.2-1.6x the rows of a band).
 //!
 //! What is exact besides the analysis:
 //! - Pass 0 (range, quantum, valid count, coverage, the mean fill's sum in value order)
@@ -62,7 +62,7 @@ pub struct ShardFigures {
     pub band_rows: usize,
     /// Rows it reads and analyses (band and halo).
     pub window_rows: usize,
-    /// Diamonds it analysed, and how many of them are its own.
+    /// Diamonds it analysed (its own and its halo's).
     pub analysed: usize,
     /// Diamonds it owns.
     pub owned: usize,
