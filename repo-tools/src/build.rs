@@ -135,12 +135,20 @@ impl Rdo {
         }
     }
 
-    fn label(self) -> &'static str {
+    pub(crate) fn label(self) -> &'static str {
         match self {
             Rdo::Auto => "auto",
             Rdo::On => "on",
             Rdo::Off => "off",
         }
+    }
+
+    /// The setting [`Rdo::label`] names (`auto` for anything else).
+    pub(crate) fn from_label(label: &str) -> Rdo {
+        [Rdo::On, Rdo::Off]
+            .into_iter()
+            .find(|r| r.label() == label)
+            .unwrap_or(Rdo::Auto)
     }
 }
 

@@ -141,7 +141,7 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
         lossless: args.lossless,
         max_error_m: args.max_error_m,
         diamond_size: args.diamond_size,
-        rdo: rdo_label(args.rdo).into(),
+        rdo: args.rdo.label().into(),
         inline_bytes: args.inline_bytes,
         memory_budget_mb: budget_mb,
         units: rows.raw().units.clone(),
@@ -260,14 +260,6 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
         );
     }
     Ok(())
-}
-
-fn rdo_label(r: Rdo) -> &'static str {
-    match r {
-        Rdo::Auto => "auto",
-        Rdo::On => "on",
-        Rdo::Off => "off",
-    }
 }
 
 fn put_varint(out: &mut Vec<u8>, mut x: u32) {
@@ -425,11 +417,7 @@ fn merge_parts(args: &MergeArgs) -> Result<build::BuildSummary> {
     bargs.lossless = facts.lossless;
     bargs.max_error_m = facts.max_error_m;
     bargs.diamond_size = facts.diamond_size;
-    bargs.rdo = match facts.rdo.as_str() {
-        "on" => Rdo::On,
-        "off" => Rdo::Off,
-        _ => Rdo::Auto,
-    };
+    bargs.rdo = Rdo::from_label(&facts.rdo);
     bargs.inline_bytes = facts.inline_bytes;
     bargs.memory_budget_mb = Some(facts.memory_budget_mb);
     bargs.overwrite = args.overwrite;
