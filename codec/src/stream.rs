@@ -52,8 +52,8 @@ mod shard;
 mod synth;
 
 pub use cube::{
-    CUBE_PHASES, CubeEncoded, CubeOptions, CubeSource, DecodedTiles, MemoryTiles, TileStore,
-    encode_cube,
+    CUBE_PHASES, CubeEncoded, CubeMerge, CubeOptions, CubeSource, DecodedTiles, MemoryTiles,
+    TileStore, encode_cube, encode_cube_shard,
 };
 pub use shard::{Merge, ShardFigures, ShardPart, ShardSpec, encode_shard};
 

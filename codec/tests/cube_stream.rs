@@ -12,8 +12,8 @@ use quincunx_codec::encode::{
 };
 use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_codec::stream::{
-    BlobSink, CubeEncoded, CubeOptions, CubeSource, MemorySpill, MemoryTiles, TileStore,
-    encode_cube,
+    BlobSink, CubeEncoded, CubeMerge, CubeOptions, CubeSource, MemorySpill, MemoryTiles, ShardPart,
+    ShardSpec, TileStore, encode_cube, encode_cube_shard,
 };
 
 /// A [`CubeGrid`] read a band of rows at a time.
@@ -395,4 +395,186 @@ fn the_decoded_planet_left_in_the_tiles_is_the_decoders() {
         let err = layout.read_rows(tiles_dyn, (6, 0, 1), &mut vec![0; w]);
         assert!(err.is_err());
     }
+}
+
+/// Details of a shard's diamonds, as `(level, index, details)`.
+type Details = Vec<(usize, usize, Vec<i32>)>;
+
+/// Shard `k` of `count` of a planet (its part through its bytes, and its details).
+fn shard(
+    g: &CubeGrid,
+    opts: CubeOptions,
+    (k, count): (usize, usize),
+    extra: &[u8],
+) -> Result<(ShardPart, Details), EncodeError> {
+    let mut details = Vec::new();
+    let mut src = GridRows {
+        g,
+        fail_at: None,
+        reads: 0,
+    };
+    let part = encode_cube_shard(
+        &mut src,
+        opts,
+        ShardSpec { index: k, count },
+        extra.to_vec(),
+        &mut |l, i, h| {
+            details.push((l, i, h.to_vec()));
+            Ok(())
+        },
+        (&mut MemorySpill::default(), &mut MemoryTiles::default()),
+    )?;
+    let part = ShardPart::from_bytes(&part.to_bytes())?;
+    assert_eq!(part.figures.split, part.figures.split.max(1));
+    Ok((part, details))
+}
+
+/// Merges `parts` and their details (added in batches of 50).
+fn merge(
+    parts: Vec<ShardPart>,
+    details: &[Details],
+    face_side: usize,
+    n: usize,
+) -> Result<Encoded, EncodeError> {
+    let (mut spill, mut tiles) = (MemorySpill::default(), MemoryTiles::default());
+    let mut merge = CubeMerge::new(parts, &mut spill, &mut tiles)?;
+    for d in details {
+        for batch in d.chunks(50) {
+            merge.add(batch, &mut spill)?;
+        }
+    }
+    let mut sink = blobs_for(face_side, n);
+    let enc = merge.finish(&mut sink, &mut spill, &mut tiles)?;
+    Ok(enc.into_encoded(sink.0))
+}
+
+fn cube_opts(n: usize, mode: RateMode, sparse: bool, budget: usize) -> CubeOptions {
+    CubeOptions {
+        n,
+        mode,
+        memory_budget_bytes: budget,
+        sparse,
+        rdo: RdoMode::Auto,
+        keep_decoded: false,
+    }
+}
+
+/// The disturbed planet with voids: scattered samples and a hole across a cube edge.
+fn holed_planet(face_side: usize, n: usize) -> CubeGrid {
+    let mut g = disturbed_planet(face_side, n);
+    let geom = SphereGeometry::new(face_side, n).unwrap();
+    let w = face_side + 1;
+    for k in (0..g.values_m.len()).step_by(997) {
+        g.values_m[k] = f64::NAN;
+    }
+    for face in [0u8, 1] {
+        for v in w / 2 - 9..w / 2 + 9 {
+            for u in 0..w {
+                if u < 12 || u + 12 >= w {
+                    g.values_m[geom.cube_index(face, u, v)] = f64::NAN;
+                }
+            }
+        }
+    }
+    g
+}
+
+#[test]
+fn sharded_planets_equal_the_single_out_of_core_build() {
+    let (face_side, n) = (256, 16);
+    let g = holed_planet(face_side, n);
+    // 1 MB: tiles of 32 points, evictions; 64 MB: one band a face.
+    for (mode, budget, counts) in [
+        (RateMode::MaxErrorM(2.0), 1 << 20, &[1, 2, 3, 7][..]),
+        (RateMode::Lossless, 1 << 20, &[3][..]),
+        (RateMode::MaxErrorM(2.0), 64 << 20, &[2][..]),
+    ] {
+        let opts = cube_opts(n, mode, false, budget);
+        let (_, want) = out_of_core(&g, n, mode, false, budget).unwrap();
+        for &count in counts {
+            let what = format!("{mode:?}, budget {budget}, {count} shards");
+            let (mut parts, mut details) = (Vec::new(), Vec::new());
+            for k in (0..count).rev() {
+                let (p, d) = shard(&g, opts, (k, count), b"build").unwrap();
+                assert!(p.figures.owned > 0, "{what}: shard {k} owns nothing");
+                if count > 1 {
+                    assert!(
+                        p.figures.analysed < want.blobs.iter().map(Vec::len).sum::<usize>(),
+                        "{what}: shard {k} analysed everything"
+                    );
+                }
+                parts.push(p);
+                details.push(d);
+            }
+            let got = merge(parts, &details, face_side, n).unwrap();
+            assert_same(&got, &want, &what);
+        }
+    }
+    // Sparse: a cap around a cube corner.
+    let (n, g) = (16, capped_planet(128, 16));
+    let mode = RateMode::MaxErrorM(1.0);
+    let (_, want) = out_of_core(&g, n, mode, true, 1 << 20).unwrap();
+    for count in [2, 3] {
+        let opts = cube_opts(n, mode, true, 1 << 20);
+        let (parts, details): (Vec<_>, Vec<_>) = (0..count)
+            .map(|k| shard(&g, opts, (k, count), b"sparse").unwrap())
+            .unzip();
+        let got = merge(parts, &details, 128, n).unwrap();
+        assert_same(&got, &want, &format!("sparse, {count} shards"));
+    }
+}
+
+#[test]
+fn planet_merges_refuse_parts_that_do_not_make_one_build() {
+    let (face_side, n) = (128, 16);
+    let g = disturbed_planet(face_side, n);
+    let opts = cube_opts(n, RateMode::MaxErrorM(2.0), false, 1 << 20);
+    let (a0, d0) = shard(&g, opts, (0, 3), b"x").unwrap();
+    let (a1, d1) = shard(&g, opts, (1, 3), b"x").unwrap();
+    let (a2, d2) = shard(&g, opts, (2, 3), b"x").unwrap();
+    let err = |r: Result<Encoded, EncodeError>| r.err().map(|e| e.to_string()).unwrap_or_default();
+    // Missing, repeated, from another build.
+    let e = err(merge(vec![a0.clone(), a2.clone()], &[], face_side, n));
+    assert!(e.contains("missing part(s): 1"), "{e}");
+    let e = err(merge(
+        vec![a0.clone(), a1.clone(), a1.clone()],
+        &[],
+        face_side,
+        n,
+    ));
+    assert!(e.contains("given twice"), "{e}");
+    let other = cube_opts(n, RateMode::MaxErrorM(3.0), false, 1 << 20);
+    let (b1, _) = shard(&g, other, (1, 3), b"x").unwrap();
+    let e = err(merge(vec![a0.clone(), b1, a2.clone()], &[], face_side, n));
+    assert!(e.contains("not from the same build"), "{e}");
+    // Details missing, repeated, or not the build's.
+    let parts = || vec![a0.clone(), a1.clone(), a2.clone()];
+    let e = err(merge(parts(), &[d0.clone(), d1.clone()], face_side, n));
+    assert!(e.contains("lack diamond"), "{e}");
+    let e = err(merge(
+        parts(),
+        &[d0.clone(), d1.clone(), d2.clone(), d1.clone()],
+        face_side,
+        n,
+    ));
+    assert!(e.contains("come twice"), "{e}");
+    let mut bad = d2.clone();
+    bad[0].2.push(1);
+    let e = err(merge(parts(), &[d0.clone(), d1.clone(), bad], face_side, n));
+    assert!(e.contains("do not belong"), "{e}");
+    // The whole set merges; truncated bytes are an error.
+    assert!(merge(parts(), &[d0, d1, d2], face_side, n).is_ok());
+    let bytes = a1.to_bytes();
+    let e = ShardPart::from_bytes(&bytes[..bytes.len() - 3])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("truncated"), "{e}");
+    // RMS and bad requests are refused before any work.
+    let rms = cube_opts(n, RateMode::RmsM(3.0), false, 1 << 20);
+    let e = shard(&g, rms, (0, 2), b"x").unwrap_err().to_string();
+    assert!(e.contains("--lossless or --max-error-m"), "{e}");
+    let e = shard(&g, opts, (2, 2), b"x").unwrap_err().to_string();
+    assert!(e.contains("shard 2 of 2"), "{e}");
+    let e = shard(&g, opts, (0, 100), b"x").unwrap_err().to_string();
+    assert!(e.contains("100 shards"), "{e}");
 }

@@ -383,8 +383,9 @@ fn build_streaming<S: RowSource>(
     // The encoder's share must not depend on what happens to be resident at this moment:
     // it fixes the chunking, and with it the nodata fills, so builds that subtracted the
     // measured size were not reproducible (the same command gave different content
-    // hashes). The program is counted as `PROGRAM_BYTES` (7.8-7.9 MB resident here), or
-    // as its measured size in whole MB if that is larger.
+    // hashes, and the shards of one sharded build chose different tiles). The program is
+    // counted as `PROGRAM_BYTES` (7.8-7.9 MB resident here), and what the input holds
+    // (a global grid, a decoded image, a mosaic's tiles) by its size.
     //
     // Checked before the partial database and the spill are created, so a budget that
     // is too small leaves nothing behind.
@@ -535,14 +536,7 @@ fn build_cube_streaming<S: CubeSource>(
             peak_rss_mb = layout::peak_rss_mb(),
             "streamed"
         );
-        let description = elevation(
-            facts(cube),
-            enc.into_encoded(Vec::new()),
-            Some(radius),
-            mode,
-        )?
-        .desc;
-        let meta = publish(args, builder, &description, n, mode)?;
+        let (meta, description) = publish_cube(args, builder, enc, facts(cube), (radius, n, mode))?;
         Ok((meta, description, encode_seconds, phases, scratch_bytes))
     })?;
     let (meta, description, encode_seconds, phases, scratch_bytes) = built;
@@ -551,6 +545,67 @@ fn build_cube_streaming<S: CubeSource>(
     summary.phases = phases;
     summary.scratch_bytes = Some(scratch_bytes);
     Ok(summary)
+}
+
+/// Publishes a planet's elevation encoded out of core (by one process, or by a sharded
+/// build's merge).
+pub(crate) fn publish_cube(
+    args: &BuildArgs,
+    builder: RepositoryBuilder,
+    enc: stream::CubeEncoded,
+    source: Source,
+    (radius, n, mode): (f64, usize, RateMode),
+) -> Result<(Metadata, Description)> {
+    let description = elevation(source, enc.into_encoded(Vec::new()), Some(radius), mode)?.desc;
+    let meta = publish(args, builder, &description, n, mode)?;
+    Ok((meta, description))
+}
+
+/// A planet's elevation source as cube rows (a global grid, or a mosaic) for a sharded
+/// build: runs `f` with it, the bytes it holds itself and whether the build is sparse
+/// (mosaics always are); `f`'s result and what the metadata records of the source (once
+/// `f` has read it all).
+pub(crate) fn with_cube_source<T>(
+    args: &BuildArgs,
+    n: usize,
+    f: impl FnOnce(&mut dyn CubeSource, usize, bool) -> Result<T>,
+) -> Result<(T, Source)> {
+    if mosaic::is_mosaic(&args.input) {
+        let mosaic = mosaic::Mosaic::open(&args.input)?;
+        mosaic.check_planet()?;
+        let face_side = args
+            .face_side
+            .unwrap_or_else(|| planet::default_face_side(mosaic.finest_spacing(), n));
+        let frame = SphereFrame::new(face_side, n, None)
+            .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
+        let mut cube = mosaic.cube_rows(&frame)?;
+        let held = cube.held_bytes();
+        let out = f(&mut cube, held, true)?;
+        let a = cube.assembled();
+        return Ok((
+            out,
+            Source {
+                units: a.units,
+                source_samples: mosaic.source_samples,
+                nodata_count: a.nodata_count,
+                georef: None,
+            },
+        ));
+    }
+    let raster = input::read_heights(&args.input)
+        .with_context(|| format!("reading {}", args.input.display()))?;
+    let g = &raster.grid;
+    let face_side = planet_face_side(args, raster.georef.as_ref(), g.width, g.height, n)?;
+    let frame = SphereFrame::new(face_side, n, None)
+        .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
+    let mut cube = planet::EquirectRows::new(&raster, &frame)?;
+    let out = f(&mut cube, grid_bytes(&raster.grid), args.sparse)?;
+    Ok((out, Source::of(&raster)))
+}
+
+/// What a global grid read into memory holds (its heights, 8 bytes a sample).
+fn grid_bytes(grid: &Grid) -> usize {
+    grid.values_m.len() * 8
 }
 
 /// An unnamed temporary file in the output's directory (on the disk the build writes to;
@@ -566,13 +621,13 @@ fn temp_beside(output: &Path) -> Result<std::fs::File> {
 
 /// The out-of-core planet encoder's tiles: an unnamed temporary file beside the output
 /// (gone when the build ends, however it ends).
-struct FileTiles {
+pub(crate) struct FileTiles {
     file: std::fs::File,
     bytes: Vec<u8>,
 }
 
 impl FileTiles {
-    fn beside(output: &Path) -> Result<FileTiles> {
+    pub(crate) fn beside(output: &Path) -> Result<FileTiles> {
         Ok(FileTiles {
             file: temp_beside(output)?,
             bytes: Vec::new(),
@@ -782,13 +837,13 @@ fn streamed_rgb_error(
 
 /// Detail and index matrices between passes (the RMS rate control's attempts, the planet
 /// encoder's details), in three unnamed temporary files beside the output (gone when the build ends, however it ends).
-struct FileSpill {
+pub(crate) struct FileSpill {
     files: [std::fs::File; 3],
     lens: [u64; 3],
 }
 
 impl FileSpill {
-    fn beside(output: &Path) -> Result<FileSpill> {
+    pub(crate) fn beside(output: &Path) -> Result<FileSpill> {
         Ok(FileSpill {
             files: [
                 temp_beside(output)?,
@@ -860,10 +915,7 @@ pub(crate) fn encoder_budget(
     (diamonds, per_diamond): (usize, usize),
     source_bytes: usize,
 ) -> Result<usize> {
-    let program = layout::rss_bytes()
-        .max(PROGRAM_BYTES)
-        .next_multiple_of(1 << 20);
-    let reserve = program + diamonds * per_diamond + (3 << 20) + source_bytes;
+    let reserve = PROGRAM_BYTES + diamonds * per_diamond + (3 << 20) + source_bytes;
     let budget = (budget_mb as usize) << 20;
     if budget <= reserve {
         bail!(
@@ -888,7 +940,7 @@ pub(crate) fn planar_diamonds(samples: usize, n: usize) -> (usize, usize) {
 /// encoder: its geometry's slot (about 220 bytes, measured at face side 8192) and its
 /// side information and spill index (about 60); in RMS mode also two attempts' spill
 /// indexes and measures (about 130).
-fn cube_diamonds(samples: usize, n: usize, mode: RateMode) -> (usize, usize) {
+pub(crate) fn cube_diamonds(samples: usize, n: usize, mode: RateMode) -> (usize, usize) {
     let rms = if matches!(mode, RateMode::RmsM(_)) {
         130
     } else {
@@ -1122,11 +1174,10 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
             {
                 let mut cube = planet::EquirectRows::new(&raster, &frame)?;
                 let facts = |_: &planet::EquirectRows| Source::of(&raster);
-                // The grid is resident already: the budget's measure of the program has it.
                 return build_cube_streaming(
                     args,
                     &mut cube,
-                    0,
+                    grid_bytes(&raster.grid),
                     facts,
                     (n, mode, budget_mb, args.sparse),
                     started,
@@ -1400,13 +1451,14 @@ fn encode_heights(
 }
 
 /// What the metadata records of an elevation build's source.
-struct Source {
-    units: String,
+#[derive(Serialize, serde::Deserialize, Debug, Clone, PartialEq)]
+pub(crate) struct Source {
+    pub(crate) units: String,
     /// Samples read (all tiles' for a mosaic).
-    source_samples: usize,
+    pub(crate) source_samples: usize,
     /// Nodata samples the encoder was given.
-    nodata_count: usize,
-    georef: Option<Georef>,
+    pub(crate) nodata_count: usize,
+    pub(crate) georef: Option<Georef>,
 }
 
 impl Source {
@@ -1442,7 +1494,7 @@ fn elevation(source: Source, enc: Encoded, radius_m: Option<f64>, mode: RateMode
     })
 }
 
-fn radius_m(args: &BuildArgs) -> Result<f64> {
+pub(crate) fn radius_m(args: &BuildArgs) -> Result<f64> {
     let r = match args.radius_m {
         Some(r) => r,
         None => planet::body_radius_m(&args.body)

@@ -297,11 +297,6 @@ impl Drop for RssSampler {
     }
 }
 
-/// Resident memory of this process now, bytes (Linux; 0 elsewhere).
-pub fn rss_bytes() -> usize {
-    proc_status_kb("VmRSS:").map_or(0, |kb| (kb * 1024.0) as usize)
-}
-
 /// Physical memory of this machine, bytes (`MemTotal` of `/proc/meminfo`; `None` where
 /// there is none).
 pub fn memory_total_bytes() -> Option<u64> {

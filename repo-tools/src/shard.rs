@@ -16,12 +16,59 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use quincunx_codec::encode::RateMode;
-use quincunx_codec::stream::{self, Merge, ShardPart, ShardSpec, StreamOptions};
+use quincunx_codec::stream::{
+    self, CubeMerge, CubeOptions, Merge, RowSource, ShardPart, ShardSpec, StreamOptions,
+};
 use serde::{Deserialize, Serialize};
 
-use crate::build::{self, BuildArgs, Rdo, StreamFacts};
+use crate::build::{self, BuildArgs, FileSpill, FileTiles, Rdo, StreamFacts};
 use crate::input::{self, Georef};
-use crate::{layout, progress};
+use crate::{layout, mosaic, progress};
+
+/// A planar source a shard reads: a raw grid's rows, or a mosaic's.
+trait PlanarRows {
+    fn rows(&mut self) -> &mut dyn RowSource;
+    /// What the source holds itself (a mosaic's decoded tiles).
+    fn held_bytes(&self) -> usize;
+    /// What the metadata records of it, once read.
+    fn facts(&self) -> build::Source;
+}
+
+impl PlanarRows for input::RawRows {
+    fn rows(&mut self) -> &mut dyn RowSource {
+        self
+    }
+    fn held_bytes(&self) -> usize {
+        0
+    }
+    fn facts(&self) -> build::Source {
+        let raw = self.raw();
+        build::Source {
+            units: raw.units.clone(),
+            source_samples: raw.width * raw.height,
+            nodata_count: 0,
+            georef: raw.georef.clone(),
+        }
+    }
+}
+
+impl PlanarRows for (mosaic::MosaicRows<'_>, Georef, usize) {
+    fn rows(&mut self) -> &mut dyn RowSource {
+        &mut self.0
+    }
+    fn held_bytes(&self) -> usize {
+        self.0.held_bytes()
+    }
+    fn facts(&self) -> build::Source {
+        let a = self.0.assembled();
+        build::Source {
+            units: a.units,
+            source_samples: self.2,
+            nodata_count: a.nodata_count,
+            georef: Some(self.1.clone()),
+        }
+    }
+}
 
 /// Parses `--shard K/N`.
 pub fn parse_spec(s: &str) -> Result<ShardSpec, String> {
@@ -55,9 +102,11 @@ struct BuildFacts {
     rdo: String,
     inline_bytes: u64,
     memory_budget_mb: u64,
-    units: String,
-    georef: Option<Georef>,
-    source_samples: usize,
+    source: build::Source,
+    /// Planets: the radius, `--face-side` and `--sparse` (a global grid's).
+    radius_m: Option<f64>,
+    face_side: Option<usize>,
+    sparse: bool,
 }
 
 /// The `--json` summary of a shard.
@@ -101,10 +150,14 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
     let started = Instant::now();
     let mode = build::rate_mode(args)?;
     let n = build::diamond_n(args)?;
-    if args.planet || args.colour || !build::is_raw(&args.input) {
+    if args.colour {
+        bail!("--shard builds elevation; colour builds in one process");
+    }
+    let planar_mosaic = !args.planet && mosaic::is_mosaic(&args.input);
+    if !args.planet && !planar_mosaic && !build::is_raw(&args.input) {
         bail!(
-            "--shard builds planar elevation from a raw grid (+ JSON sidecar); planets, colour \
-             and other inputs build in one process"
+            "--shard builds planar elevation from a raw grid (+ JSON sidecar) or a mosaic, and \
+             planets from a global grid or a mosaic; other planar inputs build in one process"
         );
     }
     if matches!(mode, RateMode::RmsM(_)) {
@@ -115,6 +168,11 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
     }
     let Some(budget_mb) = args.memory_budget_mb else {
         bail!("--shard needs --memory-budget-mb (the merge's result equals one build with it)");
+    };
+    let radius_m = if args.planet {
+        Some(build::radius_m(args)?)
+    } else {
+        None
     };
     let out = &args.output;
     if out.exists() && !args.overwrite {
@@ -129,37 +187,6 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
             out.display()
         );
     }
-    let mut rows = input::RawRows::open(&args.input)
-        .with_context(|| format!("reading {}", args.input.display()))?;
-    let (width, height) = (rows.raw().width, rows.raw().height);
-    let facts = BuildFacts {
-        input: args
-            .input
-            .file_name()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default(),
-        lossless: args.lossless,
-        max_error_m: args.max_error_m,
-        diamond_size: args.diamond_size,
-        rdo: args.rdo.label().into(),
-        inline_bytes: args.inline_bytes,
-        memory_budget_mb: budget_mb,
-        units: rows.raw().units.clone(),
-        georef: rows.raw().georef.clone(),
-        source_samples: width * height,
-    };
-    // The same encoder budget as one out-of-core build of this input.
-    let opts = StreamOptions {
-        n,
-        mode,
-        memory_budget_bytes: build::encoder_budget(
-            budget_mb,
-            build::planar_diamonds(width * height, n),
-            0,
-        )?,
-        sparse: args.sparse,
-        rdo: Default::default(),
-    };
     let partial = partial_dir(out);
     if partial.exists() {
         // A killed run's leftovers: this run starts afresh.
@@ -167,7 +194,7 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
             .with_context(|| format!("removing {}", partial.display()))?;
     }
     std::fs::create_dir_all(&partial).with_context(|| format!("creating {}", partial.display()))?;
-    let result = (|| -> Result<ShardSummary> {
+    let result = (|| -> Result<(ShardSummary, usize)> {
         let details_path = partial.join(DETAILS_FILE);
         let mut details = BufWriter::with_capacity(
             1 << 20,
@@ -175,31 +202,113 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
                 .with_context(|| format!("creating {}", details_path.display()))?,
         );
         let spin = progress::spinner("shard");
-        spin.set_message(format!(
-            "{}/{} of {width} x {height}",
-            spec.index, spec.count
-        ));
         let mut record = Vec::new();
         let mut written = 0u64;
-        let part = stream::encode_shard(
-            &mut rows,
-            opts,
-            spec,
-            serde_json::to_vec(&facts)?,
-            &mut |level, index, h| {
-                record.clear();
-                record.extend_from_slice(&(level as u32).to_le_bytes());
-                record.extend_from_slice(&(index as u64).to_le_bytes());
-                for &x in h {
-                    put_varint(&mut record, ((x << 1) ^ (x >> 31)) as u32);
+        let mut put = |level: usize, index: usize, h: &[i32]| -> Result<(), String> {
+            record.clear();
+            record.extend_from_slice(&(level as u32).to_le_bytes());
+            record.extend_from_slice(&(index as u64).to_le_bytes());
+            for &x in h {
+                put_varint(&mut record, ((x << 1) ^ (x >> 31)) as u32);
+            }
+            details.write_all(&record).map_err(|e| e.to_string())?;
+            written += 1;
+            build::stall_hook(args, written);
+            Ok(())
+        };
+        let facts = |source: build::Source| BuildFacts {
+            input: args
+                .input
+                .file_name()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            lossless: args.lossless,
+            max_error_m: args.max_error_m,
+            diamond_size: args.diamond_size,
+            rdo: args.rdo.label().into(),
+            inline_bytes: args.inline_bytes,
+            memory_budget_mb: budget_mb,
+            source,
+            radius_m,
+            face_side: args.face_side,
+            sparse: args.sparse,
+        };
+        let (part, rows) = if args.planet {
+            let ((mut part, rows), source) =
+                build::with_cube_source(args, n, |cube, held, sparse| {
+                    let face_side = cube.face_side();
+                    spin.set_message(format!(
+                        "{}/{} of 6 faces of {face_side} x {face_side}",
+                        spec.index, spec.count
+                    ));
+                    let samples = 6 * (face_side + 1) * (face_side + 1);
+                    // The same encoder budget as one out-of-core build of this input.
+                    let opts = CubeOptions {
+                        n,
+                        mode,
+                        memory_budget_bytes: build::encoder_budget(
+                            budget_mb,
+                            build::cube_diamonds(samples, n, mode),
+                            held,
+                        )?,
+                        sparse,
+                        rdo: Default::default(),
+                        keep_decoded: false,
+                    };
+                    let mut spill = FileSpill::beside(&partial)?;
+                    let mut tiles = FileTiles::beside(&partial)?;
+                    let part = stream::encode_cube_shard(
+                        cube,
+                        opts,
+                        spec,
+                        Vec::new(),
+                        &mut put,
+                        (&mut spill, &mut tiles),
+                    )
+                    .context("encoding the shard")?;
+                    Ok((part, 6 * (face_side + 1)))
+                })?;
+            part.set_extra(serde_json::to_vec(&facts(source))?);
+            (part, rows)
+        } else {
+            // A planar source's rows, the bytes it holds, its facts once read, sparse.
+            let mosaic = if planar_mosaic {
+                Some(mosaic::Mosaic::open(&args.input)?)
+            } else {
+                None
+            };
+            let mut source: Box<dyn PlanarRows + '_> = match &mosaic {
+                Some(m) => {
+                    let (rows, georef) = m.rows()?;
+                    Box::new((rows, georef, m.source_samples))
                 }
-                details.write_all(&record).map_err(|e| e.to_string())?;
-                written += 1;
-                build::stall_hook(args, written);
-                Ok(())
-            },
-        )
-        .context("encoding the shard")?;
+                None => Box::new(
+                    input::RawRows::open(&args.input)
+                        .with_context(|| format!("reading {}", args.input.display()))?,
+                ),
+            };
+            let (width, height) = (source.rows().width(), source.rows().height());
+            spin.set_message(format!(
+                "{}/{} of {width} x {height}",
+                spec.index, spec.count
+            ));
+            // The same encoder budget as one out-of-core build of this input.
+            let opts = StreamOptions {
+                n,
+                mode,
+                memory_budget_bytes: build::encoder_budget(
+                    budget_mb,
+                    build::planar_diamonds(width * height, n),
+                    source.held_bytes(),
+                )?,
+                sparse: args.sparse || planar_mosaic,
+                rdo: Default::default(),
+            };
+            let mut part = stream::encode_shard(source.rows(), opts, spec, Vec::new(), &mut put)
+                .context("encoding the shard")?;
+            part.set_extra(serde_json::to_vec(&facts(source.facts()))?);
+            (part, height)
+        };
         spin.finish_and_clear();
         let details = details
             .into_inner()
@@ -213,7 +322,7 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
             .and_then(|()| f.sync_all())
             .with_context(|| format!("writing {}", part_path.display()))?;
         let fig = &part.figures;
-        Ok(ShardSummary {
+        let summary = ShardSummary {
             output: out.display().to_string(),
             shard: spec.index,
             shards: spec.count,
@@ -225,9 +334,10 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
             seconds: 0.0,
             peak_rss_mb: 0.0,
             part_bytes: quincunx_store::dir_size(&partial)?,
-        })
+        };
+        Ok((summary, rows))
     })();
-    let mut summary = match result {
+    let (mut summary, height) = match result {
         Ok(s) => s,
         Err(e) => {
             let _ = std::fs::remove_dir_all(&partial);
@@ -290,6 +400,9 @@ pub struct MergeArgs {
     pub threads: Option<usize>,
 }
 
+/// One diamond's details: `(level, index, details)`.
+type Record = (usize, usize, Vec<i32>);
+
 /// Reads the details of a part, `batch` diamonds at a time.
 struct Details {
     path: PathBuf,
@@ -322,7 +435,7 @@ impl Details {
     }
 
     /// The next record, or `None` at the end.
-    fn next(&mut self) -> Result<Option<(usize, usize, Vec<i32>)>> {
+    fn next(&mut self) -> Result<Option<Record>> {
         let mut head = [0u8; 12];
         let mut got = 0;
         while got < head.len() {
@@ -409,10 +522,15 @@ fn merge_parts(args: &MergeArgs) -> Result<build::BuildSummary> {
     }
     parts.sort_by_key(|p| p.0);
     let dirs: Vec<PathBuf> = parts.iter().map(|p| p.1.clone()).collect();
-    let mut merge =
-        Merge::new(parts.into_iter().map(|p| p.2).collect()).context("merging the parts")?;
-    let facts: BuildFacts =
-        serde_json::from_slice(merge.extra()).context("the parts' build description")?;
+    let parts: Vec<ShardPart> = parts.into_iter().map(|p| p.2).collect();
+    let planet = parts.first().is_some_and(ShardPart::is_planet);
+    let facts: BuildFacts = serde_json::from_slice(
+        parts
+            .first()
+            .map(|p| p.extra())
+            .context("no parts to merge")?,
+    )
+    .context("the parts' build description")?;
     let mut bargs = BuildArgs::new(&facts.input, &args.output);
     bargs.lossless = facts.lossless;
     bargs.max_error_m = facts.max_error_m;
@@ -421,6 +539,10 @@ fn merge_parts(args: &MergeArgs) -> Result<build::BuildSummary> {
     bargs.inline_bytes = facts.inline_bytes;
     bargs.memory_budget_mb = Some(facts.memory_budget_mb);
     bargs.overwrite = args.overwrite;
+    bargs.planet = planet;
+    bargs.radius_m = facts.radius_m;
+    bargs.face_side = facts.face_side;
+    bargs.sparse = facts.sparse;
     let mode = build::rate_mode(&bargs)?;
     let n = build::diamond_n(&bargs)?;
     build::check_output(&bargs)?;
@@ -430,31 +552,56 @@ fn merge_parts(args: &MergeArgs) -> Result<build::BuildSummary> {
             .with_context(|| format!("creating {}", args.output.display()))?;
         let spin = progress::spinner("merging");
         let mut sink = build::StoreSink::new(&bargs, &mut builder, &spin);
-        let mut batch = Vec::new();
-        for dir in &dirs {
-            let mut details = Details::open(dir, n * n)?;
-            while let Some(rec) = details.next()? {
-                batch.push(rec);
-                if batch.len() == 1024 {
-                    merge
-                        .code(&batch, &mut sink)
-                        .with_context(|| format!("coding {}", details.path.display()))?;
-                    batch.clear();
+        // Every part's details, a batch at a time.
+        let each = |f: &mut dyn FnMut(&[Record]) -> Result<()>| -> Result<()> {
+            let mut batch = Vec::new();
+            for dir in &dirs {
+                let mut details = Details::open(dir, n * n)?;
+                while let Some(rec) = details.next()? {
+                    batch.push(rec);
+                    if batch.len() == 1024 {
+                        f(&batch).with_context(|| format!("coding {}", details.path.display()))?;
+                        batch.clear();
+                    }
                 }
+                f(&batch).with_context(|| format!("coding {}", details.path.display()))?;
+                batch.clear();
             }
-            merge
-                .code(&batch, &mut sink)
-                .with_context(|| format!("coding {}", details.path.display()))?;
-            batch.clear();
-        }
-        let enc = merge.finish(&mut sink).context("merging the parts")?;
-        spin.finish_and_clear();
-        let facts = StreamFacts {
-            units: facts.units.clone(),
-            georef: facts.georef.clone(),
-            source_samples: facts.source_samples,
+            Ok(())
         };
-        build::publish_streamed(&bargs, builder, enc, facts, (n, mode))
+        if planet {
+            let mut spill = FileSpill::beside(&args.output)?;
+            let mut tiles = FileTiles::beside(&args.output)?;
+            let mut merge =
+                CubeMerge::new(parts, &mut spill, &mut tiles).context("merging the parts")?;
+            each(&mut |batch| Ok(merge.add(batch, &mut spill)?))?;
+            let enc = merge
+                .finish(&mut sink, &mut spill, &mut tiles)
+                .context("merging the parts")?;
+            spin.finish_and_clear();
+            let radius = facts
+                .radius_m
+                .context("a planet's parts without a radius")?;
+            build::publish_cube(
+                &bargs,
+                builder,
+                enc,
+                facts.source.clone(),
+                (radius, n, mode),
+            )
+        } else {
+            let mut merge = Merge::new(parts).context("merging the parts")?;
+            each(&mut |batch| Ok(merge.code(batch, &mut sink)?))?;
+            let enc = merge.finish(&mut sink).context("merging the parts")?;
+            spin.finish_and_clear();
+            let source = &facts.source;
+            let facts = StreamFacts {
+                units: source.units.clone(),
+                georef: source.georef.clone(),
+                source_samples: source.source_samples,
+            };
+            build::publish_streamed(&bargs, builder, enc, facts, (n, mode))
+        }
     })?;
     let seconds = started.elapsed().as_secs_f64();
     let mut summary = build::summarise(&bargs, &meta, &description, started, (0.0, seconds))?;

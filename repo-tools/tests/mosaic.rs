@@ -8,7 +8,7 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
-use common::bin;
+use common::{bin, crop, write_raw, write_raw_crs};
 use quincunx_codec::encode::round;
 use quincunx_codec::sphere_raster::{SphereFrame, SphereGeometry};
 use quincunx_codec::stream::CubeSource;
@@ -27,68 +27,6 @@ fn bundled(name: &str) -> PathBuf {
 
 fn korea() -> HeightRaster {
     input::read_heights(&bundled("korea_srtm3_1025.json")).unwrap()
-}
-
-/// A rectangle of a grid, every `step`-th sample.
-fn crop(
-    values: &[f64],
-    width: usize,
-    rows: std::ops::RangeInclusive<usize>,
-    cols: std::ops::RangeInclusive<usize>,
-    step: usize,
-) -> (usize, usize, Vec<f64>) {
-    let rows: Vec<usize> = rows.step_by(step).collect();
-    let cols: Vec<usize> = cols.step_by(step).collect();
-    let mut out = Vec::with_capacity(rows.len() * cols.len());
-    for &r in &rows {
-        out.extend(cols.iter().map(|&c| values[r * width + c]));
-    }
-    (cols.len(), rows.len(), out)
-}
-
-/// Writes a node-registered raw `int16` tile (`NAME.i16` + `NAME.json`; NaN = -32768)
-/// whose first sample is at (`west`, `north`) with spacing `d` degrees.
-fn write_raw(
-    dir: &Path,
-    name: &str,
-    tile: &(usize, usize, Vec<f64>),
-    west: f64,
-    north: f64,
-    d: f64,
-) {
-    write_raw_crs(dir, name, tile, west, north, d, "EPSG:4326");
-}
-
-fn write_raw_crs(
-    dir: &Path,
-    name: &str,
-    (w, h, values): &(usize, usize, Vec<f64>),
-    west: f64,
-    north: f64,
-    d: f64,
-    crs: &str,
-) {
-    let bytes: Vec<u8> = values
-        .iter()
-        .flat_map(|&v| (if v.is_nan() { -32768 } else { v as i16 }).to_le_bytes())
-        .collect();
-    std::fs::write(dir.join(format!("{name}.i16")), bytes).unwrap();
-    let sidecar = serde_json::json!({
-        "file": format!("{name}.i16"),
-        "width": w,
-        "height": h,
-        "dtype": "int16",
-        "nodata": -32768,
-        "crs": crs,
-        "registration": "node",
-        "georef": {
-            "west": west,
-            "north": north,
-            "east": west + (*w - 1) as f64 * d,
-            "south": north - (*h - 1) as f64 * d,
-        },
-    });
-    std::fs::write(dir.join(format!("{name}.json")), sidecar.to_string()).unwrap();
 }
 
 /// The bundled crop as four 513² tiles that share the middle row and column.

@@ -2,9 +2,12 @@
 //! `merge`, publish the content hash of one `build` with the same options (1, 2, 3 and 7
 //! shards, lossless and max error, dense and sparse); a killed shard rerun alone gives
 //! the same repository; parts of different builds, missing parts and damaged parts are
-//! clear errors.
+//! clear errors. Planets likewise: a global grid (1, 2, 3 and 7 shards) and mosaics,
+//! dense and sparse.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
+
+mod common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
@@ -59,12 +62,18 @@ fn single(dir: &Path, rate: &[&str]) -> serde_json::Value {
 
 /// `count` shards as concurrent processes, then `merge`; the merge's JSON summary.
 fn sharded(dir: &Path, rate: &[&str], count: usize) -> serde_json::Value {
+    sharded_with(dir, count, || build(rate))
+}
+
+/// `count` shards of the build `cmd` gives as concurrent processes, then `merge`; the
+/// merge's JSON summary.
+fn sharded_with(dir: &Path, count: usize, cmd: impl Fn() -> Command) -> serde_json::Value {
     let parts: Vec<PathBuf> = (0..count).map(|k| dir.join(format!("part{k}"))).collect();
     let children: Vec<_> = parts
         .iter()
         .enumerate()
         .map(|(k, p)| {
-            build(rate)
+            cmd()
                 .args(["--shard", &format!("{k}/{count}"), "-o"])
                 .arg(p)
                 .stdout(Stdio::piped())
@@ -239,8 +248,8 @@ fn parts_of_different_builds_and_damaged_parts_are_refused() {
     assert!(shard(&["--shard", "0/2"]).contains("--memory-budget-mb"));
     let e = shard(&["--shard", "0/2", "--memory-budget-mb", "20", "--rms-m", "9"]);
     assert!(e.contains("RMS"), "{e}");
-    let e = shard(&["--shard", "0/2", "--memory-budget-mb", "20", "--planet"]);
-    assert!(e.contains("planar elevation"), "{e}");
+    let e = shard(&["--shard", "0/2", "--memory-budget-mb", "20", "--colour"]);
+    assert!(e.contains("colour builds in one process"), "{e}");
     assert!(!t.join("x").exists());
 }
 
@@ -267,4 +276,130 @@ fn the_slurm_array_scripts_build_and_merge() {
     }
     let merged = ok_json(&mut script("merge.sbatch"));
     assert_eq!(merged["content_hash"], one["content_hash"]);
+}
+
+fn bundled(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../data")
+        .join(name)
+}
+
+/// A planet build of `input` on a cube of face side `face_side` (512: 1.6 M samples, out
+/// of core at 24 MB; 1024: 6.3 M samples, at 48 MB).
+fn planet(input: &Path, rate: &[&str], face_side: usize) -> Command {
+    let budget = if face_side > 512 { "48" } else { "24" };
+    let mut c = bin();
+    c.arg("build")
+        .arg(input)
+        .args(["--planet", "--face-side", &face_side.to_string()])
+        .args(rate)
+        .args(["--memory-budget-mb", budget, "--json"]);
+    c
+}
+
+/// The single build (out of core) and `counts` sharded ones of `cmd` in `dir`: the same
+/// content hash.
+fn cases(dir: &Path, what: &str, counts: &[usize], cmd: impl Fn() -> Command) {
+    let one = ok_json(cmd().arg("-o").arg(dir.join("single")));
+    assert_eq!(one["out_of_core"], true, "{one}");
+    for &count in counts {
+        let sub = dir.join(format!("n{count}"));
+        std::fs::create_dir(&sub).unwrap();
+        let merged = sharded_with(&sub, count, &cmd);
+        assert_eq!(
+            merged["content_hash"], one["content_hash"],
+            "{what}, {count} shards"
+        );
+        assert_eq!(merged["blob_count"], one["blob_count"], "{what}");
+        assert_eq!(merged["samples"], one["samples"], "{what}");
+    }
+}
+
+#[test]
+fn planet_and_mosaic_shards_publish_the_single_builds_content_hash() {
+    let tmp = tempfile::tempdir().unwrap();
+    let etopo = bundled("etopo20_global.json");
+    // A global grid.
+    for (rate, counts, name) in [
+        (&["--max-error-m", "10"][..], &[1, 2, 3, 7][..], "max"),
+        (&["--lossless"][..], &[3][..], "lossless"),
+    ] {
+        let dir = tmp.path().join(name);
+        std::fs::create_dir(&dir).unwrap();
+        cases(&dir, name, counts, || planet(&etopo, rate, 512));
+    }
+    // Mosaics: the korea crop as four tiles and a copy of one over a cube corner (35.26N
+    // 45E), over ETOPO 20' (dense), and alone (a sparse planet, holes elsewhere).
+    let k = quincunx_repo_tools::input::read_heights(&korea()).unwrap();
+    let tiles = tmp.path().join("tiles");
+    std::fs::create_dir(&tiles).unwrap();
+    let srtm3 = 1.0 / 1200.0;
+    for (name, r, c) in [
+        ("nw", 0, 0),
+        ("ne", 0, 512),
+        ("sw", 512, 0),
+        ("se", 512, 512),
+    ] {
+        let tile = common::crop(&k.grid.values_m, 1025, r..=r + 512, c..=c + 512, 1);
+        let (west, north) = (126.0 + c as f64 * srtm3, 38.0 - r as f64 * srtm3);
+        common::write_raw(&tiles, name, &tile, west, north, srtm3);
+    }
+    let corner = common::crop(&k.grid.values_m, 1025, 0..=512, 0..=512, 1);
+    common::write_raw(&tiles, "corner", &corner, 44.8, 35.5, srtm3);
+    let names = "nw.json\nne.json\nsw.json\nse.json\ncorner.json\n";
+    let dense = tiles.join("dense.txt");
+    std::fs::write(&dense, format!("{}\n{names}", etopo.display())).unwrap();
+    let sparse = tiles.join("sparse.txt");
+    std::fs::write(&sparse, names).unwrap();
+    for (list, name) in [(&dense, "dense mosaic"), (&sparse, "sparse mosaic")] {
+        let dir = tmp.path().join(name.replace(' ', "-"));
+        std::fs::create_dir(&dir).unwrap();
+        cases(&dir, name, &[3], || {
+            planet(list, &["--max-error-m", "2"], 1024)
+        });
+    }
+    // A planar mosaic: the north-west tile and a copy of the south-east one a degree
+    // away (a 2316 x 1716 grid, holes between them), 3 shards.
+    let far = common::crop(&k.grid.values_m, 1025, 512..=1024, 512..=1024, 1);
+    common::write_raw(&tiles, "far", &far, 127.4, 37.4, srtm3);
+    let planar = tiles.join("planar.txt");
+    std::fs::write(&planar, "nw.json\nfar.json\n").unwrap();
+    let dir = tmp.path().join("planar-mosaic");
+    std::fs::create_dir(&dir).unwrap();
+    cases(&dir, "planar mosaic", &[3], || {
+        let mut c = bin();
+        c.arg("build")
+            .arg(&planar)
+            .args(["--max-error-m", "2", "--memory-budget-mb", "32"])
+            .arg("--json");
+        c
+    });
+    // Planet and planar parts do not merge together.
+    let t = tmp.path();
+    ok_json(
+        planet(&etopo, &["--max-error-m", "10"], 512)
+            .args(["--shard", "0/2", "-o"])
+            .arg(t.join("p0")),
+    );
+    ok_json(
+        build(&["--max-error-m", "2"])
+            .args(["--shard", "1/2", "-o"])
+            .arg(t.join("q1")),
+    );
+    let e = refused(
+        bin()
+            .arg("merge")
+            .arg(t.join("p0"))
+            .arg(t.join("q1"))
+            .arg("-o")
+            .arg(t.join("mixed")),
+    );
+    assert!(e.contains("not from the same build"), "{e}");
+    assert!(!t.join("mixed").exists());
+    let e = refused(
+        planet(&etopo, &["--rms-m", "9"], 512)
+            .args(["--shard", "0/2", "-o"])
+            .arg(t.join("r0")),
+    );
+    assert!(e.contains("RMS"), "{e}");
 }

@@ -34,6 +34,7 @@
 
 use std::borrow::Cow;
 use std::collections::HashMap;
+use std::ops::Range;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -51,6 +52,9 @@ use crate::entropy::CodecModel;
 use crate::lifting;
 use crate::raster::Layout;
 use crate::sphere_raster::SphereGeometry;
+
+mod shard;
+pub use shard::{CubeMerge, encode_cube_shard};
 
 /// A planet's heights, read a band of rows of one face at a time. Faces are read in
 /// order, rows in order within a face; a source is read more than once (two passes, and
@@ -250,45 +254,23 @@ pub fn encode_cube(
     let mut meter = Meter::default();
     let borders = Borders::new(&geom);
 
-    // Pass 0: range, quanta, coverage, the canonical copies of edge points.
-    let mut coverage = opts.sparse.then(|| CubeCoverage::new(face_side, n));
-    let mut scan = Scan::new(source.quantum_m());
-    let mut canon = HashMap::new();
-    let mut vals = vec![0.0; tile * w];
-    meter.note(vals.len() * 8);
-    for face in 0..6 {
-        for first in (0..w).step_by(tile) {
-            let count = tile.min(w - first);
-            let band = &mut vals[..count * w];
-            read_band(source, &borders, &mut canon, (face, first, count), band)?;
-            if let Some(cov) = coverage.as_mut() {
-                for (r, row) in band.chunks_exact(w).enumerate() {
-                    cov.mark_row(face, first + r, |u| row[u].is_finite());
-                }
-            }
-            scan.add(band);
-        }
-    }
-    if scan.valid == 0 {
-        return Err(EncodeError::AllNodata);
-    }
+    let Scanned {
+        geom,
+        coverage,
+        map,
+        fill,
+        ..
+    } = scan_cube(source, opts, geom, (&borders, tile), &mut meter)?;
     phase(CUBE_PHASES[0]);
-    let coverage = coverage.map(CubeCoverage::finish);
-    let geom = match &coverage {
-        Some(c) => geom.covered(c)?,
-        None => geom,
-    };
-    let (map, fill) = scan.mapping(source.quantum_m(), opts.mode)?;
 
     // Pass 1: the integers, as tiles of R_0, and the integerisation's errors.
     let lattice = Lattice::new(face_side, tile, 0, 0);
-    drop((vals, canon));
     let errors = write_integers(
         source,
         &geom,
         &borders,
         (&map, &fill),
-        &lattice,
+        (&lattice, None),
         tiles,
         &mut meter,
     )?;
@@ -307,39 +289,16 @@ pub fn encode_cube(
     let mut hist = matches!(opts.mode, RateMode::RmsM(_)).then(|| Histograms::new(levels));
     let cache_bytes = opts.memory_budget_bytes / 2;
     let second = lattice.len();
-    let mut lattice = lattice;
-    let mut cache = Cache::new(&lattice, cache_bytes);
-    for o in 0..levels / 2 {
-        if o > 0 {
-            let next = Lattice::new(face_side, tile, o, if o % 2 == 1 { second } else { 0 });
-            cache.flush(&lattice, tiles)?;
-            compact(&lattice, &next, tiles, &mut meter)?;
-            lattice = next;
-            cache = Cache::new(&lattice, cache_bytes);
-        }
-        for level in [levels - 1 - 2 * o, levels - 2 - 2 * o] {
-            analyse_level(
-                &geom,
-                level,
-                (&lattice, &mut cache, &mut *tiles),
-                (&mut store, &mut *spill),
-                (&mut side, hist.as_mut()),
-                &mut meter,
-            )?;
-        }
-    }
-    // The root lattice: every tile of the last raster (a few per face).
-    let all: Vec<usize> = (0..lattice.tiles()).collect();
-    cache.ensure(&lattice, &all, tiles)?;
-    meter.note(cache.held_bytes());
-    let missed = AtomicBool::new(false);
-    let roots = geom.gather_roots_with(|k| cache.get(&lattice, k, &missed));
-    if missed.load(Ordering::Relaxed) {
-        return Err(EncodeError::Internal(
-            "a root vertex outside the loaded tiles",
-        ));
-    }
-    drop(cache);
+    let lattice = analyse_octaves(
+        &geom,
+        (0..levels / 2, lattice, (second, cache_bytes)),
+        tiles,
+        (&mut store, &mut *spill),
+        (&mut side, hist.as_mut()),
+        None,
+        &mut meter,
+    )?;
+    let roots = gather_roots(&geom, &lattice, cache_bytes, tiles, &mut meter)?;
 
     phase(CUBE_PHASES[2]);
 
@@ -397,42 +356,7 @@ pub fn encode_cube(
 
     // The model and the blobs.
     let steps = rate.steps;
-    let failed: Mutex<Option<EncodeError>> = Mutex::new(None);
-    let spill_ref: &dyn IndexSpill = spill;
-    let matrix = |l: usize, i: usize| -> Vec<i32> {
-        kept.matrix(spill_ref, l, i).unwrap_or_else(|e| {
-            if let Ok(mut f) = failed.lock() {
-                f.get_or_insert(e);
-            }
-            vec![0; n * n]
-        })
-    };
-    let model = blob_model(&geom, &steps, &|l, i| Cow::Owned(matrix(l, i)), &side);
-    let (mut count, mut bytes) = (0usize, 0usize);
-    for l in 0..levels {
-        let len = geom.level(l).len();
-        for start in (0..len).step_by(4 * BATCH) {
-            let coded: Vec<(usize, Option<Vec<u8>>)> = (start..(start + 4 * BATCH).min(len))
-                .into_par_iter()
-                .map(|i| {
-                    let blob = side.has_data[l][i]
-                        .then(|| code_blob(&geom, &steps, &model, &matrix(l, i), &side, l, i));
-                    (i, blob.flatten())
-                })
-                .collect();
-            for (i, blob) in coded {
-                if let Some(b) = blob {
-                    count += 1;
-                    bytes += b.len();
-                    sink.put(l, i, &geom.level(l)[i].key, &b)
-                        .map_err(EncodeError::Sink)?;
-                }
-            }
-        }
-    }
-    if let Some(e) = failed.into_inner().ok().flatten() {
-        return Err(e);
-    }
+    let (model, count, bytes) = code_blobs(&geom, &steps, &side, &kept, spill, sink)?;
     let decoded = if opts.keep_decoded {
         let mut synth = Synth {
             geom: &geom,
@@ -474,6 +398,187 @@ pub fn encode_cube(
         coverage,
         decoded,
     })
+}
+
+/// What pass 0 learns: the geometry (with the coverage in sparse mode), the value map,
+/// the fill, and the range and sum (which a shard's parts must agree on).
+struct Scanned {
+    geom: SphereGeometry,
+    coverage: Option<Coverage>,
+    map: ValueMap,
+    fill: Fill,
+    range: [f64; 3],
+}
+
+/// Pass 0: range, quanta, coverage, the canonical copies of edge points.
+fn scan_cube(
+    source: &mut dyn CubeSource,
+    opts: CubeOptions,
+    geom: SphereGeometry,
+    (borders, tile): (&Borders, usize),
+    meter: &mut Meter,
+) -> Result<Scanned, EncodeError> {
+    let face_side = geom.face_side();
+    let w = face_side + 1;
+    let mut coverage = opts.sparse.then(|| CubeCoverage::new(face_side, opts.n));
+    let mut scan = Scan::new(source.quantum_m());
+    let mut canon = HashMap::new();
+    let mut vals = vec![0.0; tile * w];
+    meter.note(vals.len() * 8);
+    for face in 0..6 {
+        for first in (0..w).step_by(tile) {
+            let count = tile.min(w - first);
+            let band = &mut vals[..count * w];
+            read_band(source, borders, &mut canon, (face, first, count), band)?;
+            if let Some(cov) = coverage.as_mut() {
+                for (r, row) in band.chunks_exact(w).enumerate() {
+                    cov.mark_row(face, first + r, |u| row[u].is_finite());
+                }
+            }
+            scan.add(band);
+        }
+    }
+    if scan.valid == 0 {
+        return Err(EncodeError::AllNodata);
+    }
+    let coverage = coverage.map(CubeCoverage::finish);
+    let geom = match &coverage {
+        Some(c) => geom.covered(c)?,
+        None => geom,
+    };
+    let (map, fill) = scan.mapping(source.quantum_m(), opts.mode)?;
+    Ok(Scanned {
+        geom,
+        coverage,
+        map,
+        fill,
+        range: [scan.lo, scan.hi, scan.sum],
+    })
+}
+
+/// The raster `R_o` of octave `o` in the tile store: even octaves from offset 0, odd
+/// ones from `second` (each is compacted from the previous one).
+fn lattice_at(face_side: usize, t: usize, o: usize, second: usize) -> Lattice {
+    Lattice::new(face_side, t, o, if o % 2 == 1 { second } else { 0 })
+}
+
+/// What a shard analyses (see [`shard`]): per octave, the tiles of `R_o` it holds; per
+/// level, the diamonds.
+struct Only {
+    tiles: Vec<Vec<bool>>,
+    diamonds: Vec<Vec<bool>>,
+}
+
+/// Analyses `octaves` (a range of them, `R_start` in the tiles as `lattice`), compacting
+/// each octave's raster into the next one's; the last octave's raster, flushed to the
+/// tiles. With `only`, just the diamonds and tiles it names.
+fn analyse_octaves(
+    geom: &SphereGeometry,
+    (octaves, mut lattice, (second, cache_bytes)): (Range<usize>, Lattice, (usize, usize)),
+    tiles: &mut dyn TileStore,
+    (store, spill): (&mut Spill, &mut dyn IndexSpill),
+    (side, mut hist): (&mut Side, Option<&mut Histograms>),
+    only: Option<&Only>,
+    meter: &mut Meter,
+) -> Result<Lattice, EncodeError> {
+    let levels = geom.slot_levels().len();
+    let (face_side, t) = (geom.face_side(), lattice.t);
+    let mut cache = Cache::new(&lattice, cache_bytes);
+    for o in octaves.clone() {
+        if o > octaves.start {
+            let next = lattice_at(face_side, t, o, second);
+            cache.flush(&lattice, tiles)?;
+            let present = only.map(|w| (&w.tiles[o - 1][..], &w.tiles[o][..]));
+            compact(&lattice, &next, tiles, meter, present)?;
+            lattice = next;
+            cache = Cache::new(&lattice, cache_bytes);
+        }
+        for level in [levels - 1 - 2 * o, levels - 2 - 2 * o] {
+            analyse_level(
+                geom,
+                level,
+                (&lattice, &mut cache, &mut *tiles),
+                (&mut *store, &mut *spill),
+                (&mut *side, hist.as_deref_mut()),
+                only.map(|w| &w.diamonds[level][..]),
+                meter,
+            )?;
+        }
+    }
+    cache.flush(&lattice, tiles)?;
+    Ok(lattice)
+}
+
+/// The six root vertex grids from the last octave's raster (a few tiles per face).
+fn gather_roots(
+    geom: &SphereGeometry,
+    lattice: &Lattice,
+    cache_bytes: usize,
+    tiles: &mut dyn TileStore,
+    meter: &mut Meter,
+) -> Result<Vec<Vec<i32>>, EncodeError> {
+    let mut cache = Cache::new(lattice, cache_bytes);
+    let all: Vec<usize> = (0..lattice.tiles()).collect();
+    cache.ensure(lattice, &all, tiles)?;
+    meter.note(cache.held_bytes());
+    let missed = AtomicBool::new(false);
+    let roots = geom.gather_roots_with(|k| cache.get(lattice, k, &missed));
+    if missed.load(Ordering::Relaxed) {
+        return Err(EncodeError::Internal(
+            "a root vertex outside the loaded tiles",
+        ));
+    }
+    Ok(roots)
+}
+
+/// Trains the model on every diamond's indices (in `kept`) and codes every blob into
+/// `sink`, in level order: the model, the blobs coded and their bytes.
+fn code_blobs(
+    geom: &SphereGeometry,
+    steps: &[u32],
+    side: &SideInfo,
+    kept: &Spill,
+    spill: &dyn IndexSpill,
+    sink: &mut dyn BlobSink,
+) -> Result<(CodecModel, usize, usize), EncodeError> {
+    let n = geom.n();
+    let levels = geom.slot_levels().len();
+    let failed: Mutex<Option<EncodeError>> = Mutex::new(None);
+    let matrix = |l: usize, i: usize| -> Vec<i32> {
+        kept.matrix(spill, l, i).unwrap_or_else(|e| {
+            if let Ok(mut f) = failed.lock() {
+                f.get_or_insert(e);
+            }
+            vec![0; n * n]
+        })
+    };
+    let model = blob_model(geom, steps, &|l, i| Cow::Owned(matrix(l, i)), side);
+    let (mut count, mut bytes) = (0usize, 0usize);
+    for l in 0..levels {
+        let len = geom.level(l).len();
+        for start in (0..len).step_by(4 * BATCH) {
+            let coded: Vec<(usize, Option<Vec<u8>>)> = (start..(start + 4 * BATCH).min(len))
+                .into_par_iter()
+                .map(|i| {
+                    let blob = side.has_data[l][i]
+                        .then(|| code_blob(geom, steps, &model, &matrix(l, i), side, l, i));
+                    (i, blob.flatten())
+                })
+                .collect();
+            for (i, blob) in coded {
+                if let Some(b) = blob {
+                    count += 1;
+                    bytes += b.len();
+                    sink.put(l, i, &geom.level(l)[i].key, &b)
+                        .map_err(EncodeError::Sink)?;
+                }
+            }
+        }
+    }
+    if let Some(e) = failed.into_inner().ok().flatten() {
+        return Err(e);
+    }
+    Ok((model, count, bytes))
 }
 
 /// The tile side: the largest of 256, 128, 64, 32 whose band of rows (values, validity,
@@ -590,7 +695,7 @@ fn write_integers(
     geom: &SphereGeometry,
     borders: &Borders,
     (map, fill): (&ValueMap, &Fill),
-    lattice: &Lattice,
+    (lattice, present): (&Lattice, Option<&[bool]>),
     tiles: &mut dyn TileStore,
     meter: &mut Meter,
 ) -> Result<Errors, EncodeError> {
@@ -649,13 +754,17 @@ fn write_integers(
             // The band is one row of tiles.
             let tv = first / t;
             for tu in 0..lattice.per {
+                let k = lattice.tile_no(face, tv, tu);
+                if present.is_some_and(|p| !p[k]) {
+                    continue;
+                }
                 tile.iter_mut().for_each(|x| *x = 0);
                 let (u0, u1) = (tu * t, ((tu + 1) * t).min(w));
                 for r in 0..count {
                     tile[r * t..r * t + (u1 - u0)].copy_from_slice(&ints[r * w + u0..r * w + u1]);
                 }
                 tiles
-                    .write(lattice.offset(lattice.tile_no(face, tv, tu)), &tile)
+                    .write(lattice.offset(k), &tile)
                     .map_err(EncodeError::Sink)?;
             }
             let keep = CONTEXT_ROWS.min(context + count);
@@ -951,6 +1060,7 @@ fn analyse_level(
     (lattice, cache, tiles): (&Lattice, &mut Cache, &mut dyn TileStore),
     (store, spill): (&mut Spill, &mut dyn IndexSpill),
     (side, mut hist): (&mut Side, Option<&mut Histograms>),
+    only: Option<&[bool]>,
     meter: &mut Meter,
 ) -> Result<(), EncodeError> {
     let n = geom.n();
@@ -960,87 +1070,93 @@ fn analyse_level(
     let mut has_data = vec![false; slots.len()];
     let mut bounds = vec![(0i64, 0i64); slots.len()];
     let (vlen, clen) = ((n + 1) * (n + 1), n * n);
-    for_each_batch(geom, level, (lattice, cache, tiles), |batch, cache| {
-        let missed = AtomicBool::new(false);
-        let shared: &Cache = cache;
-        let results: Vec<Analysed> = batch
-            .par_iter()
-            .map(|&i| {
-                let s = &slots[i];
-                let mut v = vec![0; vlen];
-                let mut c = vec![0; clen];
-                let mut h = vec![0; clen];
-                gather_vertices(n, s, (lattice, shared), &missed, &mut v);
-                for a in 0..n {
-                    for b in 0..n {
-                        c[a * n + b] = shared.get(lattice, s.cell_index(a, b), &missed);
+    for_each_batch(
+        geom,
+        level,
+        (lattice, cache, tiles),
+        only,
+        |batch, cache| {
+            let missed = AtomicBool::new(false);
+            let shared: &Cache = cache;
+            let results: Vec<Analysed> = batch
+                .par_iter()
+                .map(|&i| {
+                    let s = &slots[i];
+                    let mut v = vec![0; vlen];
+                    let mut c = vec![0; clen];
+                    let mut h = vec![0; clen];
+                    gather_vertices(n, s, (lattice, shared), &missed, &mut v);
+                    for a in 0..n {
+                        for b in 0..n {
+                            c[a * n + b] = shared.get(lattice, s.cell_index(a, b), &missed);
+                        }
                     }
-                }
-                let fine = v.clone();
-                lifting::analyze(n, &mut v, &c, &mut h, geom.mask(s));
-                let m = measure(n, geom.mask(s), &v, &fine, &c);
-                let nonzero = h.iter().any(|&x| x != 0);
-                let children: &[usize] = if finest { &[] } else { geom.children(s) };
-                let info = side_info(
-                    &m,
-                    nonzero,
-                    children.iter().map(|&k| {
-                        (
-                            side.gamma[level + 1][k],
-                            side.has_data[level + 1][k],
-                            side.bounds[k],
-                        )
-                    }),
-                );
-                Analysed {
-                    index: i,
-                    details: h,
-                    lifted: v,
-                    nonzero,
-                    side: info,
-                }
-            })
-            .collect();
-        if missed.load(Ordering::Relaxed) {
-            return Err(EncodeError::Internal("a diamond point outside its tiles"));
-        }
-        meter.note(cache.held_bytes() + results.len() * (vlen + 2 * clen) * 4);
-        let mut lost = false;
-        for r in &results {
-            let (s, v) = (&slots[r.index], &r.lifted);
-            for a in 1..n {
-                for b in 1..n {
-                    let x = v[a * (n + 1) + b];
-                    let (k, other) = s.vertex_copies(a, b);
-                    lost |= !cache.set(lattice, k, x);
-                    if let Some(k) = other {
-                        lost |= !cache.set(lattice, k, x);
+                    let fine = v.clone();
+                    lifting::analyze(n, &mut v, &c, &mut h, geom.mask(s));
+                    let m = measure(n, geom.mask(s), &v, &fine, &c);
+                    let nonzero = h.iter().any(|&x| x != 0);
+                    let children: &[usize] = if finest { &[] } else { geom.children(s) };
+                    let info = side_info(
+                        &m,
+                        nonzero,
+                        children.iter().map(|&k| {
+                            (
+                                side.gamma[level + 1][k],
+                                side.has_data[level + 1][k],
+                                side.bounds[k],
+                            )
+                        }),
+                    );
+                    Analysed {
+                        index: i,
+                        details: h,
+                        lifted: v,
+                        nonzero,
+                        side: info,
                     }
-                }
+                })
+                .collect();
+            if missed.load(Ordering::Relaxed) {
+                return Err(EncodeError::Internal("a diamond point outside its tiles"));
             }
-        }
-        if lost {
-            return Err(EncodeError::Internal("a lifted vertex outside its tiles"));
-        }
-        let matrices: Vec<(usize, &[i32])> = results
-            .iter()
-            .filter(|r| r.nonzero)
-            .map(|r| (r.index, &r.details[..]))
-            .collect();
-        if !matrices.is_empty() {
-            store.put_batch(spill, level, &matrices)?;
-        }
-        if let Some(h) = hist.as_deref_mut() {
+            meter.note(cache.held_bytes() + results.len() * (vlen + 2 * clen) * 4);
+            let mut lost = false;
             for r in &results {
-                h.add(level, &r.details);
+                let (s, v) = (&slots[r.index], &r.lifted);
+                for a in 1..n {
+                    for b in 1..n {
+                        let x = v[a * (n + 1) + b];
+                        let (k, other) = s.vertex_copies(a, b);
+                        lost |= !cache.set(lattice, k, x);
+                        if let Some(k) = other {
+                            lost |= !cache.set(lattice, k, x);
+                        }
+                    }
+                }
             }
-        }
-        for r in results {
-            let i = r.index;
-            (gamma[i], has_data[i], bounds[i]) = r.side;
-        }
-        Ok(())
-    })?;
+            if lost {
+                return Err(EncodeError::Internal("a lifted vertex outside its tiles"));
+            }
+            let matrices: Vec<(usize, &[i32])> = results
+                .iter()
+                .filter(|r| r.nonzero)
+                .map(|r| (r.index, &r.details[..]))
+                .collect();
+            if !matrices.is_empty() {
+                store.put_batch(spill, level, &matrices)?;
+            }
+            if let Some(h) = hist.as_deref_mut() {
+                for r in &results {
+                    h.add(level, &r.details);
+                }
+            }
+            for r in results {
+                let i = r.index;
+                (gamma[i], has_data[i], bounds[i]) = r.side;
+            }
+            Ok(())
+        },
+    )?;
     side.gamma[level] = gamma;
     side.has_data[level] = has_data;
     side.bounds = bounds;
@@ -1048,13 +1164,17 @@ fn analyse_level(
 }
 
 /// Writes `R_{o+1}` (`to`) from `R_o` (`from`): every second point of every second row,
-/// a row of output tiles from two rows of input tiles.
+/// a row of output tiles from two rows of input tiles. With `present` (a shard's tiles
+/// of `from` and `to`), only the tiles of `to` it flags, from those of `from` it flags
+/// (the others read as zeros).
 fn compact(
     from: &Lattice,
     to: &Lattice,
     store: &mut dyn TileStore,
     meter: &mut Meter,
+    present: Option<(&[bool], &[bool])>,
 ) -> Result<(), EncodeError> {
+    let has = |of: usize, k: usize| present.is_none_or(|p| if of == 0 { p.0[k] } else { p.1[k] });
     let t = from.t;
     let tv_len = t * t;
     let mut rows = vec![0i32; 2 * from.per * tv_len];
@@ -1062,12 +1182,15 @@ fn compact(
     meter.note((rows.len() + out.len()) * 4);
     for face in 0..6 {
         for tv in 0..to.per {
+            if !(0..to.per).any(|tu| has(1, to.tile_no(face, tv, tu))) {
+                continue;
+            }
             for r in 0..2 {
                 let src = 2 * tv + r;
                 for tu in 0..from.per {
                     let buf =
                         &mut rows[(r * from.per + tu) * tv_len..(r * from.per + tu + 1) * tv_len];
-                    if src < from.per {
+                    if src < from.per && has(0, from.tile_no(face, src, tu)) {
                         store
                             .read(from.offset(from.tile_no(face, src, tu)), buf)
                             .map_err(EncodeError::Source)?;
@@ -1077,6 +1200,9 @@ fn compact(
                 }
             }
             for tu in 0..to.per {
+                if !has(1, to.tile_no(face, tv, tu)) {
+                    continue;
+                }
                 for y in 0..t {
                     // Row 2y of the two input rows of tiles.
                     let (r, yy) = (2 * y / t, 2 * y % t);
@@ -1099,12 +1225,14 @@ fn compact(
     Ok(())
 }
 
-/// Calls `f(batch, cache)` for the diamonds of `level` a batch at a time in tile order,
-/// each batch's tiles loaded: up to [`BATCH`] diamonds whose tiles fit in half the cache.
+/// Calls `f(batch, cache)` for the diamonds of `level` (those `only` flags, if given) a
+/// batch at a time in tile order, each batch's tiles loaded: up to [`BATCH`] diamonds
+/// whose tiles fit in half the cache.
 fn for_each_batch(
     geom: &SphereGeometry,
     level: usize,
     (lattice, cache, tiles): (&Lattice, &mut Cache, &mut dyn TileStore),
+    only: Option<&[bool]>,
     mut f: impl FnMut(&[usize], &mut Cache) -> Result<(), EncodeError>,
 ) -> Result<(), EncodeError> {
     let n = geom.n();
@@ -1112,6 +1240,7 @@ fn for_each_batch(
     let mut order: Vec<(usize, usize)> = slots
         .par_iter()
         .enumerate()
+        .filter(|&(i, _)| only.is_none_or(|o| o[i]))
         .map(|(i, s)| (lattice.locate(s.vertex_index(0, 0)).0, i))
         .collect();
     order.par_sort_unstable();
@@ -1273,6 +1402,7 @@ impl Synth<'_> {
                     geom,
                     level,
                     (&lattice, &mut cache, &mut *self.tiles),
+                    None,
                     |batch, cache| {
                         let missed = AtomicBool::new(false);
                         let shared: &Cache = cache;

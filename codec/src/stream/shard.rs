@@ -74,42 +74,45 @@ pub struct ShardFigures {
 /// the split, and the caller's `extra` bytes (the CLI's description of the build). Parts
 /// whose headers differ come from different builds.
 #[derive(Clone, Debug, PartialEq)]
-struct Header {
-    width: usize,
-    height: usize,
-    n: usize,
-    mode: RateMode,
-    sparse: bool,
-    budget: usize,
-    chunk_rows: usize,
-    shards: usize,
-    split: usize,
-    valid: usize,
-    scale: f64,
-    offset: f64,
-    scan: [f64; 3],
-    coverage: Option<Vec<u8>>,
-    extra: Vec<u8>,
+pub(super) struct Header {
+    pub(super) width: usize,
+    pub(super) height: usize,
+    pub(super) n: usize,
+    pub(super) mode: RateMode,
+    pub(super) sparse: bool,
+    pub(super) budget: usize,
+    pub(super) chunk_rows: usize,
+    pub(super) shards: usize,
+    pub(super) split: usize,
+    pub(super) valid: usize,
+    pub(super) scale: f64,
+    pub(super) offset: f64,
+    pub(super) scan: [f64; 3],
+    pub(super) coverage: Option<Vec<u8>>,
+    pub(super) extra: Vec<u8>,
+    /// A planet's part (`width` is the face side plus one, `height` six times that,
+    /// `chunk_rows` the tile side).
+    pub(super) planet: bool,
 }
 
 /// The `A` groups and `B` bands an octave analyses.
 type Allow = (Range<usize>, Range<usize>);
 
 /// One side-information entry: `(level, index, gamma, has data, bounds)`.
-type SideEntry = (usize, usize, u64, bool, (i64, i64));
+pub(super) type SideEntry = (usize, usize, u64, bool, (i64, i64));
 
 /// What a shard hands to the merge (besides the details it wrote as it went).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ShardPart {
-    header: Header,
-    index: usize,
+    pub(super) header: Header,
+    pub(super) index: usize,
     /// Rows of `R_split` owned, and their values.
-    coarse_rows: Range<usize>,
-    coarse: Vec<i32>,
-    side: Vec<SideEntry>,
-    counts: Vec<[u64; 2]>,
-    pieces: Vec<(u64, f64)>,
-    max_error: f64,
+    pub(super) coarse_rows: Range<usize>,
+    pub(super) coarse: Vec<i32>,
+    pub(super) side: Vec<SideEntry>,
+    pub(super) counts: Vec<[u64; 2]>,
+    pub(super) pieces: Vec<(u64, f64)>,
+    pub(super) max_error: f64,
     /// How the shard's work went (not part of what must agree).
     pub figures: ShardFigures,
 }
@@ -308,19 +311,9 @@ fn window_for(
     Ok((band.start.saturating_sub(lo)..(end + lo).min(height), allow))
 }
 
-/// Analyses shard `spec` of a planar raster: reads the whole source once (pass 0) and
-/// the shard's window once (the analysis), hands the details of each diamond it owns
-/// (with data) to `details` as `(level, index, details)`, and returns what the merge
-/// needs besides. `extra` is stored in the part and must be equal in every part of a
-/// build. Lossless and max-error modes.
-pub fn encode_shard(
-    source: &mut dyn RowSource,
-    opts: StreamOptions,
-    spec: ShardSpec,
-    extra: Vec<u8>,
-    details: &mut DetailsOut<'_>,
-) -> Result<ShardPart, EncodeError> {
-    if matches!(opts.mode, RateMode::RmsM(_)) {
+/// A shard's request: an exact rate mode and an index below the count.
+pub(super) fn check_request(mode: RateMode, spec: ShardSpec) -> Result<(), EncodeError> {
+    if matches!(mode, RateMode::RmsM(_)) {
         return Err(EncodeError::Shard(
             "sharded builds take --lossless or --max-error-m: the RMS rate control searches \
              over the whole analysis"
@@ -338,6 +331,22 @@ pub fn encode_shard(
             spec.count.saturating_sub(1)
         )));
     }
+    Ok(())
+}
+
+/// Analyses shard `spec` of a planar raster: reads the whole source once (pass 0) and
+/// the shard's window once (the analysis), hands the details of each diamond it owns
+/// (with data) to `details` as `(level, index, details)`, and returns what the merge
+/// needs besides. `extra` is stored in the part and must be equal in every part of a
+/// build. Lossless and max-error modes.
+pub fn encode_shard(
+    source: &mut dyn RowSource,
+    opts: StreamOptions,
+    spec: ShardSpec,
+    extra: Vec<u8>,
+    details: &mut DetailsOut<'_>,
+) -> Result<ShardPart, EncodeError> {
+    check_request(opts.mode, spec)?;
     let prep = prepare(source, &opts)?;
     let (geom, plan, mut meter) = (prep.geom, prep.plan, prep.meter);
     let layout = Layout::new(&geom, &plan, spec.count, opts.memory_budget_bytes)?;
@@ -449,6 +458,7 @@ pub fn encode_shard(
         scan: prep.scan,
         coverage: prep.coverage.as_ref().map(Coverage::to_bytes),
         extra,
+        planet: false,
     };
     let pieces = errors.pieces.take().map(|(_, p)| p).unwrap_or_default();
     Ok(ShardPart {
@@ -494,38 +504,8 @@ pub struct Merge {
 
 impl Merge {
     /// Checks that `parts` are every shard of one build, each once, and assembles them.
-    pub fn new(mut parts: Vec<ShardPart>) -> Result<Merge, EncodeError> {
-        let first = parts
-            .first()
-            .ok_or_else(|| EncodeError::Shard("no parts to merge".into()))?;
-        let header = first.header.clone();
-        if let Some(p) = parts.iter().find(|p| p.header != header) {
-            return Err(EncodeError::Shard(format!(
-                "part {} is not from the same build as part {} (source, options or shard \
-                 count differ)",
-                p.index, first.index
-            )));
-        }
-        parts.sort_by_key(|p| p.index);
-        for w in parts.windows(2) {
-            if w[0].index == w[1].index {
-                return Err(EncodeError::Shard(format!(
-                    "part {} is given twice",
-                    w[0].index
-                )));
-            }
-        }
-        let missing: Vec<String> = (0..header.shards)
-            .filter(|k| !parts.iter().any(|p| p.index == *k))
-            .map(|k| k.to_string())
-            .collect();
-        if !missing.is_empty() || parts.len() != header.shards {
-            return Err(EncodeError::Shard(format!(
-                "the build has {} shards; missing part(s): {}",
-                header.shards,
-                missing.join(", ")
-            )));
-        }
+    pub fn new(parts: Vec<ShardPart>) -> Result<Merge, EncodeError> {
+        let (header, parts) = check_parts(parts, false)?;
         let coverage = header
             .coverage
             .as_deref()
@@ -743,8 +723,55 @@ impl Merge {
     }
 }
 
+/// Checks that `parts` are every shard of one build (of a planet or not), each once;
+/// their shared header and the parts in shard order.
+pub(super) fn check_parts(
+    mut parts: Vec<ShardPart>,
+    planet: bool,
+) -> Result<(Header, Vec<ShardPart>), EncodeError> {
+    let first = parts
+        .first()
+        .ok_or_else(|| EncodeError::Shard("no parts to merge".into()))?;
+    let header = first.header.clone();
+    if header.planet != planet {
+        return Err(EncodeError::Shard(if planet {
+            "the parts are of a planar build, not a planet's".into()
+        } else {
+            "the parts are of a planet's build, not a planar one".into()
+        }));
+    }
+    if let Some(p) = parts.iter().find(|p| p.header != header) {
+        return Err(EncodeError::Shard(format!(
+            "part {} is not from the same build as part {} (source, options or shard \
+             count differ)",
+            p.index, first.index
+        )));
+    }
+    parts.sort_by_key(|p| p.index);
+    for w in parts.windows(2) {
+        if w[0].index == w[1].index {
+            return Err(EncodeError::Shard(format!(
+                "part {} is given twice",
+                w[0].index
+            )));
+        }
+    }
+    let missing: Vec<String> = (0..header.shards)
+        .filter(|k| !parts.iter().any(|p| p.index == *k))
+        .map(|k| k.to_string())
+        .collect();
+    if !missing.is_empty() || parts.len() != header.shards {
+        return Err(EncodeError::Shard(format!(
+            "the build has {} shards; missing part(s): {}",
+            header.shards,
+            missing.join(", ")
+        )));
+    }
+    Ok((header, parts))
+}
+
 /// Bytes of a part: little-endian fields after a magic and version.
-const MAGIC: &[u8; 8] = b"QXPART01";
+const MAGIC: &[u8; 8] = b"QXPART02";
 
 struct Out(Vec<u8>);
 
@@ -808,6 +835,23 @@ impl ShardPart {
         self.header.shards
     }
 
+    /// Whether the part is of a planet's build ([`crate::stream::CubeMerge`] merges
+    /// those, [`Merge`] the others).
+    pub fn is_planet(&self) -> bool {
+        self.header.planet
+    }
+
+    /// The caller's bytes given to the shard.
+    pub fn extra(&self) -> &[u8] {
+        &self.header.extra
+    }
+
+    /// Replaces the caller's bytes given to the shard (for what is known only once the
+    /// source has been read, such as what a mosaic's tiles held).
+    pub fn set_extra(&mut self, extra: Vec<u8>) {
+        self.header.extra = extra;
+    }
+
     /// The part as bytes ([`ShardPart::from_bytes`] reads them).
     pub fn to_bytes(&self) -> Vec<u8> {
         let mut o = Out(MAGIC.to_vec());
@@ -838,6 +882,7 @@ impl ShardPart {
         o.u(usize::from(h.coverage.is_some()));
         o.bytes(h.coverage.as_deref().unwrap_or(&[]));
         o.bytes(&h.extra);
+        o.u(usize::from(h.planet));
         o.u(self.index);
         o.u(self.coarse_rows.start);
         o.u(self.coarse_rows.end);
@@ -902,6 +947,7 @@ impl ShardPart {
         let has_coverage = r.u()? != 0;
         let coverage = r.bytes()?;
         let extra = r.bytes()?;
+        let planet = r.u()? != 0;
         let header = Header {
             width,
             height,
@@ -918,6 +964,7 @@ impl ShardPart {
             scan,
             coverage: has_coverage.then_some(coverage),
             extra,
+            planet,
         };
         let index = r.u()?;
         let coarse_rows = r.u()?..r.u()?;

@@ -1,5 +1,5 @@
-//! Shared helpers of the `quincunx` binary's end-to-end tests: the binary, and
-//! `quincunx serve` on a free port.
+//! Shared helpers of the `quincunx` binary's end-to-end tests: the binary, raw tiles
+//! for mosaics, and `quincunx serve` on a free port.
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
 use std::io::{BufRead, BufReader};
@@ -23,6 +23,68 @@ pub fn build(args: &[&str], input: &Path, out: &Path) {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// A rectangle of a grid, every `step`-th sample.
+pub fn crop(
+    values: &[f64],
+    width: usize,
+    rows: std::ops::RangeInclusive<usize>,
+    cols: std::ops::RangeInclusive<usize>,
+    step: usize,
+) -> (usize, usize, Vec<f64>) {
+    let rows: Vec<usize> = rows.step_by(step).collect();
+    let cols: Vec<usize> = cols.step_by(step).collect();
+    let mut out = Vec::with_capacity(rows.len() * cols.len());
+    for &r in &rows {
+        out.extend(cols.iter().map(|&c| values[r * width + c]));
+    }
+    (cols.len(), rows.len(), out)
+}
+
+/// Writes a node-registered raw `int16` tile (`NAME.i16` + `NAME.json`; NaN = -32768)
+/// whose first sample is at (`west`, `north`) with spacing `d` degrees.
+pub fn write_raw(
+    dir: &Path,
+    name: &str,
+    tile: &(usize, usize, Vec<f64>),
+    west: f64,
+    north: f64,
+    d: f64,
+) {
+    write_raw_crs(dir, name, tile, west, north, d, "EPSG:4326");
+}
+
+pub fn write_raw_crs(
+    dir: &Path,
+    name: &str,
+    (w, h, values): &(usize, usize, Vec<f64>),
+    west: f64,
+    north: f64,
+    d: f64,
+    crs: &str,
+) {
+    let bytes: Vec<u8> = values
+        .iter()
+        .flat_map(|&v| (if v.is_nan() { -32768 } else { v as i16 }).to_le_bytes())
+        .collect();
+    std::fs::write(dir.join(format!("{name}.i16")), bytes).unwrap();
+    let sidecar = serde_json::json!({
+        "file": format!("{name}.i16"),
+        "width": w,
+        "height": h,
+        "dtype": "int16",
+        "nodata": -32768,
+        "crs": crs,
+        "registration": "node",
+        "georef": {
+            "west": west,
+            "north": north,
+            "east": west + (*w - 1) as f64 * d,
+            "south": north - (*h - 1) as f64 * d,
+        },
+    });
+    std::fs::write(dir.join(format!("{name}.json")), sidecar.to_string()).unwrap();
 }
 
 /// `quincunx serve` on a free port; killed on drop.

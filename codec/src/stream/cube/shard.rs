@@ -1,0 +1,702 @@
+//! Sharded builds of planets: `N` processes each analyse the fine octaves of a band of
+//! the cube raster's rows, a merge finishes the coarse octaves and codes every blob, and
+//! the result is the single process's out-of-core build ([`super::encode_cube`]) byte
+//! for byte.
+//!
+//! Why it works: as for planar rasters ([`crate::stream::encode_shard`]), the analysis
+//! is integer lifting diamond by diamond, and a diamond changes only its own points. A
+//! shard owns the diamonds whose centre lies in its band of rows (face by face, rows in
+//! order: global row `face (2S + 1) + v`) and the rows of `R_m` there, `m` the split
+//! octave. The cube's faces meet along edges that are far apart in that order, so the
+//! halo is not a band of rows: it is the set of tiles from which the shard's diamonds
+//! come out exact, found backwards from the top ([`Closure`]). Before each level, the
+//! tiles that must be exact after it need every diamond of the level touching them
+//! (each diamond's tiles over all its pieces, across cube edges); those diamonds' tiles
+//! must be exact before it. Between octaves a tile of `R_{o+1}` needs the four tiles of
+//! `R_o` it is compacted from. The shard analyses exactly the diamonds found, which are
+//! then exact by induction, and holds only the tiles found.
+//!
+//! Each shard reads the whole source twice (the scan, and the integers with their fills,
+//! which are band by band of a face, so the single process's only when every band before
+//! is filled as it is); it writes only its tiles. Error sums are per fixed piece of the
+//! cube raster; each shard keeps those starting in its band.
+
+use std::collections::HashMap;
+use std::ops::Range;
+
+use super::super::shard::{Header, ShardPart, SideEntry, check_parts, check_request};
+use super::super::{DetailsOut, IndexSpill, Meter};
+use super::{
+    BlobSink, Borders, CubeEncoded, CubeOptions, CubeSource, Lattice, Only, Scanned, Side, Spill,
+    TileStore, analyse_octaves, code_blobs, compact, diamond_tiles, gather_roots, lattice_at,
+    scan_cube, tile_side, write_integers,
+};
+use crate::coverage::Coverage;
+use crate::encode::{
+    EncodeError, EncodeReport, PASS_CHUNK, SideInfo, Tally, check_tolerance, rms_of_pieces,
+};
+use crate::raster::Layout;
+use crate::sphere_raster::SphereGeometry;
+use crate::stream::{ShardFigures, ShardSpec};
+
+/// The diamonds of one level grouped by what the closure asks of them: the tiles (of
+/// their octave's raster) they touch and the shard that owns them.
+struct Groups {
+    tiles: Vec<Vec<usize>>,
+    owner: Vec<usize>,
+    /// Each diamond's group.
+    of: Vec<u32>,
+}
+
+/// How a planet's build is split: the tile side, the bands of global rows, the split
+/// octave, and each level's groups.
+struct CubeLayout {
+    t: usize,
+    bands: Vec<Range<usize>>,
+    split: usize,
+    groups: Vec<Option<Groups>>,
+}
+
+/// What one shard holds and analyses for one split: tiles per octave `0 ..= split`,
+/// groups per level (the levels of octaves below the split).
+struct Closure {
+    tiles: Vec<Vec<bool>>,
+    groups: Vec<Option<Vec<bool>>>,
+}
+
+impl CubeLayout {
+    fn new(geom: &SphereGeometry, t: usize, count: usize) -> Result<CubeLayout, EncodeError> {
+        let (face_side, n) = (geom.face_side(), geom.n());
+        let w = face_side + 1;
+        let most = 6 * (face_side / (2 * n)).max(1);
+        if count == 0 || count > most {
+            return Err(EncodeError::Shard(format!(
+                "{count} shards for a planet of face side {face_side}: give 1 to {most} (one \
+                 per {} rows of the cube raster at least)",
+                2 * n
+            )));
+        }
+        let levels = geom.slot_levels().len();
+        let octaves = levels / 2;
+        if octaves < 2 {
+            return Err(EncodeError::Shard(
+                "the planet has one octave: build it in one process".into(),
+            ));
+        }
+        let rows = 6 * w;
+        let bands: Vec<Range<usize>> = (0..count)
+            .map(|k| k * rows / count..(k + 1) * rows / count)
+            .collect();
+        let owner_of = |row: usize| bands.partition_point(|b| b.end <= row);
+        let mut groups: Vec<Option<Groups>> = (0..levels).map(|_| None).collect();
+        // The levels of octaves 0 .. octaves - 1 (the merge keeps at least the last).
+        for o in 0..octaves - 1 {
+            let lattice = Lattice::new(face_side, t, o, 0);
+            for level in [levels - 1 - 2 * o, levels - 2 - 2 * o] {
+                let mut index: HashMap<(Vec<usize>, usize), u32> = HashMap::new();
+                let mut g = Groups {
+                    tiles: Vec::new(),
+                    owner: Vec::new(),
+                    of: Vec::with_capacity(geom.level(level).len()),
+                };
+                let mut own = Vec::new();
+                for s in geom.level(level) {
+                    own.clear();
+                    diamond_tiles(&lattice, &s.piece_corners(n), &mut own);
+                    own.sort_unstable();
+                    own.dedup();
+                    let owner = owner_of(s.vertex_index(n / 2, n / 2) / w);
+                    let key = (own.clone(), owner);
+                    let next = g.tiles.len() as u32;
+                    let id = *index.entry(key).or_insert_with(|| {
+                        g.tiles.push(own.clone());
+                        g.owner.push(owner);
+                        next
+                    });
+                    g.of.push(id);
+                }
+                groups[level] = Some(g);
+            }
+        }
+        let mut layout = CubeLayout {
+            t,
+            bands,
+            split: 0,
+            groups,
+        };
+        // The split octave: the least critical path in tiles analysed, the widest
+        // shard's fine octaves then the merge's coarse ones twice (analysis, coding).
+        let total = Lattice::new(face_side, t, 0, 0).tiles() as f64;
+        let mut best: Option<(f64, usize)> = None;
+        for split in 1..octaves {
+            let widest = (0..count)
+                .map(|k| {
+                    layout
+                        .closure(geom, k, split)
+                        .map(|c| c.tiles[0].iter().filter(|&&x| x).count())
+                })
+                .collect::<Result<Vec<usize>, EncodeError>>()?
+                .into_iter()
+                .max()
+                .unwrap_or(0);
+            let keep = 0.25f64.powi(split as i32);
+            let cost = widest as f64 * (1.0 - keep) + 2.0 * total * keep;
+            if best.is_none_or(|(c, _)| cost < c) {
+                best = Some((cost, split));
+            }
+        }
+        layout.split = best.map_or(1, |b| b.1);
+        Ok(layout)
+    }
+
+    /// Rows of `R_split` (global: `face ((S >> split) + 1) + y`) whose first entry is in
+    /// shard `k`'s band.
+    fn coarse_rows(&self, face_side: usize, k: usize, split: usize) -> Range<usize> {
+        let (w, ws) = (face_side + 1, (face_side >> split) + 1);
+        let band = &self.bands[k];
+        let owned: Vec<usize> = (0..6 * ws)
+            .filter(|&r| band.contains(&((r / ws) * w + ((r % ws) << split))))
+            .collect();
+        match (owned.first(), owned.last()) {
+            (Some(&f), Some(&l)) => f..l + 1,
+            _ => 0..0,
+        }
+    }
+
+    /// What shard `k` must hold and analyse for a split at `split` (see the module docs).
+    fn closure(
+        &self,
+        geom: &SphereGeometry,
+        k: usize,
+        split: usize,
+    ) -> Result<Closure, EncodeError> {
+        let (face_side, t) = (geom.face_side(), self.t);
+        let levels = geom.slot_levels().len();
+        let top = Lattice::new(face_side, t, split, 0);
+        let ws = (face_side >> split) + 1;
+        let mut req = vec![false; top.tiles()];
+        for r in self.coarse_rows(face_side, k, split) {
+            for tu in 0..top.per {
+                req[top.tile_no(r / ws, (r % ws) / t, tu)] = true;
+            }
+        }
+        let mut tiles = vec![Vec::new(); split + 1];
+        let mut groups: Vec<Option<Vec<bool>>> = (0..levels).map(|_| None).collect();
+        tiles[split] = req.clone();
+        for o in (0..split).rev() {
+            let (up, here) = (
+                Lattice::new(face_side, t, o + 1, 0),
+                Lattice::new(face_side, t, o, 0),
+            );
+            let mut after = vec![false; here.tiles()];
+            for face in 0..6 {
+                for tv in 0..up.per {
+                    for tu in 0..up.per {
+                        if !req[up.tile_no(face, tv, tu)] {
+                            continue;
+                        }
+                        for (sv, su) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+                            let (sv, su) = (2 * tv + sv, 2 * tu + su);
+                            if sv < here.per && su < here.per {
+                                after[here.tile_no(face, sv, su)] = true;
+                            }
+                        }
+                    }
+                }
+            }
+            // The octave's levels in reverse analysis order.
+            for level in [levels - 2 - 2 * o, levels - 1 - 2 * o] {
+                let g = self.groups[level]
+                    .as_ref()
+                    .ok_or(EncodeError::Internal("a shard level without groups"))?;
+                let need: Vec<bool> = g
+                    .tiles
+                    .iter()
+                    .zip(&g.owner)
+                    .map(|(ts, &owner)| owner == k || ts.iter().any(|&x| after[x]))
+                    .collect();
+                for (ts, _) in g.tiles.iter().zip(&need).filter(|(_, n)| **n) {
+                    for &x in ts {
+                        after[x] = true;
+                    }
+                }
+                groups[level] = Some(need);
+            }
+            tiles[o] = after.clone();
+            req = after;
+        }
+        Ok(Closure { tiles, groups })
+    }
+}
+
+/// Analyses shard `spec` of a planet out of core: reads the whole source twice (the scan,
+/// the integers), holds and analyses only what its diamonds need (see the module docs),
+/// hands the details of each diamond it owns (with data) to `details` as `(level,
+/// index, details)`, and returns what the merge needs besides. `extra` is stored in the
+/// part and must be equal in every part of a build. Lossless and max-error modes.
+pub fn encode_cube_shard(
+    source: &mut dyn CubeSource,
+    opts: CubeOptions,
+    spec: ShardSpec,
+    extra: Vec<u8>,
+    details: &mut DetailsOut<'_>,
+    (spill, tiles): (&mut dyn IndexSpill, &mut dyn TileStore),
+) -> Result<ShardPart, EncodeError> {
+    check_request(opts.mode, spec)?;
+    check_tolerance(opts.mode)?;
+    let (face_side, n) = (source.face_side(), opts.n);
+    let geom = SphereGeometry::new(face_side, n)?;
+    let w = face_side + 1;
+    let t = tile_side(w, opts.memory_budget_bytes)?;
+    let mut meter = Meter::default();
+    let borders = Borders::new(&geom);
+    let Scanned {
+        geom,
+        coverage,
+        map,
+        fill,
+        range,
+        ..
+    } = scan_cube(source, opts, geom, (&borders, t), &mut meter)?;
+    let layout = CubeLayout::new(&geom, t, spec.count)?;
+    let (k, split) = (spec.index, layout.split);
+    let band = layout.bands[k].clone();
+    let closure = layout.closure(&geom, k, split)?;
+    let levels = geom.slot_levels().len();
+    let fine_from = levels - 2 * split;
+    let mut owned = vec![Vec::new(); levels];
+    let mut diamonds = vec![Vec::new(); levels];
+    for l in fine_from..levels {
+        let (Some(g), Some(need)) = (&layout.groups[l], &closure.groups[l]) else {
+            return Err(EncodeError::Internal("a shard level without groups"));
+        };
+        diamonds[l] = g.of.iter().map(|&x| need[x as usize]).collect();
+        owned[l] = g.of.iter().map(|&x| g.owner[x as usize] == k).collect();
+    }
+    let only = Only {
+        tiles: closure.tiles,
+        diamonds,
+    };
+
+    // Pass 1 over every band (the fills need the bands before), writing our tiles only.
+    let lattice = Lattice::new(face_side, t, 0, 0);
+    let (pieces, valid) = write_integers(
+        source,
+        &geom,
+        &borders,
+        (&map, &fill),
+        (&lattice, Some(&only.tiles[0])),
+        tiles,
+        &mut meter,
+    )?;
+
+    // The fine octaves, then `R_split`'s owned rows.
+    let mut store = Spill::with_levels(n, 0, (0..levels).map(|l| geom.level(l).len()));
+    store.clear(spill)?;
+    let mut side = Side {
+        gamma: vec![Vec::new(); levels],
+        has_data: vec![Vec::new(); levels],
+        bounds: Vec::new(),
+    };
+    let cache_bytes = opts.memory_budget_bytes / 2;
+    let second = lattice.len();
+    let last = analyse_octaves(
+        &geom,
+        (0..split, lattice, (second, cache_bytes)),
+        tiles,
+        (&mut store, &mut *spill),
+        (&mut side, None),
+        Some(&only),
+        &mut meter,
+    )?;
+    let top = lattice_at(face_side, t, split, second);
+    compact(
+        &last,
+        &top,
+        tiles,
+        &mut meter,
+        Some((&only.tiles[split - 1], &only.tiles[split])),
+    )?;
+    let coarse_rows = layout.coarse_rows(face_side, k, split);
+    let coarse = read_rows(&top, face_side, coarse_rows.clone(), tiles)?;
+
+    let mut entries: Vec<SideEntry> = Vec::new();
+    let mut h = vec![0i32; n * n];
+    let mut counted = (0usize, 0usize);
+    for (l, own) in owned.iter().enumerate().skip(fine_from) {
+        for (i, &mine) in own.iter().enumerate() {
+            counted.0 += usize::from(only.diamonds[l][i]);
+            if !mine {
+                continue;
+            }
+            if !only.diamonds[l][i] {
+                return Err(EncodeError::Internal(
+                    "a shard's own diamond was not analysed",
+                ));
+            }
+            counted.1 += 1;
+            let bounds = if l == fine_from {
+                side.bounds[i]
+            } else {
+                (0, 0)
+            };
+            let data = side.has_data[l][i];
+            entries.push((l, i, side.gamma[l][i], data, bounds));
+            if data {
+                store.get(spill, l, i, &mut h)?;
+                details(l, i, &h).map_err(EncodeError::Sink)?;
+            }
+        }
+    }
+    let start = band.start * w;
+    let end = band.end * w;
+    let mut kept = Vec::new();
+    let mut max_error = 0.0f64;
+    for (p, &(sum2, max)) in pieces.iter().enumerate() {
+        let at = p * PASS_CHUNK;
+        if (start..end).contains(&at) {
+            kept.push((at as u64, sum2));
+            max_error = max_error.max(max);
+        }
+    }
+    // Rows of the cube raster of which the shard holds any tile.
+    let per = w.div_ceil(t);
+    let window_rows: usize = only.tiles[0]
+        .chunks(per)
+        .enumerate()
+        .filter(|(_, row)| row.iter().any(|&x| x))
+        .map(|(r, _)| t.min(w - (r % per) * t))
+        .sum();
+    let header = Header {
+        width: w,
+        height: 6 * w,
+        n,
+        mode: opts.mode,
+        sparse: opts.sparse,
+        budget: opts.memory_budget_bytes,
+        chunk_rows: t,
+        shards: spec.count,
+        split,
+        valid,
+        scale: map.scale,
+        offset: map.offset,
+        scan: range,
+        coverage: coverage.as_ref().map(Coverage::to_bytes),
+        extra,
+        planet: true,
+    };
+    Ok(ShardPart {
+        header,
+        index: k,
+        coarse_rows,
+        coarse,
+        side: entries,
+        counts: Vec::new(),
+        pieces: kept,
+        max_error,
+        figures: ShardFigures {
+            split,
+            band_rows: band.len(),
+            window_rows,
+            analysed: counted.0,
+            owned: counted.1,
+            peak_buffer_bytes: meter.peak,
+        },
+    })
+}
+
+/// Global rows `rows` of `R_o` (`lattice`) from the tiles: `rows.len() x ((S >> o) + 1)`
+/// values.
+fn read_rows(
+    lattice: &Lattice,
+    face_side: usize,
+    rows: Range<usize>,
+    tiles: &mut dyn TileStore,
+) -> Result<Vec<i32>, EncodeError> {
+    let t = lattice.t;
+    let ws = (face_side >> lattice.shift) + 1;
+    let mut out = vec![0i32; rows.len() * ws];
+    let mut tile = vec![0i32; t * t];
+    let mut r = rows.start;
+    while r < rows.end {
+        let (face, y) = (r / ws, r % ws);
+        let tv = y / t;
+        let last = (face * ws + ((tv + 1) * t).min(ws)).min(rows.end);
+        for tu in 0..lattice.per {
+            tiles
+                .read(lattice.offset(lattice.tile_no(face, tv, tu)), &mut tile)
+                .map_err(EncodeError::Source)?;
+            let (x0, x1) = (tu * t, ((tu + 1) * t).min(ws));
+            for row in r..last {
+                let ty = row % ws - tv * t;
+                let o = (row - rows.start) * ws;
+                out[o + x0..o + x1].copy_from_slice(&tile[ty * t..ty * t + (x1 - x0)]);
+            }
+        }
+        r = last;
+    }
+    Ok(out)
+}
+
+/// The merge of a planet's sharded build: [`CubeMerge::new`] checks and assembles the
+/// parts (`R_split` into the tiles), [`CubeMerge::add`] takes the shards' details into
+/// the spill, [`CubeMerge::finish`] analyses the coarse octaves, trains the model on
+/// every diamond and codes every blob, as [`super::encode_cube`] does.
+pub struct CubeMerge {
+    header: Header,
+    geom: SphereGeometry,
+    coverage: Option<Coverage>,
+    side: Side,
+    store: Spill,
+    fine_from: usize,
+    seen: Vec<Vec<bool>>,
+    pieces: Vec<(f64, f64)>,
+    meter: Meter,
+}
+
+impl CubeMerge {
+    /// Checks that `parts` are every shard of one planet's build, each once, and writes
+    /// their rows of `R_split` into `tiles`.
+    pub fn new(
+        parts: Vec<ShardPart>,
+        spill: &mut dyn IndexSpill,
+        tiles: &mut dyn TileStore,
+    ) -> Result<CubeMerge, EncodeError> {
+        let (header, parts) = check_parts(parts, true)?;
+        let w = header.width;
+        if w < 2 || header.height != 6 * w {
+            return Err(EncodeError::Shard("the parts' cube has a bad shape".into()));
+        }
+        let face_side = w - 1;
+        let coverage = header
+            .coverage
+            .as_deref()
+            .map(Coverage::from_bytes)
+            .transpose()
+            .map_err(|e| EncodeError::Shard(format!("bad coverage in the parts: {e}")))?;
+        let geom = SphereGeometry::new(face_side, header.n)?;
+        let geom = match &coverage {
+            Some(c) => geom.covered(c)?,
+            None => geom,
+        };
+        let levels = geom.slot_levels().len();
+        let (t, split) = (header.chunk_rows, header.split);
+        if ![32, 64, 128, 256].contains(&t) || split == 0 || 2 * split >= levels {
+            return Err(EncodeError::Shard(
+                "the parts' tiles or split do not fit the planet".into(),
+            ));
+        }
+        let fine_from = levels - 2 * split;
+        let ws = (face_side >> split) + 1;
+        let mut side = Side {
+            gamma: (0..levels).map(|l| vec![0; geom.level(l).len()]).collect(),
+            has_data: (0..levels)
+                .map(|l| vec![false; geom.level(l).len()])
+                .collect(),
+            bounds: vec![(0, 0); geom.level(fine_from).len()],
+        };
+        let mut seen: Vec<Vec<bool>> = (0..levels)
+            .map(|l| {
+                vec![
+                    false;
+                    if l < fine_from {
+                        0
+                    } else {
+                        geom.level(l).len()
+                    }
+                ]
+            })
+            .collect();
+        let mut coarse = Vec::with_capacity(6 * ws * ws);
+        let mut pieces = Vec::new();
+        let mut max = 0.0f64;
+        for p in parts {
+            let bad = |what: &str| EncodeError::Shard(format!("part {}: {what}", p.index));
+            if p.coarse_rows.start != coarse.len() / ws
+                || p.coarse.len() != p.coarse_rows.len() * ws
+            {
+                return Err(bad(
+                    "its rows of the coarse raster do not follow the previous part's",
+                ));
+            }
+            coarse.extend_from_slice(&p.coarse);
+            for &(l, i, gamma, data, bounds) in &p.side {
+                if l < fine_from || l >= levels || i >= geom.level(l).len() {
+                    return Err(bad("side information of a diamond that is not a shard's"));
+                }
+                if std::mem::replace(&mut seen[l][i], true) {
+                    return Err(bad("side information of a diamond another part has"));
+                }
+                side.gamma[l][i] = gamma;
+                side.has_data[l][i] = data;
+                if l == fine_from {
+                    side.bounds[i] = bounds;
+                }
+            }
+            pieces.extend(p.pieces);
+            max = max.max(p.max_error);
+        }
+        if coarse.len() != 6 * ws * ws {
+            return Err(EncodeError::Shard(
+                "the parts do not cover the coarse raster".into(),
+            ));
+        }
+        if seen.iter().any(|l| l.iter().any(|&f| !f)) {
+            return Err(EncodeError::Shard("the parts miss some diamonds".into()));
+        }
+        // The error sums in sample order, as one process adds them.
+        pieces.sort_by_key(|&(at, _)| at);
+        if pieces.windows(2).any(|w| w[0].0 == w[1].0) {
+            return Err(EncodeError::Shard(
+                "two parts measured the same samples".into(),
+            ));
+        }
+        let pieces = pieces
+            .iter()
+            .enumerate()
+            .map(|(k, &(_, s))| (s, if k == 0 { max } else { 0.0 }))
+            .collect();
+        let mut meter = Meter::default();
+        meter.note(coarse.len() * 4);
+        let second = Lattice::new(face_side, t, 0, 0).len();
+        let top = lattice_at(face_side, t, split, second);
+        let mut tile = vec![0i32; t * t];
+        for face in 0..6 {
+            for tv in 0..top.per {
+                for tu in 0..top.per {
+                    tile.iter_mut().for_each(|x| *x = 0);
+                    for y in tv * t..((tv + 1) * t).min(ws) {
+                        let (x0, x1) = (tu * t, ((tu + 1) * t).min(ws));
+                        let row = (face * ws + y) * ws;
+                        tile[(y - tv * t) * t..(y - tv * t) * t + (x1 - x0)]
+                            .copy_from_slice(&coarse[row + x0..row + x1]);
+                    }
+                    tiles
+                        .write(top.offset(top.tile_no(face, tv, tu)), &tile)
+                        .map_err(EncodeError::Sink)?;
+                }
+            }
+        }
+        let mut store = Spill::with_levels(header.n, 0, (0..levels).map(|l| geom.level(l).len()));
+        store.clear(spill)?;
+        seen.iter_mut().flatten().for_each(|x| *x = false);
+        Ok(CubeMerge {
+            header,
+            geom,
+            coverage,
+            side,
+            store,
+            fine_from,
+            seen,
+            pieces,
+            meter,
+        })
+    }
+
+    /// The `extra` bytes the shards were given.
+    pub fn extra(&self) -> &[u8] {
+        &self.header.extra
+    }
+
+    /// Takes the details of shard diamonds `(level, index, details)` into the spill.
+    /// Each diamond with data must come exactly once.
+    pub fn add(
+        &mut self,
+        items: &[(usize, usize, Vec<i32>)],
+        spill: &mut dyn IndexSpill,
+    ) -> Result<(), EncodeError> {
+        let n = self.header.n;
+        let levels = self.geom.slot_levels().len();
+        let mut by_level: Vec<Vec<(usize, &[i32])>> = vec![Vec::new(); levels];
+        for &(l, i, ref h) in items {
+            let ok = l >= self.fine_from
+                && l < levels
+                && i < self.geom.level(l).len()
+                && self.side.has_data[l][i]
+                && h.len() == n * n;
+            if !ok {
+                return Err(EncodeError::Shard(format!(
+                    "details of diamond {i} of level {l} do not belong to the build"
+                )));
+            }
+            if std::mem::replace(&mut self.seen[l][i], true) {
+                return Err(EncodeError::Shard(format!(
+                    "details of diamond {i} of level {l} come twice"
+                )));
+            }
+            if h.iter().any(|&x| x != 0) {
+                by_level[l].push((i, h));
+            }
+        }
+        for (l, batch) in by_level.iter().enumerate() {
+            if !batch.is_empty() {
+                self.store.put_batch(spill, l, batch)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Analyses the coarse octaves from the tiles, trains the model, codes every blob
+    /// into `sink` and reports; every shard diamond with data must have been added.
+    pub fn finish(
+        mut self,
+        sink: &mut dyn BlobSink,
+        spill: &mut dyn IndexSpill,
+        tiles: &mut dyn TileStore,
+    ) -> Result<CubeEncoded, EncodeError> {
+        let geom = &self.geom;
+        let levels = geom.slot_levels().len();
+        for l in self.fine_from..levels {
+            if let Some(i) =
+                (0..self.seen[l].len()).find(|&i| self.side.has_data[l][i] && !self.seen[l][i])
+            {
+                return Err(EncodeError::Shard(format!(
+                    "the parts' details lack diamond {i} of level {l}"
+                )));
+            }
+        }
+        let h = &self.header;
+        let (face_side, t, split) = (h.width - 1, h.chunk_rows, h.split);
+        let cache_bytes = h.budget / 2;
+        let second = Lattice::new(face_side, t, 0, 0).len();
+        let top = lattice_at(face_side, t, split, second);
+        let last = analyse_octaves(
+            geom,
+            (split..levels / 2, top, (second, cache_bytes)),
+            tiles,
+            (&mut self.store, &mut *spill),
+            (&mut self.side, None),
+            None,
+            &mut self.meter,
+        )?;
+        let roots = gather_roots(geom, &last, cache_bytes, tiles, &mut self.meter)?;
+        let side = SideInfo::from_parts(self.side.gamma, self.side.has_data);
+        let steps = vec![256u32; levels];
+        let (model, count, bytes) = code_blobs(geom, &steps, &side, &self.store, spill, sink)?;
+        let report = EncodeReport::tally(Tally {
+            samples: geom.distinct_len(),
+            valid_samples: h.valid,
+            blobs: (count, bytes),
+            roots: &roots,
+            model: &model,
+            steps: steps.len(),
+            errors: rms_of_pieces(&self.pieces, h.valid),
+            rdo: false,
+            decodes: 0,
+        });
+        Ok(CubeEncoded {
+            face_side,
+            n: h.n,
+            value_scale_m: h.scale,
+            value_offset_m: h.offset,
+            steps,
+            roots,
+            model,
+            report,
+            peak_buffer_bytes: self.meter.peak,
+            tile_store_bytes: (second + lattice_at(face_side, t, 1, 0).len()) as u64 * 4,
+            coverage: self.coverage,
+            decoded: None,
+        })
+    }
+}
