@@ -4,7 +4,7 @@
 # run at once) and the merge. `korea` is korea_srtm3_4097 at max error 2 m, `etopo5` the
 # ETOPO5 planet at max error 10 m. Prints one JSON object; from the repository root:
 #   benches/scale/shard.sh [shared-data-dir] [shards] [budget-mb] [korea|etopo5] \
-#       >> benches/scale/shard.jsonl
+#       [face-side] >> benches/scale/shard.jsonl
 # Figures in docs/building.md ("Sharded builds") come from this script.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
@@ -18,7 +18,7 @@ out="$(mktemp -d)"
 trap 'rm -rf "$out"' EXIT
 case "$what" in
     korea) name=korea_srtm3_4097 rate=(--max-error-m 2) ;;
-    etopo5) name=etopo5_global rate=(--planet --max-error-m 10) ;;
+    etopo5) name=etopo5_global rate=(--planet --max-error-m 10 ${5:+--face-side "$5"}) ;;
     *) echo "unknown source $what: give korea or etopo5" >&2; exit 2 ;;
 esac
 src="$data/$name.json"
