@@ -459,13 +459,17 @@ fn cube_opts(n: usize, mode: RateMode, sparse: bool, budget: usize) -> CubeOptio
     }
 }
 
-/// The disturbed planet with voids: scattered samples and a hole across a cube edge.
-fn holed_planet(face_side: usize, n: usize) -> CubeGrid {
+/// The disturbed planet with voids: scattered samples (everywhere, or in a few rows of
+/// face 3 only) and a hole across the edges of faces 0 and 1.
+fn holed_planet(face_side: usize, n: usize, scattered: bool) -> CubeGrid {
     let mut g = disturbed_planet(face_side, n);
     let geom = SphereGeometry::new(face_side, n).unwrap();
     let w = face_side + 1;
     for k in (0..g.values_m.len()).step_by(997) {
-        g.values_m[k] = f64::NAN;
+        let (face, v) = (k / (w * w), (k / w) % w);
+        if scattered || face == 3 && (100..140).contains(&v) {
+            g.values_m[k] = f64::NAN;
+        }
     }
     for face in [0u8, 1] {
         for v in w / 2 - 9..w / 2 + 9 {
@@ -482,21 +486,35 @@ fn holed_planet(face_side: usize, n: usize) -> CubeGrid {
 #[test]
 fn sharded_planets_equal_the_single_out_of_core_build() {
     let (face_side, n) = (256, 16);
-    let g = holed_planet(face_side, n);
-    // 1 MB: tiles of 32 points, evictions; 64 MB: one band a face.
-    for (mode, budget, counts) in [
-        (RateMode::MaxErrorM(2.0), 1 << 20, &[1, 2, 3, 7][..]),
-        (RateMode::Lossless, 1 << 20, &[3][..]),
-        (RateMode::MaxErrorM(2.0), 64 << 20, &[2][..]),
+    let scattered = holed_planet(face_side, n, true);
+    let local = holed_planet(face_side, n, false);
+    // 1 MB: tiles of 32 points, evictions; 64 MB: one band a face. Voids everywhere make
+    // every shard's integer pass run from the start of each face it needs; local ones let
+    // it start where the rows before hold no nodata.
+    let mut partial_runs = 0;
+    for (g, mode, budget, counts) in [
+        (
+            &scattered,
+            RateMode::MaxErrorM(2.0),
+            1 << 20,
+            &[1, 2, 3, 7][..],
+        ),
+        (&scattered, RateMode::Lossless, 1 << 20, &[3][..]),
+        (&scattered, RateMode::MaxErrorM(2.0), 64 << 20, &[2][..]),
+        (&local, RateMode::MaxErrorM(2.0), 1 << 20, &[2, 3, 7][..]),
     ] {
         let opts = cube_opts(n, mode, false, budget);
-        let (_, want) = out_of_core(&g, n, mode, false, budget).unwrap();
+        let (_, want) = out_of_core(g, n, mode, false, budget).unwrap();
         for &count in counts {
             let what = format!("{mode:?}, budget {budget}, {count} shards");
             let (mut parts, mut details) = (Vec::new(), Vec::new());
             for k in (0..count).rev() {
-                let (p, d) = shard(&g, opts, (k, count), b"build").unwrap();
+                let (p, d) = shard(g, opts, (k, count), b"build").unwrap();
                 assert!(p.figures.owned > 0, "{what}: shard {k} owns nothing");
+                assert!(p.figures.integer_rows <= 6 * (face_side + 1));
+                if p.figures.integer_rows < 6 * (face_side + 1) {
+                    partial_runs += 1;
+                }
                 if count > 1 {
                     assert!(
                         p.figures.analysed < want.blobs.iter().map(Vec::len).sum::<usize>(),
@@ -510,6 +528,10 @@ fn sharded_planets_equal_the_single_out_of_core_build() {
             assert_same(&got, &want, &what);
         }
     }
+    assert!(
+        partial_runs >= 6,
+        "{partial_runs} shards skipped integer rows"
+    );
     // Sparse: a cap around a cube corner.
     let (n, g) = (16, capped_planet(128, 16));
     let mode = RateMode::MaxErrorM(1.0);

@@ -122,8 +122,10 @@ pub struct ShardSummary {
     pub split: usize,
     /// Rows the shard owns.
     pub band_rows: usize,
-    /// Rows it read and analysed (band and halo).
+    /// Rows it read and analysed (band and halo; planets: rows of which it holds a tile).
     pub window_rows: usize,
+    /// Rows it turned into integers (planets: of the cube raster's `6 (2S + 1)`).
+    pub integer_rows: usize,
     /// Diamonds analysed.
     pub analysed: usize,
     /// Diamonds owned.
@@ -329,6 +331,7 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
             split: fig.split,
             band_rows: fig.band_rows,
             window_rows: fig.window_rows,
+            integer_rows: fig.integer_rows,
             analysed: fig.analysed,
             owned: fig.owned,
             seconds: 0.0,

@@ -132,28 +132,42 @@ fn merged_shards_publish_the_single_builds_content_hash() {
 
 #[test]
 fn a_killed_shard_rerun_alone_gives_the_same_repository() {
-    let tmp = tempfile::tempdir().unwrap();
     let rate = ["--max-error-m", "2"];
+    let tmp = tempfile::tempdir().unwrap();
     let one = single(tmp.path(), &rate);
-    let parts: Vec<PathBuf> = (0..3)
-        .map(|k| tmp.path().join(format!("part{k}")))
-        .collect();
+    kill_and_rerun(tmp.path(), &one, || build(&rate));
+    // A planet's shard likewise.
+    let tmp = tempfile::tempdir().unwrap();
+    let etopo = bundled("etopo20_global.json");
+    let planet_rate = ["--max-error-m", "10"];
+    let one = ok_json(
+        planet(&etopo, &planet_rate, 512)
+            .arg("-o")
+            .arg(tmp.path().join("single")),
+    );
+    kill_and_rerun(tmp.path(), &one, || planet(&etopo, &planet_rate, 512));
+}
+
+/// Shards 0 and 2 of 3 of the build `cmd` gives; shard 1 stalled and killed (the merge
+/// refuses the missing part), then rerun alone: the merge gives `one`'s content hash.
+fn kill_and_rerun(dir: &Path, one: &serde_json::Value, cmd: impl Fn() -> Command) {
+    let parts: Vec<PathBuf> = (0..3).map(|k| dir.join(format!("part{k}"))).collect();
     for k in [0, 2] {
         ok_json(
-            build(&rate)
+            cmd()
                 .args(["--shard", &format!("{k}/3"), "-o"])
                 .arg(&parts[k]),
         );
     }
     // Shard 1 stalls after 50 diamonds' details and is killed.
-    let mut child = build(&rate)
+    let mut child = cmd()
         .args(["--shard", "1/3", "--stall-after-blobs", "50", "-o"])
         .arg(&parts[1])
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    let partial = tmp.path().join("part1.partial");
+    let partial = dir.join("part1.partial");
     for _ in 0..600 {
         if partial.join("details.bin").exists() {
             break;
@@ -174,27 +188,27 @@ fn a_killed_shard_rerun_alone_gives_the_same_repository() {
             .arg("merge")
             .args(&parts)
             .arg("-o")
-            .arg(tmp.path().join("merged")),
+            .arg(dir.join("merged")),
     );
     assert!(
         e.contains("part1") && e.contains("finished shard part"),
         "{e}"
     );
-    assert!(!tmp.path().join("merged").exists());
+    assert!(!dir.join("merged").exists());
     // Rerun alone.
-    ok_json(build(&rate).args(["--shard", "1/3", "-o"]).arg(&parts[1]));
+    ok_json(cmd().args(["--shard", "1/3", "-o"]).arg(&parts[1]));
     assert!(!partial.exists());
     let merged = ok_json(
         bin()
             .arg("merge")
             .args(&parts)
             .arg("-o")
-            .arg(tmp.path().join("merged"))
+            .arg(dir.join("merged"))
             .arg("--json"),
     );
     assert_eq!(merged["content_hash"], one["content_hash"]);
     // A finished part is not overwritten without --overwrite.
-    let e = refused(build(&rate).args(["--shard", "1/3", "-o"]).arg(&parts[1]));
+    let e = refused(cmd().args(["--shard", "1/3", "-o"]).arg(&parts[1]));
     assert!(e.contains("already exists"), "{e}");
 }
 

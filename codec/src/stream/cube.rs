@@ -270,7 +270,7 @@ pub fn encode_cube(
         &geom,
         &borders,
         (&map, &fill),
-        (&lattice, None),
+        (&lattice, None, None),
         tiles,
         &mut meter,
     )?;
@@ -305,6 +305,7 @@ pub fn encode_cube(
     // The RMS rate control: the search of the in-memory encoder, each verification
     // decode a synthesis through the tiles (see `CubeVerifier`).
     let (pieces, valid_count) = errors;
+    let pieces: Vec<(f64, f64)> = pieces.into_iter().map(|p| p.1).collect();
     let mut rate = Rate {
         steps: vec![256u32; levels],
         errors: rms_of_pieces(&pieces, valid_count),
@@ -401,13 +402,16 @@ pub fn encode_cube(
 }
 
 /// What pass 0 learns: the geometry (with the coverage in sparse mode), the value map,
-/// the fill, and the range and sum (which a shard's parts must agree on).
+/// the fill, the range and sum (which a shard's parts must agree on), the canonical
+/// copies of the edge points, and the valid canonical entries (the samples counted).
 struct Scanned {
     geom: SphereGeometry,
     coverage: Option<Coverage>,
     map: ValueMap,
     fill: Fill,
     range: [f64; 3],
+    canon: HashMap<usize, f64>,
+    counted: usize,
 }
 
 /// Pass 0: range, quanta, coverage, the canonical copies of edge points.
@@ -424,12 +428,19 @@ fn scan_cube(
     let mut scan = Scan::new(source.quantum_m());
     let mut canon = HashMap::new();
     let mut vals = vec![0.0; tile * w];
+    let mut counted = 0;
     meter.note(vals.len() * 8);
     for face in 0..6 {
         for first in (0..w).step_by(tile) {
             let count = tile.min(w - first);
             let band = &mut vals[..count * w];
             read_band(source, borders, &mut canon, (face, first, count), band)?;
+            let start = (face * w + first) * w;
+            counted += band
+                .par_iter()
+                .enumerate()
+                .filter(|&(k, v)| v.is_finite() && geom.is_canonical(start + k))
+                .count();
             if let Some(cov) = coverage.as_mut() {
                 for (r, row) in band.chunks_exact(w).enumerate() {
                     cov.mark_row(face, first + r, |u| row[u].is_finite());
@@ -453,6 +464,8 @@ fn scan_cube(
         map,
         fill,
         range: [scan.lo, scan.hi, scan.sum],
+        canon,
+        counted,
     })
 }
 
@@ -683,37 +696,74 @@ fn read_band(
 }
 
 /// The integerisation's errors: `(sum of squares, max)` per [`PASS_CHUNK`] entries of
-/// the cube raster (as the in-memory encoder sums them), and the samples counted.
-type Errors = (Vec<(f64, f64)>, usize);
+/// the cube raster (as the in-memory encoder sums them) with each piece's number, and
+/// the samples counted.
+type Errors = (Vec<(usize, (f64, f64))>, usize);
+
+/// A shard's pass 1 (see [`shard`]): per face, the bands of rows (rows of tiles) to run
+/// over, and every canonical copy of an edge point from pass 0.
+struct Partial {
+    bands: Vec<Range<usize>>,
+    canon: HashMap<usize, f64>,
+}
 
 /// Pass 1: reads every face again, fills nodata band by band, writes the integers as the
 /// tiles of `R_0`, and measures the integerisation's errors over the valid canonical
-/// entries, in the in-memory encoder's pieces and order.
+/// entries, in the in-memory encoder's pieces and order. With `partial`, only its bands
+/// and the pieces they hold whole (and the samples counted in them).
 #[allow(clippy::too_many_arguments)]
 fn write_integers(
     source: &mut dyn CubeSource,
     geom: &SphereGeometry,
     borders: &Borders,
     (map, fill): (&ValueMap, &Fill),
-    (lattice, present): (&Lattice, Option<&[bool]>),
+    (lattice, present, partial): (&Lattice, Option<&[bool]>, Option<&Partial>),
     tiles: &mut dyn TileStore,
     meter: &mut Meter,
 ) -> Result<Errors, EncodeError> {
     let w = geom.face_side() + 1;
     let t = lattice.t;
-    let mut canon = HashMap::new();
-    let mut canon_ints: HashMap<usize, i32> = HashMap::new();
+    let mut canon = partial.map(|p| p.canon.clone()).unwrap_or_default();
+    let mut canon_ints: HashMap<usize, i32> = canon
+        .iter()
+        .filter(|(_, v)| v.is_finite())
+        .map(|(&k, &v)| (k, map.int_of(v)))
+        .collect();
     let mut vals = vec![0.0; (CONTEXT_ROWS + t) * w];
     let mut valid = vec![false; (CONTEXT_ROWS + t) * w];
     let mut ints = vec![0i32; t * w];
     let mut tile = vec![0i32; t * t];
-    let mut pieces: Vec<(f64, f64)> = Vec::new();
+    let mut pieces = Vec::new();
     let mut current = (0.0, 0.0f64);
     let mut counted_total = 0usize;
+    // Where the run of bands read without a gap began, and where the last band ended.
+    let (mut run_from, mut last_end) = (0usize, 0usize);
     for face in 0..6 {
         let mut context = 0usize;
         for first in (0..w).step_by(t) {
+            if partial.is_some_and(|p| !p.bands[face].contains(&(first / t))) {
+                continue;
+            }
             let count = t.min(w - first);
+            if (face * w + first) * w != last_end {
+                // A new run (a shard's): the piece in progress is not ours; the fill's
+                // context is the rows before, which hold no nodata.
+                (current, run_from) = ((0.0, 0.0), (face * w + first) * w);
+                context = CONTEXT_ROWS.min(first);
+                if context > 0 {
+                    let rows = &mut vals[..context * w];
+                    read_band(
+                        source,
+                        borders,
+                        &mut canon,
+                        (face, first - context, context),
+                        rows,
+                    )?;
+                    if rows.iter().any(|v| !v.is_finite()) {
+                        return Err(EncodeError::Internal("a shard's fill context holds nodata"));
+                    }
+                }
+            }
             let (ctx, total) = (context * w, (context + count) * w);
             read_band(
                 source,
@@ -729,7 +779,13 @@ fn write_integers(
             // Errors of the valid canonical entries, in pieces of the whole cube raster.
             let (band_pieces, band_counted) =
                 piece_errors(geom, map, (start, &vals[ctx..total], None), &mut current);
-            pieces.extend(band_pieces);
+            pieces.extend(
+                band_pieces
+                    .into_iter()
+                    .enumerate()
+                    .map(|(i, p)| (start / PASS_CHUNK + i, p))
+                    .filter(|&(k, _)| k * PASS_CHUNK >= run_from),
+            );
             counted_total += band_counted;
             valid[..ctx].iter_mut().for_each(|b| *b = true);
             let fill_bytes = fill.rows(w, context, &mut vals[..total], &valid[..total]);
@@ -770,10 +826,15 @@ fn write_integers(
             let keep = CONTEXT_ROWS.min(context + count);
             vals.copy_within(total - keep * w..total, 0);
             context = keep;
+            last_end = start + count * w;
         }
     }
-    if !(6 * w * w).is_multiple_of(PASS_CHUNK) {
-        pieces.push(current);
+    let k = 6 * w * w / PASS_CHUNK;
+    if !(6 * w * w).is_multiple_of(PASS_CHUNK)
+        && last_end == 6 * w * w
+        && k * PASS_CHUNK >= run_from
+    {
+        pieces.push((k, current));
     }
     Ok((pieces, counted_total))
 }

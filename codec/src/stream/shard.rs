@@ -60,8 +60,11 @@ pub struct ShardFigures {
     pub split: usize,
     /// Rows the shard owns.
     pub band_rows: usize,
-    /// Rows it reads and analyses (band and halo).
+    /// Rows it reads and analyses (band and halo; planets: rows of which it holds a tile).
     pub window_rows: usize,
+    /// Rows it turns into integers (the window, from where its fills start; planets: the
+    /// runs of bands of [`crate::stream::encode_cube_shard`]'s pass 1).
+    pub integer_rows: usize,
     /// Diamonds it analysed (its own and its halo's).
     pub analysed: usize,
     /// Diamonds it owns.
@@ -474,6 +477,7 @@ pub fn encode_shard(
             split,
             band_rows: band.end.min(plan.height) - band.start,
             window_rows: window.len(),
+            integer_rows: window.end - from,
             analysed,
             owned,
             peak_buffer_bytes: meter.peak,
@@ -915,6 +919,7 @@ impl ShardPart {
             f.split,
             f.band_rows,
             f.window_rows,
+            f.integer_rows,
             f.analysed,
             f.owned,
             f.peak_buffer_bytes,
@@ -996,6 +1001,7 @@ impl ShardPart {
             split: r.u()?,
             band_rows: r.u()?,
             window_rows: r.u()?,
+            integer_rows: r.u()?,
             analysed: r.u()?,
             owned: r.u()?,
             peak_buffer_bytes: r.u()?,

@@ -27,9 +27,9 @@ use std::ops::Range;
 use super::super::shard::{Header, ShardPart, SideEntry, check_parts, check_request};
 use super::super::{DetailsOut, IndexSpill, Meter};
 use super::{
-    BlobSink, Borders, CubeEncoded, CubeOptions, CubeSource, Lattice, Only, Scanned, Side, Spill,
-    TileStore, analyse_octaves, code_blobs, compact, diamond_tiles, gather_roots, lattice_at,
-    scan_cube, tile_side, write_integers,
+    BlobSink, Borders, CONTEXT_ROWS, CubeEncoded, CubeOptions, CubeSource, Lattice, Only, Partial,
+    Scanned, Side, Spill, TileStore, analyse_octaves, code_blobs, compact, diamond_tiles,
+    gather_roots, lattice_at, scan_cube, tile_side, write_integers,
 };
 use crate::coverage::Coverage;
 use crate::encode::{
@@ -256,7 +256,8 @@ pub fn encode_cube_shard(
         map,
         fill,
         range,
-        ..
+        canon,
+        counted: valid,
     } = scan_cube(source, opts, geom, (&borders, t), &mut meter)?;
     let layout = CubeLayout::new(&geom, t, spec.count)?;
     let (k, split) = (spec.index, layout.split);
@@ -278,14 +279,18 @@ pub fn encode_cube_shard(
         diamonds,
     };
 
-    // Pass 1 over every band (the fills need the bands before), writing our tiles only.
+    // Pass 1 over the bands the shard needs, writing its tiles only.
     let lattice = Lattice::new(face_side, t, 0, 0);
-    let (pieces, valid) = write_integers(
+    let partial = Partial {
+        bands: pass_one_bands(source, &borders, (&canon, &only.tiles[0]), &band, (w, t))?,
+        canon,
+    };
+    let (pieces, _) = write_integers(
         source,
         &geom,
         &borders,
         (&map, &fill),
-        (&lattice, Some(&only.tiles[0])),
+        (&lattice, Some(&only.tiles[0]), Some(&partial)),
         tiles,
         &mut meter,
     )?;
@@ -352,7 +357,7 @@ pub fn encode_cube_shard(
     let end = band.end * w;
     let mut kept = Vec::new();
     let mut max_error = 0.0f64;
-    for (p, &(sum2, max)) in pieces.iter().enumerate() {
+    for &(p, (sum2, max)) in &pieces {
         let at = p * PASS_CHUNK;
         if (start..end).contains(&at) {
             kept.push((at as u64, sum2));
@@ -398,11 +403,80 @@ pub fn encode_cube_shard(
             split,
             band_rows: band.len(),
             window_rows,
+            integer_rows: partial
+                .bands
+                .iter()
+                .map(|b| (b.end * t).min(w).saturating_sub(b.start * t))
+                .sum(),
             analysed: counted.0,
             owned: counted.1,
             peak_buffer_bytes: meter.peak,
         },
     })
+}
+
+/// The bands of rows (rows of tiles, `t` rows) of each face a shard's pass 1 runs over:
+/// those holding its tiles of `R_0` (`present`), its rows, and the rest of the last error
+/// piece starting in them; each face's run begins at the latest band whose previous
+/// [`CONTEXT_ROWS`] rows hold no nodata (so its fills are the single process's), and
+/// takes in the bands holding the canonical copies of its edge points that are nodata
+/// (whose integers are fills).
+fn pass_one_bands(
+    source: &mut dyn CubeSource,
+    borders: &Borders,
+    (canon, present): (&HashMap<usize, f64>, &[bool]),
+    band: &Range<usize>,
+    (w, t): (usize, usize),
+) -> Result<Vec<Range<usize>>, EncodeError> {
+    let per = w.div_ceil(t);
+    let mut need: Vec<Option<(usize, usize)>> = vec![None; 6];
+    let mut add = |face: usize, b: usize| {
+        let r = need[face].get_or_insert((b, b));
+        *r = (r.0.min(b), r.1.max(b));
+    };
+    for (k, _) in present.iter().enumerate().filter(|&(_, &x)| x) {
+        add(k / (per * per), (k / per) % per);
+    }
+    if band.start < band.end {
+        let last_piece = (band.end * w - 1) / PASS_CHUNK;
+        let end = ((last_piece + 1) * PASS_CHUNK).min(6 * w * w);
+        for row in band.start..end.div_ceil(w) {
+            add(row / w, (row % w) / t);
+        }
+    }
+    let mut known = canon.clone();
+    let mut rows = vec![0.0; CONTEXT_ROWS * w];
+    let mut bands = vec![0..0; 6];
+    for face in (0..6).rev() {
+        let Some((lo, hi)) = need[face] else {
+            continue;
+        };
+        let mut start = lo;
+        while start > 0 {
+            let first = start * t;
+            let c = CONTEXT_ROWS.min(first);
+            let buf = &mut rows[..c * w];
+            source
+                .read_face_rows(face, first - c, c, buf)
+                .map_err(EncodeError::Source)?;
+            borders.apply(face, (first - c, c), buf, &mut known, false)?;
+            if buf.iter().all(|v| v.is_finite()) {
+                break;
+            }
+            start -= 1;
+        }
+        bands[face] = start..hi + 1;
+        // Nodata canonical copies of this run's edge points: their faces come first.
+        let run = start * t..((hi + 1) * t).min(w);
+        for &(v, _, k) in &borders.copies[face] {
+            if run.contains(&v) && !canon.get(&k).is_some_and(|x| x.is_finite()) {
+                let (g, row) = (k / (w * w), (k / w) % w);
+                let r = need[g].get_or_insert((row / t, row / t));
+                *r = (r.0.min(row / t), r.1.max(row / t));
+            }
+        }
+    }
+    Ok(bands)
 }
 
 /// Global rows `rows` of `R_o` (`lattice`) from the tiles: `rows.len() x ((S >> o) + 1)`
