@@ -246,21 +246,17 @@ pub fn encode_cube(
     tiles: &mut dyn TileStore,
     phase: &mut dyn FnMut(&'static str),
 ) -> Result<CubeEncoded, EncodeError> {
-    check_tolerance(opts.mode)?;
     let (face_side, n) = (source.face_side(), opts.n);
-    let geom = SphereGeometry::new(face_side, n)?;
-    let w = face_side + 1;
-    let tile = tile_side(w, opts.memory_budget_bytes)?;
     let mut meter = Meter::default();
-    let borders = Borders::new(&geom);
-
     let Scanned {
         geom,
+        borders,
+        tile,
         coverage,
         map,
         fill,
         ..
-    } = scan_cube(source, opts, geom, (&borders, tile), &mut meter)?;
+    } = scan_cube(source, opts, &mut meter)?;
     phase(CUBE_PHASES[0]);
 
     // Pass 1: the integers, as tiles of R_0, and the integerisation's errors.
@@ -279,13 +275,7 @@ pub fn encode_cube(
 
     // The analysis, octave by octave.
     let levels = geom.slot_levels().len();
-    let mut store = Spill::with_levels(n, 0, (0..levels).map(|l| geom.level(l).len()));
-    store.clear(spill)?;
-    let mut side = Side {
-        gamma: vec![Vec::new(); levels],
-        has_data: vec![Vec::new(); levels],
-        bounds: Vec::new(),
-    };
+    let (mut store, mut side) = analysis_state(&geom, spill)?;
     let mut hist = matches!(opts.mode, RateMode::RmsM(_)).then(|| Histograms::new(levels));
     let cache_bytes = opts.memory_budget_bytes / 2;
     let second = lattice.len();
@@ -406,6 +396,9 @@ pub fn encode_cube(
 /// copies of the edge points, and the valid canonical entries (the samples counted).
 struct Scanned {
     geom: SphereGeometry,
+    borders: Borders,
+    /// The tile side.
+    tile: usize,
     coverage: Option<Coverage>,
     map: ValueMap,
     fill: Fill,
@@ -414,16 +407,19 @@ struct Scanned {
     counted: usize,
 }
 
-/// Pass 0: range, quanta, coverage, the canonical copies of edge points.
+/// Checks the settings and runs pass 0: range, quanta, coverage, the canonical copies
+/// of edge points.
 fn scan_cube(
     source: &mut dyn CubeSource,
     opts: CubeOptions,
-    geom: SphereGeometry,
-    (borders, tile): (&Borders, usize),
     meter: &mut Meter,
 ) -> Result<Scanned, EncodeError> {
-    let face_side = geom.face_side();
+    check_tolerance(opts.mode)?;
+    let face_side = source.face_side();
+    let geom = SphereGeometry::new(face_side, opts.n)?;
     let w = face_side + 1;
+    let tile = tile_side(w, opts.memory_budget_bytes)?;
+    let borders = Borders::new(&geom);
     let mut coverage = opts.sparse.then(|| CubeCoverage::new(face_side, opts.n));
     let mut scan = Scan::new(source.quantum_m());
     let mut canon = HashMap::new();
@@ -434,7 +430,7 @@ fn scan_cube(
         for first in (0..w).step_by(tile) {
             let count = tile.min(w - first);
             let band = &mut vals[..count * w];
-            read_band(source, borders, &mut canon, (face, first, count), band)?;
+            read_band(source, &borders, &mut canon, (face, first, count), band)?;
             let start = (face * w + first) * w;
             counted += band
                 .par_iter()
@@ -460,6 +456,8 @@ fn scan_cube(
     let (map, fill) = scan.mapping(source.quantum_m(), opts.mode)?;
     Ok(Scanned {
         geom,
+        borders,
+        tile,
         coverage,
         map,
         fill,
@@ -467,6 +465,23 @@ fn scan_cube(
         canon,
         counted,
     })
+}
+
+/// An empty spill of details (slot 0 of `spill`, cleared) and side information, for an
+/// analysis of `geom`.
+fn analysis_state(
+    geom: &SphereGeometry,
+    spill: &mut dyn IndexSpill,
+) -> Result<(Spill, Side), EncodeError> {
+    let levels = geom.slot_levels().len();
+    let mut store = Spill::with_levels(geom.n(), 0, (0..levels).map(|l| geom.level(l).len()));
+    store.clear(spill)?;
+    let side = Side {
+        gamma: vec![Vec::new(); levels],
+        has_data: vec![Vec::new(); levels],
+        bounds: Vec::new(),
+    };
+    Ok((store, side))
 }
 
 /// The raster `R_o` of octave `o` in the tile store: even octaves from offset 0, odd

@@ -531,56 +531,14 @@ impl Merge {
         let fine_from = levels - 2 * header.split;
         let (wm, hm) = plan.dims[header.split];
         let mut side = Side::new(&geom);
-        let mut counts = ContextCounts::default();
-        let mut coarse = Vec::with_capacity(wm * hm);
-        let mut pieces = Vec::new();
-        let mut max = 0.0f64;
-        let mut filled: Vec<Vec<bool>> = (fine_from..levels)
-            .map(|l| vec![false; geom.level(l).len()])
-            .collect();
-        for p in parts {
-            let bad = |what: &str| EncodeError::Shard(format!("part {}: {what}", p.index));
-            if p.coarse_rows.start != coarse.len() / wm.max(1)
-                || p.coarse.len() != p.coarse_rows.len() * wm
-            {
-                return Err(bad(
-                    "its rows of the coarse raster do not follow the previous part's",
-                ));
-            }
-            coarse.extend_from_slice(&p.coarse);
-            for &(l, i, gamma, data, bounds) in &p.side {
-                if l < fine_from || l >= levels || i >= geom.level(l).len() {
-                    return Err(bad("side information of a diamond that is not a shard's"));
-                }
-                if std::mem::replace(&mut filled[l - fine_from][i], true) {
-                    return Err(bad("side information of a diamond another part has"));
-                }
-                side.gamma[l][i] = gamma;
-                side.has_data[l][i] = data;
-                side.bounds[l][i] = bounds;
-            }
-            counts.merge(
-                &ContextCounts::from_pairs(p.counts).ok_or_else(|| bad("bad training counts"))?,
-            );
-            pieces.extend(p.pieces);
-            max = max.max(p.max_error);
-        }
-        if coarse.len() != wm * hm {
-            return Err(EncodeError::Shard(
-                "the parts do not cover the coarse raster".into(),
-            ));
-        }
-        if filled.iter().any(|l| l.iter().any(|&f| !f)) {
-            return Err(EncodeError::Shard("the parts miss some diamonds".into()));
-        }
-        side.counts = counts;
-        // The error sums in sample order, as one process adds them.
-        pieces.sort_by_key(|&(at, _)| at);
-        if pieces.windows(2).any(|w| w[0].0 == w[1].0) {
-            return Err(EncodeError::Shard(
-                "two parts measured the same samples".into(),
-            ));
-        }
+        let lens: Vec<usize> = (0..levels).map(|l| geom.level(l).len()).collect();
+        let joined = join_parts(parts, (wm, wm * hm), (&lens, fine_from), |l, i, g, d, b| {
+            side.gamma[l][i] = g;
+            side.has_data[l][i] = d;
+            side.bounds[l][i] = b;
+        })?;
+        side.counts = joined.counts;
+        let (coarse, pieces, max) = (joined.coarse, joined.pieces, joined.max);
         let sum2 = pieces.iter().fold(0.0, |s, &(_, x)| s + x);
         let mut meter = Meter::default();
         let mut unused = Errors::default();
@@ -631,23 +589,13 @@ impl Merge {
         items: &[(usize, usize, Vec<i32>)],
         sink: &mut dyn BlobSink,
     ) -> Result<(), EncodeError> {
-        let n = self.header.n;
-        for &(l, i, ref h) in items {
-            let ok = l >= self.fine_from
-                && l < self.geom.detail_levels()
-                && i < self.geom.level(l).len()
-                && self.side.has_data[l][i]
-                && h.len() == n * n;
-            if !ok {
-                return Err(EncodeError::Shard(format!(
-                    "details of diamond {i} of level {l} do not belong to the build"
-                )));
-            }
-            if std::mem::replace(&mut self.seen[l - self.fine_from][i], true) {
-                return Err(EncodeError::Shard(format!(
-                    "details of diamond {i} of level {l} come twice"
-                )));
-            }
+        for (l, i, h) in items {
+            check_detail(
+                (*l, *i, h),
+                (self.header.n, self.fine_from),
+                &self.side.has_data,
+                &mut self.seen,
+            )?;
         }
         let (geom, side, model) = (&self.geom, &self.side, &self.model);
         let blobs: Vec<Vec<u8>> = items
@@ -772,6 +720,111 @@ pub(super) fn check_parts(
         )));
     }
     Ok((header, parts))
+}
+
+/// Checks one diamond's details `(level, index, details)` given to a merge: a diamond of
+/// the levels from `fine_from` with data, `N^2` values, not seen before (`seen`, per level
+/// from `fine_from`, records it).
+pub(super) fn check_detail(
+    (l, i, h): (usize, usize, &[i32]),
+    (n, fine_from): (usize, usize),
+    has_data: &[Vec<bool>],
+    seen: &mut [Vec<bool>],
+) -> Result<(), EncodeError> {
+    let ok = l >= fine_from
+        && l < has_data.len()
+        && i < has_data[l].len()
+        && has_data[l][i]
+        && h.len() == n * n;
+    if !ok {
+        return Err(EncodeError::Shard(format!(
+            "details of diamond {i} of level {l} do not belong to the build"
+        )));
+    }
+    if std::mem::replace(&mut seen[l - fine_from][i], true) {
+        return Err(EncodeError::Shard(format!(
+            "details of diamond {i} of level {l} come twice"
+        )));
+    }
+    Ok(())
+}
+
+/// What the parts of a build hold together (see [`join_parts`]).
+pub(super) struct Joined {
+    /// `R_split`, the parts' rows in order.
+    pub(super) coarse: Vec<i32>,
+    /// The summed training counts.
+    pub(super) counts: ContextCounts,
+    /// The error sums in sample order, as one process adds them.
+    pub(super) pieces: Vec<(u64, f64)>,
+    /// The largest error.
+    pub(super) max: f64,
+}
+
+/// Joins checked `parts` (in shard order): their rows of `R_split` (`row` values a row,
+/// `total` in all) must follow each other, their side entries (each given to `side` as
+/// `(level, index, gamma, has data, bounds)`) cover every diamond of the levels from
+/// `fine_from` (of `lens` diamonds) once, and their error pieces each sample once.
+pub(super) fn join_parts(
+    parts: Vec<ShardPart>,
+    (row, total): (usize, usize),
+    (lens, fine_from): (&[usize], usize),
+    mut side: impl FnMut(usize, usize, u64, bool, (i64, i64)),
+) -> Result<Joined, EncodeError> {
+    let mut joined = Joined {
+        coarse: Vec::with_capacity(total),
+        counts: ContextCounts::default(),
+        pieces: Vec::new(),
+        max: 0.0,
+    };
+    let mut filled: Vec<Vec<bool>> = lens[fine_from..].iter().map(|&n| vec![false; n]).collect();
+    for p in parts {
+        let bad = |what: &str| EncodeError::Shard(format!("part {}: {what}", p.index));
+        if p.coarse_rows.start != joined.coarse.len() / row.max(1)
+            || p.coarse.len() != p.coarse_rows.len() * row
+        {
+            return Err(bad(
+                "its rows of the coarse raster do not follow the previous part's",
+            ));
+        }
+        joined.coarse.extend_from_slice(&p.coarse);
+        for &(l, i, gamma, data, bounds) in &p.side {
+            if l < fine_from || l >= lens.len() || i >= lens[l] {
+                return Err(bad("side information of a diamond that is not a shard's"));
+            }
+            if std::mem::replace(&mut filled[l - fine_from][i], true) {
+                return Err(bad("side information of a diamond another part has"));
+            }
+            side(l, i, gamma, data, bounds);
+        }
+        // A planet's merge trains the model itself, from every diamond's details.
+        if p.header.planet != p.counts.is_empty() {
+            return Err(bad("bad training counts"));
+        }
+        if !p.header.planet {
+            let counts = ContextCounts::from_pairs(p.counts);
+            joined
+                .counts
+                .merge(&counts.ok_or_else(|| bad("bad training counts"))?);
+        }
+        joined.pieces.extend(p.pieces);
+        joined.max = joined.max.max(p.max_error);
+    }
+    if joined.coarse.len() != total {
+        return Err(EncodeError::Shard(
+            "the parts do not cover the coarse raster".into(),
+        ));
+    }
+    if filled.iter().any(|l| l.iter().any(|&f| !f)) {
+        return Err(EncodeError::Shard("the parts miss some diamonds".into()));
+    }
+    joined.pieces.sort_by_key(|&(at, _)| at);
+    if joined.pieces.windows(2).any(|w| w[0].0 == w[1].0) {
+        return Err(EncodeError::Shard(
+            "two parts measured the same samples".into(),
+        ));
+    }
+    Ok(joined)
 }
 
 /// Bytes of a part: little-endian fields after a magic and version.

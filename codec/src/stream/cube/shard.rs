@@ -24,17 +24,17 @@
 use std::collections::HashMap;
 use std::ops::Range;
 
-use super::super::shard::{Header, ShardPart, SideEntry, check_parts, check_request};
+use super::super::shard::{
+    Header, ShardPart, SideEntry, check_detail, check_parts, check_request, join_parts,
+};
 use super::super::{DetailsOut, IndexSpill, Meter};
 use super::{
     BlobSink, Borders, CONTEXT_ROWS, CubeEncoded, CubeOptions, CubeSource, Lattice, Only, Partial,
-    Scanned, Side, Spill, TileStore, analyse_octaves, code_blobs, compact, diamond_tiles,
-    gather_roots, lattice_at, scan_cube, tile_side, write_integers,
+    Scanned, Side, Spill, TileStore, analyse_octaves, analysis_state, code_blobs, compact,
+    diamond_tiles, gather_roots, lattice_at, scan_cube, write_integers,
 };
 use crate::coverage::Coverage;
-use crate::encode::{
-    EncodeError, EncodeReport, PASS_CHUNK, SideInfo, Tally, check_tolerance, rms_of_pieces,
-};
+use crate::encode::{EncodeError, EncodeReport, PASS_CHUNK, SideInfo, Tally, rms_of_pieces};
 use crate::raster::Layout;
 use crate::sphere_raster::SphereGeometry;
 use crate::stream::{ShardFigures, ShardSpec};
@@ -243,22 +243,20 @@ pub fn encode_cube_shard(
     (spill, tiles): (&mut dyn IndexSpill, &mut dyn TileStore),
 ) -> Result<ShardPart, EncodeError> {
     check_request(opts.mode, spec)?;
-    check_tolerance(opts.mode)?;
     let (face_side, n) = (source.face_side(), opts.n);
-    let geom = SphereGeometry::new(face_side, n)?;
     let w = face_side + 1;
-    let t = tile_side(w, opts.memory_budget_bytes)?;
     let mut meter = Meter::default();
-    let borders = Borders::new(&geom);
     let Scanned {
         geom,
+        borders,
+        tile: t,
         coverage,
         map,
         fill,
         range,
         canon,
         counted: valid,
-    } = scan_cube(source, opts, geom, (&borders, t), &mut meter)?;
+    } = scan_cube(source, opts, &mut meter)?;
     let layout = CubeLayout::new(&geom, t, spec.count)?;
     let (k, split) = (spec.index, layout.split);
     let band = layout.bands[k].clone();
@@ -296,13 +294,7 @@ pub fn encode_cube_shard(
     )?;
 
     // The fine octaves, then `R_split`'s owned rows.
-    let mut store = Spill::with_levels(n, 0, (0..levels).map(|l| geom.level(l).len()));
-    store.clear(spill)?;
-    let mut side = Side {
-        gamma: vec![Vec::new(); levels],
-        has_data: vec![Vec::new(); levels],
-        bounds: Vec::new(),
-    };
+    let (mut store, mut side) = analysis_state(&geom, spill)?;
     let cache_bytes = opts.memory_budget_bytes / 2;
     let second = lattice.len();
     let last = analyse_octaves(
@@ -569,62 +561,22 @@ impl CubeMerge {
                 .collect(),
             bounds: vec![(0, 0); geom.level(fine_from).len()],
         };
-        let mut seen: Vec<Vec<bool>> = (0..levels)
-            .map(|l| {
-                vec![
-                    false;
-                    if l < fine_from {
-                        0
-                    } else {
-                        geom.level(l).len()
-                    }
-                ]
-            })
-            .collect();
-        let mut coarse = Vec::with_capacity(6 * ws * ws);
-        let mut pieces = Vec::new();
-        let mut max = 0.0f64;
-        for p in parts {
-            let bad = |what: &str| EncodeError::Shard(format!("part {}: {what}", p.index));
-            if p.coarse_rows.start != coarse.len() / ws
-                || p.coarse.len() != p.coarse_rows.len() * ws
-            {
-                return Err(bad(
-                    "its rows of the coarse raster do not follow the previous part's",
-                ));
-            }
-            coarse.extend_from_slice(&p.coarse);
-            for &(l, i, gamma, data, bounds) in &p.side {
-                if l < fine_from || l >= levels || i >= geom.level(l).len() {
-                    return Err(bad("side information of a diamond that is not a shard's"));
-                }
-                if std::mem::replace(&mut seen[l][i], true) {
-                    return Err(bad("side information of a diamond another part has"));
-                }
-                side.gamma[l][i] = gamma;
-                side.has_data[l][i] = data;
+        let lens: Vec<usize> = (0..levels).map(|l| geom.level(l).len()).collect();
+        // Details seen, per level from `fine_from`.
+        let seen: Vec<Vec<bool>> = lens[fine_from..].iter().map(|&k| vec![false; k]).collect();
+        let joined = join_parts(
+            parts,
+            (ws, 6 * ws * ws),
+            (&lens, fine_from),
+            |l, i, g, d, b| {
+                side.gamma[l][i] = g;
+                side.has_data[l][i] = d;
                 if l == fine_from {
-                    side.bounds[i] = bounds;
+                    side.bounds[i] = b;
                 }
-            }
-            pieces.extend(p.pieces);
-            max = max.max(p.max_error);
-        }
-        if coarse.len() != 6 * ws * ws {
-            return Err(EncodeError::Shard(
-                "the parts do not cover the coarse raster".into(),
-            ));
-        }
-        if seen.iter().any(|l| l.iter().any(|&f| !f)) {
-            return Err(EncodeError::Shard("the parts miss some diamonds".into()));
-        }
-        // The error sums in sample order, as one process adds them.
-        pieces.sort_by_key(|&(at, _)| at);
-        if pieces.windows(2).any(|w| w[0].0 == w[1].0) {
-            return Err(EncodeError::Shard(
-                "two parts measured the same samples".into(),
-            ));
-        }
+            },
+        )?;
+        let (coarse, pieces, max) = (joined.coarse, joined.pieces, joined.max);
         let pieces = pieces
             .iter()
             .enumerate()
@@ -653,7 +605,6 @@ impl CubeMerge {
         }
         let mut store = Spill::with_levels(header.n, 0, (0..levels).map(|l| geom.level(l).len()));
         store.clear(spill)?;
-        seen.iter_mut().flatten().for_each(|x| *x = false);
         Ok(CubeMerge {
             header,
             geom,
@@ -679,25 +630,15 @@ impl CubeMerge {
         items: &[(usize, usize, Vec<i32>)],
         spill: &mut dyn IndexSpill,
     ) -> Result<(), EncodeError> {
-        let n = self.header.n;
         let levels = self.geom.slot_levels().len();
         let mut by_level: Vec<Vec<(usize, &[i32])>> = vec![Vec::new(); levels];
         for &(l, i, ref h) in items {
-            let ok = l >= self.fine_from
-                && l < levels
-                && i < self.geom.level(l).len()
-                && self.side.has_data[l][i]
-                && h.len() == n * n;
-            if !ok {
-                return Err(EncodeError::Shard(format!(
-                    "details of diamond {i} of level {l} do not belong to the build"
-                )));
-            }
-            if std::mem::replace(&mut self.seen[l][i], true) {
-                return Err(EncodeError::Shard(format!(
-                    "details of diamond {i} of level {l} come twice"
-                )));
-            }
+            check_detail(
+                (l, i, h),
+                (self.header.n, self.fine_from),
+                &self.side.has_data,
+                &mut self.seen,
+            )?;
             if h.iter().any(|&x| x != 0) {
                 by_level[l].push((i, h));
             }
@@ -720,10 +661,9 @@ impl CubeMerge {
     ) -> Result<CubeEncoded, EncodeError> {
         let geom = &self.geom;
         let levels = geom.slot_levels().len();
-        for l in self.fine_from..levels {
-            if let Some(i) =
-                (0..self.seen[l].len()).find(|&i| self.side.has_data[l][i] && !self.seen[l][i])
-            {
+        for (k, seen) in self.seen.iter().enumerate() {
+            let l = self.fine_from + k;
+            if let Some(i) = (0..seen.len()).find(|&i| self.side.has_data[l][i] && !seen[i]) {
                 return Err(EncodeError::Shard(format!(
                     "the parts' details lack diamond {i} of level {l}"
                 )));
