@@ -16,10 +16,12 @@
 //! `R_o` it is compacted from. The shard analyses exactly the diamonds found, which are
 //! then exact by induction, and holds only the tiles found.
 //!
-//! Each shard reads the whole source twice (the scan, and the integers with their fills,
-//! which are band by band of a face, so the single process's only when every band before
-//! is filled as it is); it writes only its tiles. Error sums are per fixed piece of the
-//! cube raster; each shard keeps those starting in its band.
+//! Each shard scans the whole source (the value map, coverage and canonical edge values
+//! must be global), then turns into integers only the bands of rows it needs
+//! ([`pass_one_bands`]): fills are band by band of a face with the rows before as
+//! context, so a face's run starts where those rows hold no nodata. It writes only its
+//! tiles. Error sums are per fixed piece of the cube raster; each shard keeps those
+//! starting in its band, and the merge adds them in sample order.
 
 use std::collections::HashMap;
 use std::ops::Range;
@@ -48,24 +50,25 @@ struct Groups {
     of: Vec<u32>,
 }
 
-/// How a planet's build is split: the tile side, the bands of global rows, the split
-/// octave, and each level's groups.
+/// How a planet's build is split: the side of the blocks exactness is tracked in (the
+/// diamond size, or the tile side if smaller: blocks nest in tiles), the bands of global
+/// rows, the split octave, and each level's groups.
 struct CubeLayout {
-    t: usize,
+    b: usize,
     bands: Vec<Range<usize>>,
     split: usize,
     groups: Vec<Option<Groups>>,
 }
 
-/// What one shard holds and analyses for one split: tiles per octave `0 ..= split`,
+/// What one shard holds and analyses for one split: blocks per octave `0 ..= split`,
 /// groups per level (the levels of octaves below the split).
 struct Closure {
-    tiles: Vec<Vec<bool>>,
+    blocks: Vec<Vec<bool>>,
     groups: Vec<Option<Vec<bool>>>,
 }
 
 impl CubeLayout {
-    fn new(geom: &SphereGeometry, t: usize, count: usize) -> Result<CubeLayout, EncodeError> {
+    fn new(geom: &SphereGeometry, b: usize, count: usize) -> Result<CubeLayout, EncodeError> {
         let (face_side, n) = (geom.face_side(), geom.n());
         let w = face_side + 1;
         let most = 6 * (face_side / (2 * n)).max(1);
@@ -91,7 +94,7 @@ impl CubeLayout {
         let mut groups: Vec<Option<Groups>> = (0..levels).map(|_| None).collect();
         // The levels of octaves 0 .. octaves - 1 (the merge keeps at least the last).
         for o in 0..octaves - 1 {
-            let lattice = Lattice::new(face_side, t, o, 0);
+            let lattice = Lattice::new(face_side, b, o, 0);
             for level in [levels - 1 - 2 * o, levels - 2 - 2 * o] {
                 let mut index: HashMap<(Vec<usize>, usize), u32> = HashMap::new();
                 let mut g = Groups {
@@ -119,21 +122,21 @@ impl CubeLayout {
             }
         }
         let mut layout = CubeLayout {
-            t,
+            b,
             bands,
             split: 0,
             groups,
         };
         // The split octave: the least critical path in tiles analysed, the widest
         // shard's fine octaves then the merge's coarse ones twice (analysis, coding).
-        let total = Lattice::new(face_side, t, 0, 0).tiles() as f64;
+        let total = Lattice::new(face_side, b, 0, 0).tiles() as f64;
         let mut best: Option<(f64, usize)> = None;
         for split in 1..octaves {
             let widest = (0..count)
                 .map(|k| {
                     layout
                         .closure(geom, k, split)
-                        .map(|c| c.tiles[0].iter().filter(|&&x| x).count())
+                        .map(|c| c.blocks[0].iter().filter(|&&x| x).count())
                 })
                 .collect::<Result<Vec<usize>, EncodeError>>()?
                 .into_iter()
@@ -170,7 +173,7 @@ impl CubeLayout {
         k: usize,
         split: usize,
     ) -> Result<Closure, EncodeError> {
-        let (face_side, t) = (geom.face_side(), self.t);
+        let (face_side, t) = (geom.face_side(), self.b);
         let levels = geom.slot_levels().len();
         let top = Lattice::new(face_side, t, split, 0);
         let ws = (face_side >> split) + 1;
@@ -180,9 +183,9 @@ impl CubeLayout {
                 req[top.tile_no(r / ws, (r % ws) / t, tu)] = true;
             }
         }
-        let mut tiles = vec![Vec::new(); split + 1];
+        let mut blocks = vec![Vec::new(); split + 1];
         let mut groups: Vec<Option<Vec<bool>>> = (0..levels).map(|_| None).collect();
-        tiles[split] = req.clone();
+        blocks[split] = req.clone();
         for o in (0..split).rev() {
             let (up, here) = (
                 Lattice::new(face_side, t, o + 1, 0),
@@ -222,15 +225,16 @@ impl CubeLayout {
                 }
                 groups[level] = Some(need);
             }
-            tiles[o] = after.clone();
+            blocks[o] = after.clone();
             req = after;
         }
-        Ok(Closure { tiles, groups })
+        Ok(Closure { blocks, groups })
     }
 }
 
-/// Analyses shard `spec` of a planet out of core: reads the whole source twice (the scan,
-/// the integers), holds and analyses only what its diamonds need (see the module docs),
+/// Analyses shard `spec` of a planet out of core: scans the whole source, turns the bands
+/// it needs into integers, holds and analyses only what its diamonds need (see the module
+/// docs),
 /// hands the details of each diamond it owns (with data) to `details` as `(level,
 /// index, details)`, and returns what the merge needs besides. `extra` is stored in the
 /// part and must be equal in every part of a build. Lossless and max-error modes.
@@ -257,7 +261,8 @@ pub fn encode_cube_shard(
         canon,
         counted: valid,
     } = scan_cube(source, opts, &mut meter)?;
-    let layout = CubeLayout::new(&geom, t, spec.count)?;
+    let block = if n < t && t.is_multiple_of(n) { n } else { t };
+    let layout = CubeLayout::new(&geom, block, spec.count)?;
     let (k, split) = (spec.index, layout.split);
     let band = layout.bands[k].clone();
     let closure = layout.closure(&geom, k, split)?;
@@ -272,8 +277,28 @@ pub fn encode_cube_shard(
         diamonds[l] = g.of.iter().map(|&x| need[x as usize]).collect();
         owned[l] = g.of.iter().map(|&x| g.owner[x as usize] == k).collect();
     }
+    // The tiles holding the blocks.
+    let tiles_of = |o: usize, blocks: &[bool]| -> Vec<bool> {
+        let (fine, coarse) = (
+            Lattice::new(face_side, layout.b, o, 0),
+            Lattice::new(face_side, t, o, 0),
+        );
+        let mut held = vec![false; coarse.tiles()];
+        let ratio = t / layout.b;
+        for (k, _) in blocks.iter().enumerate().filter(|&(_, &x)| x) {
+            let (face, rest) = (k / (fine.per * fine.per), k % (fine.per * fine.per));
+            let (bv, bu) = (rest / fine.per, rest % fine.per);
+            held[coarse.tile_no(face, bv / ratio, bu / ratio)] = true;
+        }
+        held
+    };
     let only = Only {
-        tiles: closure.tiles,
+        tiles: closure
+            .blocks
+            .iter()
+            .enumerate()
+            .map(|(o, b)| tiles_of(o, b))
+            .collect(),
         diamonds,
     };
 
