@@ -389,17 +389,7 @@ fn build_streaming<S: RowSource>(
     //
     // Checked before the partial database and the spill are created, so a budget that
     // is too small leaves nothing behind.
-    let opts = StreamOptions {
-        n,
-        mode,
-        memory_budget_bytes: encoder_budget(
-            budget_mb,
-            planar_diamonds(width * height, n),
-            source_bytes,
-        )?,
-        sparse: args.sparse || mosaic::is_mosaic(&args.input),
-        rdo: args.rdo.mode(),
-    };
+    let opts = stream_options(args, width * height, (n, mode, budget_mb), source_bytes)?;
     let (meta, description, encode_seconds) = with_builder(args, |builder| {
         let mut builder = builder
             .spill_to_disk()
@@ -486,20 +476,8 @@ fn build_cube_streaming<S: CubeSource>(
     started: Instant,
 ) -> Result<BuildSummary> {
     let face_side = cube.face_side();
-    let samples = 6 * (face_side + 1) * (face_side + 1);
     tracing::info!(face_side, budget_mb, "out-of-core planet build");
-    let opts = CubeOptions {
-        n,
-        mode,
-        memory_budget_bytes: encoder_budget(
-            budget_mb,
-            cube_diamonds(samples, n, mode),
-            source_bytes,
-        )?,
-        sparse,
-        rdo: args.rdo.mode(),
-        keep_decoded: false,
-    };
+    let opts = cube_options(args, face_side, (n, mode, budget_mb, sparse), source_bytes)?;
     let radius = radius_m(args)?;
     let built = with_builder(args, |builder| {
         let mut builder = builder
@@ -547,6 +525,68 @@ fn build_cube_streaming<S: CubeSource>(
     Ok(summary)
 }
 
+/// The streaming encoder's options for a planar elevation build of `samples` out of core
+/// (one process, or a shard: the same budget, so the same chunking).
+pub(crate) fn stream_options(
+    args: &BuildArgs,
+    samples: usize,
+    (n, mode, budget_mb): (usize, RateMode, u64),
+    source_bytes: usize,
+) -> Result<StreamOptions> {
+    Ok(StreamOptions {
+        n,
+        mode,
+        memory_budget_bytes: encoder_budget(budget_mb, planar_diamonds(samples, n), source_bytes)?,
+        sparse: args.sparse || mosaic::is_mosaic(&args.input),
+        rdo: args.rdo.mode(),
+    })
+}
+
+/// The out-of-core planet encoder's options for a planet of face side `face_side` (one
+/// process, or a shard: the same budget, so the same tiles).
+pub(crate) fn cube_options(
+    args: &BuildArgs,
+    face_side: usize,
+    (n, mode, budget_mb, sparse): (usize, RateMode, u64, bool),
+    source_bytes: usize,
+) -> Result<CubeOptions> {
+    let samples = 6 * (face_side + 1) * (face_side + 1);
+    Ok(CubeOptions {
+        n,
+        mode,
+        memory_budget_bytes: encoder_budget(
+            budget_mb,
+            cube_diamonds(samples, n, mode),
+            source_bytes,
+        )?,
+        sparse,
+        rdo: args.rdo.mode(),
+        keep_decoded: false,
+    })
+}
+
+/// The cube frame of face side `face_side`, or why it cannot be one.
+fn cube_frame(face_side: usize, n: usize) -> Result<SphereFrame> {
+    SphereFrame::new(face_side, n, None)
+        .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))
+}
+
+/// `--face-side`, or the default for a mosaic's finest tiles.
+fn mosaic_face_side(args: &BuildArgs, mosaic: &mosaic::Mosaic, n: usize) -> usize {
+    args.face_side
+        .unwrap_or_else(|| planet::default_face_side(mosaic.finest_spacing(), n))
+}
+
+/// What the metadata records of a mosaic's tiles once read (`assembled`).
+fn mosaic_source(mosaic: &mosaic::Mosaic, a: mosaic::Assembled, georef: Option<Georef>) -> Source {
+    Source {
+        units: a.units,
+        source_samples: mosaic.source_samples,
+        nodata_count: a.nodata_count,
+        georef,
+    }
+}
+
 /// Publishes a planet's elevation encoded out of core (by one process, or by a sharded
 /// build's merge).
 pub(crate) fn publish_cube(
@@ -573,32 +613,17 @@ pub(crate) fn with_cube_source<T>(
     if mosaic::is_mosaic(&args.input) {
         let mosaic = mosaic::Mosaic::open(&args.input)?;
         mosaic.check_planet()?;
-        let face_side = args
-            .face_side
-            .unwrap_or_else(|| planet::default_face_side(mosaic.finest_spacing(), n));
-        let frame = SphereFrame::new(face_side, n, None)
-            .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
+        let frame = cube_frame(mosaic_face_side(args, &mosaic, n), n)?;
         let mut cube = mosaic.cube_rows(&frame)?;
         let held = cube.held_bytes();
         let out = f(&mut cube, held, true)?;
-        let a = cube.assembled();
-        return Ok((
-            out,
-            Source {
-                units: a.units,
-                source_samples: mosaic.source_samples,
-                nodata_count: a.nodata_count,
-                georef: None,
-            },
-        ));
+        return Ok((out, mosaic_source(&mosaic, cube.assembled(), None)));
     }
     let raster = input::read_heights(&args.input)
         .with_context(|| format!("reading {}", args.input.display()))?;
     let g = &raster.grid;
     let face_side = planet_face_side(args, raster.georef.as_ref(), g.width, g.height, n)?;
-    let frame = SphereFrame::new(face_side, n, None)
-        .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
-    let mut cube = planet::EquirectRows::new(&raster, &frame)?;
+    let mut cube = planet::EquirectRows::new(&raster, &cube_frame(face_side, n)?)?;
     let out = f(&mut cube, grid_bytes(&raster.grid), args.sparse)?;
     Ok((out, Source::of(&raster)))
 }
@@ -1108,8 +1133,7 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         let (pixels, domain) = if args.planet {
             let face_side =
                 planet_face_side(args, image.georef.as_ref(), image.width, image.height, n)?;
-            let frame = SphereFrame::new(face_side, n, None)
-                .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
+            let frame = cube_frame(face_side, n)?;
             if let Some(budget_mb) = args.memory_budget_mb
                 && in_memory_mb(frame.distinct_points(), 3) > budget_mb
             {
@@ -1166,8 +1190,7 @@ fn build(args: &BuildArgs) -> Result<BuildSummary> {
         if args.planet {
             let g = &raster.grid;
             let face_side = planet_face_side(args, raster.georef.as_ref(), g.width, g.height, n)?;
-            let frame = SphereFrame::new(face_side, n, None)
-                .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
+            let frame = cube_frame(face_side, n)?;
             let source = g.width * g.height / SOURCE_SAMPLES_PER_CODED;
             if let Some(budget_mb) = args.memory_budget_mb
                 && in_memory_mb(frame.distinct_points() + source, 1) > budget_mb
@@ -1279,27 +1302,15 @@ fn build_mosaic(
     let encode_started;
     let coded = if args.planet {
         mosaic.check_planet()?;
-        let face_side = args
-            .face_side
-            .unwrap_or_else(|| planet::default_face_side(mosaic.finest_spacing(), n));
+        let face_side = mosaic_face_side(args, &mosaic, n);
         // Before the geometry, whose tables grow with the face side too.
         let samples = 6 * (face_side as u64 + 1).pow(2);
         if let Some(budget_mb) = args.memory_budget_mb
             && in_memory_mb(samples as usize, 1) > budget_mb
         {
-            let frame = SphereFrame::new(face_side, n, None)
-                .with_context(|| format!("--face-side {face_side} must be N x 2^k with N = {n}"))?;
-            let mut cube = mosaic.cube_rows(&frame)?;
+            let mut cube = mosaic.cube_rows(&cube_frame(face_side, n)?)?;
             let held = cube.held_bytes();
-            let facts = |c: &mosaic::MosaicCube<'_>| {
-                let a = c.assembled();
-                Source {
-                    units: a.units,
-                    source_samples: mosaic.source_samples,
-                    nodata_count: a.nodata_count,
-                    georef: None,
-                }
-            };
+            let facts = |c: &mosaic::MosaicCube<'_>| mosaic_source(&mosaic, c.assembled(), None);
             let how = (n, mode, budget_mb, true);
             return build_cube_streaming(args, &mut cube, held, facts, how, started);
         }
@@ -1314,12 +1325,7 @@ fn build_mosaic(
             face_side,
             "resampled the mosaic onto the cube"
         );
-        let source = Source {
-            units: assembled.units,
-            source_samples: mosaic.source_samples,
-            nodata_count: assembled.nodata_count,
-            georef: None,
-        };
+        let source = mosaic_source(&mosaic, assembled, None);
         encode_started = Instant::now();
         encode_planet(
             source,
@@ -1353,12 +1359,7 @@ fn build_mosaic(
         }
         let (grid, georef, assembled) = mosaic.to_grid()?;
         check_budget(args, grid.width * grid.height, 1)?;
-        let source = Source {
-            units: assembled.units,
-            source_samples: mosaic.source_samples,
-            nodata_count: assembled.nodata_count,
-            georef: Some(georef),
-        };
+        let source = mosaic_source(&mosaic, assembled, Some(georef));
         encode_started = Instant::now();
         encode_heights(grid, source, n, mode, true, args.rdo.mode())?
     };

@@ -16,9 +16,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use quincunx_codec::encode::RateMode;
-use quincunx_codec::stream::{
-    self, CubeMerge, CubeOptions, Merge, RowSource, ShardPart, ShardSpec, StreamOptions,
-};
+use quincunx_codec::stream::{self, CubeMerge, Merge, RowSource, ShardPart, ShardSpec};
 use serde::{Deserialize, Serialize};
 
 use crate::build::{self, BuildArgs, FileSpill, FileTiles, Rdo, StreamFacts};
@@ -243,20 +241,9 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
                         "{}/{} of 6 faces of {face_side} x {face_side}",
                         spec.index, spec.count
                     ));
-                    let samples = 6 * (face_side + 1) * (face_side + 1);
-                    // The same encoder budget as one out-of-core build of this input.
-                    let opts = CubeOptions {
-                        n,
-                        mode,
-                        memory_budget_bytes: build::encoder_budget(
-                            budget_mb,
-                            build::cube_diamonds(samples, n, mode),
-                            held,
-                        )?,
-                        sparse,
-                        rdo: Default::default(),
-                        keep_decoded: false,
-                    };
+                    // The same options as one out-of-core build of this input.
+                    let how = (n, mode, budget_mb, sparse);
+                    let opts = build::cube_options(args, face_side, how, held)?;
                     let mut spill = FileSpill::beside(&partial)?;
                     let mut tiles = FileTiles::beside(&partial)?;
                     let part = stream::encode_cube_shard(
@@ -294,18 +281,9 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
                 "{}/{} of {width} x {height}",
                 spec.index, spec.count
             ));
-            // The same encoder budget as one out-of-core build of this input.
-            let opts = StreamOptions {
-                n,
-                mode,
-                memory_budget_bytes: build::encoder_budget(
-                    budget_mb,
-                    build::planar_diamonds(width * height, n),
-                    source.held_bytes(),
-                )?,
-                sparse: args.sparse || planar_mosaic,
-                rdo: Default::default(),
-            };
+            // The same options as one out-of-core build of this input.
+            let how = (n, mode, budget_mb);
+            let opts = build::stream_options(args, width * height, how, source.held_bytes())?;
             let mut part = stream::encode_shard(source.rows(), opts, spec, Vec::new(), &mut put)
                 .context("encoding the shard")?;
             part.set_extra(serde_json::to_vec(&facts(source.facts()))?);

@@ -185,21 +185,7 @@ impl DecodedTiles {
                 self.face_side
             ));
         }
-        let lattice = Lattice::new(self.face_side, self.t, 0, 0);
-        let t = self.t;
-        let mut tile = vec![0i32; t * t];
-        for tv in first / t..(first + count).div_ceil(t) {
-            for tu in 0..lattice.per {
-                tiles.read(lattice.offset(lattice.tile_no(face, tv, tu)), &mut tile)?;
-                let (u0, u1) = (tu * t, ((tu + 1) * t).min(w));
-                for y in (tv * t).max(first)..((tv + 1) * t).min(first + count) {
-                    let r = y - first;
-                    let ty = y - tv * t;
-                    out[r * w + u0..r * w + u1].copy_from_slice(&tile[ty * t..ty * t + (u1 - u0)]);
-                }
-            }
-        }
-        Ok(())
+        Lattice::new(self.face_side, self.t, 0, 0).read_rows(tiles, (face, first, count), out)
     }
 }
 
@@ -424,19 +410,12 @@ fn scan_cube(
     let mut scan = Scan::new(source.quantum_m());
     let mut canon = HashMap::new();
     let mut vals = vec![0.0; tile * w];
-    let mut counted = 0;
     meter.note(vals.len() * 8);
     for face in 0..6 {
         for first in (0..w).step_by(tile) {
             let count = tile.min(w - first);
             let band = &mut vals[..count * w];
             read_band(source, &borders, &mut canon, (face, first, count), band)?;
-            let start = (face * w + first) * w;
-            counted += band
-                .par_iter()
-                .enumerate()
-                .filter(|&(k, v)| v.is_finite() && geom.is_canonical(start + k))
-                .count();
             if let Some(cov) = coverage.as_mut() {
                 for (r, row) in band.chunks_exact(w).enumerate() {
                     cov.mark_row(face, first + r, |u| row[u].is_finite());
@@ -448,6 +427,13 @@ fn scan_cube(
     if scan.valid == 0 {
         return Err(EncodeError::AllNodata);
     }
+    // The valid samples, one copy of each edge point: a copy is valid when its canonical
+    // one is, whose value it took.
+    let copies = borders.copies.iter().flatten();
+    let counted = scan.valid
+        - copies
+            .filter(|&&(_, _, k)| canon.get(&k).is_some_and(|v| v.is_finite()))
+            .count();
     let coverage = coverage.map(CubeCoverage::finish);
     let geom = match &coverage {
         Some(c) => geom.covered(c)?,
@@ -467,6 +453,14 @@ fn scan_cube(
     })
 }
 
+/// An empty spill of every diamond's details of `geom` (slot 0 of `spill`, cleared).
+fn detail_spill(geom: &SphereGeometry, spill: &mut dyn IndexSpill) -> Result<Spill, EncodeError> {
+    let lens = (0..geom.slot_levels().len()).map(|l| geom.level(l).len());
+    let mut store = Spill::with_levels(geom.n(), 0, lens);
+    store.clear(spill)?;
+    Ok(store)
+}
+
 /// An empty spill of details (slot 0 of `spill`, cleared) and side information, for an
 /// analysis of `geom`.
 fn analysis_state(
@@ -474,8 +468,7 @@ fn analysis_state(
     spill: &mut dyn IndexSpill,
 ) -> Result<(Spill, Side), EncodeError> {
     let levels = geom.slot_levels().len();
-    let mut store = Spill::with_levels(geom.n(), 0, (0..levels).map(|l| geom.level(l).len()));
-    store.clear(spill)?;
+    let store = detail_spill(geom, spill)?;
     let side = Side {
         gamma: vec![Vec::new(); levels],
         has_data: vec![Vec::new(); levels],
@@ -929,6 +922,57 @@ impl Lattice {
 
     fn tiles(&self) -> usize {
         6 * self.per * self.per
+    }
+
+    /// Points to a side of a face of this raster.
+    fn side(&self) -> usize {
+        ((self.w - 1) >> self.shift) + 1
+    }
+
+    /// Reads face `face`'s rows `first .. first + count` of this raster (`count x side`
+    /// values) from `tiles`.
+    fn read_rows(
+        &self,
+        tiles: &mut dyn TileStore,
+        (face, first, count): (usize, usize, usize),
+        out: &mut [i32],
+    ) -> Result<(), String> {
+        let (t, w) = (self.t, self.side());
+        let mut tile = vec![0i32; t * t];
+        for tv in first / t..(first + count).div_ceil(t) {
+            for tu in 0..self.per {
+                tiles.read(self.offset(self.tile_no(face, tv, tu)), &mut tile)?;
+                let (u0, u1) = (tu * t, ((tu + 1) * t).min(w));
+                for y in (tv * t).max(first)..((tv + 1) * t).min(first + count) {
+                    let (r, ty) = (y - first, y - tv * t);
+                    out[r * w + u0..r * w + u1].copy_from_slice(&tile[ty * t..ty * t + (u1 - u0)]);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes every row of face `face` of this raster (`side x side` values) as its tiles.
+    fn write_face(
+        &self,
+        tiles: &mut dyn TileStore,
+        face: usize,
+        rows: &[i32],
+    ) -> Result<(), String> {
+        let (t, w) = (self.t, self.side());
+        let mut tile = vec![0i32; t * t];
+        for tv in 0..self.per {
+            for tu in 0..self.per {
+                tile.iter_mut().for_each(|x| *x = 0);
+                let (u0, u1) = (tu * t, ((tu + 1) * t).min(w));
+                for y in tv * t..((tv + 1) * t).min(w) {
+                    let ty = y - tv * t;
+                    tile[ty * t..ty * t + (u1 - u0)].copy_from_slice(&rows[y * w + u0..y * w + u1]);
+                }
+                tiles.write(self.offset(self.tile_no(face, tv, tu)), &tile)?;
+            }
+        }
+        Ok(())
     }
 
     /// Values the tiles take.

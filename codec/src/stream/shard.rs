@@ -538,8 +538,7 @@ impl Merge {
             side.bounds[l][i] = b;
         })?;
         side.counts = joined.counts;
-        let (coarse, pieces, max) = (joined.coarse, joined.pieces, joined.max);
-        let sum2 = pieces.iter().fold(0.0, |s, &(_, x)| s + x);
+        let (coarse, sum2, max) = (joined.coarse, joined.sum2, joined.max);
         let mut meter = Meter::default();
         let mut unused = Errors::default();
         let last = run_octaves(
@@ -575,11 +574,6 @@ impl Merge {
             max,
             meter,
         })
-    }
-
-    /// The `extra` bytes the shards were given.
-    pub fn extra(&self) -> &[u8] {
-        &self.header.extra
     }
 
     /// Codes the blobs of shard diamonds `(level, index, details)` (in parallel) into
@@ -755,8 +749,8 @@ pub(super) struct Joined {
     pub(super) coarse: Vec<i32>,
     /// The summed training counts.
     pub(super) counts: ContextCounts,
-    /// The error sums in sample order, as one process adds them.
-    pub(super) pieces: Vec<(u64, f64)>,
+    /// The parts' error sums added in sample order, as one process adds them.
+    pub(super) sum2: f64,
     /// The largest error.
     pub(super) max: f64,
 }
@@ -774,9 +768,10 @@ pub(super) fn join_parts(
     let mut joined = Joined {
         coarse: Vec::with_capacity(total),
         counts: ContextCounts::default(),
-        pieces: Vec::new(),
+        sum2: 0.0,
         max: 0.0,
     };
+    let mut pieces = Vec::new();
     let mut filled: Vec<Vec<bool>> = lens[fine_from..].iter().map(|&n| vec![false; n]).collect();
     for p in parts {
         let bad = |what: &str| EncodeError::Shard(format!("part {}: {what}", p.index));
@@ -807,7 +802,7 @@ pub(super) fn join_parts(
                 .counts
                 .merge(&counts.ok_or_else(|| bad("bad training counts"))?);
         }
-        joined.pieces.extend(p.pieces);
+        pieces.extend(p.pieces);
         joined.max = joined.max.max(p.max_error);
     }
     if joined.coarse.len() != total {
@@ -818,12 +813,13 @@ pub(super) fn join_parts(
     if filled.iter().any(|l| l.iter().any(|&f| !f)) {
         return Err(EncodeError::Shard("the parts miss some diamonds".into()));
     }
-    joined.pieces.sort_by_key(|&(at, _)| at);
-    if joined.pieces.windows(2).any(|w| w[0].0 == w[1].0) {
+    pieces.sort_by_key(|&(at, _)| at);
+    if pieces.windows(2).any(|w| w[0].0 == w[1].0) {
         return Err(EncodeError::Shard(
             "two parts measured the same samples".into(),
         ));
     }
+    joined.sum2 = pieces.iter().fold(0.0, |s, &(_, x)| s + x);
     Ok(joined)
 }
 

@@ -33,7 +33,7 @@ use super::super::{DetailsOut, IndexSpill, Meter};
 use super::{
     BlobSink, Borders, CONTEXT_ROWS, CubeEncoded, CubeOptions, CubeSource, Lattice, Only, Partial,
     Scanned, Side, Spill, TileStore, analyse_octaves, analysis_state, code_blobs, compact,
-    diamond_tiles, gather_roots, lattice_at, scan_cube, write_integers,
+    detail_spill, diamond_tiles, gather_roots, lattice_at, scan_cube, write_integers,
 };
 use crate::coverage::Coverage;
 use crate::encode::{EncodeError, EncodeReport, PASS_CHUNK, SideInfo, Tally, rms_of_pieces};
@@ -68,7 +68,12 @@ struct Closure {
 }
 
 impl CubeLayout {
-    fn new(geom: &SphereGeometry, b: usize, count: usize) -> Result<CubeLayout, EncodeError> {
+    /// The layout of `count` shards, and what shard `k` holds and analyses.
+    fn new(
+        geom: &SphereGeometry,
+        b: usize,
+        (k, count): (usize, usize),
+    ) -> Result<(CubeLayout, Closure), EncodeError> {
         let (face_side, n) = (geom.face_side(), geom.n());
         let w = face_side + 1;
         let most = 6 * (face_side / (2 * n)).max(1);
@@ -127,29 +132,31 @@ impl CubeLayout {
             split: 0,
             groups,
         };
-        // The split octave: the least critical path in tiles analysed, the widest
+        // The split octave: the least critical path in blocks analysed, the widest
         // shard's fine octaves then the merge's coarse ones twice (analysis, coding).
         let total = Lattice::new(face_side, b, 0, 0).tiles() as f64;
-        let mut best: Option<(f64, usize)> = None;
+        let mut best: Option<(f64, usize, Closure)> = None;
         for split in 1..octaves {
-            let widest = (0..count)
-                .map(|k| {
-                    layout
-                        .closure(geom, k, split)
-                        .map(|c| c.blocks[0].iter().filter(|&&x| x).count())
-                })
-                .collect::<Result<Vec<usize>, EncodeError>>()?
-                .into_iter()
-                .max()
-                .unwrap_or(0);
+            let mut widest = 0;
+            let mut mine = None;
+            for shard in 0..count {
+                let c = layout.closure(geom, shard, split)?;
+                widest = widest.max(c.blocks[0].iter().filter(|&&x| x).count());
+                if shard == k {
+                    mine = Some(c);
+                }
+            }
             let keep = 0.25f64.powi(split as i32);
             let cost = widest as f64 * (1.0 - keep) + 2.0 * total * keep;
-            if best.is_none_or(|(c, _)| cost < c) {
-                best = Some((cost, split));
+            if best.as_ref().is_none_or(|(c, ..)| cost < *c)
+                && let Some(mine) = mine
+            {
+                best = Some((cost, split, mine));
             }
         }
-        layout.split = best.map_or(1, |b| b.1);
-        Ok(layout)
+        let (_, split, closure) = best.ok_or(EncodeError::Internal("no split octave"))?;
+        layout.split = split;
+        Ok((layout, closure))
     }
 
     /// Rows of `R_split` (global: `face ((S >> split) + 1) + y`) whose first entry is in
@@ -173,24 +180,24 @@ impl CubeLayout {
         k: usize,
         split: usize,
     ) -> Result<Closure, EncodeError> {
-        let (face_side, t) = (geom.face_side(), self.b);
+        let (face_side, b) = (geom.face_side(), self.b);
         let levels = geom.slot_levels().len();
-        let top = Lattice::new(face_side, t, split, 0);
-        let ws = (face_side >> split) + 1;
-        let mut req = vec![false; top.tiles()];
+        let top = Lattice::new(face_side, b, split, 0);
+        let ws = top.side();
+        let mut blocks = vec![Vec::new(); split + 1];
+        blocks[split] = vec![false; top.tiles()];
         for r in self.coarse_rows(face_side, k, split) {
-            for tu in 0..top.per {
-                req[top.tile_no(r / ws, (r % ws) / t, tu)] = true;
+            for bu in 0..top.per {
+                blocks[split][top.tile_no(r / ws, (r % ws) / b, bu)] = true;
             }
         }
-        let mut blocks = vec![Vec::new(); split + 1];
         let mut groups: Vec<Option<Vec<bool>>> = (0..levels).map(|_| None).collect();
-        blocks[split] = req.clone();
         for o in (0..split).rev() {
             let (up, here) = (
-                Lattice::new(face_side, t, o + 1, 0),
-                Lattice::new(face_side, t, o, 0),
+                Lattice::new(face_side, b, o + 1, 0),
+                Lattice::new(face_side, b, o, 0),
             );
+            let req = &blocks[o + 1];
             let mut after = vec![false; here.tiles()];
             for face in 0..6 {
                 for tv in 0..up.per {
@@ -225,8 +232,7 @@ impl CubeLayout {
                 }
                 groups[level] = Some(need);
             }
-            blocks[o] = after.clone();
-            req = after;
+            blocks[o] = after;
         }
         Ok(Closure { blocks, groups })
     }
@@ -262,10 +268,9 @@ pub fn encode_cube_shard(
         counted: valid,
     } = scan_cube(source, opts, &mut meter)?;
     let block = if n < t && t.is_multiple_of(n) { n } else { t };
-    let layout = CubeLayout::new(&geom, block, spec.count)?;
+    let (layout, closure) = CubeLayout::new(&geom, block, (spec.index, spec.count))?;
     let (k, split) = (spec.index, layout.split);
     let band = layout.bands[k].clone();
-    let closure = layout.closure(&geom, k, split)?;
     let levels = geom.slot_levels().len();
     let fine_from = levels - 2 * split;
     let mut owned = vec![Vec::new(); levels];
@@ -340,7 +345,7 @@ pub fn encode_cube_shard(
         Some((&only.tiles[split - 1], &only.tiles[split])),
     )?;
     let coarse_rows = layout.coarse_rows(face_side, k, split);
-    let coarse = read_rows(&top, face_side, coarse_rows.clone(), tiles)?;
+    let coarse = read_rows(&top, coarse_rows.clone(), tiles)?;
 
     let mut entries: Vec<SideEntry> = Vec::new();
     let mut h = vec![0i32; n * n];
@@ -496,35 +501,24 @@ fn pass_one_bands(
     Ok(bands)
 }
 
-/// Global rows `rows` of `R_o` (`lattice`) from the tiles: `rows.len() x ((S >> o) + 1)`
-/// values.
+/// Global rows `rows` of `R_o` (`lattice`: `face (side) + y`) from the tiles.
 fn read_rows(
     lattice: &Lattice,
-    face_side: usize,
     rows: Range<usize>,
     tiles: &mut dyn TileStore,
 ) -> Result<Vec<i32>, EncodeError> {
-    let t = lattice.t;
-    let ws = (face_side >> lattice.shift) + 1;
+    let ws = lattice.side();
     let mut out = vec![0i32; rows.len() * ws];
-    let mut tile = vec![0i32; t * t];
     let mut r = rows.start;
     while r < rows.end {
+        // The rest of this face's rows.
         let (face, y) = (r / ws, r % ws);
-        let tv = y / t;
-        let last = (face * ws + ((tv + 1) * t).min(ws)).min(rows.end);
-        for tu in 0..lattice.per {
-            tiles
-                .read(lattice.offset(lattice.tile_no(face, tv, tu)), &mut tile)
-                .map_err(EncodeError::Source)?;
-            let (x0, x1) = (tu * t, ((tu + 1) * t).min(ws));
-            for row in r..last {
-                let ty = row % ws - tv * t;
-                let o = (row - rows.start) * ws;
-                out[o + x0..o + x1].copy_from_slice(&tile[ty * t..ty * t + (x1 - x0)]);
-            }
-        }
-        r = last;
+        let count = (ws - y).min(rows.end - r);
+        let o = (r - rows.start) * ws;
+        lattice
+            .read_rows(tiles, (face, y, count), &mut out[o..o + count * ws])
+            .map_err(EncodeError::Source)?;
+        r += count;
     }
     Ok(out)
 }
@@ -541,7 +535,8 @@ pub struct CubeMerge {
     store: Spill,
     fine_from: usize,
     seen: Vec<Vec<bool>>,
-    pieces: Vec<(f64, f64)>,
+    /// The integerisation's summed squared errors (in sample order) and largest error.
+    errors: (f64, f64),
     meter: Meter,
 }
 
@@ -601,35 +596,15 @@ impl CubeMerge {
                 }
             },
         )?;
-        let (coarse, pieces, max) = (joined.coarse, joined.pieces, joined.max);
-        let pieces = pieces
-            .iter()
-            .enumerate()
-            .map(|(k, &(_, s))| (s, if k == 0 { max } else { 0.0 }))
-            .collect();
         let mut meter = Meter::default();
-        meter.note(coarse.len() * 4);
+        meter.note(joined.coarse.len() * 4);
         let second = Lattice::new(face_side, t, 0, 0).len();
         let top = lattice_at(face_side, t, split, second);
-        let mut tile = vec![0i32; t * t];
-        for face in 0..6 {
-            for tv in 0..top.per {
-                for tu in 0..top.per {
-                    tile.iter_mut().for_each(|x| *x = 0);
-                    for y in tv * t..((tv + 1) * t).min(ws) {
-                        let (x0, x1) = (tu * t, ((tu + 1) * t).min(ws));
-                        let row = (face * ws + y) * ws;
-                        tile[(y - tv * t) * t..(y - tv * t) * t + (x1 - x0)]
-                            .copy_from_slice(&coarse[row + x0..row + x1]);
-                    }
-                    tiles
-                        .write(top.offset(top.tile_no(face, tv, tu)), &tile)
-                        .map_err(EncodeError::Sink)?;
-                }
-            }
+        for (face, rows) in joined.coarse.chunks_exact(ws * ws).enumerate() {
+            top.write_face(tiles, face, rows)
+                .map_err(EncodeError::Sink)?;
         }
-        let mut store = Spill::with_levels(header.n, 0, (0..levels).map(|l| geom.level(l).len()));
-        store.clear(spill)?;
+        let store = detail_spill(&geom, spill)?;
         Ok(CubeMerge {
             header,
             geom,
@@ -638,14 +613,9 @@ impl CubeMerge {
             store,
             fine_from,
             seen,
-            pieces,
+            errors: (joined.sum2, joined.max),
             meter,
         })
-    }
-
-    /// The `extra` bytes the shards were given.
-    pub fn extra(&self) -> &[u8] {
-        &self.header.extra
     }
 
     /// Takes the details of shard diamonds `(level, index, details)` into the spill.
@@ -719,7 +689,7 @@ impl CubeMerge {
             roots: &roots,
             model: &model,
             steps: steps.len(),
-            errors: rms_of_pieces(&self.pieces, h.valid),
+            errors: rms_of_pieces(&[self.errors], h.valid),
             rdo: false,
             decodes: 0,
         });
