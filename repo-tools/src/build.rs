@@ -857,7 +857,7 @@ fn streamed_rgb_error(
             offset: enc.value_offset_m,
         })
         .collect();
-    rows::rgb_error_in_step(&steps, image).context("decoding colour for measurement")
+    rows::rgb_error_in_step(&steps, image, None).context("decoding colour for measurement")
 }
 
 /// Detail and index matrices between passes (the RMS rate control's attempts, the planet

@@ -68,6 +68,9 @@ pub struct DemoArgs {
     /// of serving until Ctrl-C (used by CI).
     #[arg(long)]
     pub smoke: bool,
+    /// Build and verify the sample repositories, then stop (no queries, no server).
+    #[arg(long)]
+    pub build_only: bool,
 }
 
 /// Runs `quincunx demo`.
@@ -98,6 +101,9 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             json: false,
             stream: false,
         })?;
+    }
+    if args.build_only {
+        return Ok(());
     }
     let earth = dir.join("earth");
     outln!("heights on the bundled planet (lat lon [m]):");

@@ -9,8 +9,9 @@ use quincunx_codec::stream::{self, RowDecode};
 /// Gives a diamond's blob of one channel: `(level, index) -> bytes` (`None`: no blob).
 pub type BlobOf<'a> = dyn Fn(usize, usize) -> Result<Option<Vec<u8>>, String> + Sync + 'a;
 
-/// Receives row `r` of every channel, in units.
-pub type OnRow<'a> = dyn FnMut(usize, &[Vec<f64>]) -> Result<()> + 'a;
+/// Receives row `r` of every channel, as decoded integers ([`StepChannel::units`] turns
+/// them into units).
+pub type OnRow<'a> = dyn FnMut(usize, &[Vec<i32>]) -> Result<()> + 'a;
 
 /// One channel to decode: its encoding, where its blobs come from, and its units
 /// (`value = offset + integer x scale`).
@@ -25,8 +26,17 @@ pub struct StepChannel<'a> {
     pub offset: f64,
 }
 
+impl StepChannel<'_> {
+    /// A row of decoded integers in units.
+    pub fn units(&self, row: &[i32]) -> Vec<f64> {
+        row.iter()
+            .map(|&v| self.offset + v as f64 * self.scale)
+            .collect()
+    }
+}
+
 /// Decodes `channels` in step, each on its own thread, and hands every row of all of
-/// them, in units, to `on_row(row, channels' rows)` in order. Memory: a few diamond
+/// them, as integers, to `on_row(row, channels' rows)` in order. Memory: a few diamond
 /// heights of rows per octave and channel.
 pub fn decode_in_step(
     channels: &[StepChannel<'_>],
@@ -37,21 +47,17 @@ pub fn decode_in_step(
         let mut receivers = Vec::new();
         let mut workers = Vec::new();
         for ch in channels {
-            let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<f64>>(16);
+            let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<i32>>(16);
             receivers.push(rx);
             workers.push(scope.spawn(move || {
                 stream::decode_rows(ch.decode, ch.blob, &mut |_, row| {
-                    let values = row
-                        .iter()
-                        .map(|&v| ch.offset + v as f64 * ch.scale)
-                        .collect();
-                    tx.send(values).map_err(|e| e.to_string())
+                    tx.send(row.to_vec()).map_err(|e| e.to_string())
                 })
             }));
         }
         let mut result = Ok(());
         for r in 0..height {
-            let rows: Result<Vec<Vec<f64>>, _> = receivers.iter().map(|rx| rx.recv()).collect();
+            let rows: Result<Vec<Vec<i32>>, _> = receivers.iter().map(|rx| rx.recv()).collect();
             match rows {
                 Ok(rows) => {
                     if let Err(e) = on_row(r, &rows) {
@@ -80,10 +86,11 @@ pub fn decode_in_step(
 
 /// RMS and largest RGB error of three decoded YCoCg-R channels against `image`: the
 /// channels decoded in step, rounded as `encode::decode` and the in-memory measurement
-/// round them, compared in pixel order.
+/// round them, compared in pixel order. With `hash`, every row's integers also go into it.
 pub fn rgb_error_in_step(
     channels: &[StepChannel<'_>],
     image: &crate::input::RgbImage,
+    mut hash: Option<&mut crate::verify::ReconstructionHash>,
 ) -> Result<(f64, f64)> {
     if channels.len() != 3 {
         return Err(anyhow!("a colour repository needs 3 channels"));
@@ -91,9 +98,13 @@ pub fn rgb_error_in_step(
     let w = image.width;
     let mut error = RgbError::default();
     decode_in_step(channels, image.height, &mut |r, values| {
+        if let Some(hash) = hash.as_deref_mut() {
+            hash.add(values);
+        }
         let ints: Vec<Vec<i32>> = values
             .iter()
-            .map(|row| row.iter().map(|v| v.round() as i32).collect())
+            .zip(channels)
+            .map(|(row, ch)| ch.units(row).iter().map(|v| v.round() as i32).collect())
             .collect();
         error.add(
             &image.pixels[r * w..(r + 1) * w],

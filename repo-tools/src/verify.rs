@@ -57,6 +57,44 @@ pub struct VerifyReport {
     pub max_abs_m: Option<f64>,
     /// Sphere repositories: cube edge/corner samples whose face copies disagree.
     pub seam_mismatches: Option<u64>,
+    /// SHA-256 (hex) of the full-resolution reconstruction in the canonical layout of
+    /// `docs/blob-format.md` ("Reconstruction hash"): what `web-demo/tools/decode-repo.mjs`
+    /// prints for the same repository's export.
+    pub decoded_sha256: String,
+}
+
+/// The reconstruction hash of `docs/blob-format.md`: every point in the domain's sample
+/// order, its channels' decoded integers one after another, each `i32` little-endian.
+#[derive(Default)]
+pub struct ReconstructionHash {
+    sha: sha2::Sha256,
+    bytes: Vec<u8>,
+}
+
+impl ReconstructionHash {
+    /// Adds a run of points: `channels[c][k]` is channel `c` of the run's point `k`.
+    pub fn add<V: AsRef<[i32]>>(&mut self, channels: &[V]) {
+        use sha2::Digest;
+        let len = channels.first().map_or(0, |c| c.as_ref().len());
+        self.bytes.clear();
+        self.bytes.reserve(len * 4 * channels.len());
+        for k in 0..len {
+            for c in channels {
+                self.bytes.extend_from_slice(&c.as_ref()[k].to_le_bytes());
+            }
+        }
+        self.sha.update(&self.bytes);
+    }
+
+    /// The hash, lower-case hex.
+    pub fn finish(self) -> String {
+        use sha2::Digest;
+        self.sha
+            .finalize()
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect()
+    }
 }
 
 /// Runs `quincunx verify`; fails (exit 1) when any check fails.
@@ -220,6 +258,9 @@ fn verify(args: &VerifyArgs) -> Result<VerifyReport> {
     let decoded = decode_repository(&repo)?;
     report.decode_msamples_per_s =
         (samples * decoded.values.len() as u64) as f64 / decoded.seconds / 1e6;
+    let mut hash = ReconstructionHash::default();
+    hash.add(&decoded.values);
+    report.decoded_sha256 = hash.finish();
     if let Geometry::Sphere(g) = &decoded.geom {
         report.seam_mismatches = Some(
             decoded
@@ -357,21 +398,26 @@ fn verify_rows(
     };
     let colour = meta.attribute.kind == quincunx_store::AttributeKind::Colour;
     let started = Instant::now();
+    let mut hash = ReconstructionHash::default();
     match &args.source {
-        None => rows::decode_in_step(&channels, h, &mut |_, _| Ok(()))?,
+        None => rows::decode_in_step(&channels, h, &mut |_, ints| {
+            hash.add(ints);
+            Ok(())
+        })?,
         Some(source) if colour => {
             let image =
                 input::read_rgb(source).with_context(|| format!("reading {}", source.display()))?;
             check_size(image.width, image.height)?;
-            let (rms, max) = rows::rgb_error_in_step(&channels, &image)?;
+            let (rms, max) = rows::rgb_error_in_step(&channels, &image, Some(&mut hash))?;
             (report.rms_m, report.max_abs_m) = (Some(rms), Some(max));
         }
         Some(source) => {
             let mut reference = SourceRows::open(source)?;
             check_size(reference.width, reference.height)?;
             let (mut sum, mut max, mut valid) = (0.0, 0.0f64, 0usize);
-            rows::decode_in_step(&channels, h, &mut |r, values| {
-                for (&d, &v) in values[0].iter().zip(reference.row(r)?) {
+            rows::decode_in_step(&channels, h, &mut |r, ints| {
+                hash.add(ints);
+                for (&d, &v) in channels[0].units(&ints[0]).iter().zip(reference.row(r)?) {
                     if v.is_finite() {
                         let e = (d - v).abs();
                         sum += e * e;
@@ -387,6 +433,7 @@ fn verify_rows(
     }
     report.decode_msamples_per_s =
         (report.samples * count as u64) as f64 / started.elapsed().as_secs_f64() / 1e6;
+    report.decoded_sha256 = hash.finish();
     Ok(())
 }
 
