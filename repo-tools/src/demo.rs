@@ -144,6 +144,11 @@ fn serve(args: &DemoArgs) -> Result<()> {
             })?;
         let addr = server.local_addr()?;
         outln!("\nserving the sample repositories on http://{addr}/");
+        outln!("fly over them in a browser (WebGL2):");
+        outln!("  http://{addr}/view?repo=korea&uv=0.5,0.5&height_m=3000&pitch_deg=-30");
+        outln!(
+            "  http://{addr}/view?repo=earth&colour=earth_colour&lat_lon=36,128&height_m=2000000&pitch_deg=-60"
+        );
         outln!("example requests:");
         for (path, _) in &examples {
             outln!("  curl -sI http://{addr}{path}");

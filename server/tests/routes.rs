@@ -254,11 +254,45 @@ async fn listing_metadata_health_metrics_and_demo_answer() {
     assert!(metrics.contains("quincunx_cache_misses_total 1"));
     let index = get(&f.state, "/").await;
     assert_eq!(index.status, StatusCode::OK);
-    assert!(String::from_utf8(index.body).unwrap().contains("/repos"));
+    let page = String::from_utf8(index.body.clone()).unwrap();
+    assert!(page.contains("/demo/js/viewer.mjs"), "{page}");
+    // `/view?...` is the same page (its script reads the view from the query).
+    let view = get(&f.state, "/view?repo=korea&uv=0.5,0.5&height_m=2000").await;
+    assert_eq!(view.status, StatusCode::OK);
+    assert_eq!(view.body, index.body);
     assert_eq!(
         get(&f.state, "/demo/index.html").await.status,
         StatusCode::OK
     );
+    // Every module the page imports is compiled in, as JavaScript.
+    for module in [
+        "viewer", "client", "codec", "planar", "sphere", "lifting", "worker",
+    ] {
+        let r = get(&f.state, &format!("/demo/js/{module}.mjs")).await;
+        assert_eq!(r.status, StatusCode::OK, "{module}");
+        assert!(
+            r.headers[header::CONTENT_TYPE]
+                .to_str()
+                .unwrap()
+                .starts_with("text/javascript"),
+            "{module}"
+        );
+        assert!(!r.body.is_empty());
+    }
+    // Only the page and its modules: no tools, tests, packages or parent paths.
+    for path in [
+        "/demo/tools/decode-repo.mjs",
+        "/demo/package.json",
+        "/demo/test/decode-repo.test.mjs",
+        "/demo/js/../../Cargo.toml",
+        "/demo/../Cargo.toml",
+    ] {
+        assert_eq!(
+            get(&f.state, path).await.status,
+            StatusCode::NOT_FOUND,
+            "{path}"
+        );
+    }
 }
 
 #[tokio::test]

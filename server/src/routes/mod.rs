@@ -22,6 +22,7 @@ use crate::state::AppState;
 pub fn router(state: AppState) -> Router {
     Router::new()
         .route("/", get(site::index))
+        .route("/view", get(site::index))
         .route("/demo/{*file}", get(site::demo_file))
         .route("/healthz", get(site::healthz))
         .route("/metrics", get(site::metrics))
@@ -42,7 +43,7 @@ fn route_of(path: &str) -> Route {
         "/healthz" => Route::Health,
         "/metrics" => Route::Metrics,
         "/repos" => Route::List,
-        "/" => Route::Static,
+        "/" | "/view" => Route::Static,
         _ if path.starts_with("/repos/") => {
             if path.ends_with("/metadata.json") {
                 Route::Metadata

@@ -1,4 +1,4 @@
-//! `/`, `/demo/...`, `/healthz` and `/metrics`. The web demo's files are compiled into
+//! `/`, `/view`, `/demo/...`, `/healthz` and `/metrics`. The web demo's files are compiled into
 //! the binary: no request path ever reaches the filesystem.
 
 use axum::body::Body;
@@ -9,12 +9,9 @@ use axum::response::{IntoResponse, Response};
 use crate::error::ApiError;
 use crate::state::AppState;
 
-/// The web demo's files: (path under `/demo/`, content type, bytes).
-const DEMO_FILES: &[(&str, &str, &[u8])] = &[(
-    "index.html",
-    "text/html; charset=utf-8",
-    include_bytes!("../../../web-demo/index.html"),
-)];
+/// The web demo's files: (path under `/demo/`, content type, bytes), listed by
+/// `build.rs`: `index.html` and every file under `web-demo/js/`.
+const DEMO_FILES: &[(&str, &str, &[u8])] = include!(concat!(env!("OUT_DIR"), "/demo_files.rs"));
 
 fn file_response(content_type: &'static str, bytes: &'static [u8]) -> Response {
     let mut response = Response::new(Body::from(bytes));
@@ -24,10 +21,13 @@ fn file_response(content_type: &'static str, bytes: &'static [u8]) -> Response {
     response
 }
 
-/// `GET /`: the web demo's landing page.
+/// `GET /` and `GET /view?...`: the web demo's page (the query string is the view, read
+/// by the page's script).
 pub(super) async fn index() -> Response {
-    let (_, content_type, bytes) = DEMO_FILES[0];
-    file_response(content_type, bytes)
+    match DEMO_FILES.iter().find(|(name, _, _)| *name == "index.html") {
+        Some((_, content_type, bytes)) => file_response(content_type, bytes),
+        None => ApiError::not_found("the web demo is not compiled in").into_response(),
+    }
 }
 
 /// `GET /demo/<file>`.
