@@ -1,0 +1,117 @@
+#!/usr/bin/env node
+// Decode speed of the JavaScript decoder in node and in Chromium, against the Rust
+// decoder, on the same blobs: every blob of an exported repository decoded and
+// synthesised to full resolution (web-demo/js/reconstruct.mjs, the refiners the viewer
+// runs), medians of RUNS runs, one JSON line per repository.
+//
+// Usage: node web-demo/tools/bench-decode.mjs <server url> <export dir> <quincunx binary>
+//        <repo dir>... (each repo dir's last path component names its export)
+// The server (any `quincunx serve`) only provides the page origin the modules load from.
+// Chromium: Debian's, headless (CHROMIUM, default /usr/bin/chromium), SwiftShader flags
+// as in browser-views.mjs. Samples are counted as `quincunx verify` counts them.
+
+import { execFileSync } from "node:child_process";
+import { existsSync, readdirSync, readFileSync, statSync } from "node:fs";
+import { basename, join } from "node:path";
+import { chromium } from "playwright-core";
+import { canonicalSha256, reconstruct } from "../js/reconstruct.mjs";
+
+const [url, exportDir, bin, ...repos] = process.argv.slice(2);
+if (!url || !exportDir || !bin || repos.length === 0) {
+  process.stderr.write("usage: bench-decode.mjs <server url> <export dir> <quincunx> <repo dir>...\n");
+  process.exit(2);
+}
+const RUNS = Number(process.env.RUNS ?? 5);
+const median = (xs) => [...xs].sort((a, b) => a - b)[xs.length >> 1];
+
+function readExport(dir) {
+  const meta = JSON.parse(readFileSync(join(dir, "metadata.json"), "utf8"));
+  const root = join(dir, "v", meta.content_hash.slice(0, 16), "d");
+  const blobs = {};
+  const walk = (p, parts) => {
+    for (const e of readdirSync(p)) {
+      const q = join(p, e);
+      if (statSync(q).isDirectory()) walk(q, [...parts, e]);
+      else blobs[[...parts, e].join("/")] = readFileSync(q).toString("base64");
+    }
+  };
+  if (existsSync(root)) walk(root, []);
+  return { meta, blobs };
+}
+
+const browser = await chromium.launch({
+  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
+  headless: true,
+  args: ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
+});
+try {
+  const page = await browser.newPage();
+  await page.goto(`${url}/healthz`);
+  for (const repoDir of repos) {
+    const name = basename(repoDir);
+    const { meta, blobs } = readExport(join(exportDir, "repos", name));
+    const [a, b] = meta.extent;
+    const samples = (meta.domain === "sphere" ? 6 * a * b + 2 : a * b) * meta.channels.length;
+
+    const decoded = Object.fromEntries(Object.entries(blobs).map(([k, v]) => [k, new Uint8Array(Buffer.from(v, "base64"))]));
+    const getBlob = (c) => decoded[c.join("/")] ?? null;
+    const nodeSeconds = [];
+    let hash;
+    for (let r = 0; r < RUNS; r++) {
+      const t = performance.now();
+      const channels = reconstruct(meta, getBlob);
+      nodeSeconds.push((performance.now() - t) / 1000);
+      if (r === 0) hash = await canonicalSha256(channels);
+    }
+
+    const browserRuns = await page.evaluate(
+      async ({ origin, meta, blobs, runs }) => {
+        const { reconstruct, canonicalSha256 } = await import(`${origin}/demo/js/reconstruct.mjs`);
+        const bytes = {};
+        for (const [k, v] of Object.entries(blobs)) {
+          const s = atob(v);
+          const u = new Uint8Array(s.length);
+          for (let i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
+          bytes[k] = u;
+        }
+        const getBlob = (c) => bytes[c.join("/")] ?? null;
+        const seconds = [];
+        let hash;
+        for (let r = 0; r < runs; r++) {
+          const t = performance.now();
+          const channels = reconstruct(meta, getBlob);
+          seconds.push((performance.now() - t) / 1000);
+          if (r === 0) hash = await canonicalSha256(channels);
+        }
+        return { seconds, hash };
+      },
+      { origin: url, meta, blobs, runs: RUNS },
+    );
+
+    const rust = [];
+    let rustHash;
+    for (let r = 0; r < RUNS; r++) {
+      const v = JSON.parse(execFileSync(bin, ["verify", repoDir, "--json"], { encoding: "utf8" }));
+      rust.push(v.decode_msamples_per_s);
+      rustHash = v.decoded_sha256;
+    }
+    const nodeRate = samples / median(nodeSeconds) / 1e6;
+    const chromeRate = samples / median(browserRuns.seconds) / 1e6;
+    const rustRate = median(rust);
+    process.stdout.write(
+      JSON.stringify({
+        repo: name,
+        samples,
+        runs: RUNS,
+        same_hash: hash === rustHash && browserRuns.hash === rustHash,
+        rust_msamples_per_s: rustRate,
+        node_msamples_per_s: nodeRate,
+        chromium_msamples_per_s: chromeRate,
+        node_over_rust: nodeRate / rustRate,
+        chromium_over_rust: chromeRate / rustRate,
+      }) + "\n",
+    );
+  }
+} finally {
+  await browser.close();
+}
