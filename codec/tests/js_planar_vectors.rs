@@ -9,7 +9,7 @@
 //! (so a change of the Rust side that the port must follow fails here first).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-use std::path::PathBuf;
+mod common;
 
 use quincunx_codec::coverage::Coverage;
 use quincunx_codec::diamond::{PlanarDomain, PlanarId};
@@ -19,39 +19,7 @@ use quincunx_codec::lifting::{self, DiamondMask};
 use quincunx_codec::raster::RasterFrame;
 use serde_json::{Value, json};
 
-fn golden(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../web-demo/test/golden")
-        .join(name)
-}
-
-/// Writes (bless) or checks one vector file.
-fn bless_or_check(name: &str, value: &Value) {
-    let path = golden(name);
-    let text = serde_json::to_string(value).unwrap() + "\n";
-    if std::env::var("QUINCUNX_BLESS").is_ok_and(|v| v == "1") {
-        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-        std::fs::write(&path, &text).unwrap();
-        return;
-    }
-    let committed = std::fs::read_to_string(&path).unwrap_or_else(|e| {
-        panic!(
-            "{}: {e} (write it with QUINCUNX_BLESS=1 cargo test -p quincunx-codec --test js_planar_vectors)",
-            path.display()
-        )
-    });
-    let committed: Value = serde_json::from_str(&committed).unwrap();
-    assert!(
-        committed == *value,
-        "{} differs from what the Rust code gives: update web-demo/js/planar.mjs, then re-bless \
-         with QUINCUNX_BLESS=1",
-        path.display()
-    );
-}
-
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
-}
+use common::vectors::{bless_or_check, hex};
 
 fn xy(id: PlanarId) -> Value {
     json!([id.x, id.y])
@@ -417,7 +385,22 @@ fn lifting_vectors() -> Value {
 
 #[test]
 fn js_planar_vectors_match_the_rust_planar_code() {
-    bless_or_check("planar-geometry.json", &geometry_vectors());
-    bless_or_check("planar-frames.json", &frame_vectors());
-    bless_or_check("planar-lifting.json", &lifting_vectors());
+    bless_or_check(
+        "planar-geometry.json",
+        &geometry_vectors(),
+        "js_planar_vectors",
+        "web-demo/js/planar.mjs",
+    );
+    bless_or_check(
+        "planar-frames.json",
+        &frame_vectors(),
+        "js_planar_vectors",
+        "web-demo/js/planar.mjs",
+    );
+    bless_or_check(
+        "planar-lifting.json",
+        &lifting_vectors(),
+        "js_planar_vectors",
+        "web-demo/js/planar.mjs",
+    );
 }

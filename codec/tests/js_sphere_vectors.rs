@@ -19,7 +19,6 @@
 mod common;
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::PathBuf;
 
 use quincunx_codec::coverage::Coverage;
 use quincunx_codec::diamond::sphere::{cube_to_unit_sphere, unit_sphere_to_cube};
@@ -29,167 +28,7 @@ use quincunx_codec::incremental::{Refiner, SphereRefiner};
 use quincunx_codec::sphere_raster::{SphereFrame, SphereGeometry};
 use serde_json::{Value, json};
 
-fn golden(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../web-demo/test/golden")
-        .join(name)
-}
-
-/// Writes (bless) or checks one vector file.
-fn bless_or_check(name: &str, value: &Value) {
-    let path = golden(name);
-    let text = serde_json::to_string(value).unwrap() + "\n";
-    if std::env::var("QUINCUNX_BLESS").is_ok_and(|v| v == "1") {
-        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-        std::fs::write(&path, &text).unwrap();
-        return;
-    }
-    let committed = std::fs::read_to_string(&path).unwrap_or_else(|e| {
-        panic!(
-            "{}: {e} (write it with QUINCUNX_BLESS=1 cargo test -p quincunx-codec --test js_sphere_vectors)",
-            path.display()
-        )
-    });
-    let committed: Value = serde_json::from_str(&committed).unwrap();
-    assert!(
-        committed == *value,
-        "{} differs from what the Rust code gives: update web-demo/js/sphere.mjs, then re-bless \
-         with QUINCUNX_BLESS=1",
-        path.display()
-    );
-}
-
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
-}
-
-/// SHA-256 round constants (FIPS 180-4).
-const SHA256_K: [u32; 64] = [
-    0x428a_2f98,
-    0x7137_4491,
-    0xb5c0_fbcf,
-    0xe9b5_dba5,
-    0x3956_c25b,
-    0x59f1_11f1,
-    0x923f_82a4,
-    0xab1c_5ed5,
-    0xd807_aa98,
-    0x1283_5b01,
-    0x2431_85be,
-    0x550c_7dc3,
-    0x72be_5d74,
-    0x80de_b1fe,
-    0x9bdc_06a7,
-    0xc19b_f174,
-    0xe49b_69c1,
-    0xefbe_4786,
-    0x0fc1_9dc6,
-    0x240c_a1cc,
-    0x2de9_2c6f,
-    0x4a74_84aa,
-    0x5cb0_a9dc,
-    0x76f9_88da,
-    0x983e_5152,
-    0xa831_c66d,
-    0xb003_27c8,
-    0xbf59_7fc7,
-    0xc6e0_0bf3,
-    0xd5a7_9147,
-    0x06ca_6351,
-    0x1429_2967,
-    0x27b7_0a85,
-    0x2e1b_2138,
-    0x4d2c_6dfc,
-    0x5338_0d13,
-    0x650a_7354,
-    0x766a_0abb,
-    0x81c2_c92e,
-    0x9272_2c85,
-    0xa2bf_e8a1,
-    0xa81a_664b,
-    0xc24b_8b70,
-    0xc76c_51a3,
-    0xd192_e819,
-    0xd699_0624,
-    0xf40e_3585,
-    0x106a_a070,
-    0x19a4_c116,
-    0x1e37_6c08,
-    0x2748_774c,
-    0x34b0_bcb5,
-    0x391c_0cb3,
-    0x4ed8_aa4a,
-    0x5b9c_ca4f,
-    0x682e_6ff3,
-    0x748f_82ee,
-    0x78a5_636f,
-    0x84c8_7814,
-    0x8cc7_0208,
-    0x90be_fffa,
-    0xa450_6ceb,
-    0xbef9_a3f7,
-    0xc671_78f2,
-];
-
-/// SHA-256 (hex) of `data`, what node:crypto gives (the test crate has no hash
-/// dependency; `sha256_known_answers` checks it against the FIPS 180-2 examples).
-fn sha256(data: &[u8]) -> String {
-    let mut h: [u32; 8] = [
-        0x6a09_e667,
-        0xbb67_ae85,
-        0x3c6e_f372,
-        0xa54f_f53a,
-        0x510e_527f,
-        0x9b05_688c,
-        0x1f83_d9ab,
-        0x5be0_cd19,
-    ];
-    let mut msg = data.to_vec();
-    msg.push(0x80);
-    while msg.len() % 64 != 56 {
-        msg.push(0);
-    }
-    msg.extend_from_slice(&(data.len() as u64 * 8).to_be_bytes());
-    for block in msg.chunks_exact(64) {
-        let mut w = [0u32; 64];
-        for (word, bytes) in w.iter_mut().zip(block.chunks_exact(4)) {
-            *word = u32::from_be_bytes(bytes.try_into().unwrap());
-        }
-        for t in 16..64 {
-            let s0 = w[t - 15].rotate_right(7) ^ w[t - 15].rotate_right(18) ^ (w[t - 15] >> 3);
-            let s1 = w[t - 2].rotate_right(17) ^ w[t - 2].rotate_right(19) ^ (w[t - 2] >> 10);
-            w[t] = w[t - 16]
-                .wrapping_add(s0)
-                .wrapping_add(w[t - 7])
-                .wrapping_add(s1);
-        }
-        let [mut a, mut b, mut c, mut d, mut e, mut f, mut g, mut hh] = h;
-        for (k, wt) in SHA256_K.iter().zip(w) {
-            let s1 = e.rotate_right(6) ^ e.rotate_right(11) ^ e.rotate_right(25);
-            let ch = (e & f) ^ (!e & g);
-            let t1 = hh
-                .wrapping_add(s1)
-                .wrapping_add(ch)
-                .wrapping_add(*k)
-                .wrapping_add(wt);
-            let s0 = a.rotate_right(2) ^ a.rotate_right(13) ^ a.rotate_right(22);
-            let maj = (a & b) ^ (a & c) ^ (b & c);
-            let t2 = s0.wrapping_add(maj);
-            hh = g;
-            g = f;
-            f = e;
-            e = d.wrapping_add(t1);
-            d = c;
-            c = b;
-            b = a;
-            a = t1.wrapping_add(t2);
-        }
-        for (x, y) in h.iter_mut().zip([a, b, c, d, e, f, g, hh]) {
-            *x = x.wrapping_add(y);
-        }
-    }
-    h.iter().map(|x| format!("{x:08x}")).collect()
-}
+use common::vectors::{base64, bless_or_check, hex, sha256};
 
 #[test]
 fn sha256_known_answers() {
@@ -209,24 +48,6 @@ fn sha256_known_answers() {
         sha256(&[b'a'; 1000]),
         "41edece42d63e8d9bf515a9ba6932e1c20cbc9f5a5d134645adb5db1b9737ea3"
     );
-}
-
-/// Standard padded base64 (`Buffer.from(text, "base64")` in node).
-fn base64(bytes: &[u8]) -> String {
-    const ABC: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for chunk in bytes.chunks(3) {
-        let byte = |k: usize| u32::from(chunk.get(k).copied().unwrap_or(0));
-        let v = (byte(0) << 16) | (byte(1) << 8) | byte(2);
-        for k in 0..4 {
-            out.push(if k <= chunk.len() {
-                ABC[(v >> (18 - 6 * k)) as usize & 63] as char
-            } else {
-                '='
-            });
-        }
-    }
-    out
 }
 
 #[test]
@@ -795,8 +616,18 @@ fn planet(face_side: usize, n: usize, mode: RateMode, sparse: bool, shift: f64) 
 
 #[test]
 fn js_sphere_vectors_match_the_rust_planet_code() {
-    bless_or_check("sphere-geometry.json", &geometry_vectors());
-    bless_or_check("sphere-frames.json", &frame_vectors());
+    bless_or_check(
+        "sphere-geometry.json",
+        &geometry_vectors(),
+        "js_sphere_vectors",
+        "web-demo/js/sphere.mjs",
+    );
+    bless_or_check(
+        "sphere-frames.json",
+        &frame_vectors(),
+        "js_sphere_vectors",
+        "web-demo/js/sphere.mjs",
+    );
     let planets = vec![
         planet_vector(
             &format!("dense lossless {}/{}", P0.0, P0.1),
@@ -819,5 +650,10 @@ fn js_sphere_vectors_match_the_rust_planet_code() {
             ],
         ),
     ];
-    bless_or_check("sphere-planets.json", &Value::from(planets));
+    bless_or_check(
+        "sphere-planets.json",
+        &Value::from(planets),
+        "js_sphere_vectors",
+        "web-demo/js/sphere.mjs",
+    );
 }

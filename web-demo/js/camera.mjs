@@ -10,6 +10,8 @@
 //
 // Vectors are plain arrays [x, y, z]; matrices are column-major Float64Array(16).
 
+import { cubeToUnitSphere, unitSphereToCube } from "./sphere.mjs";
+
 /** Near plane (metres): reversed Z with an infinite far plane. */
 export const NEAR_M = 0.05;
 /** Limb size of split integers (`hi * LIMB + lo`, `0 <= lo < LIMB`). */
@@ -44,32 +46,6 @@ function anyOrthonormal(a) {
 
 const radians = (deg) => (deg * Math.PI) / 180;
 const degrees = (rad) => (rad * 180) / Math.PI;
-
-// ---- the cube <-> sphere maps (diamond/src/sphere.rs) ------------------------------
-
-/** The equal-angle cube -> unit sphere map (`cube_to_unit_sphere`). */
-export function cubeToUnitSphere(p) {
-  const big = Math.max(Math.abs(p[0]), Math.abs(p[1]), Math.abs(p[2]));
-  if (big === 0 || !p.every(Number.isFinite)) return p.slice();
-  const q = [0, 0, 0];
-  for (let k = 0; k < 3; k++) {
-    const x = p[k] / big;
-    q[k] = Math.abs(p[k]) === big ? Math.sign(x) : Math.tan((Math.PI / 4) * x);
-  }
-  const norm = Math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
-  return [q[0] / norm, q[1] / norm, q[2] / norm];
-}
-
-/** Inverse of `cubeToUnitSphere` (`unit_sphere_to_cube`). */
-export function unitSphereToCube(q) {
-  const big = Math.max(Math.abs(q[0]), Math.abs(q[1]), Math.abs(q[2]));
-  if (big === 0 || !q.every(Number.isFinite)) return q.slice();
-  const p = [0, 0, 0];
-  for (let k = 0; k < 3; k++) {
-    p[k] = Math.abs(q[k]) === big ? Math.sign(q[k]) : Math.atan(q[k] / big) / (Math.PI / 4);
-  }
-  return p;
-}
 
 // ---- the world frame (render/src/domain.rs) ----------------------------------------
 

@@ -102,6 +102,7 @@ import { DiamondMask, synthesizeZero } from "./lifting.mjs";
 import { PlanarId, PlanarRefiner, RefineError } from "./planar.mjs";
 import { SphereId, SphereRefiner, axes, chartOf, cubeToUnitSphere } from "./sphere.mjs";
 import { AnswerDecoder, COLOUR_CHANNELS } from "./worker.mjs";
+import { indexPatch, surfaceHeightM } from "./ground.mjs";
 
 // ---------------------------------------------------------------------------------------
 // Small vector helpers (float64 arrays).
@@ -2366,132 +2367,6 @@ class CameraTrack {
 }
 
 // ---------------------------------------------------------------------------------------
-// Ground height under a point (render/src/ground.rs `surface_height_m`).
-
-const INSIDE_EPS = 1e-7;
-const EDGE_EPS = 1e-12;
-
-function faceOf(k, positive) {
-  return 2 * k + (positive ? 1 : 0);
-}
-
-function otherAxes(k) {
-  return k === 0 ? [1, 2] : k === 1 ? [0, 2] : [0, 1];
-}
-
-/** Faces to look on and the footprint of `x` on each (fine units). */
-function footprints(frame, x) {
-  const g = frame.geometry;
-  if (g.kind === "planar") return [[0, [x[0] / g.metresPerFine, x[1] / g.metresPerFine]]];
-  const big = Math.max(Math.abs(x[0]), Math.abs(x[1]), Math.abs(x[2]));
-  if (big === 0 || !Number.isFinite(big)) return [];
-  const s = g.halfSideFine;
-  const order = [0, 1, 2].sort((a, b) => Math.abs(x[b]) - Math.abs(x[a]));
-  const out = [];
-  for (const k of order) {
-    if (Math.abs(x[k]) < big * (1 - 1e-9)) break;
-    const c = otherAxes(k).map((a) => (Math.atan(x[a] / Math.abs(x[k])) / (Math.PI / 4)) * s);
-    out.push([faceOf(k, x[k] > 0), c]);
-  }
-  return out;
-}
-
-/** A cut patch prepared for height queries (ground.rs `index_patch`), or null. */
-function indexPatch(frame, affine, half, grid) {
-  const n = frame.n;
-  if (affine === null || grid.length !== (n + 1) * (n + 1)) return null;
-  let face = 0;
-  let ax = [0, 1];
-  if (frame.geometry.kind === "planet") {
-    const k = [0, 1, 2].find((q) => affine.e1[q] === 0 && affine.e2[q] === 0);
-    if (k === undefined || Math.abs(affine.base[k]) !== frame.geometry.halfSideFine) return null;
-    face = faceOf(k, affine.base[k] > 0);
-    ax = otherAxes(k);
-  }
-  const [a11, a12] = [affine.e1[ax[0]], affine.e2[ax[0]]];
-  const [a21, a22] = [affine.e1[ax[1]], affine.e2[ax[1]]];
-  const det = a11 * a22 - a12 * a21;
-  if (det === 0) return null;
-  return { affine, half, grid, face, ax, m: [a22 / det, -a12 / det, -a21 / det, a11 / det] };
-}
-
-function gridOf(p, c) {
-  const b0 = c[0] - p.affine.base[p.ax[0]];
-  const b1 = c[1] - p.affine.base[p.ax[1]];
-  return [p.m[0] * b0 + p.m[1] * b1, p.m[2] * b0 + p.m[3] * b1];
-}
-
-function patchContains(p, n, [fi, fj], margin) {
-  if (fi < -margin || fj < -margin || fi > n + margin || fj > n + margin) return false;
-  return p.half === Half.Lower ? fi >= fj - margin : fi <= fj + margin;
-}
-
-function cellTriangles(half, i, j) {
-  const a = [i, j];
-  const b = [i + 1, j];
-  const c = [i + 1, j + 1];
-  const d = [i, j + 1];
-  const out = [];
-  if (half === Half.Lower) {
-    if (i >= j) out.push([a, b, c]);
-    if (i > j) out.push([a, c, d]);
-  } else {
-    if (i <= j) out.push([a, c, d]);
-    if (i < j) out.push([a, b, c]);
-  }
-  return out;
-}
-
-/** Where the line `x + s d` meets triangle `v`: `[s, point]` or null (Möller-Trumbore). */
-function lineTriangle(x, d, v) {
-  const e1 = sub(v[1], v[0]);
-  const e2 = sub(v[2], v[0]);
-  const pv = cross(d, e2);
-  const det = dot(e1, pv);
-  if (det === 0 || !Number.isFinite(det)) return null;
-  const inv = 1 / det;
-  const t = sub(x, v[0]);
-  const a = dot(t, pv) * inv;
-  if (!(a >= -EDGE_EPS && a <= 1 + EDGE_EPS)) return null;
-  const q = cross(t, e1);
-  const b = dot(d, q) * inv;
-  if (b < -EDGE_EPS || a + b > 1 + EDGE_EPS) return null;
-  const s = dot(e2, q) * inv;
-  return [s, add(x, mul(d, s))];
-}
-
-function drawn(frame, r) {
-  const g = frame.geometry;
-  if (g.kind !== "planar") return true;
-  const e = g.extentFine.map((v) => v * g.metresPerFine);
-  const slack = 1e-5 * Math.max(e[0], e[1], 1);
-  return r[0] >= -slack && r[1] >= -slack && r[0] <= e[0] + slack && r[1] <= e[1] + slack;
-}
-
-function hitCells(frame, world, p, g, reach, x, up) {
-  const n = frame.n;
-  const ci = Math.min(Math.max(Math.floor(g[0]), 0), n - 1);
-  const cj = Math.min(Math.max(Math.floor(g[1]), 0), n - 1);
-  let best = null;
-  const vertex = ([i, j]) => {
-    const a = p.affine;
-    const f = [0, 1, 2].map((k) => a.base[k] + i * a.e1[k] + j * a.e2[k]);
-    return world.pointFine(f, p.grid[i * (n + 1) + j] ?? 0);
-  };
-  for (let i = Math.max(ci - reach, 0); i <= Math.min(ci + reach, n - 1); i++) {
-    for (let j = Math.max(cj - reach, 0); j <= Math.min(cj + reach, n - 1); j++) {
-      for (const tri of cellTriangles(p.half, i, j)) {
-        const hit = lineTriangle(x, up, tri.map(vertex));
-        if (hit !== null && drawn(frame, hit[1]) && (best === null || Math.abs(hit[0]) < best[0])) {
-          best = [Math.abs(hit[0]), hit[1]];
-        }
-      }
-    }
-  }
-  return best;
-}
-
-// ---------------------------------------------------------------------------------------
 // The session (session.rs `Session`).
 
 function defaultWorkers() {
@@ -2851,30 +2726,15 @@ export class Session {
     const frame = this._world.frame();
     const world = this._world;
     const up = frame.geometry.kind === "planar" ? [0, 0, 1] : world.up(position);
-    const feet = footprints(frame, position);
-    const n = frame.n;
-    const near = [];
-    const heightOf = (r) => (frame.geometry.kind === "planar" ? r[2] : len(r) - frame.geometry.radiusM);
-    for (const [id, half] of this.dag.cut()) {
-      const node = this.dag.node(id);
-      if (node === undefined) continue;
-      const p = indexPatch(frame, this.dag.affine(id, node.corners, half), half, node.grid);
-      if (p === null) continue;
-      const foot = feet.find(([f]) => f === p.face);
-      if (foot === undefined) continue;
-      const g = gridOf(p, foot[1]);
-      if (patchContains(p, n, g, INSIDE_EPS)) {
-        const hit = hitCells(frame, world, p, g, 0, position, up);
-        if (hit !== null) return heightOf(hit[1]);
+    const dag = this.dag;
+    function* patches() {
+      for (const [id, half] of dag.cut()) {
+        const node = dag.node(id);
+        if (node === undefined) continue;
+        yield indexPatch(frame, dag.affine(id, node.corners, half), half === Half.Lower, node.grid);
       }
-      if (patchContains(p, n, g, 1)) near.push([p, g]);
     }
-    let best = null;
-    for (const [p, g] of near) {
-      const hit = hitCells(frame, world, p, g, 1, position, up);
-      if (hit !== null && (best === null || hit[0] < best[0])) best = hit;
-    }
-    return best === null ? null : heightOf(best[1]);
+    return surfaceHeightM(frame, (f, v) => world.pointFine(f, v), patches(), position, up);
   }
 
   /** Stops: aborts every request, ends the decoding workers. */

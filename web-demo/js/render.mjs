@@ -19,6 +19,7 @@
 //   same depth written per fragment (`gl_FragDepth = near * gl_FragCoord.w`).
 
 import { NEAR_M, frameUniforms, isNarrow, length, sub, upAt, worldPoint } from "./camera.mjs";
+import { indexPatch, surfaceHeightM } from "./ground.mjs";
 import { SphereDomain, SphereId } from "./sphere.mjs";
 
 /** Patches uploaded per frame at most (renderer.rs `max_uploads_per_frame`). */
@@ -758,29 +759,16 @@ export class TerrainRenderer {
   surfaceHeightM(eye) {
     if (!eye.every(Number.isFinite)) return null;
     const world = this.world;
-    const up = upAt(world, eye);
-    const prints = footprints(world, eye);
-    const n = world.n;
-    const near = [];
-    for (const entry of this.cut.values()) {
-      if (entry.indexed === undefined) entry.indexed = indexPatch(world, entry);
-      const p = entry.indexed;
-      if (!p) continue;
-      const c = prints.find((f) => f[0] === p.face);
-      if (!c) continue;
-      const g = gridOf(p, c[1]);
-      if (contains(p, n, g, INSIDE_EPS)) {
-        const hit = hitCells(world, p, g, 0, eye, up);
-        if (hit) return heightM(world, hit[1]);
+    const cut = this.cut;
+    function* patches() {
+      for (const entry of cut.values()) {
+        if (entry.indexed === undefined) {
+          entry.indexed = indexPatch(world, entry.affine, entry.lower, entry.patch.grid);
+        }
+        yield entry.indexed;
       }
-      if (contains(p, n, g, 1)) near.push([p, g]);
     }
-    let best = null;
-    for (const [p, g] of near) {
-      const hit = hitCells(world, p, g, 1, eye, up);
-      if (hit && (best === null || hit[0] < best[0])) best = hit;
-    }
-    return best ? heightM(world, best[1]) : null;
+    return surfaceHeightM(world, (f, v) => worldPoint(world, f, v), patches(), eye, upAt(world, eye));
   }
 }
 
@@ -792,144 +780,3 @@ function patchLevel(patch) {
   const d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
   return d2 > 0 ? (64 - Math.round(Math.log2(d2))) & 0xff : 0;
 }
-
-const INSIDE_EPS = 1e-7;
-const EDGE_EPS = 1e-12;
-
-function heightM(world, r) {
-  return world.geometry.kind === "planar" ? r[2] : length(r) - world.geometry.radiusM;
-}
-
-function faceOf(k, positive) {
-  return 2 * k + (positive ? 1 : 0);
-}
-
-function otherAxes(k) {
-  return k === 0 ? [1, 2] : k === 1 ? [0, 2] : [0, 1];
-}
-
-/** Up to three `[face, [c0, c1]]` footprints of a point (ground.rs `footprints`). */
-function footprints(world, x) {
-  const g = world.geometry;
-  if (g.kind === "planar") return [[0, [x[0] / g.metresPerFine, x[1] / g.metresPerFine]]];
-  const big = Math.max(Math.abs(x[0]), Math.abs(x[1]), Math.abs(x[2]));
-  if (big === 0 || !Number.isFinite(big)) return [];
-  const s = g.halfSideFine;
-  const order = [0, 1, 2].sort((a, b) => Math.abs(x[b]) - Math.abs(x[a]));
-  const out = [];
-  for (const k of order) {
-    if (Math.abs(x[k]) < big * (1 - 1e-9)) break;
-    const c = otherAxes(k).map((a) => (Math.atan(x[a] / Math.abs(x[k])) / (Math.PI / 4)) * s);
-    out.push([faceOf(k, x[k] > 0), c]);
-  }
-  return out;
-}
-
-function indexPatch(world, entry) {
-  const n = world.n;
-  const grid = entry.patch.grid;
-  if (!grid || grid.length !== (n + 1) * (n + 1)) return null;
-  const a = entry.affine;
-  let face = 0;
-  let axes = [0, 1];
-  if (world.geometry.kind === "planet") {
-    const k = [0, 1, 2].find((k) => a.e1[k] === 0 && a.e2[k] === 0);
-    if (k === undefined || Math.abs(a.base[k]) !== world.geometry.halfSideFine) return null;
-    face = faceOf(k, a.base[k] > 0);
-    axes = otherAxes(k);
-  }
-  const a11 = a.e1[axes[0]];
-  const a12 = a.e2[axes[0]];
-  const a21 = a.e1[axes[1]];
-  const a22 = a.e2[axes[1]];
-  const det = a11 * a22 - a12 * a21;
-  if (det === 0) return null;
-  return {
-    affine: a,
-    lower: entry.lower,
-    grid,
-    face,
-    axes,
-    m: [a22 / det, -a12 / det, -a21 / det, a11 / det],
-  };
-}
-
-function gridOf(p, c) {
-  const b0 = c[0] - p.affine.base[p.axes[0]];
-  const b1 = c[1] - p.affine.base[p.axes[1]];
-  return [p.m[0] * b0 + p.m[1] * b1, p.m[2] * b0 + p.m[3] * b1];
-}
-
-function contains(p, n, [fi, fj], margin) {
-  return (
-    fi >= -margin &&
-    fj >= -margin &&
-    fi <= n + margin &&
-    fj <= n + margin &&
-    (p.lower ? fi >= fj - margin : fi <= fj + margin)
-  );
-}
-
-function hitCells(world, p, g, reach, x, up) {
-  const n = world.n;
-  const ci = Math.max(0, Math.min(n - 1, Math.floor(g[0])));
-  const cj = Math.max(0, Math.min(n - 1, Math.floor(g[1])));
-  let best = null;
-  for (let i = Math.max(ci - reach, 0); i <= Math.min(ci + reach, n - 1); i++) {
-    for (let j = Math.max(cj - reach, 0); j <= Math.min(cj + reach, n - 1); j++) {
-      for (const tri of cellTriangles(p.lower, i, j)) {
-        if (!tri) continue;
-        const v = tri.map(([a, b]) => vertex(world, p, a, b));
-        const hit = lineTriangle(x, up, v);
-        if (hit && drawnAt(world, hit[1]) && (best === null || Math.abs(hit[0]) < best[0])) {
-          best = [Math.abs(hit[0]), hit[1]];
-        }
-      }
-    }
-  }
-  return best;
-}
-
-function vertex(world, p, i, j) {
-  const n = world.n;
-  const v = p.grid[i * (n + 1) + j] ?? 0;
-  return worldPoint(world, p.affine.at(i, j), v);
-}
-
-function drawnAt(world, r) {
-  const g = world.geometry;
-  if (g.kind !== "planar") return true;
-  const e = g.extentFine.map((v) => v * g.metresPerFine);
-  const slack = 1e-5 * Math.max(e[0], e[1], 1);
-  return r[0] >= -slack && r[1] >= -slack && r[0] <= e[0] + slack && r[1] <= e[1] + slack;
-}
-
-function cellTriangles(lower, i, j) {
-  const a = [i, j];
-  const b = [i + 1, j];
-  const c = [i + 1, j + 1];
-  const d = [i, j + 1];
-  if (lower) return [i >= j ? [a, b, c] : null, i > j ? [a, c, d] : null];
-  return [i <= j ? [a, c, d] : null, i < j ? [a, b, c] : null];
-}
-
-/** Möller-Trumbore for the line `x + s d`, both signs of `s`: `[s, point]`. */
-function lineTriangle(x, d, v) {
-  const e1 = sub(v[1], v[0]);
-  const e2 = sub(v[2], v[0]);
-  const pv = crossV(d, e2);
-  const det = dotV(e1, pv);
-  if (det === 0 || !Number.isFinite(det)) return null;
-  const inv = 1 / det;
-  const t = sub(x, v[0]);
-  const a = dotV(t, pv) * inv;
-  if (!(a >= -EDGE_EPS && a <= 1 + EDGE_EPS)) return null;
-  const q = crossV(t, e1);
-  const b = dotV(d, q) * inv;
-  if (b < -EDGE_EPS || a + b > 1 + EDGE_EPS) return null;
-  const s = dotV(e2, q) * inv;
-  return [s, [x[0] + d[0] * s, x[1] + d[1] * s, x[2] + d[2] * s]];
-}
-
-const dotV = (a, b) => a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-const crossV = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
