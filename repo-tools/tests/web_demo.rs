@@ -124,6 +124,8 @@ struct View {
     place: &'static [(&'static str, &'static str)],
     /// Straight down inside the data: every pixel must be terrain.
     down: bool,
+    /// Then fly (keys held for ms), and open the URL the page wrote in a new page.
+    fly: Option<(&'static [&'static str], u32)>,
 }
 
 const VIEWS: [View; 3] = [
@@ -137,6 +139,7 @@ const VIEWS: [View; 3] = [
             ("pitch_deg", "-90"),
         ],
         down: true,
+        fly: None,
     },
     View {
         name: "korea_oblique",
@@ -149,6 +152,7 @@ const VIEWS: [View; 3] = [
             ("heading_deg", "30"),
         ],
         down: false,
+        fly: Some((&["KeyD", "KeyW"], 700)),
     },
     View {
         name: "earth_colour_down",
@@ -160,6 +164,7 @@ const VIEWS: [View; 3] = [
             ("pitch_deg", "-90"),
         ],
         down: true,
+        fly: Some((&["KeyA"], 700)),
     },
 ];
 
@@ -168,6 +173,8 @@ const SIZE: [u32; 2] = [640, 360];
 /// The smallest PSNR (dB, RGB, peak 255) a browser screenshot may have against
 /// `quincunx render`'s image of the same view.
 const MIN_PSNR_DB: f64 = 40.0;
+/// The smallest PSNR of a flown view against the same page's URL opened anew.
+const MIN_SHARED_PSNR_DB: f64 = 40.0;
 /// `quincunx render`'s default background.
 const BACKGROUND: [u8; 3] = [135, 170, 210];
 
@@ -271,7 +278,11 @@ fn browser_views_match_render() {
             for (k, val) in v.place {
                 query.push_str(&format!("&{k}={val}"));
             }
-            serde_json::json!({"name": v.name, "query": query, "size": SIZE})
+            let mut view = serde_json::json!({"name": v.name, "query": query, "size": SIZE});
+            if let Some((keys, ms)) = v.fly {
+                view["fly"] = serde_json::json!({"keys": keys, "ms": ms});
+            }
+            view
         })
         .collect();
     let views_file = out.join("views.json");
@@ -327,6 +338,31 @@ fn browser_views_match_render() {
             assert!(
                 psnr >= MIN_PSNR_DB,
                 "{}: PSNR {psnr:.2} dB < {MIN_PSNR_DB}",
+                v.name
+            );
+        }
+        if v.fly.is_some() {
+            // The URL the page wrote after flying names the view it shows: opened in a
+            // new page, it looks the same, and more like the flown view than the start.
+            let url = r["flown_url"].as_str().unwrap();
+            assert!(url.contains("/view?"), "{}: {url}", v.name);
+            let flown = Image::read_png(&out.join(format!("{}.flown.png", v.name))).unwrap();
+            let shared = Image::read_png(&out.join(format!("{}.shared.png", v.name))).unwrap();
+            let same = psnr_db(&flown, &shared).unwrap();
+            let moved = psnr_db(&flown, &shot).unwrap();
+            println!(
+                "{}",
+                serde_json::json!({"view": v.name, "flown_url": url, "shared_psnr_db": same,
+                    "flown_vs_start_psnr_db": moved})
+            );
+            assert!(
+                same >= MIN_SHARED_PSNR_DB,
+                "{}: the shared URL's view differs: PSNR {same:.2} dB",
+                v.name
+            );
+            assert!(
+                same > moved + 3.0,
+                "{}: flying did not move the view ({moved:.2} dB)",
                 v.name
             );
         }

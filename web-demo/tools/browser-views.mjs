@@ -6,7 +6,9 @@
 // repo-tools/tests/web_demo.rs, which starts the server and renders the references.
 //
 // Usage: node web-demo/tools/browser-views.mjs <server url> <out dir> <views.json>
-//   views.json: [{"name": "korea_down", "query": "repo=korea&uv=0.5,0.5&...", "size": [640, 360]}]
+//   views.json: [{"name": "korea_down", "query": "repo=korea&uv=0.5,0.5&...", "size": [640, 360],
+//                 "fly": {"keys": ["KeyD"], "ms": 500} (optional: then `<name>.flown.png`,
+//                 `flown_url`, and `<name>.shared.png`, that URL opened in a new page)}]
 // Environment: CHROMIUM (default /usr/bin/chromium), TIMEOUT_S (per view, default 180).
 
 import { readFileSync } from "node:fs";
@@ -62,6 +64,35 @@ try {
       const canvas = await page.$("canvas");
       await canvas.screenshot({ path: join(out, `${view.name}.png`) });
       result.screenshot = join(out, `${view.name}.png`);
+      if (view.fly) {
+        // Fly (keys held down), let the view stream to full quality again, and keep the
+        // URL the page wrote: opened in a new page it must show the same view.
+        await page.mouse.move(w / 2, h / 2);
+        for (const key of view.fly.keys) await page.keyboard.down(key);
+        await page.waitForTimeout(view.fly.ms);
+        for (const key of view.fly.keys) await page.keyboard.up(key);
+        await page.waitForFunction(() => document.body.dataset.state !== "full", null, { timeout: timeoutMs });
+        await page.waitForFunction(() => document.body.dataset.state === "full", null, {
+          timeout: timeoutMs,
+          polling: 100,
+        });
+        await page.waitForTimeout(600); // the URL is written at most every 250 ms
+        result.flown_url = page.url();
+        await canvas.screenshot({ path: join(out, `${view.name}.flown.png`) });
+        const shared = await context.newPage();
+        shared.on("console", (m) => {
+          if (m.type() === "error" || m.type() === "warning") consoleErrors.push(`${m.type()}: ${m.text()}`);
+        });
+        shared.on("pageerror", (e) => consoleErrors.push(`pageerror: ${e.message}`));
+        const url = new URL(result.flown_url);
+        url.searchParams.set("size", `${w}x${h}`);
+        await shared.goto(url.href, { waitUntil: "load" });
+        await shared.waitForFunction(() => document.body.dataset.state === "full", null, {
+          timeout: timeoutMs,
+          polling: 100,
+        });
+        await (await shared.$("canvas")).screenshot({ path: join(out, `${view.name}.shared.png`) });
+      }
     } catch (e) {
       result.error = String(e.message ?? e).split("\n")[0];
       failed = true;
