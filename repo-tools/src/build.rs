@@ -31,7 +31,9 @@ const PROGRAM_BYTES: usize = 10 << 20;
 /// What glibc's per-thread malloc arenas keep of a worker thread's freed buffers, counted
 /// in planar colour builds out of core: the bundled Blue Marble at RMS 4 under 32 MB
 /// peaked at 30.8-34.1 MB with other work running and at 22.3-26.4 MB with
-/// `MALLOC_ARENA_MAX=1` (2026-12-04). Other builds measured within their budgets.
+/// `MALLOC_ARENA_MAX=1`. Six such builds at once peaked at 28.7-33.0 MB counting
+/// rayon's threads only, and at 26.0-28.4 MB counting the three threads that measure the
+/// error too (2026-12-04). Other builds measured within their budgets.
 const ARENA_BYTES_PER_THREAD: usize = 2 << 20;
 
 /// Options of `quincunx build`.
@@ -743,11 +745,13 @@ fn build_colour_streaming(
         n,
         mode: channel_mode,
         // The decoded image stays in memory, and the allocator's per-thread arenas keep
-        // what this build's worker threads free (see `ARENA_BYTES_PER_THREAD`).
+        // what this build's worker threads free (see `ARENA_BYTES_PER_THREAD`): rayon's,
+        // and the three that decode the channels in step to measure the error.
         memory_budget_bytes: encoder_budget(
             budget_mb,
             planar_diamonds(width * height, n),
-            width * height * 3 + rayon::current_num_threads() * ARENA_BYTES_PER_THREAD,
+            width * height * 3
+                + (rayon::current_num_threads() + COLOUR_CHANNELS.len()) * ARENA_BYTES_PER_THREAD,
         )?,
         sparse: args.sparse,
         rdo: args.rdo.mode(),
