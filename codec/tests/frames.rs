@@ -6,28 +6,18 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+mod common;
+
 use std::collections::HashMap;
 
 use quincunx_codec::coverage::Coverage;
 use quincunx_codec::diamond::{PlanarId, SphereId};
 use quincunx_codec::entropy::CodecModel;
 use quincunx_codec::incremental::{PlanarRefiner, Refiner, SphereRefiner};
-use quincunx_codec::raster::{RasterFrame, RasterGeometry};
+use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::sphere_raster::{SphereFrame, SphereGeometry};
 
-fn planar_refiner(w: usize, h: usize, n: usize, coverage: Option<&Coverage>) -> PlanarRefiner {
-    let levels = RasterFrame::new(w, h, n, None).unwrap().detail_levels();
-    PlanarRefiner::new(
-        w,
-        h,
-        n,
-        coverage,
-        vec![256; levels],
-        CodecModel::default(),
-        vec![0; (n + 1) * (n + 1)],
-    )
-    .unwrap()
-}
+use common::planar_refiner;
 
 fn sphere_refiner(face_side: usize, n: usize, coverage: Option<&Coverage>) -> SphereRefiner {
     let levels = SphereFrame::new(face_side, n, None)

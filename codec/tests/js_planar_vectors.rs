@@ -13,12 +13,12 @@ mod common;
 
 use quincunx_codec::coverage::Coverage;
 use quincunx_codec::diamond::{PlanarDomain, PlanarId};
-use quincunx_codec::entropy::CodecModel;
-use quincunx_codec::incremental::{PlanarRefiner, Refiner};
+use quincunx_codec::incremental::Refiner;
 use quincunx_codec::lifting::{self, DiamondMask};
 use quincunx_codec::raster::RasterFrame;
 use serde_json::{Value, json};
 
+use common::planar_refiner;
 use common::vectors::{bless_or_check, hex};
 
 fn xy(id: PlanarId) -> Value {
@@ -196,20 +196,6 @@ fn geometry_vectors() -> Value {
     })
 }
 
-fn refiner(w: usize, h: usize, n: usize, coverage: Option<&Coverage>) -> PlanarRefiner {
-    let levels = RasterFrame::new(w, h, n, None).unwrap().detail_levels();
-    PlanarRefiner::new(
-        w,
-        h,
-        n,
-        coverage,
-        vec![256; levels],
-        CodecModel::default(),
-        vec![0; (n + 1) * (n + 1)],
-    )
-    .unwrap()
-}
-
 /// A coverage with holes: blocks with data where `(x / 7 + y / 5) % 3 != 0` or in the
 /// top-left corner.
 fn holes(w: usize, h: usize, n: usize) -> Coverage {
@@ -229,7 +215,7 @@ fn frame_vectors() -> Value {
         (1025, 1025, 32, false, false),
     ] {
         let coverage = sparse.then(|| holes(w, h, n));
-        let r = refiner(w, h, n, coverage.as_ref());
+        let r = planar_refiner(w, h, n, coverage.as_ref());
         let frame = RasterFrame::new(w, h, n, coverage.as_ref()).unwrap();
         let d = r.domain();
         let levels = r.detail_levels() as u32;

@@ -20,7 +20,6 @@
 
 import { NEAR_M, frameUniforms, isNarrow, length, sub, upAt, worldPoint } from "./camera.mjs";
 import { indexPatch, surfaceHeightM } from "./ground.mjs";
-import { SphereDomain, SphereId } from "./sphere.mjs";
 
 /** Patches uploaded per frame at most (renderer.rs `max_uploads_per_frame`). */
 export const MAX_UPLOADS_PER_FRAME = 512;
@@ -57,67 +56,6 @@ export function gridIndices(n) {
   }
   const all = lower.concat(upper);
   return { indices: nv * nv > 65535 ? Uint32Array.from(all) : Uint16Array.from(all), half: lower.length };
-}
-
-// ---- patch geometry (domain.rs) -----------------------------------------------------
-
-/**
- * The function `(id, corners, i, j) -> fine point [x, y, z] | null` of a repository:
- * planar id units times N from the corners; planets `vertex_position` in the domain
- * `m + log2 N` (client/src/domain.rs `sphere_vertex_fine`).
- */
-export function finePointFn(meta) {
-  const n = meta.n;
-  if (meta.domain === "sphere") {
-    const t = Math.round(Math.log2(n));
-    const fine = new SphereDomain(meta.m + t);
-    const k = 2 ** t;
-    return (id, _corners, i, j) => {
-      const c = id.c || id;
-      try {
-        return fine.vertexPosition(new SphereId([c[0] * k, c[1] * k, c[2] * k]), n, i, j);
-      } catch {
-        return null;
-      }
-    };
-  }
-  return (_id, c, i, j) => [
-    c[0][0] * n + i * (c[1][0] - c[0][0]) + j * (c[3][0] - c[0][0]),
-    c[0][1] * n + i * (c[1][1] - c[0][1]) + j * (c[3][1] - c[0][1]),
-    0,
-  ];
-}
-
-/**
- * The exact affine map of a half (`RenderDomain::affine`): fine point of `(i, j)` =
- * `base + i e1 + j e2`; null when the half is not affine (a bug upstream).
- */
-export function affineOf(finePoint, n, id, corners, half) {
-  const p = (i, j) => finePoint(id, corners, i, j);
-  const origin = p(0, 0);
-  const lower = isLowerHalf(half);
-  const a = lower ? p(n, 0) : p(0, n);
-  const b = p(n, n);
-  if (!origin || !a || !b) return null;
-  const step = (from, to) => {
-    const out = [0, 0, 0];
-    for (let k = 0; k < 3; k++) {
-      const d = to[k] - from[k];
-      if (d % n !== 0) return null;
-      out[k] = d / n;
-    }
-    return out;
-  };
-  const e1 = lower ? step(origin, a) : step(a, b);
-  const e2 = lower ? step(a, b) : step(origin, a);
-  if (!e1 || !e2) return null;
-  const at = (i, j) => [0, 1, 2].map((k) => origin[k] + i * e1[k] + j * e2[k]);
-  const ci = lower ? (n * 3) >> 2 : n >> 2;
-  const cj = lower ? n >> 2 : (n * 3) >> 2;
-  const check = p(ci, cj);
-  const want = at(ci, cj);
-  if (!check || check.some((x, k) => x !== want[k])) return null;
-  return { base: origin, e1, e2, at };
 }
 
 /** Limbs of a fine coordinate (`limbs`, or whole values when narrow). */
@@ -439,20 +377,18 @@ function link(gl, defs) {
 
 /**
  * Draws the cut of one repository (with its optional colour layer).
- * `new TerrainRenderer(gl, {meta, world, colourScales, tintM, clipControl})` (`clipControl`
+ * `new TerrainRenderer(gl, {world, colourScales, tintM, clipControl})` (`clipControl`
  * false: the gl_FragDepth path even where EXT_clip_control exists); per frame:
  * `apply(changes)`, `prepare(camera)`, `draw(background)`.
  */
 export class TerrainRenderer {
-  constructor(gl, { meta, world, colourScales = null, tintM = null, patchKey = defaultPatchKey, clipControl = true }) {
+  constructor(gl, { world, colourScales = null, tintM = null, patchKey = defaultPatchKey, clipControl = true }) {
     this.gl = gl;
-    this.meta = meta;
     this.world = world;
     this.n = world.n;
     this.narrow = isNarrow(world);
     this.colourScales = colourScales;
     this.patchKey = patchKey;
-    this.finePoint = finePointFn(meta);
     this.lighting = { lightDir: null, ambient: 0.35, tintM };
     this.modes = { wireframe: false, colourByLevel: false, noColour: false };
     this.background = [135, 170, 210];
@@ -540,7 +476,8 @@ export class TerrainRenderer {
     for (const patch of changes.entered || []) {
       const key = patch.key ?? this.patchKey(patch.id, patch.half);
       const lower = isLowerHalf(patch.half);
-      const affine = affineOf(this.finePoint, this.n, patch.id, patch.corners, patch.half);
+      // The client's exact affine map of the half (render/src/domain.rs `affine`).
+      const affine = patch.affine;
       if (!affine) throw new Error(`patch ${key} is not affine in fine units`);
       const entry = { key, patch, lower, affine, indexed: undefined };
       this.cut.set(key, entry);

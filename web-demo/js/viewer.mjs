@@ -193,7 +193,6 @@ class Viewer {
     this.shot = shot;
     const colourScales = cMeta ? cMeta.channels.map((c) => [c.value_scale, c.value_offset]) : null;
     this.renderer = new TerrainRenderer(this.gl, {
-      meta: this.meta,
       world,
       colourScales,
       tintM: [0, Math.max(rootTop(this.meta, world), 50)],

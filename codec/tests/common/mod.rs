@@ -159,3 +159,27 @@ pub fn synthetic_planet(face_side: usize, n: usize) -> Result<CubeGrid, String> 
         quantum_m: Some(1.0),
     })
 }
+
+/// A planar refiner of a `w x h` raster for geometry queries: identity steps, the default
+/// model and a zero root grid (frames, masks and ids, no real data).
+#[allow(clippy::unwrap_used)]
+pub fn planar_refiner(
+    w: usize,
+    h: usize,
+    n: usize,
+    coverage: Option<&quincunx_codec::coverage::Coverage>,
+) -> quincunx_codec::incremental::PlanarRefiner {
+    let levels = quincunx_codec::raster::RasterFrame::new(w, h, n, None)
+        .unwrap()
+        .detail_levels();
+    quincunx_codec::incremental::PlanarRefiner::new(
+        w,
+        h,
+        n,
+        coverage,
+        vec![256; levels],
+        quincunx_codec::entropy::CodecModel::default(),
+        vec![0; (n + 1) * (n + 1)],
+    )
+    .unwrap()
+}
