@@ -29,7 +29,12 @@
 //! - [`colour`]: an optional colour repository matched at run time to the elevation one
 //!   (different depths and diamond sizes; procedural detail below the shallower layer).
 //!
-//! Not yet: rendering (a later crate reads [`session::Snapshot`]).
+//! Rendering lives in `quincunx-render`, which reads [`session::Snapshot`] and the cut
+//! changes.
+
+/// The glam of the public API (`DVec3` camera positions, `Mat4` projections): an app
+/// uses these types, whatever glam version it names itself.
+pub use glam;
 
 pub mod colour;
 pub mod dag;

@@ -67,8 +67,8 @@ impl View {
     pub fn clip_from_world(&self) -> DMat4 {
         let [w, h] = self.viewport_px;
         let aspect = f64::from(w.max(1)) / f64::from(h.max(1));
-        let proj = DMat4::perspective_infinite_rh(self.fov_y_rad, aspect, Self::NEAR_M);
-        proj * DMat4::look_at_rh(self.eye, self.target, self.up)
+        let proj = glam::dcamera::rh::proj::directx::perspective_infinite(self.fov_y_rad, aspect, Self::NEAR_M);
+        proj * glam::dcamera::rh::view::look_at_mat4(self.eye, self.target, self.up)
     }
 
     /// The view frustum (the far plane is at infinity).

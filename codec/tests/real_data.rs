@@ -117,7 +117,10 @@ fn max_error_mode_meets_its_bound_on_every_shared_grid() {
     let test = "max_error_mode_meets_its_bound_on_every_shared_grid";
     let grids = shared_height_grids();
     if grids.is_empty() {
-        println!("SKIP {test}: no height grids in {}", shared_dir().display());
+        common::skip_without_shared_data(
+            test,
+            &format!("no height grids in {}", shared_dir().display()),
+        );
         return;
     }
     let mut failures = Vec::new();

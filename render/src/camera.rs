@@ -49,7 +49,7 @@ impl Camera {
         if f.cross(up).length_squared() < 1e-24 {
             up = f.any_orthonormal_vector();
         }
-        DMat4::look_to_rh(DVec3::ZERO, f, up)
+        glam::dcamera::rh::view::look_to_mat4(DVec3::ZERO, f, up)
     }
 
     /// Reversed-Z perspective with an infinite far plane (depth 1 at the near plane, 0 at
@@ -57,7 +57,7 @@ impl Camera {
     pub fn projection(&self) -> DMat4 {
         let [w, h] = self.viewport_px;
         let aspect = f64::from(w.max(1)) / f64::from(h.max(1));
-        DMat4::perspective_infinite_reverse_rh(self.fov_y_rad, aspect, NEAR_M)
+        glam::dcamera::rh::proj::directx::perspective_infinite_reverse(self.fov_y_rad, aspect, NEAR_M)
     }
 
     /// Clip space from camera-relative world metres.

@@ -62,6 +62,10 @@ fn bundled() -> &'static (PathBuf, PathBuf) {
 #[test]
 fn node_test_suite() {
     if !has_node() {
+        assert!(
+            std::env::var("REQUIRE_NODE").as_deref() != Ok("1"),
+            "node_test_suite: REQUIRE_NODE=1 but node is not found"
+        );
         println!("SKIP node_test_suite: node not found");
         return;
     }

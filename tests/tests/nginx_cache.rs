@@ -31,8 +31,7 @@ const BLOB_400: &str = "quincunx_http_requests_total{route=\"blob\",status=\"400
 
 #[test]
 fn nginx_caches_blobs_across_two_replicas_and_survives_losing_one() {
-    let Some(nginx) = find_nginx() else {
-        println!("SKIP nginx_cache: nginx not installed");
+    let Some(nginx) = find_nginx("nginx_cache") else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -194,8 +193,7 @@ fn nginx_caches_blobs_across_two_replicas_and_survives_losing_one() {
 
 #[test]
 fn quincunx_fly_streams_a_static_export_from_plain_nginx() {
-    let Some(nginx) = find_nginx() else {
-        println!("SKIP nginx_static: nginx not installed");
+    let Some(nginx) = find_nginx("nginx_static") else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
@@ -268,15 +266,27 @@ fn quincunx_fly_streams_a_static_export_from_plain_nginx() {
 }
 
 /// `/usr/sbin/nginx`, else `nginx` on `PATH`.
-fn find_nginx() -> Option<PathBuf> {
+/// nginx (Debian's `/usr/sbin/nginx`, else on `PATH`), or `None` after printing
+/// `SKIP <test>`; a failure instead with `REQUIRE_NGINX=1`, which CI sets.
+fn find_nginx(test: &str) -> Option<PathBuf> {
     let debian = PathBuf::from("/usr/sbin/nginx");
-    if debian.is_file() {
-        return Some(debian);
+    let found = if debian.is_file() {
+        Some(debian)
+    } else {
+        std::env::var_os("PATH").and_then(|path| {
+            std::env::split_paths(&path)
+                .map(|dir| dir.join("nginx"))
+                .find(|candidate| candidate.is_file())
+        })
+    };
+    if found.is_none() {
+        assert!(
+            std::env::var("REQUIRE_NGINX").as_deref() != Ok("1"),
+            "{test}: REQUIRE_NGINX=1 but nginx is not installed"
+        );
+        println!("SKIP {test}: nginx not installed (apt-get install nginx)");
     }
-    let path = std::env::var_os("PATH")?;
-    std::env::split_paths(&path)
-        .map(|dir| dir.join("nginx"))
-        .find(|candidate| candidate.is_file())
+    found
 }
 
 /// Copies a directory tree (files and directories only: what a repository holds).

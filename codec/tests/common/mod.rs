@@ -34,18 +34,31 @@ pub fn shared_dir() -> PathBuf {
     }
 }
 
-/// A file of the shared data directory, or `None` after printing why the test is skipped.
+/// A file of the shared data directory, or `None` after printing why the test is skipped
+/// (a failure instead with `REQUIRE_SHARED_DATA=1`, which CI sets).
 pub fn shared_file(test: &str, name: &str) -> Option<PathBuf> {
     let path = shared_dir().join(name);
     if path.is_file() {
         Some(path)
     } else {
-        println!(
-            "SKIP {test}: {} not found (set QUINCUNX_SHARED_DATA to the shared data directory)",
-            path.display()
+        skip_without_shared_data(
+            test,
+            &format!(
+                "{} not found (set QUINCUNX_SHARED_DATA to the shared data directory)",
+                path.display()
+            ),
         );
         None
     }
+}
+
+/// Prints `SKIP <test>: <why>`, or fails the test when `REQUIRE_SHARED_DATA=1`.
+pub fn skip_without_shared_data(test: &str, why: &str) {
+    assert!(
+        std::env::var("REQUIRE_SHARED_DATA").as_deref() != Ok("1"),
+        "{test}: REQUIRE_SHARED_DATA=1 but {why}"
+    );
+    println!("SKIP {test}: {why}");
 }
 
 /// Reads a grid in the shared data format (raw little-endian int16/float32 + JSON sidecar).
