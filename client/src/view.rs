@@ -67,7 +67,11 @@ impl View {
     pub fn clip_from_world(&self) -> DMat4 {
         let [w, h] = self.viewport_px;
         let aspect = f64::from(w.max(1)) / f64::from(h.max(1));
-        let proj = glam::dcamera::rh::proj::directx::perspective_infinite(self.fov_y_rad, aspect, Self::NEAR_M);
+        let proj = glam::dcamera::rh::proj::directx::perspective_infinite(
+            self.fov_y_rad,
+            aspect,
+            Self::NEAR_M,
+        );
         proj * glam::dcamera::rh::view::look_at_mat4(self.eye, self.target, self.up)
     }
 

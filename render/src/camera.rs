@@ -57,7 +57,11 @@ impl Camera {
     pub fn projection(&self) -> DMat4 {
         let [w, h] = self.viewport_px;
         let aspect = f64::from(w.max(1)) / f64::from(h.max(1));
-        glam::dcamera::rh::proj::directx::perspective_infinite_reverse(self.fov_y_rad, aspect, NEAR_M)
+        glam::dcamera::rh::proj::directx::perspective_infinite_reverse(
+            self.fov_y_rad,
+            aspect,
+            NEAR_M,
+        )
     }
 
     /// Clip space from camera-relative world metres.

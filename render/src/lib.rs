@@ -28,11 +28,11 @@
 //! renderer.draw(&mut pass);
 //! ```
 
-/// The wgpu this crate draws with: an app uses these types for its device, queue and pass.
-pub use wgpu;
 /// The glam of the public API (`DVec3` camera positions and the like), re-exported from
 /// [`quincunx_client`].
 pub use quincunx_client::glam;
+/// The wgpu this crate draws with: an app uses these types for its device, queue and pass.
+pub use wgpu;
 
 pub mod camera;
 pub mod domain;

@@ -532,12 +532,11 @@ fn srtm_hgt_tiles_mosaic_back_into_the_korea_grid() {
     let path =
         Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/korea_srtm3_4097.json");
     if !path.exists() {
-        assert!(
-            std::env::var("REQUIRE_SHARED_DATA").as_deref() != Ok("1"),
-            "srtm_hgt_tiles: REQUIRE_SHARED_DATA=1 but {} is absent",
-            path.display()
+        quincunx_testkit::skip::skip(
+            "srtm_hgt_tiles",
+            "REQUIRE_SHARED_DATA",
+            &format!("{} is absent", path.display()),
         );
-        println!("SKIP srtm_hgt_tiles: {} is absent", path.display());
         return;
     }
     let k = input::read_heights(&path).unwrap();

@@ -387,7 +387,11 @@ fn a_read_only_repository_of_another_user_is_read_and_left_as_it_was() {
     if root {
         let probe = as_reader(&["--version".as_ref()]).output();
         if !probe.is_ok_and(|o| o.status.success()) {
-            println!("SKIP {test}: user nobody cannot run the test binary here (setpriv)");
+            quincunx_testkit::skip::skip(
+                test,
+                "REQUIRE_SETPRIV",
+                "user nobody cannot run the test binary here (setpriv)",
+            );
             return;
         }
     } else {

@@ -16,6 +16,7 @@ use std::sync::OnceLock;
 
 use common::bin;
 use quincunx_render::{Image, psnr_db};
+use quincunx_testkit::skip::skip;
 
 fn workspace() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -62,11 +63,7 @@ fn bundled() -> &'static (PathBuf, PathBuf) {
 #[test]
 fn node_test_suite() {
     if !has_node() {
-        assert!(
-            std::env::var("REQUIRE_NODE").as_deref() != Ok("1"),
-            "node_test_suite: REQUIRE_NODE=1 but node is not found"
-        );
-        println!("SKIP node_test_suite: node not found");
+        skip("node_test_suite", "REQUIRE_NODE", "node not found");
         return;
     }
     let (demo, export) = bundled();
@@ -196,7 +193,6 @@ fn background_pixels(image: &Image) -> usize {
 /// crack, no hole), and no page logs an error.
 #[test]
 fn browser_views_match_render() {
-    let require = std::env::var("REQUIRE_BROWSER").is_ok_and(|v| v == "1");
     let chromium = std::env::var("CHROMIUM").unwrap_or_else(|_| "/usr/bin/chromium".into());
     let playwright = workspace().join("web-demo/node_modules/playwright-core");
     let missing = if !has_node() {
@@ -209,8 +205,7 @@ fn browser_views_match_render() {
         None
     };
     if let Some(why) = missing {
-        assert!(!require, "REQUIRE_BROWSER=1 but {why}");
-        println!("SKIP browser_views_match_render: {why}");
+        skip("browser_views_match_render", "REQUIRE_BROWSER", why);
         return;
     }
     let (demo, _) = bundled();
@@ -249,16 +244,13 @@ fn browser_views_match_render() {
         }
         let o = cmd.output().unwrap();
         if !o.status.success() {
-            let gpu = std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1");
-            assert!(
-                !gpu,
-                "quincunx render: {}",
-                String::from_utf8_lossy(&o.stderr)
-            );
-            println!(
-                "SKIP comparison with quincunx render ({}): {}",
-                v.name,
-                String::from_utf8_lossy(&o.stderr).trim()
+            skip(
+                &format!("comparison with quincunx render ({})", v.name),
+                "REQUIRE_GPU",
+                &format!(
+                    "quincunx render: {}",
+                    String::from_utf8_lossy(&o.stderr).trim()
+                ),
             );
             references.push(None);
             continue;

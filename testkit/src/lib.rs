@@ -1,10 +1,12 @@
 //! Test fixtures shared by the server's and the client's tests: two small repositories
 //! of synthetic blobs (neither the server nor the fetch layer decodes, so any bytes do),
 //! deterministic so two builds have the same content hash; and the parsed HTTP response
-//! of their raw-socket clients ([`http::Response`]). Panics on failure: test use only.
+//! of their raw-socket clients ([`http::Response`]); `SKIP` lines ([`skip`]). Panics on
+//! failure: test use only.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 pub mod http;
+pub mod skip;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

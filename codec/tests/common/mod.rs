@@ -54,11 +54,7 @@ pub fn shared_file(test: &str, name: &str) -> Option<PathBuf> {
 
 /// Prints `SKIP <test>: <why>`, or fails the test when `REQUIRE_SHARED_DATA=1`.
 pub fn skip_without_shared_data(test: &str, why: &str) {
-    assert!(
-        std::env::var("REQUIRE_SHARED_DATA").as_deref() != Ok("1"),
-        "{test}: REQUIRE_SHARED_DATA=1 but {why}"
-    );
-    println!("SKIP {test}: {why}");
+    quincunx_testkit::skip::skip(test, "REQUIRE_SHARED_DATA", why);
 }
 
 /// Reads a grid in the shared data format (raw little-endian int16/float32 + JSON sidecar).
