@@ -1,5 +1,6 @@
 //! Rendered frames of the bundled repositories, streamed from a real server and drawn
-//! offscreen by `quincunx-render`:
+//! offscreen by `quincunx-render` on the adapter the environment selects
+//! (`WGPU_BACKEND`: lavapipe in `.ci/run`, llvmpipe GL in `.ci/gl-only`):
 //!
 //! - reference images (korea straight down and oblique, the planet whole and close with
 //!   colour) compared with a tolerance: per channel `|diff| <= 2` on at least 99.5 % of
@@ -10,7 +11,8 @@
 //!   f64 geometry says every ray meets the terrain (planar: the ray's stretch between the
 //!   highest and the lowest height stays over the raster; planets: the ray meets the
 //!   sphere of the lowest height), each pixel's 2 px neighbourhood included; 0 background
-//!   pixels there, and the cut's own check clean;
+//!   pixels there, and the cut's own check clean; planets from 1 m to 100,000 km (the
+//!   depth range GL without clip control loses);
 //! - negative controls: past the raster's edge the background shows where the geometry
 //!   says there is no terrain, and the same cut drawn without one patch shows a hole.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
