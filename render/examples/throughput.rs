@@ -17,6 +17,10 @@
 //!   repository: face normal from `dpdx`/`dpdy` of the relative position, the same
 //!   directional light and ambient share, the same height tint, the raster clip test.
 //!
+//! The batched renderer also draws with a loop of `draw_indexed`, and with the other
+//! depth path (`RendererConfig::fragment_depth` flipped: the reversed-Z depth written per
+//! fragment where the backend has clip control, rasterised on GL).
+//!
 //! Both draw into the same 1920x1080 offscreen target (Rgba8Unorm + Depth32Float,
 //! reversed Z, compare Greater), alternating, `rounds` frames each; GPU time from
 //! timestamp queries around the render pass where the adapter has them, else wall time
@@ -457,6 +461,20 @@ fn main() -> Result<(), Error> {
     dag.restart_cut_changes();
     looped.apply(&*refiner, None, dag.take_patch_changes())?;
     while looped.prepare(&gpu.queue, &camera).pending > 0 {}
+    // The same renderer with the other depth path: reversed Z written by the fragment
+    // stage where the backend has clip control (the GL path), rasterised on GL.
+    let flip = !renderer.config().fragment_depth.unwrap_or(false);
+    let mut other_depth: TerrainRenderer<PlanarRefiner> = TerrainRenderer::new(
+        &gpu.device,
+        frame,
+        RendererConfig {
+            fragment_depth: Some(flip),
+            ..renderer.config().clone()
+        },
+    )?;
+    dag.restart_cut_changes();
+    other_depth.apply(&*refiner, None, dag.take_patch_changes())?;
+    while other_depth.prepare(&gpu.queue, &camera).pending > 0 {}
     let mut stats = renderer.prepare(&gpu.queue, &camera);
     while stats.pending > 0 {
         stats = renderer.prepare(&gpu.queue, &camera);
@@ -478,19 +496,24 @@ fn main() -> Result<(), Error> {
     timed(&gpu, &offscreen, |p| renderer.draw(p))?;
     timed(&gpu, &offscreen, |p| raw.draw(p))?;
     timed(&gpu, &offscreen, |p| looped.draw(p))?;
+    timed(&gpu, &offscreen, |p| other_depth.draw(p))?;
     let (mut batched, mut raw_ms, mut loop_ms) = (Vec::new(), Vec::new(), Vec::new());
+    let mut other_ms = Vec::new();
     let mut gpu_timed = true;
     for _ in 0..rounds {
         let (b, tb) = timed(&gpu, &offscreen, |p| renderer.draw(p))?;
         let (r, tr) = timed(&gpu, &offscreen, |p| raw.draw(p))?;
         let (l, tl) = timed(&gpu, &offscreen, |p| looped.draw(p))?;
-        gpu_timed &= tb && tr && tl;
+        let (o, to) = timed(&gpu, &offscreen, |p| other_depth.draw(p))?;
+        gpu_timed &= tb && tr && tl && to;
+        other_ms.push(o);
         batched.push(b);
         raw_ms.push(r);
         loop_ms.push(l);
     }
     let (b, r) = (median(batched.clone()), median(raw_ms.clone()));
     let l = median(loop_ms.clone());
+    let o = median(other_ms.clone());
     let tps = |ms: f64| triangles as f64 / (ms / 1e3);
     let ratio = tps(b) / tps(r);
     if json {
@@ -506,6 +529,8 @@ fn main() -> Result<(), Error> {
             "raw_triangles_per_s": tps(r),
             "ratio": ratio,
             "batched_loop_triangles_per_s": tps(l),
+            "fragment_depth": !flip,
+            "batched_other_depth_triangles_per_s": tps(o),
             "indirect_validation": gpu_indirect_validation(),
             "rounds": rounds,
             "timing": if gpu_timed { "timestamp queries" } else { "wall time, submit to idle" },
@@ -532,6 +557,11 @@ fn main() -> Result<(), Error> {
         println!(
             "raw:     median {r:.2} ms = {:.3e} triangles/s  (all: {raw_ms:.1?})",
             tps(r)
+        );
+        println!(
+            "depth {}: median {o:.2} ms = {:.3e} triangles/s  (all: {other_ms:.1?})",
+            if flip { "per fragment" } else { "rasterised" },
+            tps(o)
         );
         println!(
             "ratio (batched/raw): {ratio:.3}  (bar >= 0.9); adapter {}",

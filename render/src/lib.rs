@@ -13,7 +13,9 @@
 //! - Precision: the camera is split into integer limbs and a small remainder in f64 on
 //!   the host; the shader subtracts exact integers, so only camera-relative numbers
 //!   reach f32, and shared vertices come out bit-identical in neighbouring patches.
-//!   Reversed Z, infinite far plane, `Depth32Float`.
+//!   Reversed Z, infinite far plane, `Depth32Float`; on backends without clip control
+//!   (wgpu's GL) the fragment stage writes that depth itself
+//!   ([`RendererConfig::fragment_depth`]), so it holds at planet distances there too.
 //! - Image error ([`error`]): PSNR, and a geometric error in screen pixels from a frame's
 //!   depth ([`Offscreen::read_depth`]) against a reference cut's surface as drawn
 //!   ([`SurfaceIndex`]), for speed/accuracy trade studies.

@@ -91,15 +91,31 @@ impl Gpu {
 
 /// A headless device for tests: `Ok(None)` (after printing `SKIP <test>: <reason>`)
 /// when there is none, unless `REQUIRE_GPU=1`, which turns that into an error.
+/// Prints the adapter it found (`GPU <test>: <adapter>`), so a log shows which backend
+/// each test ran on.
 pub fn gpu_for_test(test: &str) -> Result<Option<Gpu>, RenderError> {
-    match Gpu::headless() {
-        Ok(gpu) => Ok(Some(gpu)),
-        Err(e) if std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1") => Err(e),
+    gpu_for_test_with(test, wgpu::Features::empty())
+}
+
+/// [`gpu_for_test`] for a test that also needs device `features`: on an adapter without
+/// them it prints `SKIP <test>: adapter <name> lacks <features>` and gives `Ok(None)`,
+/// `REQUIRE_GPU=1` or not (that variable asks for an adapter, not for every feature).
+pub fn gpu_for_test_with(test: &str, features: wgpu::Features) -> Result<Option<Gpu>, RenderError> {
+    let gpu = match Gpu::headless() {
+        Ok(gpu) => gpu,
+        Err(e) if std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1") => return Err(e),
         Err(e) => {
             println!("SKIP {test}: no GPU adapter ({e})");
-            Ok(None)
+            return Ok(None);
         }
+    };
+    let missing = features - gpu.device.features();
+    if !missing.is_empty() {
+        println!("SKIP {test}: adapter {} lacks {missing:?}", gpu.describe());
+        return Ok(None);
     }
+    println!("GPU {test}: {}", gpu.describe());
+    Ok(Some(gpu))
 }
 
 /// An RGBA8 image.
@@ -224,7 +240,47 @@ pub struct Offscreen {
     readback: wgpu::Buffer,
     padded_row: u32,
     timer: Option<(wgpu::QuerySet, wgpu::Buffer, wgpu::Buffer)>,
+    /// The pass that copies depth into a colour target, made on first use.
+    depth_draw: std::sync::OnceLock<DepthDraw>,
 }
+
+/// How [`Offscreen::read_depth`] gets the depth attachment into a buffer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthReadback {
+    /// A texture-to-buffer copy of the depth aspect (needs
+    /// `DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES`: Vulkan, Metal, DX12).
+    Copy,
+    /// A full-screen draw that loads each depth texel and writes its bits into an
+    /// `R32Uint` colour target, which is then copied like the colour (every backend,
+    /// wgpu's GL one included). Bit-identical to [`DepthReadback::Copy`].
+    Draw,
+}
+
+/// The depth-to-colour pass of [`DepthReadback::Draw`].
+struct DepthDraw {
+    pipeline: wgpu::RenderPipeline,
+    bind_group: wgpu::BindGroup,
+    target: wgpu::Texture,
+    target_view: wgpu::TextureView,
+}
+
+/// Loads each depth texel and writes its bits, unchanged, into an `R32Uint` target.
+const DEPTH_TO_COLOUR_WGSL: &str = r"
+@group(0) @binding(0) var depth: texture_2d<f32>;
+
+@vertex
+fn vs(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
+    // One triangle over the whole target.
+    let x = f32((i << 1u) & 2u) * 2.0 - 1.0;
+    let y = f32(i & 2u) * 2.0 - 1.0;
+    return vec4<f32>(x, y, 0.0, 1.0);
+}
+
+@fragment
+fn fs(@builtin(position) p: vec4<f32>) -> @location(0) u32 {
+    return bitcast<u32>(textureLoad(depth, vec2<i32>(p.xy), 0).r);
+}
+";
 
 /// What one offscreen frame took on the GPU.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -267,7 +323,9 @@ impl Offscreen {
         );
         let depth = texture(
             DEPTH_FORMAT,
-            wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::COPY_SRC
+                | wgpu::TextureUsages::TEXTURE_BINDING,
             "quincunx offscreen depth",
         );
         let padded_row = (w * 4).div_ceil(256) * 256;
@@ -310,6 +368,7 @@ impl Offscreen {
             readback,
             padded_row,
             timer,
+            depth_draw: std::sync::OnceLock::new(),
         })
     }
 
@@ -487,13 +546,70 @@ impl Offscreen {
     }
 
     /// Reads the depth attachment of the last frame back ([`DepthImage`]; 0 where nothing
-    /// was drawn). Allocates its own readback buffer (4 bytes a pixel, rows padded to 256
-    /// bytes) for the call.
+    /// was drawn), by a copy where the adapter can copy depth textures to buffers, else by
+    /// a draw ([`DepthReadback`]). Allocates its own readback buffer (4 bytes a pixel,
+    /// rows padded to 256 bytes) for the call.
     pub fn read_depth(&self, gpu: &Gpu) -> Result<DepthImage, RenderError> {
-        depth_copies(
-            gpu.adapter.get_downlevel_capabilities().flags,
-            &gpu.adapter.get_info().name,
-        )?;
+        let how = if depth_copies(gpu.adapter.get_downlevel_capabilities().flags) {
+            DepthReadback::Copy
+        } else {
+            DepthReadback::Draw
+        };
+        self.read_depth_with(gpu, how)
+    }
+
+    /// [`Offscreen::read_depth`] by the given path; [`DepthReadback::Copy`] is an error on
+    /// an adapter without depth texture copies.
+    pub fn read_depth_with(
+        &self,
+        gpu: &Gpu,
+        how: DepthReadback,
+    ) -> Result<DepthImage, RenderError> {
+        let source = match how {
+            DepthReadback::Copy => {
+                if !depth_copies(gpu.adapter.get_downlevel_capabilities().flags) {
+                    return Err(RenderError::NoAdapter(format!(
+                        "adapter {:?} cannot copy depth textures to buffers \
+                         (DEPTH_TEXTURE_AND_BUFFER_COPIES); read depth by a draw instead",
+                        gpu.adapter.get_info().name
+                    )));
+                }
+                &self.depth
+            }
+            DepthReadback::Draw => {
+                let draw = self.depth_draw.get_or_init(|| self.make_depth_draw(gpu));
+                let mut encoder = gpu
+                    .device
+                    .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+                {
+                    let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                        label: Some("quincunx depth to colour"),
+                        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                            view: &draw.target_view,
+                            depth_slice: None,
+                            resolve_target: None,
+                            ops: wgpu::Operations {
+                                load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                                store: wgpu::StoreOp::Store,
+                            },
+                        })],
+                        depth_stencil_attachment: None,
+                        timestamp_writes: None,
+                        occlusion_query_set: None,
+                        multiview_mask: None,
+                    });
+                    pass.set_pipeline(&draw.pipeline);
+                    pass.set_bind_group(0, &draw.bind_group, &[]);
+                    pass.draw(0..3, 0..1);
+                }
+                gpu.queue.submit([encoder.finish()]);
+                &draw.target
+            }
+        };
+        let aspect = match how {
+            DepthReadback::Copy => wgpu::TextureAspect::DepthOnly,
+            DepthReadback::Draw => wgpu::TextureAspect::All,
+        };
         let [w, h] = self.size;
         let row = w as usize * 4;
         let padded = (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
@@ -509,10 +625,10 @@ impl Offscreen {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
         encoder.copy_texture_to_buffer(
             wgpu::TexelCopyTextureInfo {
-                texture: &self.depth,
+                texture: source,
                 mip_level: 0,
                 origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::DepthOnly,
+                aspect,
             },
             wgpu::TexelCopyBufferInfo {
                 buffer: &buffer,
@@ -549,6 +665,90 @@ impl Offscreen {
     }
 }
 
+impl Offscreen {
+    fn make_depth_draw(&self, gpu: &Gpu) -> DepthDraw {
+        let device = &gpu.device;
+        let [w, h] = self.size;
+        let target = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("quincunx depth as colour"),
+            size: wgpu::Extent3d {
+                width: w,
+                height: h,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::R32Uint,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("quincunx depth to colour"),
+            source: wgpu::ShaderSource::Wgsl(DEPTH_TO_COLOUR_WGSL.into()),
+        });
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("quincunx depth to colour"),
+            entries: &[wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::FRAGMENT,
+                // A depth texture bound as unfilterable float: GLSL cannot `texelFetch` a
+                // shadow sampler, which `texture_depth_2d` becomes on GL.
+                ty: wgpu::BindingType::Texture {
+                    sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                    view_dimension: wgpu::TextureViewDimension::D2,
+                    multisampled: false,
+                },
+                count: None,
+            }],
+        });
+        let depth_view = self.depth.create_view(&wgpu::TextureViewDescriptor {
+            aspect: wgpu::TextureAspect::DepthOnly,
+            ..Default::default()
+        });
+        let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("quincunx depth to colour"),
+            layout: &layout,
+            entries: &[wgpu::BindGroupEntry {
+                binding: 0,
+                resource: wgpu::BindingResource::TextureView(&depth_view),
+            }],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("quincunx depth to colour"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("quincunx depth to colour"),
+            layout: Some(&pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &shader,
+                entry_point: Some("vs"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: Default::default(),
+            depth_stencil: None,
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &shader,
+                entry_point: Some("fs"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::TextureFormat::R32Uint.into())],
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        DepthDraw {
+            pipeline,
+            bind_group,
+            target_view: target.create_view(&Default::default()),
+            target,
+        }
+    }
+}
+
 /// Maps a buffer for reading, waits, runs `f` on its bytes and unmaps.
 pub fn map_read<T>(
     gpu: &Gpu,
@@ -575,18 +775,10 @@ pub fn map_read<T>(
     buffer.unmap();
     Ok(out)
 }
-/// Whether an adapter with downlevel `flags` can copy a depth texture to a buffer, as
-/// [`Offscreen::read_depth`] does (wgpu's GL backend cannot; wgpu would panic).
-fn depth_copies(flags: wgpu::DownlevelFlags, adapter: &str) -> Result<(), RenderError> {
-    if flags.contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES) {
-        Ok(())
-    } else {
-        Err(RenderError::NoAdapter(format!(
-            "adapter {adapter:?} cannot copy depth textures to buffers \
-             (DEPTH_TEXTURE_AND_BUFFER_COPIES): depth read-back and the image error need \
-             a Vulkan, Metal or DX12 adapter (e.g. Mesa's lavapipe)"
-        )))
-    }
+/// Whether an adapter with downlevel `flags` can copy a depth texture to a buffer
+/// ([`DepthReadback::Copy`]; wgpu's GL backend cannot, and wgpu would panic).
+fn depth_copies(flags: wgpu::DownlevelFlags) -> bool {
+    flags.contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES)
 }
 
 #[cfg(test)]
@@ -595,14 +787,11 @@ mod tests {
     use super::*;
 
     #[test]
-    fn depth_read_back_without_depth_copies_is_a_clear_error() {
+    fn only_adapters_with_depth_copies_read_depth_by_a_copy() {
         let all = wgpu::DownlevelFlags::all();
-        assert!(depth_copies(all, "vk").is_ok());
-        let gl = all - wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES;
-        let e = depth_copies(gl, "llvmpipe").unwrap_err().to_string();
-        assert!(
-            e.contains("llvmpipe") && e.contains("DEPTH_TEXTURE_AND_BUFFER_COPIES"),
-            "{e}"
-        );
+        assert!(depth_copies(all));
+        assert!(!depth_copies(
+            all - wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES
+        ));
     }
 }

@@ -42,6 +42,13 @@ pub struct RendererConfig {
     /// draws natively; otherwise, or without `Features::INDIRECT_FIRST_INSTANCE` on the
     /// device, one `draw_indexed` per patch).
     pub multi_draw: Option<bool>,
+    /// Write the reversed-Z depth in the fragment stage (`near / w`) instead of letting
+    /// the rasteriser interpolate it (`None`: where the backend has no clip control,
+    /// that is wgpu's GL backend, whose `[-1, 1]` depth range rounds `near / distance`
+    /// to 0 at planet distances). Either way the stored depth is `near / w`, reversed Z
+    /// with an infinite far plane; the fragment path costs early depth rejection.
+    /// [`TerrainRenderer::config`] reports the resolved choice.
+    pub fragment_depth: Option<bool>,
 }
 
 /// The depth format the renderer expects.
@@ -56,6 +63,7 @@ impl Default for RendererConfig {
             depth_format: DEPTH_FORMAT,
             sample_count: 1,
             multi_draw: None,
+            fragment_depth: None,
         }
     }
 }
@@ -209,8 +217,13 @@ impl<R: RenderDomain> TerrainRenderer<R> {
     pub fn new(
         device: &wgpu::Device,
         world: WorldFrame,
-        config: RendererConfig,
+        mut config: RendererConfig,
     ) -> Result<Self, RenderError> {
+        config.fragment_depth = Some(
+            config
+                .fragment_depth
+                .unwrap_or_else(|| !has_clip_control(device.adapter_info().backend)),
+        );
         if config.depth_format != DEPTH_FORMAT {
             return Err(RenderError::Config(format!(
                 "depth format {:?}: reversed Z needs {DEPTH_FORMAT:?}",
@@ -897,6 +910,13 @@ fn vertex_layouts(planet: bool) -> [Option<wgpu::VertexBufferLayout<'static>>; 2
     ]
 }
 
+/// Whether a backend maps clip `z / w` in `[0, 1]` to depth as is (Vulkan, Metal, DX12,
+/// WebGPU); wgpu's GL backend has no clip control (naga rewrites `z` to `2z - w` for
+/// OpenGL's `[-1, 1]` range).
+pub fn has_clip_control(backend: wgpu::Backend) -> bool {
+    !matches!(backend, wgpu::Backend::Gl)
+}
+
 /// Whether the repository is a planet (the shader's entry points and inputs differ).
 fn is_planet(world: &WorldFrame) -> bool {
     matches!(world.geometry, crate::domain::Geometry::Planet { .. })
@@ -929,10 +949,12 @@ fn terrain_pipeline(
 ) -> wgpu::RenderPipeline {
     // The plain fragment stage where no mode needs the grid coordinates or the slot.
     let on = |name: &str| constants.iter().any(|(k, v)| *k == name && *v != 0.0);
-    let fragment = if on("COLOUR") || on("LEVELS") || on("WIREFRAME") {
-        "fs_main"
-    } else {
-        "fs_plain"
+    let full = on("COLOUR") || on("LEVELS") || on("WIREFRAME");
+    let fragment = match (full, config.fragment_depth == Some(true)) {
+        (true, false) => "fs_main",
+        (false, false) => "fs_plain",
+        (true, true) => "fs_main_depth",
+        (false, true) => "fs_plain_depth",
     };
     device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
         label: Some("quincunx terrain"),

@@ -333,6 +333,10 @@ fn outside_raster(rel: vec3<f32>) -> bool {
 
 @fragment
 fn fs_plain(in: PlainIn) -> @location(0) vec4<f32> {
+    return plain_colour(in);
+}
+
+fn plain_colour(in: PlainIn) -> vec4<f32> {
     let rel = in.rel_h.xyz;
     let dx = dpdx(rel);
     let dy = dpdy(rel);
@@ -342,8 +346,38 @@ fn fs_plain(in: PlainIn) -> @location(0) vec4<f32> {
     return vec4<f32>(lit(rel, dx, dy, tint(in.rel_h.w)), 1.0);
 }
 
+// Backends without clip control (wgpu's GL backend: naga rewrites clip z to 2z - w, and
+// the window depth is (z/w + 1) / 2 with an absolute spacing of about 6e-8, below which
+// `near / distance` rounds to the clear value 0 at planet distances): the fragment stage
+// writes the reversed-Z depth itself, `near / w` (`position.w` is 1 / clip w, interpolated
+// linearly in screen space as Vulkan interpolates z / w), so the stored value and its
+// relative precision are those of clip control. See docs/rendering.md, "Depth".
+struct DepthOut {
+    @location(0) colour: vec4<f32>,
+    @builtin(frag_depth) depth: f32,
+}
+
+fn reversed_z(position: vec4<f32>) -> f32 {
+    // Clip z of the reversed-Z, infinite-far projection is the near plane distance.
+    return frame.clip_from_rel[3].z * position.w;
+}
+
+@fragment
+fn fs_plain_depth(in: PlainIn) -> DepthOut {
+    return DepthOut(plain_colour(in), reversed_z(in.clip));
+}
+
+@fragment
+fn fs_main_depth(in: VertexOut) -> DepthOut {
+    return DepthOut(main_colour(in), reversed_z(in.clip));
+}
+
 @fragment
 fn fs_main(in: VertexOut) -> @location(0) vec4<f32> {
+    return main_colour(in);
+}
+
+fn main_colour(in: VertexOut) -> vec4<f32> {
     // Derivatives first, in uniform control flow. The face normal of each triangle comes
     // from the same camera-relative positions the rasteriser used.
     let rel = in.rel_h.xyz;

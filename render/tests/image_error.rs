@@ -18,7 +18,7 @@ use glam::DVec3;
 use precision::{FACE_SIDE, MadeUp, N, Planet, converge, patch_changes, places, view_at};
 use quincunx_client::dag::Dag;
 use quincunx_render::error::{error_map, error_map_with, geometric_error_with};
-use quincunx_render::offscreen::{OFFSCREEN_FORMAT, gpu_for_test};
+use quincunx_render::offscreen::{DepthReadback, OFFSCREEN_FORMAT, gpu_for_test};
 use quincunx_render::{
     Camera, DepthImage, Image, Offscreen, RendererConfig, SurfaceIndex, TerrainRenderer,
     geometric_error, psnr_db, unproject,
@@ -346,6 +346,38 @@ fn a_planet_frame_reads_back_onto_its_cut_and_measures_zero_against_itself() {
         .unwrap();
     let image = offscreen.read(&gpu).unwrap();
     let depth = offscreen.read_depth(&gpu).unwrap();
+    // Read by a draw (the path of adapters without depth copies, wgpu's GL one): the
+    // same bits as the copy where the adapter has both.
+    let drawn = offscreen
+        .read_depth_with(&gpu, DepthReadback::Draw)
+        .unwrap();
+    assert!(
+        drawn
+            .data
+            .iter()
+            .zip(&depth.data)
+            .all(|(a, b)| a.to_bits() == b.to_bits()),
+        "depth read by a draw differs from read_depth"
+    );
+    if gpu
+        .adapter
+        .get_downlevel_capabilities()
+        .flags
+        .contains(wgpu::DownlevelFlags::DEPTH_TEXTURE_AND_BUFFER_COPIES)
+    {
+        let copied = offscreen
+            .read_depth_with(&gpu, DepthReadback::Copy)
+            .unwrap();
+        assert!(
+            copied
+                .data
+                .iter()
+                .zip(&drawn.data)
+                .all(|(a, b)| a.to_bits() == b.to_bits()),
+            "depth read by a draw differs from the copy"
+        );
+        println!("depth read by a draw: bit-identical to the copy");
+    }
     let index = SurfaceIndex::from_dag(&dag, &planet.world);
     assert_eq!((index.patches(), index.skipped()), (stats.patches, 0));
 

@@ -7,13 +7,15 @@
 mod precision;
 
 use precision::{FACE_SIDE, N, Planet, places, run_case};
-use quincunx_render::offscreen::gpu_for_test;
+use quincunx_render::offscreen::gpu_for_test_with;
 
 #[test]
 fn gpu_vertices_project_within_half_a_pixel_of_the_f64_reference() {
-    let Some(gpu) =
-        gpu_for_test("gpu_vertices_project_within_half_a_pixel_of_the_f64_reference").unwrap()
-    else {
+    let Some(gpu) = gpu_for_test_with(
+        "gpu_vertices_project_within_half_a_pixel_of_the_f64_reference",
+        wgpu::Features::VERTEX_WRITABLE_STORAGE,
+    )
+    .unwrap() else {
         return;
     };
     let planet = Planet::new(FACE_SIDE, N).unwrap();

@@ -17,7 +17,7 @@ use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
 use quincunx_codec::encode::{EncodeOptions, Grid, RateMode, encode};
 use quincunx_codec::incremental::PlanarRefiner;
-use quincunx_render::offscreen::gpu_for_test;
+use quincunx_render::offscreen::gpu_for_test_with;
 use quincunx_render::{Camera, RenderDomain};
 
 /// Points shared by two or more patches, points shared by two or more diamonds, and the
@@ -53,9 +53,11 @@ fn shared<I: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
 
 #[test]
 fn shared_planet_vertices_are_bit_identical_across_cube_faces() {
-    let Some(gpu) =
-        gpu_for_test("shared_planet_vertices_are_bit_identical_across_cube_faces").unwrap()
-    else {
+    let Some(gpu) = gpu_for_test_with(
+        "shared_planet_vertices_are_bit_identical_across_cube_faces",
+        wgpu::Features::VERTEX_WRITABLE_STORAGE,
+    )
+    .unwrap() else {
         return;
     };
     let planet = Planet::new(FACE_SIDE, N).unwrap();
@@ -113,7 +115,11 @@ impl DetailSource for Local {
 
 #[test]
 fn shared_planar_vertices_are_bit_identical() {
-    let Some(gpu) = gpu_for_test("shared_planar_vertices_are_bit_identical").unwrap() else {
+    let Some(gpu) = gpu_for_test_with(
+        "shared_planar_vertices_are_bit_identical",
+        wgpu::Features::VERTEX_WRITABLE_STORAGE,
+    )
+    .unwrap() else {
         return;
     };
     let (w, h) = (513, 513);

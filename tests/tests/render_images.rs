@@ -1,5 +1,6 @@
 //! Rendered frames of the bundled repositories, streamed from a real server and drawn
-//! offscreen by `quincunx-render`:
+//! offscreen by `quincunx-render` on the adapter the environment selects
+//! (`WGPU_BACKEND`: lavapipe in `.ci/run`, llvmpipe GL in `.ci/gl-only`):
 //!
 //! - reference images (korea straight down and oblique, the planet whole and close with
 //!   colour) compared with a tolerance: per channel `|diff| <= 2` on at least 99.5 % of
@@ -10,7 +11,8 @@
 //!   f64 geometry says every ray meets the terrain (planar: the ray's stretch between the
 //!   highest and the lowest height stays over the raster; planets: the ray meets the
 //!   sphere of the lowest height), each pixel's 2 px neighbourhood included; 0 background
-//!   pixels there, and the cut's own check clean;
+//!   pixels there, and the cut's own check clean; planets from 1 m to 100,000 km (the
+//!   depth range GL without clip control loses);
 //! - negative controls: past the raster's edge the background shows where the geometry
 //!   says there is no terrain, and the same cut drawn without one patch shows a hole.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
@@ -568,6 +570,51 @@ fn planet_views_show_no_background_inside_the_disc() {
                 "{what}: terrain off the disc"
             );
         }
+    }
+}
+
+#[test]
+fn a_planet_from_1_m_to_100_000_km_shows_no_background_inside_the_terrain() {
+    let test = "a_planet_from_1_m_to_100_000_km_shows_no_background_inside_the_terrain";
+    let Some(gpu) = gpu_for_test(test).unwrap() else {
+        return;
+    };
+    // Straight down and oblique (the horizon in view: the widest depth range), from 1 m
+    // to 100,000 km over a face centre on the equator. Without clip control a reversed-Z
+    // depth near / distance rounds to the clear value from about 1,000 km up.
+    for (height_m, pitch_deg, fov_deg) in [
+        (1.0, -90.0, 60.0),
+        (1.0, -10.0, 60.0),
+        (100.0, -90.0, 60.0),
+        (100.0, -20.0, 60.0),
+        (10_000.0, -30.0, 60.0),
+        (1_000_000.0, -60.0, 60.0),
+        (15_000_000.0, -90.0, 60.0),
+        (100_000_000.0, -90.0, 10.0),
+    ] {
+        let s = Shot {
+            fov_deg,
+            ..shot(Place::LatLon(0.0, 10.0), height_m, pitch_deg)
+        };
+        let mut session = earth();
+        let (pic, _, view) = take(&gpu, &mut session, &s, MAGENTA);
+        let world = session.dag().refiner().world_frame(&session.world(), 0);
+        let Geometry::Planet { radius_m, .. } = world.geometry else {
+            panic!("a planet")
+        };
+        // Every ray that meets the sphere of the lowest height crosses the terrain.
+        let r = radius_m + session.height_range().0;
+        let truth = truth_map(&view, |d| meets_sphere(view.eye, d, r).then_some(true));
+        let c = count(&pic.image, &truth);
+        println!(
+            "earth from {height_m} m, pitch {pitch_deg}: {} terrain pixels, {} background among them; {} patches",
+            c.terrain, c.background_in_terrain, pic.stats.patches
+        );
+        assert!(c.terrain > 10_000, "{height_m} m: {c:?}");
+        assert_eq!(
+            c.background_in_terrain, 0,
+            "{height_m} m, pitch {pitch_deg}: {c:?}"
+        );
     }
 }
 
