@@ -105,17 +105,27 @@ pub fn gpu_for_test_with(test: &str, features: wgpu::Features) -> Result<Option<
         Ok(gpu) => gpu,
         Err(e) if std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1") => return Err(e),
         Err(e) => {
-            println!("SKIP {test}: no GPU adapter ({e})");
+            test_line(&format!("SKIP {test}: no GPU adapter ({e})"));
             return Ok(None);
         }
     };
     let missing = features - gpu.device.features();
     if !missing.is_empty() {
-        println!("SKIP {test}: adapter {} lacks {missing:?}", gpu.describe());
+        test_line(&format!(
+            "SKIP {test}: adapter {} lacks {missing:?}",
+            gpu.describe()
+        ));
         return Ok(None);
     }
-    println!("GPU {test}: {}", gpu.describe());
+    test_line(&format!("GPU {test}: {}", gpu.describe()));
     Ok(Some(gpu))
+}
+
+/// One line straight to standard error, where `cargo test` shows it: libtest captures the
+/// `print!` output of passing tests, so a `println!` SKIP line would never be seen.
+fn test_line(line: &str) {
+    use std::io::Write as _;
+    let _ = writeln!(std::io::stderr().lock(), "{line}");
 }
 
 /// An RGBA8 image.

@@ -64,11 +64,11 @@ fn has_xvfb_run() -> bool {
 #[test]
 fn view_under_xvfb_saves_a_screenshot_of_terrain() {
     if !has_xvfb_run() {
-        let reason = "xvfb-run is not installed";
-        if std::env::var("REQUIRE_GPU").is_ok_and(|v| v == "1") {
-            panic!("view_under_xvfb: {reason} (REQUIRE_GPU=1)");
-        }
-        println!("SKIP view_under_xvfb: {reason}");
+        quincunx_testkit::skip::skip(
+            "view_under_xvfb",
+            "REQUIRE_XVFB",
+            "xvfb-run is not installed (apt-get install xvfb xauth)",
+        );
         return;
     }
     // No adapter: SKIP, or fail with REQUIRE_GPU=1, like the other render tests.
