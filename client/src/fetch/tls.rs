@@ -194,9 +194,44 @@ pub fn find_tls_cause(e: &(dyn std::error::Error + 'static), host: &str) -> Opti
         {
             return Some(msg);
         }
+        // An I/O error's `source` skips the error it wraps: look inside.
+        if let Some(inner) = err.downcast_ref::<io::Error>().and_then(|io| io.get_ref())
+            && let Some(msg) = find_tls_cause(as_error(inner), host)
+        {
+            return Some(msg);
+        }
         cur = err.source();
     }
-    None
+    // Layers that keep only the text (connectors boxing their errors anew).
+    let text = chain_text(e);
+    let certificate = |c: CertificateError| describe(&rustls::Error::InvalidCertificate(c), host);
+    let (_, rest) = text.split_once("invalid peer certificate: ")?;
+    Some(if rest.starts_with("UnknownIssuer") {
+        certificate(CertificateError::UnknownIssuer)
+    } else if rest.starts_with("NotValidForName") || rest.contains("not valid for name") {
+        certificate(CertificateError::NotValidForName)
+    } else if rest.starts_with("Expired") || rest.contains("expired") {
+        certificate(CertificateError::Expired)
+    } else {
+        format!("TLS: the certificate of {host} is invalid ({rest})")
+    })
+}
+
+fn as_error<'a>(
+    e: &'a (dyn std::error::Error + Send + Sync + 'static),
+) -> &'a (dyn std::error::Error + 'static) {
+    e
+}
+
+fn chain_text(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut text = e.to_string();
+    let mut cur = e.source();
+    while let Some(err) = cur {
+        text.push_str(": ");
+        text.push_str(&err.to_string());
+        cur = err.source();
+    }
+    text
 }
 
 /// A client connection: plain TCP or TLS over TCP.
