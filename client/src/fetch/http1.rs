@@ -127,7 +127,7 @@ impl Endpoint {
         {
             return Err(bad());
         }
-        let has_port = !(authority.ends_with(']') || !authority.contains(':'));
+        let has_port = !authority.ends_with(']') && authority.contains(':');
         let with_port = if has_port {
             authority.to_string()
         } else {
