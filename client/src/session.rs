@@ -132,6 +132,9 @@ pub struct SessionConfig {
     /// fetched 1.28 or 1.19 times what the planet's jump flight used, 2 1.10
     /// (`docs/streaming.md`, "Packages").
     pub package_factor: Option<f64>,
+    /// How to reach the server beyond its URL: an extra trusted CA for `https://` (PEM,
+    /// besides the system's roots) and an address to connect to instead of the host's.
+    pub connect: crate::fetch::tls::ConnectOptions,
 }
 
 impl Default for SessionConfig {
@@ -154,6 +157,7 @@ impl Default for SessionConfig {
             request_deadline: crate::fetch::DEFAULT_REQUEST_DEADLINE,
             procedural: Procedural::Zero,
             package_factor: Some(2.0),
+            connect: crate::fetch::tls::ConnectOptions::default(),
         }
     }
 }
@@ -529,9 +533,9 @@ impl AnySession {
         colour: Option<&str>,
         config: SessionConfig,
     ) -> Result<AnySession, SessionError> {
-        let (remote, meta) = Remote::open(base_url, name, config.timeout)?;
+        let (remote, meta) = Remote::open_with(base_url, name, config.timeout, &config.connect)?;
         let colour = colour
-            .map(|c| Remote::open(base_url, c, config.timeout))
+            .map(|c| Remote::open_with(base_url, c, config.timeout, &config.connect))
             .transpose()?;
         Ok(if meta.domain == SphereRefiner::KIND {
             AnySession::Planet(Session::with_layers(remote, meta, colour, config)?)
@@ -570,7 +574,7 @@ impl<R: Domain> Session<R> {
         name: &str,
         config: SessionConfig,
     ) -> Result<Session<R>, SessionError> {
-        let (remote, meta) = Remote::open(base_url, name, config.timeout)?;
+        let (remote, meta) = Remote::open_with(base_url, name, config.timeout, &config.connect)?;
         Session::with_metadata(remote, meta, config)
     }
 
@@ -591,8 +595,8 @@ impl<R: Domain> Session<R> {
         colour: &str,
         config: SessionConfig,
     ) -> Result<Session<R>, SessionError> {
-        let (remote, meta) = Remote::open(base_url, name, config.timeout)?;
-        let colour = Remote::open(base_url, colour, config.timeout)?;
+        let (remote, meta) = Remote::open_with(base_url, name, config.timeout, &config.connect)?;
+        let colour = Remote::open_with(base_url, colour, config.timeout, &config.connect)?;
         Session::with_layers(remote, meta, Some(colour), config)
     }
 

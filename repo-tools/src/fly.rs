@@ -1,7 +1,7 @@
 //! `quincunx fly`: a headless client session flying a camera path against a server, in
 //! real time, optionally through an emulated narrow link; per-frame stats and a summary.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
@@ -9,6 +9,7 @@ use clap::Args;
 use quincunx_client::fetch::Transport;
 use quincunx_client::fetch::http1::Endpoint;
 use quincunx_client::fetch::link::LinkProxy;
+use quincunx_client::fetch::tls::ConnectOptions;
 use quincunx_client::flight::{
     self, BuiltinFlights, Flight, FlightReport, FlyOptions, FrameRecord, percentile,
 };
@@ -22,9 +23,12 @@ use quincunx_render::{Camera, RendererConfig, TerrainRenderer};
 /// `quincunx fly` options.
 #[derive(Args, Debug, Clone)]
 pub struct FlyArgs {
-    /// Server base URL, e.g. `http://127.0.0.1:8080`.
+    /// Server base URL, e.g. `http://127.0.0.1:8080` or `https://tiles.example.org`.
     #[arg(long)]
     pub url: String,
+    /// A PEM file of CA certificates trusted for `https://` besides the system's.
+    #[arg(long, value_parser = parse_ca_cert)]
+    pub ca_cert: Option<CaCert>,
     /// Elevation repository name.
     #[arg(long)]
     pub repo: String,
@@ -125,6 +129,7 @@ impl FlyArgs {
     pub fn new(url: impl Into<String>, repo: impl Into<String>, path: impl Into<String>) -> Self {
         FlyArgs {
             url: url.into(),
+            ca_cert: None,
             repo: repo.into(),
             color: None,
             procedural_noise: 0,
@@ -211,6 +216,7 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
         },
         timeout: Duration::from_secs_f64(args.timeout_s),
         request_deadline: Duration::from_secs_f64(args.deadline_s),
+        connect: link_options(args.ca_cert.as_ref(), None),
         ..SessionConfig::default()
     }
 }
@@ -248,13 +254,47 @@ pub fn load_flight<R: BuiltinFlights>(
     Ok(Flight::from_json(path, &text)?)
 }
 
-/// An emulated link in front of the server named by `url`, and the URL to use instead.
+/// An emulated link in front of the server named by `url`, and the URL to use instead:
+/// the proxy's for `http://`; for `https://` the same URL (the certificate names its host),
+/// reached through the proxy by [`ConnectOptions::connect_to`] (see [`link_options`]).
 pub fn start_link(url: &str, link: (f64, f64)) -> Result<(LinkProxy, String)> {
     let endpoint = Endpoint::from_url(url).with_context(|| format!("server URL {url:?}"))?;
     let proxy = LinkProxy::start(endpoint.addr, link.0, Duration::from_secs_f64(link.1 / 1e3))
         .context("starting the emulated link")?;
-    let url = format!("http://{}{}", proxy.local_addr(), endpoint.prefix);
+    let url = match endpoint.tls {
+        Some(_) => url.to_string(),
+        None => format!("http://{}{}", proxy.local_addr(), endpoint.prefix),
+    };
     Ok((proxy, url))
+}
+
+/// The connection settings of a session: `--ca-cert`, and through `link` if there is one.
+pub fn link_options(ca_cert: Option<&CaCert>, link: Option<&LinkProxy>) -> ConnectOptions {
+    ConnectOptions {
+        ca_cert_pem: ca_cert.map(|c| c.pem.clone()),
+        connect_to: link.map(LinkProxy::local_addr),
+    }
+}
+
+/// The certificates of `--ca-cert`, read when the flag is parsed.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct CaCert {
+    /// The file named.
+    pub path: PathBuf,
+    /// Its PEM text.
+    pub pem: Vec<u8>,
+}
+
+/// Reads a `--ca-cert` file.
+pub fn parse_ca_cert(s: &str) -> Result<CaCert, String> {
+    let pem = std::fs::read(s).map_err(|e| format!("cannot read {s}: {e}"))?;
+    if !pem.windows(27).any(|w| w == b"-----BEGIN CERTIFICATE-----") {
+        return Err(format!("{s} holds no PEM certificate"));
+    }
+    Ok(CaCert {
+        path: PathBuf::from(s),
+        pem,
+    })
 }
 
 /// Runs `quincunx fly`.
@@ -279,12 +319,13 @@ pub fn run(args: &FlyArgs) -> Result<()> {
     let link = args.link.map(|l| start_link(&args.url, l)).transpose()?;
     let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
     let opened = Instant::now();
-    let session =
-        AnySession::open_with_colour(url, &args.repo, args.color.as_deref(), session_config(args))
-            .with_context(|| match &args.color {
-                Some(c) => format!("opening {} with colour {c} at {}", args.repo, args.url),
-                None => format!("opening {} at {}", args.repo, args.url),
-            })?;
+    let mut config = session_config(args);
+    config.connect = link_options(args.ca_cert.as_ref(), link.as_ref().map(|(p, _)| p));
+    let session = AnySession::open_with_colour(url, &args.repo, args.color.as_deref(), config)
+        .with_context(|| match &args.color {
+            Some(c) => format!("opening {} with colour {c} at {}", args.repo, args.url),
+            None => format!("opening {} at {}", args.repo, args.url),
+        })?;
     let session_open_ms = opened.elapsed().as_secs_f64() * 1e3;
     let (report, render) = match session {
         AnySession::Planar(s) => fly_session(s, args)?,

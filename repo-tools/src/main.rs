@@ -128,8 +128,8 @@ fn main() -> ExitCode {
         Command::Build(args) => build::run(&args),
         Command::Merge(args) => shard::merge(&args),
         Command::Demo(args) => demo::run(&args),
-        Command::Serve(args) => quincunx_server::run_cli(&args, |addr| {
-            outln!("serving on http://{addr}/  (repositories: http://{addr}/repos)");
+        Command::Serve(args) => quincunx_server::run_cli(&args, |addr, scheme| {
+            outln!("serving on {scheme}://{addr}/  (repositories: {scheme}://{addr}/repos)");
         })
         .map_err(anyhow::Error::from),
         Command::Info { repo, json } => info::run(&repo, json),

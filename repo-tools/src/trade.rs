@@ -55,6 +55,9 @@ pub struct TradeArgs {
     /// Server base URL, e.g. `http://127.0.0.1:8080`.
     #[arg(long)]
     pub url: String,
+    /// A PEM file of CA certificates trusted for `https://` besides the system's.
+    #[arg(long, value_parser = crate::fly::parse_ca_cert)]
+    pub ca_cert: Option<crate::fly::CaCert>,
     /// Elevation repository name.
     #[arg(long)]
     pub repo: String,
@@ -395,7 +398,10 @@ pub fn run(args: &TradeArgs) -> Result<()> {
         &args.url,
         &args.repo,
         args.colour.as_deref(),
-        SessionConfig::default(),
+        SessionConfig {
+            connect: crate::fly::link_options(args.ca_cert.as_ref(), None),
+            ..SessionConfig::default()
+        },
     )
     .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
     let report = match probe {
@@ -446,6 +452,7 @@ fn fly_args(args: &TradeArgs, url: &str, tolerance_px: f64) -> FlyArgs {
         spacing_m: args.spacing_m,
         render: true,
         gpu_budget_mb: args.gpu_budget_mb,
+        ca_cert: args.ca_cert.clone(),
         ..FlyArgs::new(url, args.repo.clone(), args.path.clone())
     }
 }
@@ -465,6 +472,7 @@ fn exact_config(
         refine.flat_fraction = f;
     }
     SessionConfig {
+        connect: crate::fly::link_options(args.ca_cert.as_ref(), None),
         prefetch_ahead: Duration::ZERO,
         lookahead_levels: 0,
         package_factor: None,
@@ -765,7 +773,10 @@ fn flight_session<R: TradeDomain>(
         .as_ref()
         .map_or(args.url.as_str(), |(_, u)| u.as_str());
     let fa = fly_args(args, url, tolerance_px);
-    let mut session = R::open(url, &args.repo, args.colour.as_deref(), session_config(&fa))?;
+    let mut config = session_config(&fa);
+    config.connect =
+        crate::fly::link_options(args.ca_cert.as_ref(), proxy.as_ref().map(|(p, _)| p));
+    let mut session = R::open(url, &args.repo, args.colour.as_deref(), config)?;
     if let Some(bound) = bound {
         session.set_max_cut_halves(bound);
     }

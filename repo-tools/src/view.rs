@@ -54,6 +54,9 @@ pub struct ViewArgs {
     /// Server base URL, e.g. `http://127.0.0.1:8080`.
     #[arg(long)]
     pub url: String,
+    /// A PEM file of CA certificates trusted for `https://` besides the system's.
+    #[arg(long, value_parser = crate::fly::parse_ca_cert)]
+    pub ca_cert: Option<crate::fly::CaCert>,
     /// Elevation repository name.
     #[arg(long)]
     pub repo: String,
@@ -129,7 +132,10 @@ pub fn run(args: &ViewArgs) -> Result<()> {
         &args.url,
         &args.repo,
         args.colour.as_deref(),
-        SessionConfig::default(),
+        SessionConfig {
+            connect: crate::fly::link_options(args.ca_cert.as_ref(), None),
+            ..SessionConfig::default()
+        },
     )
     .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
     match &mut session {

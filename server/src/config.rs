@@ -27,6 +27,19 @@ pub struct ServerConfig {
     pub limits: Limits,
     /// Cross-origin resource sharing.
     pub cors: Cors,
+    /// TLS: serve `https://` (HTTP/2 and HTTP/1.1 by ALPN) with this certificate and key
+    /// instead of cleartext HTTP.
+    pub tls: Option<TlsConfig>,
+}
+
+/// The certificate and key of an `https://` server (`[tls]` in the configuration file).
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TlsConfig {
+    /// PEM file of the certificate chain, the server's own certificate first.
+    pub cert: PathBuf,
+    /// PEM file of its private key (PKCS#8, PKCS#1 or SEC1).
+    pub key: PathBuf,
 }
 
 /// One repository to serve.
@@ -94,6 +107,7 @@ impl Default for ServerConfig {
             workers: 0,
             limits: Limits::default(),
             cors: Cors::default(),
+            tls: None,
         }
     }
 }
@@ -183,6 +197,12 @@ pub struct ServeArgs {
     /// at most 4 per core and 1024).
     #[arg(long, env = "QUINCUNX_THREADS")]
     pub threads: Option<usize>,
+    /// Serve https:// with this PEM certificate chain (with --tls-key).
+    #[arg(long, env = "QUINCUNX_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+    /// The PEM private key of --tls-cert.
+    #[arg(long, env = "QUINCUNX_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
 }
 
 fn parse_repo(s: &str) -> Result<RepoConfig, String> {
@@ -237,6 +257,20 @@ impl ServerConfig {
         }
         if let Some(s) = args.header_timeout_s {
             config.limits.header_timeout_s = s;
+        }
+        match (&args.tls_cert, &args.tls_key) {
+            (Some(cert), Some(key)) => {
+                config.tls = Some(TlsConfig {
+                    cert: cert.clone(),
+                    key: key.clone(),
+                });
+            }
+            (None, None) => {}
+            _ => {
+                return Err(ServeError::Config(
+                    "--tls-cert and --tls-key go together".into(),
+                ));
+            }
         }
         if let Some(cors) = &args.cors {
             config.cors.allow_origins = cors

@@ -10,8 +10,9 @@
 //!
 //! - [`config`]: TOML + flags + environment.
 //! - [`Server`]: bind, then [`Server::run`] until a shutdown future completes; connections
-//!   are HTTP/1.1 (keep-alive, pipelining with aggregated flushes) or HTTP/2 (cleartext,
-//!   prior knowledge), with connection, header, stream and time limits.
+//!   are HTTP/1.1 (keep-alive, pipelining with aggregated flushes) or HTTP/2 (cleartext
+//!   prior knowledge, or by ALPN over TLS with `--tls-cert`/`--tls-key`), with connection,
+//!   header, stream and time limits.
 //! - [`router`]: the routes, usable in memory (`oneshot`) in tests.
 
 pub mod config;
@@ -20,12 +21,13 @@ mod listener;
 pub mod metrics;
 mod routes;
 mod state;
+mod tls;
 
 use std::future::Future;
 use std::net::SocketAddr;
 use std::time::Duration;
 
-pub use config::{RepoConfig, ServeArgs, ServerConfig};
+pub use config::{RepoConfig, ServeArgs, ServerConfig, TlsConfig};
 pub use error::ApiError;
 pub use routes::router;
 pub use state::AppState;
@@ -44,6 +46,9 @@ pub enum ServeError {
         /// Cause.
         source: quincunx_store::StoreError,
     },
+    /// The TLS certificate or key is unreadable, not PEM, or they do not match.
+    #[error("TLS: {0}")]
+    Tls(String),
     /// A socket or file operation failed.
     #[error("{context}: {source}")]
     Io {
@@ -57,6 +62,7 @@ pub enum ServeError {
 /// A bound, ready server.
 pub struct Server {
     listener: tokio::net::TcpListener,
+    tls: Option<tokio_rustls::TlsAcceptor>,
     state: AppState,
     config: ServerConfig,
 }
@@ -65,6 +71,7 @@ impl Server {
     /// Opens the repositories and binds the listening socket.
     pub async fn bind(config: ServerConfig) -> Result<Server, ServeError> {
         config.check()?;
+        let tls = config.tls.as_ref().map(tls::acceptor).transpose()?;
         let state = AppState::open(&config)?;
         let listener = listener::bind(config.addr).map_err(|source| ServeError::Io {
             context: format!("binding {}", config.addr),
@@ -72,6 +79,7 @@ impl Server {
         })?;
         Ok(Server {
             listener,
+            tls,
             state,
             config,
         })
@@ -83,6 +91,11 @@ impl Server {
             context: "reading the bound address".into(),
             source,
         })
+    }
+
+    /// `https` when the server terminates TLS, else `http`.
+    pub fn scheme(&self) -> &'static str {
+        if self.tls.is_some() { "https" } else { "http" }
     }
 
     /// The shared state (metrics, repositories).
@@ -117,6 +130,7 @@ impl Server {
             per_ip,
             registry: std::sync::Arc::default(),
             shutdown: stop_rx,
+            tls: self.tls,
         });
         listener::serve(self.listener, workers, shared).await;
         summary.abort();
@@ -161,8 +175,12 @@ async fn summaries(state: AppState) {
 }
 
 /// Runs `quincunx serve` / `quincunx-server`: builds the runtime, serves until Ctrl-C or
-/// SIGTERM. `on_ready` is called with the bound address once the server accepts.
-pub fn run_cli(args: &ServeArgs, on_ready: impl FnOnce(SocketAddr)) -> Result<(), ServeError> {
+/// SIGTERM. `on_ready` is called with the bound address and the scheme (`http` or
+/// `https`) once the server accepts.
+pub fn run_cli(
+    args: &ServeArgs,
+    on_ready: impl FnOnce(SocketAddr, &'static str),
+) -> Result<(), ServeError> {
     let config = ServerConfig::from_args(args)?;
     raise_descriptor_limit(config.limits.max_connections);
     // This thread is the first worker; `Server::run` starts the others.
@@ -175,7 +193,7 @@ pub fn run_cli(args: &ServeArgs, on_ready: impl FnOnce(SocketAddr)) -> Result<()
         })?;
     runtime.block_on(async move {
         let server = Server::bind(config).await?;
-        on_ready(server.local_addr()?);
+        on_ready(server.local_addr()?, server.scheme());
         server.run(shutdown_signal()).await;
         Ok(())
     })

@@ -2,8 +2,9 @@
 //! (`SO_REUSEPORT` listeners, like nginx's worker processes: no work stealing, no
 //! cross-thread wake-ups), the connection limits (global, per address, eviction when
 //! full), HTTP/1.1 (keep-alive, pipelining with aggregated writes) or HTTP/2 (prior
-//! knowledge) per connection, the slow-client rules (`docs/http-api.md`, "Slow clients"),
-//! and graceful shutdown.
+//! knowledge, or ALPN over TLS) per connection, TLS termination (the handshake is due
+//! within the header timeout, like a request head), the slow-client rules
+//! (`docs/http-api.md`, "Slow clients"), and graceful shutdown.
 
 use std::collections::HashMap;
 use std::convert::Infallible;
@@ -34,9 +35,25 @@ use crate::state::AppState;
 /// What an over-limit connection is told before it is closed.
 const BUSY: &[u8] = b"HTTP/1.1 503 Service Unavailable\r\ncontent-type: text/plain\r\ncontent-length: 32\r\nretry-after: 1\r\nconnection: close\r\n\r\ntoo many connections, try again\n";
 
-/// What a connection past its client's `max_connections_per_ip` is told before it is
-/// closed.
-const BUSY_PER_IP: &[u8] = b"HTTP/1.1 429 Too Many Requests\r\ncontent-type: text/plain\r\ncontent-length: 40\r\nretry-after: 1\r\nconnection: close\r\n\r\ntoo many connections from your address\n\n";
+/// The header of a 429 that names the limit it comes from (`docs/http-api.md`).
+pub const LIMIT_HEADER: &str = "x-quincunx-limit";
+
+/// What a connection past its client's `max_connections_per_ip` (`limit`) is told before
+/// it is closed: the limit in [`LIMIT_HEADER`], and in the body how to lift it.
+fn busy_per_ip(limit: usize) -> Vec<u8> {
+    let body = format!(
+        "too many connections from your address: this server allows {limit} per address \
+         (max_connections_per_ip; raise it with --max-connections-per-ip, 0 for no limit, \
+         or exempt the address with limits.per_ip_exempt)\n"
+    );
+    format!(
+        "HTTP/1.1 429 Too Many Requests\r\ncontent-type: text/plain\r\ncontent-length: {}\r\n\
+         retry-after: 1\r\n{LIMIT_HEADER}: max-connections-per-ip={limit}\r\n\
+         connection: close\r\n\r\n{body}",
+        body.len()
+    )
+    .into_bytes()
+}
 
 /// The HTTP/2 connection preface; HTTP/1 requests never start with its first bytes.
 const H2_PREFACE: &[u8] = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n";
@@ -61,6 +78,8 @@ pub(crate) fn bind(addr: SocketAddr) -> io::Result<TcpListener> {
 /// Open connections per client address, for `max_connections_per_ip`.
 pub(crate) struct PerIp {
     limit: usize,
+    /// The 429 answer of a connection over the limit.
+    busy: Vec<u8>,
     exempt: Vec<IpNet>,
     open: Mutex<HashMap<IpAddr, usize>>,
 }
@@ -69,6 +88,7 @@ impl PerIp {
     pub(crate) fn new(limits: &Limits) -> Result<PerIp, crate::ServeError> {
         Ok(PerIp {
             limit: limits.max_connections_per_ip,
+            busy: busy_per_ip(limits.max_connections_per_ip),
             exempt: limits.exempt_networks()?,
             open: Mutex::new(HashMap::new()),
         })
@@ -183,6 +203,8 @@ pub(crate) struct Shared {
     pub(crate) per_ip: Arc<PerIp>,
     pub(crate) registry: Arc<Registry>,
     pub(crate) shutdown: watch::Receiver<bool>,
+    /// TLS termination (`https://`), offering `h2` and `http/1.1` by ALPN.
+    pub(crate) tls: Option<tokio_rustls::TlsAcceptor>,
 }
 
 /// Serves `first` on the current runtime and `workers - 1` more listeners on the same
@@ -268,7 +290,25 @@ async fn accept_loop(listener: TcpListener, shared: &Arc<Shared>) {
         let accepted_ms = now_ms();
         let Some(slot) = shared.per_ip.acquire(peer.ip()) else {
             metrics.connections_rejected_per_ip.fetch_add(1, Relaxed);
-            let _ = stream.try_write(BUSY_PER_IP);
+            match &shared.tls {
+                None => {
+                    let _ = stream.try_write(&shared.per_ip.busy);
+                }
+                // Over TLS the 429 needs a handshake first, bounded by the header timeout.
+                Some(tls) => {
+                    let (tls, shared) = (tls.clone(), shared.clone());
+                    tokio::spawn(async move {
+                        let timeout = shared.limits.header_timeout();
+                        let refuse = async {
+                            let mut s = tls.accept(stream).await?;
+                            tokio::io::AsyncWriteExt::write_all(&mut s, &shared.per_ip.busy)
+                                .await?;
+                            tokio::io::AsyncWriteExt::shutdown(&mut s).await
+                        };
+                        let _ = tokio::time::timeout(timeout, refuse).await;
+                    });
+                }
+            }
             continue;
         };
         // Full: the least useful connection (see "Slow clients" in docs/http-api.md) is
@@ -400,24 +440,78 @@ async fn connection(stream: TcpStream, accepted_ms: u64, shared: &Shared) {
     let _registered = shared.registry.insert(clock.clone());
     let head_ms = limits.header_timeout().as_millis() as u64;
     let left = head_ms.saturating_sub(now_ms().saturating_sub(accepted_ms));
-    let detected = tokio::select! {
-        detected = tokio::time::timeout(Duration::from_millis(left), detect(&stream)) => detected,
-        _ = clock.evict.notified() => {
-            state.metrics.connections_evicted.fetch_add(1, Relaxed);
-            return;
+    let (stream, protocol) = match &shared.tls {
+        None => {
+            let Some(protocol) = plain_protocol(&stream, left, &clock, state).await else {
+                return;
+            };
+            (ServerStream::Plain(stream), protocol)
+        }
+        Some(tls) => {
+            // The handshake, like a first request head, is due within the header timeout.
+            let handshake = tokio::select! {
+                done = tokio::time::timeout(Duration::from_millis(left), tls.accept(stream)) => done,
+                _ = clock.evict.notified() => {
+                    state.metrics.connections_evicted.fetch_add(1, Relaxed);
+                    return;
+                }
+            };
+            let tls = match handshake {
+                Ok(Ok(tls)) => tls,
+                Ok(Err(e)) => return tracing::debug!("TLS handshake: {e}"),
+                Err(_) => {
+                    state
+                        .metrics
+                        .connections_header_timeout
+                        .fetch_add(1, Relaxed);
+                    return;
+                }
+            };
+            let protocol = match tls.get_ref().1.alpn_protocol() {
+                Some(b"h2") => Protocol::Http2,
+                _ => Protocol::Http1,
+            };
+            (ServerStream::Tls(Box::new(tls)), protocol)
         }
     };
-    let protocol = match detected {
-        Ok(Ok(Some(p))) => p,
-        Ok(Ok(None) | Err(_)) => return,
+    serve_connection(stream, protocol, clock, shared).await;
+}
+
+/// The protocol of a cleartext connection, from its first bytes (`None`: closed, evicted
+/// or too slow, counted).
+async fn plain_protocol(
+    stream: &TcpStream,
+    left: u64,
+    clock: &Clock,
+    state: &AppState,
+) -> Option<Protocol> {
+    let detected = tokio::select! {
+        detected = tokio::time::timeout(Duration::from_millis(left), detect(stream)) => detected,
+        _ = clock.evict.notified() => {
+            state.metrics.connections_evicted.fetch_add(1, Relaxed);
+            return None;
+        }
+    };
+    match detected {
+        Ok(Ok(Some(p))) => Some(p),
+        Ok(Ok(None) | Err(_)) => None,
         Err(_) => {
             state
                 .metrics
                 .connections_header_timeout
                 .fetch_add(1, Relaxed);
-            return;
+            None
         }
-    };
+    }
+}
+
+async fn serve_connection(
+    stream: ServerStream,
+    protocol: Protocol,
+    clock: Arc<Clock>,
+    shared: &Shared,
+) {
+    let (state, limits) = (&shared.state, &shared.limits);
     let http1 = matches!(protocol, Protocol::Http1);
     let io = TokioIo::new(Tracked::new(stream, clock.clone(), state.clone(), http1));
     let service = Service {
@@ -885,7 +979,7 @@ const OUT_CAP: usize = 64 << 10;
 /// `out` makes writes wait, and hyper reads no further request until its response is
 /// written.
 struct Tracked {
-    stream: TcpStream,
+    stream: ServerStream,
     clock: Arc<Clock>,
     state: AppState,
     /// HTTP/1: split reads per request, track heads, aggregate writes.
@@ -901,7 +995,7 @@ struct Tracked {
 }
 
 impl Tracked {
-    fn new(stream: TcpStream, clock: Arc<Clock>, state: AppState, aggregate: bool) -> Self {
+    fn new(stream: ServerStream, clock: Arc<Clock>, state: AppState, aggregate: bool) -> Self {
         Tracked {
             stream,
             clock,
@@ -977,6 +1071,17 @@ impl Tracked {
             // Idle connections keep no large buffers.
             self.out = Vec::new();
         }
+        if let ServerStream::Tls(_) = self.stream {
+            // TLS may hold records back after accepting the bytes: out they go before the
+            // connection waits for input.
+            match Pin::new(&mut self.stream).poll_flush(cx) {
+                Poll::Ready(r) => return Poll::Ready(r),
+                Poll::Pending => {
+                    self.blocked();
+                    return Poll::Pending;
+                }
+            }
+        }
         Poll::Ready(Ok(()))
     }
 
@@ -994,6 +1099,70 @@ impl Tracked {
             self.consumed = 0;
         }
         Ok(())
+    }
+}
+
+/// A server connection: cleartext TCP or TLS over TCP.
+enum ServerStream {
+    Plain(TcpStream),
+    Tls(Box<tokio_rustls::server::TlsStream<TcpStream>>),
+}
+
+impl AsyncRead for ServerStream {
+    fn poll_read(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        match self.get_mut() {
+            ServerStream::Plain(s) => Pin::new(s).poll_read(cx, buf),
+            ServerStream::Tls(s) => Pin::new(s.as_mut()).poll_read(cx, buf),
+        }
+    }
+}
+
+impl AsyncWrite for ServerStream {
+    fn poll_write(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        match self.get_mut() {
+            ServerStream::Plain(s) => Pin::new(s).poll_write(cx, buf),
+            ServerStream::Tls(s) => Pin::new(s.as_mut()).poll_write(cx, buf),
+        }
+    }
+
+    fn poll_write_vectored(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[io::IoSlice<'_>],
+    ) -> Poll<io::Result<usize>> {
+        match self.get_mut() {
+            ServerStream::Plain(s) => Pin::new(s).poll_write_vectored(cx, bufs),
+            ServerStream::Tls(s) => Pin::new(s.as_mut()).poll_write_vectored(cx, bufs),
+        }
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        match self {
+            ServerStream::Plain(s) => s.is_write_vectored(),
+            ServerStream::Tls(s) => s.is_write_vectored(),
+        }
+    }
+
+    fn poll_flush(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        match self.get_mut() {
+            ServerStream::Plain(s) => Pin::new(s).poll_flush(cx),
+            ServerStream::Tls(s) => Pin::new(s.as_mut()).poll_flush(cx),
+        }
+    }
+
+    fn poll_shutdown(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        match self.get_mut() {
+            ServerStream::Plain(s) => Pin::new(s).poll_shutdown(cx),
+            ServerStream::Tls(s) => Pin::new(s.as_mut()).poll_shutdown(cx),
+        }
     }
 }
 

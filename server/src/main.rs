@@ -21,8 +21,8 @@ fn main() -> std::process::ExitCode {
         .with_writer(std::io::stderr)
         .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .init();
-    match quincunx_server::run_cli(&cli.serve, |addr| {
-        tracing::info!("serving on http://{addr}/ (repositories: http://{addr}/repos)");
+    match quincunx_server::run_cli(&cli.serve, |addr, scheme| {
+        tracing::info!("serving on {scheme}://{addr}/ (repositories: {scheme}://{addr}/repos)");
     }) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {

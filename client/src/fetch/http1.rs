@@ -5,9 +5,12 @@
 //! [`Transport::Pipelined`]: super::Transport::Pipelined
 //!
 //! Responses are framed strictly: a status line and headers parsed by `httparse`, a body of
-//! exactly `Content-Length` bytes (none for 204 and 304). Chunked bodies, informational
-//! (1xx) responses, oversized heads and bodies are errors, never panics, and no allocation
-//! follows a length field beyond [`Limits::max_body_bytes`].
+//! exactly `Content-Length` bytes (none for 204 and 304). Interim (1xx) answers such as
+//! `100 Continue` are skipped before the final one; `101 Switching Protocols`, chunked
+//! bodies, oversized heads and bodies are errors, never panics, and no allocation follows a
+//! length field beyond [`Limits::max_body_bytes`].
+//!
+//! `https://` endpoints speak TLS ([`super::tls`]); the framing is the same.
 //!
 //! The byte-level framing lives in [`ResponseDecoder`], which is pure (bytes in, responses
 //! out) so it can be tested with responses split anywhere; [`Connection`] feeds it from a
@@ -17,6 +20,8 @@ use std::net::SocketAddr;
 
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
+
+use super::tls::{ConnectOptions, Stream, TlsClient, tls_cause};
 
 /// Most headers accepted in one response.
 pub const MAX_HEADERS: usize = 64;
@@ -66,33 +71,50 @@ pub enum Http1Error {
     /// `Transfer-Encoding` is set (chunked bodies are not supported).
     #[error("Transfer-Encoding is not supported")]
     TransferEncoding,
-    /// A 1xx response (this client never asks for one).
+    /// A `101 Switching Protocols` answer (this client never asks for one).
     #[error("unexpected informational response {0}")]
     Informational(u16),
-    /// The URL is not `http://host[:port][/prefix]`.
-    #[error("bad URL {0:?}: expected http://host[:port][/prefix]")]
+    /// The URL is not `http://host[:port][/prefix]` or `https://host[:port][/prefix]`.
+    #[error("bad URL {0:?}: expected http://host[:port][/prefix] or https://host[:port][/prefix]")]
     BadUrl(String),
+    /// The TLS handshake failed or the certificate was refused (the message names why:
+    /// unknown issuer, wrong host name, expired), or TLS could not be set up.
+    #[error("{0}")]
+    Tls(String),
     /// No whole response within the time allowed ([`get_blocking`]).
     #[error("timed out after {} s", .0.as_secs_f64())]
     TimedOut(std::time::Duration),
 }
 
-/// Where requests go: a resolved address, the `Host` header value and a path prefix.
+/// Where requests go: a resolved address, the `Host` header value, a path prefix and,
+/// for `https://`, the TLS settings.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Endpoint {
-    /// The server's socket address.
+    /// The server's socket address (or [`ConnectOptions::connect_to`]).
     pub addr: SocketAddr,
     /// `Host` header value (`host[:port]` as written in the URL).
     pub host: String,
     /// Path prefix without a trailing slash (empty for the server root).
     pub prefix: String,
+    /// TLS to the URL's host (`https://`), `None` for `http://`.
+    pub tls: Option<TlsClient>,
 }
 
 impl Endpoint {
-    /// Parses `http://host[:port][/prefix]` and resolves the host (blocking DNS lookup).
+    /// Parses `http://host[:port][/prefix]` or `https://host[:port][/prefix]` and
+    /// resolves the host (blocking DNS lookup); `https://` trusts the system's roots.
     pub fn from_url(url: &str) -> Result<Endpoint, Http1Error> {
+        Endpoint::from_url_with(url, &ConnectOptions::default())
+    }
+
+    /// [`Endpoint::from_url`] with an extra trusted CA and an address override.
+    pub fn from_url_with(url: &str, options: &ConnectOptions) -> Result<Endpoint, Http1Error> {
         let bad = || Http1Error::BadUrl(url.to_string());
-        let rest = url.strip_prefix("http://").ok_or_else(bad)?;
+        let (rest, https) = match (url.strip_prefix("http://"), url.strip_prefix("https://")) {
+            (Some(rest), _) => (rest, false),
+            (None, Some(rest)) => (rest, true),
+            (None, None) => return Err(bad()),
+        };
         let (authority, path) = match rest.find('/') {
             Some(i) => rest.split_at(i),
             None => (rest, ""),
@@ -105,20 +127,76 @@ impl Endpoint {
         {
             return Err(bad());
         }
-        let with_port = if authority.ends_with(']') || !authority.contains(':') {
-            format!("{authority}:80")
-        } else {
+        let has_port = !authority.ends_with(']') && authority.contains(':');
+        let with_port = if has_port {
             authority.to_string()
+        } else {
+            format!("{authority}:{}", if https { 443 } else { 80 })
         };
-        let addr = std::net::ToSocketAddrs::to_socket_addrs(&with_port)
-            .map_err(|_| bad())?
-            .next()
-            .ok_or_else(bad)?;
+        let addr = match options.connect_to {
+            Some(addr) => addr,
+            None => std::net::ToSocketAddrs::to_socket_addrs(&with_port)
+                .map_err(|_| bad())?
+                .next()
+                .ok_or_else(bad)?,
+        };
+        let tls = if https {
+            let name = match with_port.rfind(':') {
+                Some(i) => &with_port[..i],
+                None => with_port.as_str(),
+            };
+            let name = name.trim_start_matches('[').trim_end_matches(']');
+            let client = TlsClient::new(name, options.ca_cert_pem.as_deref())
+                .map_err(|e| Http1Error::Tls(e.to_string()))?;
+            Some(client)
+        } else {
+            None
+        };
         Ok(Endpoint {
             addr,
             host: authority.to_string(),
             prefix: path.trim_end_matches('/').to_string(),
+            tls,
         })
+    }
+
+    /// The URL's host without port or brackets (a name or an address).
+    pub fn host_name(&self) -> &str {
+        let h = self.host.as_str();
+        let h = match (h.rfind(':'), h.rfind(']')) {
+            (Some(colon), Some(bracket)) if colon > bracket => &h[..colon],
+            (Some(colon), None) => &h[..colon],
+            _ => h,
+        };
+        h.trim_start_matches('[').trim_end_matches(']')
+    }
+
+    /// `https` or `http`.
+    pub fn scheme(&self) -> &'static str {
+        if self.tls.is_some() { "https" } else { "http" }
+    }
+
+    /// The absolute URL of `path` (which starts with the prefix).
+    pub fn url(&self, path: &str) -> String {
+        format!("{}://{}{path}", self.scheme(), self.host)
+    }
+
+    /// A connection to the server: TCP (`TCP_NODELAY`), then TLS for `https://`.
+    pub async fn connect(&self) -> Result<Stream, Http1Error> {
+        let tcp = TcpStream::connect(self.addr).await?;
+        tcp.set_nodelay(true)?;
+        match &self.tls {
+            None => Ok(Stream::Plain(tcp)),
+            Some(tls) => tls.connect(tcp).await.map_err(|e| io_error(e, self)),
+        }
+    }
+}
+
+/// An I/O error as an [`Http1Error`]: a TLS failure inside it is named as such.
+pub(crate) fn io_error(e: std::io::Error, endpoint: &Endpoint) -> Http1Error {
+    match endpoint.tls.as_ref().and_then(|t| tls_cause(&e, &t.host())) {
+        Some(msg) => Http1Error::Tls(msg),
+        None => Http1Error::Io(e),
     }
 }
 
@@ -278,9 +356,27 @@ impl ResponseDecoder {
 
     fn decode_frame(&mut self) -> Result<Option<Frame>, Http1Error> {
         self.consume_pending();
+        loop {
+            match self.decode_head()? {
+                Head::Partial => return Ok(None),
+                Head::Frame(f) => return Ok(Some(f)),
+                Head::Interim(len) => {
+                    // An interim answer (100 Continue, 103 Early Hints): no body, and the
+                    // final answer to the same request follows.
+                    self.start += len;
+                    if self.start == self.end {
+                        self.start = 0;
+                        self.end = 0;
+                    }
+                }
+            }
+        }
+    }
+
+    fn decode_head(&mut self) -> Result<Head, Http1Error> {
         let data = &self.buf[self.start..self.end];
         if data.is_empty() {
-            return Ok(None);
+            return Ok(Head::Partial);
         }
         let mut headers = [httparse::EMPTY_HEADER; MAX_HEADERS];
         let mut resp = httparse::Response::new(&mut headers);
@@ -290,7 +386,7 @@ impl ResponseDecoder {
                 if data.len() > self.limits.max_head_bytes {
                     return Err(Http1Error::HeadTooLarge(self.limits.max_head_bytes));
                 }
-                return Ok(None);
+                return Ok(Head::Partial);
             }
         };
         if head_len > self.limits.max_head_bytes {
@@ -299,8 +395,11 @@ impl ResponseDecoder {
         let status = resp
             .code
             .ok_or(Http1Error::Malformed(httparse::Error::Status))?;
-        if (100..200).contains(&status) {
+        if status == 101 {
             return Err(Http1Error::Informational(status));
+        }
+        if (100..200).contains(&status) {
+            return Ok(Head::Interim(head_len));
         }
         let mut length: Option<u64> = None;
         let mut close = false;
@@ -330,7 +429,7 @@ impl ResponseDecoder {
         }
         let total = head_len + body_len as usize;
         if data.len() < total {
-            return Ok(None);
+            return Ok(Head::Partial);
         }
         let frame = Frame {
             status,
@@ -339,8 +438,18 @@ impl ResponseDecoder {
             close,
         };
         self.pending = total;
-        Ok(Some(frame))
+        Ok(Head::Frame(frame))
     }
+}
+
+/// What the bytes at the front of the buffer hold.
+enum Head {
+    /// Not a whole response yet.
+    Partial,
+    /// An interim (1xx) answer of this many bytes.
+    Interim(usize),
+    /// A whole final response.
+    Frame(Frame),
 }
 
 /// A decimal `Content-Length` value: digits only, fitting a `u64`.
@@ -358,10 +467,11 @@ fn parse_length(v: &[u8]) -> Option<u64> {
     })
 }
 
-/// One persistent HTTP/1.1 connection (`TCP_NODELAY`), for pipelined GETs.
+/// One persistent HTTP/1.1 connection (`TCP_NODELAY`, TLS for `https://`), for
+/// pipelined GETs.
 #[derive(Debug)]
 pub struct Connection {
-    stream: TcpStream,
+    stream: Stream,
     decoder: ResponseDecoder,
     closing: bool,
 }
@@ -372,7 +482,16 @@ impl Connection {
         let stream = TcpStream::connect(addr).await?;
         stream.set_nodelay(true)?;
         Ok(Connection {
-            stream,
+            stream: Stream::Plain(stream),
+            decoder: ResponseDecoder::new(limits),
+            closing: false,
+        })
+    }
+
+    /// Connects to `endpoint`: plain TCP, or TLS (ALPN `http/1.1`) for `https://`.
+    pub async fn open(endpoint: &Endpoint, limits: Limits) -> Result<Connection, Http1Error> {
+        Ok(Connection {
+            stream: endpoint.connect().await?,
             decoder: ResponseDecoder::new(limits),
             closing: false,
         })
@@ -381,6 +500,7 @@ impl Connection {
     /// Writes a batch of already rendered requests (see [`write_get`]) in one write.
     pub async fn send(&mut self, requests: &[u8]) -> Result<(), Http1Error> {
         self.stream.write_all(requests).await?;
+        self.stream.flush().await?;
         Ok(())
     }
 
@@ -439,12 +559,27 @@ pub fn get_blocking(
             .filter(|d| !d.is_zero())
             .ok_or(Http1Error::TimedOut(timeout))
     };
-    let mut stream =
-        std::net::TcpStream::connect_timeout(&endpoint.addr, timeout).map_err(timed_out)?;
-    stream.set_write_timeout(Some(remaining()?))?;
+    let tcp = std::net::TcpStream::connect_timeout(&endpoint.addr, timeout).map_err(timed_out)?;
+    let socket = tcp.try_clone()?;
+    socket.set_write_timeout(Some(remaining()?))?;
+    socket.set_read_timeout(Some(remaining()?))?;
+    let mut stream: Box<dyn ReadWrite> = match &endpoint.tls {
+        None => Box::new(tcp),
+        Some(tls) => {
+            let conn = rustls::ClientConnection::new(tls.http1_config(), tls.server_name.clone())
+                .map_err(|e| Http1Error::Tls(super::tls::describe(&e, &tls.host())))?;
+            Box::new(rustls::StreamOwned::new(conn, tcp))
+        }
+    };
+    // A TLS failure is named; a socket timeout is a timeout.
+    let failed = |e: std::io::Error| match io_error(e, endpoint) {
+        Http1Error::Io(e) => timed_out(e),
+        other => other,
+    };
     let mut req = Vec::new();
     write_get(&mut req, &endpoint.host, path.as_bytes());
-    stream.write_all(&req).map_err(timed_out)?;
+    stream.write_all(&req).map_err(failed)?;
+    stream.flush().map_err(failed)?;
     let mut decoder = ResponseDecoder::new(Limits::default());
     loop {
         if let Some(resp) = decoder.decode()? {
@@ -452,8 +587,8 @@ pub fn get_blocking(
         }
         let spare = decoder.spare()?;
         // The whole exchange within `timeout`, however slowly the bytes trickle in.
-        stream.set_read_timeout(Some(remaining()?))?;
-        let n = stream.read(spare).map_err(timed_out)?;
+        socket.set_read_timeout(Some(remaining()?))?;
+        let n = stream.read(spare).map_err(failed)?;
         if n == 0 {
             return Err(Http1Error::Closed);
         }
@@ -461,9 +596,14 @@ pub fn get_blocking(
     }
 }
 
+/// A blocking byte stream: TCP or TLS over TCP.
+trait ReadWrite: std::io::Read + std::io::Write {}
+
+impl<T: std::io::Read + std::io::Write> ReadWrite for T {}
+
 /// Fetches one resource on a fresh connection: status and body.
 pub async fn get(endpoint: &Endpoint, path: &str) -> Result<(u16, Vec<u8>), Http1Error> {
-    let mut conn = Connection::connect(endpoint.addr, Limits::default()).await?;
+    let mut conn = Connection::open(endpoint, Limits::default()).await?;
     let mut req = Vec::new();
     let full = format!("{}{path}", endpoint.prefix);
     write_get(&mut req, &endpoint.host, full.as_bytes());
@@ -594,8 +734,32 @@ mod tests {
             Limits::default(),
         );
         assert!(matches!(r, Err(Http1Error::TransferEncoding)), "{r:?}");
-        let r = decode_all(&[b"HTTP/1.1 100 Continue\r\n\r\n"], Limits::default());
-        assert!(matches!(r, Err(Http1Error::Informational(100))), "{r:?}");
+        let r = decode_all(
+            &[b"HTTP/1.1 101 Switching Protocols\r\n\r\n"],
+            Limits::default(),
+        );
+        assert!(matches!(r, Err(Http1Error::Informational(101))), "{r:?}");
+    }
+
+    #[test]
+    fn interim_answers_are_skipped_before_the_final_one() {
+        let mut stream = b"HTTP/1.1 100 Continue\r\n\r\n".to_vec();
+        stream.extend(b"HTTP/1.1 103 Early Hints\r\nLink: </a>; rel=preload\r\n\r\n");
+        stream.extend(ok("hello"));
+        stream.extend(b"HTTP/1.1 100 Continue\r\n\r\n");
+        stream.extend(ok("world"));
+        let want = vec![(200, b"hello".to_vec()), (200, b"world".to_vec())];
+        for cut in 0..=stream.len() {
+            let (a, b) = stream.split_at(cut);
+            assert_eq!(
+                decode_all(&[a, b], Limits::default()).unwrap(),
+                want,
+                "{cut}"
+            );
+        }
+        // Only interim answers so far: nothing to hand out yet, and no error.
+        let only = b"HTTP/1.1 100 Continue\r\n\r\n";
+        assert!(decode_all(&[only], Limits::default()).unwrap().is_empty());
     }
 
     #[test]
@@ -682,8 +846,13 @@ mod tests {
         assert_eq!(e.prefix, "/tiles");
         let e = Endpoint::from_url("http://[::1]:81/").unwrap();
         assert_eq!(e.addr, "[::1]:81".parse().unwrap());
+        let e = Endpoint::from_url("https://127.0.0.1:8443/p").unwrap();
+        assert_eq!(e.scheme(), "https");
+        assert_eq!(e.url("/p/x"), "https://127.0.0.1:8443/p/x");
+        let e = Endpoint::from_url("https://[::1]/").unwrap();
+        assert_eq!(e.addr.port(), 443);
         for bad in [
-            "https://x",
+            "ftp://x",
             "127.0.0.1:80",
             "http://",
             "http://a b/",

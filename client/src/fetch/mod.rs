@@ -21,7 +21,8 @@
 //!   can arrive within about one RTT plus one frame at the estimated rate, so the queue
 //!   stays in the client, where priorities can still change;
 //! - a [`Transport`]: pipelined HTTP/1.1 over K persistent connections ([`http1`], our own
-//!   strict parser), plain HTTP/1.1 over K connections, or HTTP/2 over one connection.
+//!   strict parser), plain HTTP/1.1 over K connections, or HTTP/2 over one connection;
+//!   each speaks TLS for `https://` URLs ([`tls`]).
 //!
 //! [`link`] is an emulated narrow, high-latency link (an in-process throttling TCP proxy)
 //! for tests and measurements.
@@ -32,6 +33,7 @@ pub mod http1;
 pub mod link;
 mod remote;
 pub mod schedule;
+pub mod tls;
 mod transport;
 mod worker;
 
@@ -110,7 +112,12 @@ pub enum FetchError {
     /// The decode function refused the blob.
     #[error("decode: {0}")]
     Decode(String),
-    /// The base URL is not `http://host[:port][/prefix]`.
+    /// The TLS handshake failed: the certificate was refused (the message names the
+    /// cause: unknown issuer, wrong host name, expired) or the server does not speak TLS.
+    /// Permanent: retrying cannot fix a certificate.
+    #[error("{0}")]
+    Tls(String),
+    /// The base URL is not `http://` or `https://host[:port][/prefix]`.
     #[error("bad URL: {0}")]
     BadUrl(String),
     /// The repository's metadata could not be used.
@@ -136,6 +143,8 @@ pub enum ErrorKind {
     Timeout,
     /// Decode error (permanent).
     Decode,
+    /// TLS handshake or certificate failure (permanent).
+    Tls,
     /// Set-up errors.
     Other,
 }
@@ -152,6 +161,7 @@ impl FetchError {
             FetchError::Protocol(_) => ErrorKind::Protocol,
             FetchError::Timeout(_) | FetchError::Deadline(_) => ErrorKind::Timeout,
             FetchError::Decode(_) => ErrorKind::Decode,
+            FetchError::Tls(_) => ErrorKind::Tls,
             FetchError::BadUrl(_) | FetchError::Metadata(_) | FetchError::Thread(_) => {
                 ErrorKind::Other
             }
@@ -310,6 +320,8 @@ pub struct ErrorCounts {
     pub timeout: u64,
     /// Decode errors.
     pub decode: u64,
+    /// TLS handshake and certificate failures.
+    pub tls: u64,
 }
 
 impl ErrorCounts {
@@ -322,6 +334,7 @@ impl ErrorCounts {
             ErrorKind::Protocol => self.protocol += 1,
             ErrorKind::Timeout => self.timeout += 1,
             ErrorKind::Decode => self.decode += 1,
+            ErrorKind::Tls => self.tls += 1,
             ErrorKind::Other => {}
         }
     }
@@ -334,6 +347,7 @@ impl ErrorCounts {
         self.protocol += o.protocol;
         self.timeout += o.timeout;
         self.decode += o.decode;
+        self.tls += o.tls;
     }
 
     /// All errors.
@@ -344,6 +358,7 @@ impl ErrorCounts {
             + self.protocol
             + self.timeout
             + self.decode
+            + self.tls
     }
 }
 

@@ -5,6 +5,7 @@ use std::time::Duration;
 use quincunx_meta::Metadata;
 
 use super::http1::{self, Endpoint};
+use super::tls::ConnectOptions;
 use super::{FetchError, Key};
 
 /// A served repository: everything needed to name its blobs.
@@ -37,26 +38,36 @@ impl Remote {
         name: &str,
         timeout: Duration,
     ) -> Result<(Remote, Metadata), FetchError> {
+        Remote::open_with(base_url, name, timeout, &ConnectOptions::default())
+    }
+
+    /// [`Remote::open`] with an extra trusted CA and an address override (`https://`
+    /// URLs get TLS; the blobs later travel the same way).
+    pub fn open_with(
+        base_url: &str,
+        name: &str,
+        timeout: Duration,
+        options: &ConnectOptions,
+    ) -> Result<(Remote, Metadata), FetchError> {
         check_name(name)?;
-        let endpoint =
-            Endpoint::from_url(base_url).map_err(|e| FetchError::BadUrl(e.to_string()))?;
+        let endpoint = endpoint(base_url, options)?;
         let path = format!("{}/repos/{name}/metadata.json", endpoint.prefix);
-        let url = format!("http://{}{path}", endpoint.host);
-        let (status, body) = http1::get_blocking(&endpoint, &path, timeout).map_err(|e| {
-            FetchError::Metadata(match e {
-                http1::Http1Error::TimedOut(t) => format!(
+        let url = endpoint.url(&path);
+        let (status, body) =
+            http1::get_blocking(&endpoint, &path, timeout).map_err(|e| match e {
+                http1::Http1Error::TimedOut(t) => FetchError::Metadata(format!(
                     "timed out after {} s fetching the metadata from {url}",
                     t.as_secs_f64()
-                ),
-                e => format!("GET {url}: {e}"),
-            })
-        })?;
+                )),
+                http1::Http1Error::Tls(msg) => FetchError::Tls(format!("GET {url}: {msg}")),
+                e => FetchError::Metadata(format!("GET {url}: {e}")),
+            })?;
         if status != 200 {
             return Err(FetchError::Metadata(format!("GET {path}: status {status}")));
         }
         let meta: Metadata = serde_json::from_slice(&body)
             .map_err(|e| FetchError::Metadata(format!("{path}: {e}")))?;
-        let remote = Remote::from_metadata(base_url, name, &meta)?;
+        let remote = Remote::with_endpoint(endpoint, base_url, name, &meta)?;
         Ok((remote, meta))
     }
 
@@ -66,9 +77,17 @@ impl Remote {
         name: &str,
         meta: &Metadata,
     ) -> Result<Remote, FetchError> {
+        let endpoint = endpoint(base_url, &ConnectOptions::default())?;
+        Remote::with_endpoint(endpoint, base_url, name, meta)
+    }
+
+    fn with_endpoint(
+        endpoint: Endpoint,
+        base_url: &str,
+        name: &str,
+        meta: &Metadata,
+    ) -> Result<Remote, FetchError> {
         check_name(name)?;
-        let endpoint =
-            Endpoint::from_url(base_url).map_err(|e| FetchError::BadUrl(e.to_string()))?;
         let hash = meta.content_hash.as_bytes();
         if hash.len() < 16 || !hash.iter().all(u8::is_ascii_hexdigit) {
             return Err(FetchError::Metadata(format!(
@@ -116,8 +135,15 @@ impl Remote {
 
     /// The absolute URL of `key`.
     pub fn blob_url(&self, key: Key) -> String {
-        format!("http://{}{}", self.endpoint.host, self.blob_path(key))
+        self.endpoint.url(&self.blob_path(key))
     }
+}
+
+fn endpoint(base_url: &str, options: &ConnectOptions) -> Result<Endpoint, FetchError> {
+    Endpoint::from_url_with(base_url, options).map_err(|e| match e {
+        http1::Http1Error::Tls(msg) => FetchError::Tls(msg),
+        e => FetchError::BadUrl(e.to_string()),
+    })
 }
 
 fn check_name(name: &str) -> Result<(), FetchError> {

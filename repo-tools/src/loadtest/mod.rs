@@ -42,9 +42,12 @@ use quincunx_client::fetch::http1::{self, Connection, Endpoint, GetTemplate, Htt
 /// Options of `quincunx loadtest`.
 #[derive(Args, Debug, Clone)]
 pub struct LoadtestArgs {
-    /// Server base URL, plain HTTP only, e.g. `http://127.0.0.1:8080`.
+    /// Server base URL, e.g. `http://127.0.0.1:8080` or `https://127.0.0.1:8443`.
     #[arg(long)]
     pub url: String,
+    /// A PEM file of CA certificates trusted for `https://` besides the system's.
+    #[arg(long, value_parser = crate::fly::parse_ca_cert)]
+    pub ca_cert: Option<crate::fly::CaCert>,
     /// Repository name (as in `/repos/<name>/...`).
     #[arg(long)]
     pub repo: String,
@@ -169,8 +172,13 @@ pub struct Report {
     pub duration_s: f64,
     /// Responses by status code.
     pub statuses: BTreeMap<String, u64>,
-    /// Failed requests by cause (`connect`, `closed`, `io`, `protocol`, `timeout`, `status`).
+    /// Failed requests by class (`connect`, `closed`, `reset`, `io`, `protocol`,
+    /// `timeout`, `tls`, `status`; each status code is in `statuses`).
     pub error_kinds: BTreeMap<String, u64>,
+    /// 429 answers that came from the server's per-address connection cap.
+    pub per_ip_cap_429: u64,
+    /// The causes of the errors, where known, with what lifts them.
+    pub causes: Vec<String>,
     /// Tokio worker threads.
     pub threads: usize,
     /// Distinct flights in the pool (client `i` flies flight `i mod flights`).
@@ -198,8 +206,9 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
             args.connections
         );
     }
-    let endpoint =
-        Endpoint::from_url(&args.url).with_context(|| format!("--url {:?}", args.url))?;
+    let options = crate::fly::link_options(args.ca_cert.as_ref(), None);
+    let endpoint = Endpoint::from_url_with(&args.url, &options)
+        .with_context(|| format!("--url {:?}", args.url))?;
     let threads = args.threads.unwrap_or_else(|| {
         std::thread::available_parallelism()
             .map(|n| n.get())
@@ -222,7 +231,7 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
         &format!("{}/repos/{}/v/{hash16}/d/", endpoint.prefix, args.repo),
     );
     let ctx = Arc::new(Ctx {
-        addr: endpoint.addr,
+        endpoint: endpoint.clone(),
         template,
         flights,
         depth: args.pipeline_depth,
@@ -232,6 +241,7 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
         failed: AtomicU64::new(0),
         open: AtomicU64::new(0),
         finished: AtomicBool::new(false),
+        live: std::sync::Mutex::new(Live::default()),
     });
     let duration = Duration::from_secs_f64(args.duration_s);
     let progress = (!args.quiet).then(|| std::io::stderr().is_terminal());
@@ -363,7 +373,7 @@ fn generate_flights(args: &LoadtestArgs, meta: &Metadata) -> Result<Vec<Arc<Stre
 
 /// What every client shares; counters are touched once per batch, not per request.
 struct Ctx {
-    addr: std::net::SocketAddr,
+    endpoint: Endpoint,
     template: GetTemplate,
     flights: Vec<Arc<Stream>>,
     depth: usize,
@@ -377,6 +387,71 @@ struct Ctx {
     /// `--idle`: connections currently established.
     open: AtomicU64,
     finished: AtomicBool,
+    /// Errors by class so far (for the progress line), updated only when there are some.
+    live: std::sync::Mutex<Live>,
+}
+
+/// Errors by class so far.
+#[derive(Debug, Default)]
+struct Live {
+    kinds: [u64; ERROR_KINDS.len()],
+    statuses: BTreeMap<u16, u64>,
+}
+
+impl Ctx {
+    /// Adds what a client counted since `before` to the live counts.
+    fn record(&self, before: &ErrorSnapshot, now: &Stats) {
+        if now.errors == before.errors {
+            return;
+        }
+        let mut live = self.live.lock().unwrap_or_else(|e| e.into_inner());
+        for (i, n) in now.kinds.iter().enumerate() {
+            live.kinds[i] += n - before.kinds[i];
+        }
+        for &(code, n) in &now.other_statuses {
+            let old = before
+                .statuses
+                .iter()
+                .find(|(c, _)| *c == code)
+                .map_or(0, |(_, m)| *m);
+            if n > old {
+                *live.statuses.entry(code).or_insert(0) += n - old;
+            }
+        }
+    }
+
+    /// `429: 12, closed: 3` (empty without errors).
+    fn live_line(&self) -> String {
+        let live = self.live.lock().unwrap_or_else(|e| e.into_inner());
+        let mut parts: Vec<String> = live
+            .statuses
+            .iter()
+            .map(|(c, n)| format!("{c}: {n}"))
+            .collect();
+        for (k, n) in ERROR_KINDS.iter().zip(live.kinds) {
+            if n > 0 && *k != "status" {
+                parts.push(format!("{k}: {n}"));
+            }
+        }
+        parts.join(", ")
+    }
+}
+
+/// A client's error counts at the start of a batch.
+struct ErrorSnapshot {
+    errors: u64,
+    kinds: [u64; ERROR_KINDS.len()],
+    statuses: Vec<(u16, u64)>,
+}
+
+impl Stats {
+    fn snapshot(&self) -> ErrorSnapshot {
+        ErrorSnapshot {
+            errors: self.errors,
+            kinds: self.kinds,
+            statuses: self.other_statuses.clone(),
+        }
+    }
 }
 
 impl Ctx {
@@ -405,7 +480,9 @@ impl Ctx {
 }
 
 /// Causes of failed requests, in report order.
-const ERROR_KINDS: [&str; 6] = ["connect", "closed", "io", "protocol", "timeout", "status"];
+const ERROR_KINDS: [&str; 8] = [
+    "connect", "closed", "io", "protocol", "timeout", "status", "reset", "tls",
+];
 
 /// One client's (or the merged) counts.
 #[derive(Debug, Default)]
@@ -420,6 +497,9 @@ struct Stats {
     kinds: [u64; ERROR_KINDS.len()],
     latency: Histogram,
     idle_open: u64,
+    /// 429s of the server's per-address cap, and the cap they named.
+    per_ip_429: u64,
+    per_ip_limit: Option<u64>,
 }
 
 impl Stats {
@@ -461,15 +541,47 @@ impl Stats {
         }
         self.latency.merge(&o.latency);
         self.idle_open += o.idle_open;
+        self.per_ip_429 += o.per_ip_429;
+        self.per_ip_limit = self.per_ip_limit.or(o.per_ip_limit);
     }
 }
 
 fn error_kind(e: &Http1Error) -> usize {
     match e {
         Http1Error::Closed => 1,
+        Http1Error::Io(io)
+            if matches!(
+                io.kind(),
+                std::io::ErrorKind::ConnectionReset | std::io::ErrorKind::ConnectionAborted
+            ) =>
+        {
+            6
+        }
         Http1Error::Io(_) => 2,
+        Http1Error::Tls(_) => 7,
         _ => 3,
     }
+}
+
+/// The class of a failed connect: TLS failures are `tls`, the rest `connect`.
+fn connect_kind(e: &Http1Error) -> usize {
+    match e {
+        Http1Error::Tls(_) => 7,
+        _ => 0,
+    }
+}
+
+/// Whether a 429's body says it comes from the per-address connection cap, and the cap.
+fn per_ip_cap(body: &[u8]) -> Option<Option<u64>> {
+    let text = std::str::from_utf8(body).ok()?;
+    if !text.contains("max_connections_per_ip") {
+        return None;
+    }
+    let limit = text
+        .split_once("allows ")
+        .and_then(|(_, rest)| rest.split(' ').next())
+        .and_then(|n| n.parse().ok());
+    Some(limit)
 }
 
 async fn join_all(handles: Vec<tokio::task::JoinHandle<Stats>>) -> Result<Stats> {
@@ -513,26 +625,31 @@ async fn load_client(ctx: Arc<Ctx>, index: usize, deadline: Instant) -> Stats {
             Some(c) => c,
             None => match tokio::time::timeout(
                 ctx.timeout,
-                Connection::connect(ctx.addr, Limits::default()),
+                Connection::open(&ctx.endpoint, Limits::default()),
             )
             .await
             {
                 Ok(Ok(c)) => conn.insert(c),
                 Ok(Err(e)) => {
                     tracing::debug!(error = %e, "connect failed");
-                    stats.fail(n, 0);
+                    let before = stats.snapshot();
+                    stats.fail(n, connect_kind(&e));
+                    ctx.record(&before, &stats);
                     ctx.failed.fetch_add(n, Ordering::Relaxed);
                     // Do not spin against a server that refuses connections.
                     tokio::time::sleep(Duration::from_millis(10)).await;
                     continue;
                 }
                 Err(_) => {
+                    let before = stats.snapshot();
                     stats.fail(n, 4);
+                    ctx.record(&before, &stats);
                     ctx.failed.fetch_add(n, Ordering::Relaxed);
                     continue;
                 }
             },
         };
+        let before = stats.snapshot();
         let result = tokio::time::timeout(ctx.timeout, exchange(c, &batch, n, &mut stats)).await;
         let answered = stats.responses - done_before;
         let keep = match result {
@@ -553,6 +670,7 @@ async fn load_client(ctx: Arc<Ctx>, index: usize, deadline: Instant) -> Stats {
         ctx.done.fetch_add(answered, Ordering::Relaxed);
         ctx.failed
             .fetch_add(stats.errors - errors_before, Ordering::Relaxed);
+        ctx.record(&before, &stats);
     }
     stats
 }
@@ -569,6 +687,12 @@ async fn exchange(
     for _ in 0..n {
         let r = conn.read_response().await?;
         stats.response(r.status, r.body.len(), sent.elapsed());
+        if r.status == 429
+            && let Some(limit) = per_ip_cap(r.body)
+        {
+            stats.per_ip_429 += 1;
+            stats.per_ip_limit = stats.per_ip_limit.or(limit);
+        }
     }
     Ok(())
 }
@@ -617,7 +741,7 @@ async fn idle_client(
     let opened = {
         let _permit = gate.acquire().await;
         tokio::time::timeout(ctx.timeout, async {
-            let mut conn = Connection::connect(ctx.addr, Limits::default())
+            let mut conn = Connection::open(&ctx.endpoint, Limits::default())
                 .await
                 .map_err(|e| (0, e))?;
             let sent = Instant::now();
@@ -636,7 +760,14 @@ async fn idle_client(
         }
         Ok(Err((stage, e))) => {
             tracing::debug!(error = %e, "idle connection failed");
-            stats.fail(1, if stage == 0 { 0 } else { error_kind(&e) });
+            let kind = if stage == 0 {
+                connect_kind(&e)
+            } else {
+                error_kind(&e)
+            };
+            let before = stats.snapshot();
+            stats.fail(1, kind);
+            ctx.record(&before, &stats);
             ctx.failed.fetch_add(1, Ordering::Relaxed);
             None
         }
@@ -684,6 +815,12 @@ async fn print_progress(ctx: Arc<Ctx>, idle: bool, tty: bool) {
         } else {
             format!("{elapsed:6.1} s  {done} requests  {rate:.0} req/s  {failed} errors")
         };
+        let classes = ctx.live_line();
+        let line = if classes.is_empty() {
+            line
+        } else {
+            format!("{line} ({classes})")
+        };
         if tty {
             eprint!("\r{line}\x1b[K");
         } else {
@@ -723,6 +860,27 @@ fn make_report(
         .filter(|(_, n)| *n > 0)
         .map(|(k, n)| (k.to_string(), n))
         .collect();
+    let mut causes = Vec::new();
+    if s.per_ip_429 > 0 {
+        let cap = s
+            .per_ip_limit
+            .map_or_else(|| "its limit".to_string(), |n| n.to_string());
+        causes.push(format!(
+            "{} answers 429 (and the requests pipelined behind them, closed) come from the \
+             server's per-address connection cap (max_connections_per_ip = {cap}): {} \
+             connections from one address exceed it; raise it with `quincunx serve \
+             --max-connections-per-ip N` (0 = no limit), or exempt this address with \
+             limits.per_ip_exempt",
+            s.per_ip_429, args.connections
+        ));
+    }
+    if s.kinds[7] > 0 {
+        causes.push(format!(
+            "{} requests failed in the TLS handshake (see the log with RUST_LOG=debug; an \
+             unknown issuer needs --ca-cert)",
+            s.kinds[7]
+        ));
+    }
     Report {
         mode: if args.idle { "idle" } else { "load" },
         requests: s.responses,
@@ -743,6 +901,8 @@ fn make_report(
         duration_s,
         statuses,
         error_kinds,
+        per_ip_cap_429: s.per_ip_429,
+        causes,
         threads,
         flights: ctx.flights.len(),
         stream_len_mean,
@@ -782,7 +942,10 @@ fn print_text(r: &Report) {
     };
     outln!("statuses: {}", join(&r.statuses));
     if !r.error_kinds.is_empty() {
-        outln!("errors by cause: {}", join(&r.error_kinds));
+        outln!("errors by class: {}", join(&r.error_kinds));
+    }
+    for cause in &r.causes {
+        outln!("cause: {cause}");
     }
     outln!(
         "{} flights, {:.0} requests per stream on average",

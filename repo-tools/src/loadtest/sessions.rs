@@ -392,6 +392,7 @@ fn fly_client(args: &LoadtestArgs, path: &str, i: usize, opts: &FlyOptions) -> R
         .with_context(|| format!("client {i}"))?;
     let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
     let config = SessionConfig {
+        connect: crate::fly::link_options(args.ca_cert.as_ref(), link.as_ref().map(|(p, _)| p)),
         connections: 1,
         timeout: Duration::from_secs_f64(args.timeout_s),
         refine: quincunx_client::refine::RefineConfig {

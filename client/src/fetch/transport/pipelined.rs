@@ -12,18 +12,20 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::Bytes;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpStream;
-use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::sync::mpsc::{UnboundedReceiver, UnboundedSender, unbounded_channel};
 use tokio::time::Instant;
 
 use super::{Completion, Request};
 use crate::fetch::http1::{Limits, ResponseDecoder, write_get};
+use crate::fetch::tls::{TlsClient, tls_cause};
 use crate::fetch::{FetchConfig, FetchError};
 
 struct Settings {
     addr: SocketAddr,
+    /// TLS for `https://` (ALPN `http/1.1`).
+    tls: Option<TlsClient>,
     host: String,
     limits: Limits,
     timeout: Duration,
@@ -46,6 +48,7 @@ impl Pipelined {
     pub fn new(config: &FetchConfig, done: UnboundedSender<Completion>) -> Self {
         let settings = Arc::new(Settings {
             addr: config.remote.endpoint.addr,
+            tls: config.remote.endpoint.tls.clone(),
             host: config.remote.endpoint.host.clone(),
             limits: config.limits,
             timeout: config.request_timeout,
@@ -149,8 +152,8 @@ fn conn_err(e: std::io::Error) -> FetchError {
 }
 
 /// Reads what is available into the decoder.
-async fn read_some(
-    rd: &mut OwnedReadHalf,
+async fn read_some<R: AsyncRead + Unpin>(
+    rd: &mut R,
     decoder: &mut ResponseDecoder,
 ) -> Result<usize, FetchError> {
     let spare = decoder
@@ -161,18 +164,23 @@ async fn read_some(
     Ok(n)
 }
 
-async fn write_all(
-    wr: &mut OwnedWriteHalf,
+async fn write_all<W: AsyncWrite + Unpin>(
+    wr: &mut W,
     bytes: &[u8],
     timeout: Duration,
 ) -> Result<(), FetchError> {
-    match tokio::time::timeout(timeout, wr.write_all(bytes)).await {
+    let write = async {
+        wr.write_all(bytes).await?;
+        // TLS buffers records: push them out now.
+        wr.flush().await
+    };
+    match tokio::time::timeout(timeout, write).await {
         Ok(r) => r.map_err(conn_err),
         Err(_) => Err(FetchError::Timeout(timeout)),
     }
 }
 
-/// One TCP connection: `Ok(())` when the request channel closed, else why it failed.
+/// One connection (TCP, then TLS for `https://`): `Ok(())` when the request channel closed, else why it failed.
 async fn session(
     slot: usize,
     s: &Settings,
@@ -187,7 +195,38 @@ async fn session(
         Ok(Ok(stream)) => stream,
     };
     stream.set_nodelay(true).map_err(conn_err)?;
-    let (mut rd, mut wr) = stream.into_split();
+    let Some(tls) = &s.tls else {
+        let (rd, wr) = stream.into_split();
+        return exchange(slot, s, rd, wr, rx, done, pending, out).await;
+    };
+    let host = tls.host();
+    let stream = match tokio::time::timeout(s.timeout, tls.connect(stream)).await {
+        Err(_) => return Err(FetchError::Timeout(s.timeout)),
+        Ok(Err(e)) => {
+            return Err(match tls_cause(&e, &host) {
+                Some(msg) => FetchError::Tls(msg),
+                None => FetchError::Tls(format!("TLS handshake with {host}: {e}")),
+            });
+        }
+        Ok(Ok(stream)) => stream,
+    };
+    let (rd, wr) = tokio::io::split(stream);
+    exchange(slot, s, rd, wr, rx, done, pending, out).await
+}
+
+/// Requests and responses on one connected stream, until the channel closes (`Ok`) or the
+/// connection fails.
+#[allow(clippy::too_many_arguments)]
+async fn exchange<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
+    slot: usize,
+    s: &Settings,
+    mut rd: R,
+    mut wr: W,
+    rx: &mut UnboundedReceiver<Request>,
+    done: &UnboundedSender<Completion>,
+    pending: &mut VecDeque<Request>,
+    out: &mut Vec<u8>,
+) -> Result<(), FetchError> {
     let mut decoder = ResponseDecoder::new(s.limits);
     out.clear();
     for r in pending.iter() {

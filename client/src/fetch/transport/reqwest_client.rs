@@ -7,12 +7,16 @@ use bytes::Bytes;
 use tokio::sync::mpsc::UnboundedSender;
 
 use super::{Completion, Request};
+use crate::fetch::tls::find_tls_cause;
 use crate::fetch::{FetchConfig, FetchError, Transport};
 
 /// A reqwest client and how many requests it may have outstanding.
 pub(crate) struct ReqwestDriver {
     client: reqwest::Client,
-    host: String,
+    /// `scheme://authority` requests go to.
+    origin: String,
+    /// The URL's host, for messages about TLS failures.
+    tls_host: Option<String>,
     slots: usize,
     in_flight: usize,
     max_body_bytes: usize,
@@ -33,6 +37,8 @@ impl ReqwestDriver {
             // No progress for the timeout, or no whole response by the deadline.
             .read_timeout(config.request_timeout)
             .timeout(config.request_deadline);
+        let endpoint = &config.remote.endpoint;
+        let tls = endpoint.tls.as_ref();
         let (builder, slots) = match config.transport {
             // At most `connections` requests outstanding, so at most that many connections.
             Transport::Plain => (
@@ -41,14 +47,42 @@ impl ReqwestDriver {
                     .pool_max_idle_per_host(config.connections.max(1)),
                 config.connections.max(1),
             ),
+            // Over TLS, HTTP/2 by ALPN where the server offers it (else HTTP/1.1).
+            _ if tls.is_some() => (builder, config.max_in_flight.max(1)),
             _ => (builder.http2_prior_knowledge(), config.max_in_flight.max(1)),
+        };
+        let builder = match tls {
+            None => builder,
+            Some(tls) => {
+                let rustls = match config.transport {
+                    Transport::Plain => tls.http1_config(),
+                    _ => tls.h2_config(),
+                };
+                builder
+                    .use_preconfigured_tls((*rustls).clone())
+                    .https_only(true)
+            }
+        };
+        // Requests name the URL's host (the certificate's) and go to `endpoint.addr`
+        // (resolved, or a link or proxy in front of the server): the connection uses the
+        // URL's port, so the authority carries the address's.
+        let name = endpoint.host_name();
+        let port = endpoint.addr.port();
+        let (builder, authority) = if name.parse::<std::net::IpAddr>().is_ok() {
+            (builder, socket_authority(endpoint.addr))
+        } else {
+            (
+                builder.resolve(name, endpoint.addr),
+                format!("{name}:{port}"),
+            )
         };
         let client = builder
             .build()
             .map_err(|e| FetchError::Thread(format!("HTTP client: {e}")))?;
         Ok(ReqwestDriver {
             client,
-            host: config.remote.endpoint.host.clone(),
+            origin: format!("{}://{authority}", endpoint.scheme()),
+            tls_host: tls.map(|t| t.host()),
             slots,
             in_flight: 0,
             max_body_bytes: config.limits.max_body_bytes,
@@ -67,16 +101,22 @@ impl ReqwestDriver {
             return false;
         }
         self.in_flight += 1;
-        let url = format!("http://{}{}", self.host, request.path);
+        let url = format!("{}{}", self.origin, request.path);
         let get = self.client.get(url).send();
         let done = self.done.clone();
         let max_body = self.max_body_bytes;
         let (timeout, deadline) = (self.timeout, self.deadline);
+        let tls_host = self.tls_host.clone();
         let started = std::time::Instant::now();
         tokio::spawn(async move {
             let result = match get.await {
                 Ok(resp) => read_body(resp, max_body, timeout).await,
-                Err(e) => Err(classify(&e, timeout)),
+                Err(e) => Err(
+                    match tls_host.as_deref().and_then(|h| find_tls_cause(&e, h)) {
+                        Some(msg) => FetchError::Tls(msg),
+                        None => classify(&e, timeout),
+                    },
+                ),
             };
             // reqwest says "timed out" for both: the total one is the deadline.
             let result = match result {
@@ -124,6 +164,14 @@ async fn read_body(
         )));
     }
     Ok((status, body))
+}
+
+/// `ip:port`, IPv6 in brackets.
+fn socket_authority(addr: std::net::SocketAddr) -> String {
+    match addr {
+        std::net::SocketAddr::V6(a) => format!("[{}]:{}", a.ip(), a.port()),
+        a => a.to_string(),
+    }
 }
 
 /// Maps a reqwest error to our classes, with its causes in the message.
