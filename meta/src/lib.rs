@@ -16,6 +16,7 @@ use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
 pub mod answer;
 pub mod channels;
+pub mod crypto;
 
 /// Everything a server or client needs to know about a repository, stored as one JSON
 /// record. Codec-specific parts (model, steps, root grids) are opaque numbers here.

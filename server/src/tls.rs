@@ -39,6 +39,9 @@ pub(crate) fn acceptor(config: &TlsConfig) -> Result<tokio_rustls::TlsAcceptor, 
             config.key.display()
         ))
     })?;
+    if let Some(why) = quincunx_meta::crypto::tls_cpu_unsupported() {
+        return Err(tls_error(why));
+    }
     let provider = Arc::new(rustls_graviola::default_provider());
     let mut server = rustls::ServerConfig::builder_with_provider(provider)
         .with_safe_default_protocol_versions()

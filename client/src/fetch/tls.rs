@@ -93,6 +93,9 @@ impl TlsClient {
     /// TLS to `host` (a name or an IP address, without port or brackets), trusting the
     /// system's roots and the certificates in `ca_cert_pem`.
     pub fn new(host: &str, ca_cert_pem: Option<&[u8]>) -> Result<TlsClient, TlsError> {
+        if let Some(why) = quincunx_meta::crypto::tls_cpu_unsupported() {
+            return Err(TlsError::Config(why));
+        }
         let server_name = ServerName::try_from(host.to_string())
             .map_err(|_| TlsError::ServerName(host.to_string()))?;
         let mut roots = RootCertStore::empty();
