@@ -354,7 +354,8 @@ mod tests {
 
     #[test]
     fn each_field_out_of_range_is_named() {
-        let cases: Vec<(&str, Box<dyn Fn(&mut Metadata)>)> = vec![
+        type Change = Box<dyn Fn(&mut Metadata)>;
+        let cases: Vec<(&str, Change)> = vec![
             (
                 "content_hash",
                 Box::new(|m| m.content_hash = "a".repeat(1 << 20)),

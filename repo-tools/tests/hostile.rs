@@ -482,3 +482,40 @@ fn metadata_out_of_its_limits_is_refused_by_serve_verify_fly_and_render() {
         );
     }
 }
+
+/// The status line `quincunx serve` answers `request` with.
+fn status_line(url: &str, request: &[u8]) -> String {
+    let addr = url.trim_start_matches("http://");
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    s.write_all(request).unwrap();
+    let mut buf = [0u8; 64];
+    let n = s.read(&mut buf).unwrap();
+    String::from_utf8_lossy(&buf[..n])
+        .lines()
+        .next()
+        .unwrap_or("")
+        .to_string()
+}
+
+#[test]
+fn connect_and_an_http1_pri_request_are_method_not_allowed() {
+    let dir = tempfile::tempdir().unwrap();
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/jacksboro.json");
+    let repo = dir.path().join("j");
+    common::build(&["--max-error-m", "2"], &fixture, &repo);
+    let server = common::serve(&[("j", &repo)]);
+    for request in [
+        &b"CONNECT example.com:443 HTTP/1.1\r\nHost: example.com:443\r\n\r\n"[..],
+        b"PRI / HTTP/1.1\r\nHost: x\r\n\r\n",
+        b"PRI * HTTP/1.1\r\nHost: x\r\n\r\n",
+    ] {
+        let line = status_line(&server.url, request);
+        assert_eq!(
+            line,
+            "HTTP/1.1 405 Method Not Allowed",
+            "{}",
+            String::from_utf8_lossy(request)
+        );
+    }
+}
