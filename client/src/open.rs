@@ -105,6 +105,10 @@ fn channel<'m>(
     if meta.channels.is_empty() {
         return Err(metadata_error(name, "no channels"));
     }
+    // The one check every reader makes (`quincunx_meta::limits`): hostile metadata from a
+    // server is refused here, naming the field, before anything is sized from it.
+    meta.validate()
+        .map_err(|e| metadata_error(name, e.to_string()))?;
     let coding = meta.channels.get(channel).ok_or_else(|| {
         metadata_error(
             name,

@@ -2,7 +2,8 @@
 //! serves it, the server, and the client that streams it: the metadata record
 //! ([`Metadata`], one JSON document whose every field is typed), the answer framing
 //! ([`answer`]: packages of a blob and its small owned children, with the id relations
-//! they need) and the multi-channel blob framing ([`channels`]).
+//! they need), the multi-channel blob framing ([`channels`]) and the one check of a
+//! record every reader makes ([`limits`]: [`Metadata::check_limits`], [`Metadata::validate`]).
 //!
 //! The JSON is part of the repository format (`docs/repository-format.md`): the content
 //! hash is computed over it, so every type here serialises to exactly the text the
@@ -17,6 +18,9 @@ use serde::{Deserialize, Deserializer, Serialize, Serializer};
 pub mod answer;
 pub mod channels;
 pub mod crypto;
+pub mod limits;
+
+pub use limits::MetadataError;
 
 /// Everything a server or client needs to know about a repository, stored as one JSON
 /// record. Codec-specific parts (model, steps, root grids) are opaque numbers here.

@@ -65,8 +65,10 @@ impl Geometry {
         })
     }
 
-    /// The geometry a repository's metadata describes (checked against `m` and `levels`).
+    /// The geometry a repository's metadata describes, after the metadata's one check
+    /// ([`Metadata::validate`]: limits, `m` and `levels` from the extent and `N`).
     pub fn from_metadata(meta: &Metadata) -> Result<Geometry> {
+        meta.validate()?;
         let [a, b] = meta.extent;
         let (a, b) = (a as usize, b as usize);
         let n = meta.n as usize;
@@ -83,13 +85,8 @@ impl Geometry {
             (Domain::Sphere, _) => bail!("a sphere's extent must be square, not {a} x {b}"),
         };
         if geom.detail_levels() != meta.levels as usize || geom.m() != meta.m {
-            bail!(
-                "metadata says m = {}, {} levels; its extent and N give m = {}, {} levels",
-                meta.m,
-                meta.levels,
-                geom.m(),
-                geom.detail_levels()
-            );
+            // `validate` derives both as the codec does; reaching this is a bug.
+            bail!("the metadata's levels and m disagree with the codec's geometry");
         }
         Ok(geom)
     }

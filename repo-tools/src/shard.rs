@@ -394,7 +394,8 @@ struct Details {
 impl Details {
     fn open(dir: &Path, n2: usize) -> Result<Details> {
         let path = dir.join(DETAILS_FILE);
-        let f = File::open(&path).with_context(|| format!("opening {}", path.display()))?;
+        let f = quincunx_store::open_regular_file(&path)
+            .with_context(|| format!("opening {}", path.display()))?;
         Ok(Details {
             path,
             r: BufReader::with_capacity(1 << 20, f),
@@ -451,6 +452,19 @@ impl Details {
     }
 }
 
+/// A part file's bytes: a regular file only (a FIFO or device fails at once), read up to
+/// its length at open (a file growing meanwhile is an error, not an endless read).
+fn read_part(path: &Path) -> Result<Vec<u8>> {
+    let file = quincunx_store::open_regular_file(path)?;
+    let len = file.metadata()?.len();
+    let mut bytes = Vec::with_capacity(usize::try_from(len)?);
+    file.take(len + 1).read_to_end(&mut bytes)?;
+    if bytes.len() as u64 != len {
+        bail!("the file changed size while it was read");
+    }
+    Ok(bytes)
+}
+
 /// Runs `quincunx merge`.
 pub fn merge(args: &MergeArgs) -> Result<()> {
     let mut pool = rayon::ThreadPoolBuilder::new();
@@ -491,7 +505,7 @@ fn merge_parts(args: &MergeArgs) -> Result<build::BuildSummary> {
     let mut parts = Vec::new();
     for dir in &args.parts {
         let path = dir.join(PART_FILE);
-        let bytes = std::fs::read(&path).with_context(|| {
+        let bytes = read_part(&path).with_context(|| {
             format!(
                 "reading {} (is {} a finished shard part?)",
                 path.display(),

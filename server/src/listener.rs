@@ -357,7 +357,8 @@ enum Protocol {
 /// Waits for the first bytes of a connection and tells HTTP/2 prior knowledge from
 /// HTTP/1.
 async fn detect(stream: &TcpStream) -> io::Result<Option<Protocol>> {
-    let mut buf = [0u8; 4];
+    // The whole preface: an HTTP/1 request with method `PRI` shares its first bytes.
+    let mut buf = [0u8; H2_PREFACE.len()];
     loop {
         let n = stream.peek(&mut buf).await?;
         if n == 0 {

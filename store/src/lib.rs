@@ -73,6 +73,9 @@ pub enum StoreError {
     /// A directory, but no repository file in it.
     #[error("{0} is a directory without a repository (no {PACK_FILE} in it)")]
     NotARepository(PathBuf),
+    /// The repository file is not a regular file (a FIFO, device, socket or directory).
+    #[error("{1}: refusing to read it as a repository")]
+    NotAFile(PathBuf, String),
     /// A repository of format 5 or older (a sled database directory).
     #[error(
         "{0} is a repository of format 5 or older (a sled database); this build reads format \
@@ -170,6 +173,48 @@ fn occupied(path: &Path) -> bool {
     !matches!(std::fs::symlink_metadata(path), Err(e) if e.kind() == std::io::ErrorKind::NotFound)
 }
 
+/// What is at a path that is not a regular file, in words ("a FIFO", "a directory").
+fn file_kind(m: &std::fs::Metadata) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    let t = m.file_type();
+    if t.is_dir() {
+        "a directory"
+    } else if t.is_fifo() {
+        "a FIFO"
+    } else if t.is_socket() {
+        "a socket"
+    } else if t.is_char_device() {
+        "a character device"
+    } else if t.is_block_device() {
+        "a block device"
+    } else {
+        "not a regular file"
+    }
+}
+
+/// Opens `path` read-only if it is a regular file (after links), and fails without
+/// blocking otherwise: the type is checked before `open` (which blocks on a FIFO without
+/// a writer) and again on the open file (in case the path changed in between). Every tool
+/// opens repository and part files through this.
+pub fn open_regular_file(path: &Path) -> std::io::Result<File> {
+    let not_regular = |m: &std::fs::Metadata| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidInput,
+            format!("{} is {}, not a regular file", path.display(), file_kind(m)),
+        )
+    };
+    let before = std::fs::metadata(path)?;
+    if !before.is_file() {
+        return Err(not_regular(&before));
+    }
+    let file = File::open(path)?;
+    let after = file.metadata()?;
+    if !after.is_file() {
+        return Err(not_regular(&after));
+    }
+    Ok(file)
+}
+
 /// An open, complete repository. Read-only: there is no way to write through it, and
 /// opening it writes nothing.
 pub struct Repository {
@@ -187,7 +232,7 @@ impl Repository {
     pub fn open(path: impl AsRef<Path>) -> Result<Repository> {
         let path = path.as_ref();
         let file_path = path.join(PACK_FILE);
-        let file = match File::open(&file_path) {
+        let file = match open_regular_file(&file_path) {
             Ok(f) => f,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
                 return Err(match std::fs::metadata(path) {
@@ -206,6 +251,9 @@ impl Repository {
             }
             Err(e) if e.kind() == std::io::ErrorKind::NotADirectory => {
                 return Err(StoreError::NotARepository(path.to_path_buf()));
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::InvalidInput => {
+                return Err(StoreError::NotAFile(file_path, e.to_string()));
             }
             Err(cause) => {
                 return Err(StoreError::Io {
@@ -249,7 +297,15 @@ impl Repository {
         let footer_bytes = read(file_len - pack::FOOTER_BYTES, pack::FOOTER_BYTES)?;
         let footer = match pack::Footer::parse(&footer_bytes, file_len) {
             Err(pack::PackError::Incomplete(_)) => {
-                return Err(StoreError::Incomplete(path.to_path_buf()));
+                let tail_len = file_len.min(pack::TRAILING_SEARCH_BYTES);
+                let tail = read(file_len - tail_len, tail_len)?;
+                return Err(match pack::trailing_bytes(&tail, file_len) {
+                    Some(extra) => pack_err(pack::PackError::Damaged(format!(
+                        "{extra} trailing byte(s) after the footer (something was appended \
+                         to the file)"
+                    ))),
+                    None => StoreError::Incomplete(path.to_path_buf()),
+                });
             }
             other => other.map_err(pack_err)?,
         };
@@ -286,6 +342,12 @@ impl Repository {
         if !metadata.complete {
             return Err(StoreError::Incomplete(path.to_path_buf()));
         }
+        metadata
+            .check_limits()
+            .map_err(|e| StoreError::BadMetadata {
+                path: path.to_path_buf(),
+                reason: e.to_string(),
+            })?;
         Ok(Repository {
             path: path.to_path_buf(),
             file_path,
@@ -1114,6 +1176,7 @@ mod tests {
         let mut m = metadata();
         m.format_version = FORMAT_VERSION;
         m.complete = true;
+        m.content_hash = "0".repeat(64);
         let mut w = pack::PackWriter::new(Vec::new(), FORMAT_VERSION).unwrap();
         w.page(&k1, &p1, 2).unwrap();
         w.page(&k2, &p2, 1).unwrap();

@@ -122,6 +122,22 @@ impl Footer {
     }
 }
 
+/// How far from the end [`trailing_bytes`] looks for a footer.
+pub const TRAILING_SEARCH_BYTES: u64 = 64 << 10;
+
+/// When the last bytes of a file are not a footer: how many bytes follow the last valid
+/// footer (magic and checksum) within `tail`, the file's last bytes (`file_len` in all),
+/// if there is one. Tells bytes appended to a complete file from an unfinished one.
+pub fn trailing_bytes(tail: &[u8], file_len: u64) -> Option<u64> {
+    let footer = FOOTER_BYTES as usize;
+    (footer..=tail.len()).rev().find_map(|end| {
+        let bytes = &tail[end - footer..end];
+        let footer_end = file_len - (tail.len() - end) as u64;
+        (&bytes[40..48] == FOOTER_MAGIC && Footer::parse(bytes, footer_end).is_ok())
+            .then_some((tail.len() - end) as u64)
+    })
+}
+
 fn array<const N: usize>(bytes: &[u8]) -> [u8; N] {
     let mut out = [0u8; N];
     out.copy_from_slice(bytes);

@@ -193,7 +193,7 @@ fn every_kind_of_damage_is_one_clear_error() {
             "one byte appended",
             Some([&file[..], b"x"].concat()),
             |s| *s == Seen::OpenFails,
-            "complete",
+            "1 trailing byte(s) after the footer",
         ),
         (
             "head flipped",

@@ -686,10 +686,13 @@ pub(super) fn check_parts(
             "the parts are of a planet's build, not a planar one".into()
         }));
     }
-    if let Some(p) = parts.iter().find(|p| p.header != header) {
+    header.check()?;
+    if let Some((p, field)) = parts
+        .iter()
+        .find_map(|p| header.differing_field(&p.header).map(|f| (p, f)))
+    {
         return Err(EncodeError::Shard(format!(
-            "part {} is not from the same build as part {} (source, options or shard \
-             count differ)",
+            "part {} is not from the same build as part {}: their {field} differs",
             p.index, first.index
         )));
     }
@@ -704,6 +707,7 @@ pub(super) fn check_parts(
     }
     let missing: Vec<String> = (0..header.shards)
         .filter(|k| !parts.iter().any(|p| p.index == *k))
+        .take(16)
         .map(|k| k.to_string())
         .collect();
     if !missing.is_empty() || parts.len() != header.shards {
@@ -711,6 +715,18 @@ pub(super) fn check_parts(
             "the build has {} shards; missing part(s): {}",
             header.shards,
             missing.join(", ")
+        )));
+    }
+    // The geometry is sized from the header's raster size: the parts must carry side
+    // information of most of its diamonds (they cover every diamond of the fine levels),
+    // so nothing is allocated beyond a small multiple of the parts' own bytes.
+    let side: usize = parts.iter().map(|p| p.side.len()).sum();
+    let cells = (header.width / header.n).saturating_mul(header.height / header.n);
+    if side.saturating_mul(8) < cells {
+        return Err(EncodeError::Shard(format!(
+            "the parts describe a {} x {} raster but carry side information of only {side} \
+             diamonds",
+            header.width, header.height
         )));
     }
     Ok((header, parts))
@@ -821,6 +837,98 @@ pub(super) fn join_parts(
     }
     joined.sum2 = pieces.iter().fold(0.0, |s, &(_, x)| s + x);
     Ok(joined)
+}
+
+/// Most shards a build is split into.
+pub const MAX_SHARDS: usize = 1 << 16;
+
+/// Largest raster side a part may describe (the codec's limit).
+const MAX_SIDE: usize = 1 << 24;
+
+impl Header {
+    /// Checks each field against sane limits before anything is sized from it; the error
+    /// names the field.
+    fn check(&self) -> Result<(), EncodeError> {
+        let bad =
+            |field: &str, why: String| Err(EncodeError::Shard(format!("the part's {field} {why}")));
+        if !(1..=MAX_SHARDS).contains(&self.shards) {
+            return bad(
+                "shard count",
+                format!("{} is outside 1..={MAX_SHARDS}", self.shards),
+            );
+        }
+        let max_height = if self.planet {
+            6 * (MAX_SIDE + 1)
+        } else {
+            MAX_SIDE
+        };
+        if !(1..=MAX_SIDE + 1).contains(&self.width) || !(1..=max_height).contains(&self.height) {
+            return bad(
+                "raster size",
+                format!("{} x {} is out of range", self.width, self.height),
+            );
+        }
+        if !self.n.is_power_of_two() || !(2..=512).contains(&self.n) {
+            return bad(
+                "diamond size N",
+                format!("{} is not a power of two in 2..=512", self.n),
+            );
+        }
+        if self.split > 48 {
+            return bad("split", format!("{} is out of range", self.split));
+        }
+        if self.valid > self.width.saturating_mul(self.height) {
+            return bad(
+                "valid sample count",
+                format!("{} exceeds the raster", self.valid),
+            );
+        }
+        if let RateMode::MaxErrorM(v) | RateMode::RmsM(v) = self.mode
+            && !(v.is_finite() && v > 0.0)
+        {
+            return bad("rate value", format!("{v} is not a finite positive number"));
+        }
+        if !(self.scale.is_finite() && self.scale > 0.0) {
+            return bad(
+                "value scale",
+                format!("{} is not a finite positive number", self.scale),
+            );
+        }
+        if !self.offset.is_finite() {
+            return bad("value offset", format!("{} is not finite", self.offset));
+        }
+        if let Some(v) = self.scan.iter().find(|v| !v.is_finite()) {
+            return bad("source scan", format!("holds {v}, not a finite number"));
+        }
+        Ok(())
+    }
+
+    /// The first field in which two parts' headers differ.
+    fn differing_field(&self, other: &Header) -> Option<&'static str> {
+        let bits = |v: f64| v.to_bits();
+        [
+            (
+                self.width != other.width || self.height != other.height,
+                "raster size",
+            ),
+            (self.n != other.n, "diamond size N"),
+            (self.mode != other.mode, "rate mode"),
+            (self.sparse != other.sparse, "sparse flag"),
+            (self.budget != other.budget, "memory budget"),
+            (self.chunk_rows != other.chunk_rows, "chunk rows"),
+            (self.shards != other.shards, "shard count"),
+            (self.split != other.split, "split"),
+            (self.valid != other.valid, "valid sample count"),
+            (bits(self.scale) != bits(other.scale), "value scale"),
+            (bits(self.offset) != bits(other.offset), "value offset"),
+            (self.scan.map(bits) != other.scan.map(bits), "source scan"),
+            (self.coverage != other.coverage, "coverage"),
+            (self.extra != other.extra, "build description"),
+            (self.planet != other.planet, "planet flag"),
+        ]
+        .into_iter()
+        .find_map(|(differs, field)| differs.then_some(field))
+    }
 }
 
 /// Bytes of a part: little-endian fields after a magic and version.
@@ -1058,9 +1166,31 @@ impl ShardPart {
         if !r.0.is_empty() {
             return Err(EncodeError::Shard("the part has trailing bytes".into()));
         }
+        header.check()?;
         if index >= shards {
             return Err(EncodeError::Shard(format!(
                 "the part says it is shard {index} of {shards}"
+            )));
+        }
+        let rows = if header.planet {
+            header.height
+        } else {
+            header.height.div_ceil(1 << header.split.min(47)) + 1
+        };
+        if coarse_rows.start > coarse_rows.end || coarse_rows.end > rows {
+            return Err(EncodeError::Shard(format!(
+                "the part's coarse rows {}..{} are outside the raster",
+                coarse_rows.start, coarse_rows.end
+            )));
+        }
+        if !(max_error.is_finite() && max_error >= 0.0) {
+            return Err(EncodeError::Shard(format!(
+                "the part's largest error is {max_error}, not a finite number >= 0"
+            )));
+        }
+        if let Some((_, x)) = pieces.iter().find(|(_, x)| !(x.is_finite() && *x >= 0.0)) {
+            return Err(EncodeError::Shard(format!(
+                "the part's error sums hold {x}, not a finite number >= 0"
             )));
         }
         Ok(ShardPart {

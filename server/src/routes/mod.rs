@@ -33,8 +33,18 @@ pub fn router(state: AppState) -> Router {
         .with_state(state)
 }
 
-async fn not_found() -> ApiError {
-    ApiError::not_found("no such resource (see /repos)")
+/// Everything no route takes: 404, except methods that no resource here allows
+/// (`CONNECT`: this is no proxy; `PRI`: the HTTP/2 preface's method, never a request).
+async fn not_found(method: Method) -> Response {
+    if method == Method::CONNECT || method.as_str() == "PRI" {
+        return (
+            StatusCode::METHOD_NOT_ALLOWED,
+            [(header::ALLOW, "GET, HEAD, OPTIONS")],
+            format!("{method} is not allowed here (not a proxy; GET, HEAD or OPTIONS)\n"),
+        )
+            .into_response();
+    }
+    ApiError::not_found("no such resource (see /repos)").into_response()
 }
 
 /// The metric label of a request path.
