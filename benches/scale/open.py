@@ -33,7 +33,7 @@ figures = {name: {"session_open_ms": [], "client_peak_rss_mb": []} for name in r
 try:
     for _ in range(runs):
         for name in repos:
-            o = subprocess.run([Q, "fly", "--json", "--url", f"http://127.0.0.1:{port}",
+            o = subprocess.run([Q, "fly", "--json", "--allow-unfinished", "--url", f"http://127.0.0.1:{port}",
                                 "--repo", name, "--path", path],
                                capture_output=True, text=True, check=True)
             j = json.loads(o.stdout)

@@ -52,7 +52,8 @@ for rnd in range(3):
         rss0 = rss_kb(p.pid)
         flies = {}
         for label, fp in [("distant", DISTANT), ("jumps", JUMPS)]:
-            o = subprocess.run([Q, "fly", "--json", "--url", url, "--repo", name, "--path", fp],
+            o = subprocess.run([Q, "fly", "--json", "--allow-unfinished", "--url", url, "--repo", name,
+                                "--path", fp],
                                capture_output=True, text=True)
             fj = json.loads(o.stdout)
             flies[label] = {k: fj.get(k) for k in ["session_open_ms", "client_peak_rss_mb", "cracks",

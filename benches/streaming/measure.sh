@@ -50,7 +50,7 @@ done
 fly() { # repo, path, link, transport[, tolerance[, package factor]]
     "$bin/quincunx" fly --url http://127.0.0.1:18190 --repo "$1" --path "$2" --link "$3" \
         --transport "$4" --tolerance-px "${5:-1}" --package-factor "${6:-2}" \
-        --check-every 10 --json \
+        --check-every 10 --json --allow-unfinished \
         | python3 -c "import json,sys; d=json.load(sys.stdin); d['transport']='$4'; d['package_factor']=${6:-2}; print(json.dumps(d))"
 }
 if [ "$quick" = 1 ]; then

@@ -127,7 +127,6 @@ pub fn run(args: &RenderArgs) -> Result<()> {
         tolerance_px: args.tolerance_px,
     };
     shot.validate()?;
-    let gpu = Gpu::headless().context("starting the renderer")?;
     let session = AnySession::open_with_colour(
         &args.url,
         &args.repo,
@@ -138,6 +137,8 @@ pub fn run(args: &RenderArgs) -> Result<()> {
         },
     )
     .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
+    // After the session: a repository the client refuses is named before a GPU is needed.
+    let gpu = Gpu::headless().context("starting the renderer")?;
     let options = PictureOptions {
         renderer: RendererConfig {
             gpu_budget_bytes: (args.gpu_budget_mb * 1_048_576.0) as u64,
@@ -159,8 +160,20 @@ pub fn run(args: &RenderArgs) -> Result<()> {
     pic.image
         .write_png(&args.output)
         .with_context(|| format!("writing {}", args.output.display()))?;
+    let failure = if cracks > 0 {
+        Some(format!("the cut had {cracks} cracks"))
+    } else if !streamed.full_quality && !streamed.budget_limited {
+        Some(format!(
+            "not at full quality after --wait-s {} s ({} frames): the picture is coarser \
+             than --tolerance-px {}",
+            args.wait_s, streamed.frames, args.tolerance_px
+        ))
+    } else {
+        None
+    };
     if args.json {
         let v = serde_json::json!({
+            "failure": failure,
             "width": pic.image.width,
             "height": pic.image.height,
             "triangles": pic.stats.triangles,
@@ -201,7 +214,10 @@ pub fn run(args: &RenderArgs) -> Result<()> {
             gpu.describe()
         );
     }
-    Ok(())
+    match failure {
+        Some(why) => bail!("{why} ({} was written)", args.output.display()),
+        None => Ok(()),
+    }
 }
 
 fn shoot<R: RenderDomain>(

@@ -594,6 +594,14 @@ fn fly_point<R: TradeDomain>(
         let changes = s.cut_changes();
         frames.push((changes, *view, t.elapsed().as_secs_f64() * 1e3, rec.leg));
     })?;
+    if let Some(why) = crate::fly::fetch_failure(
+        report.bytes_fetched,
+        report.requests,
+        report.fetch_errors,
+        report.fetch_timeouts,
+    ) {
+        bail!("the flight at {tolerance_px} px: {why}");
+    }
     // The last frame of each chosen leg.
     let last: Vec<usize> = (0..frames.len())
         .filter(|&k| frames.get(k + 1).is_none_or(|f| f.3 != frames[k].3))

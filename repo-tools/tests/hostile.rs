@@ -10,63 +10,10 @@ mod common;
 use std::io::{Read, Write};
 use std::net::TcpListener;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
-use std::time::{Duration, Instant};
+use std::process::Command;
+use std::time::Duration;
 
-use common::bin;
-
-/// A run's exit and output.
-struct Run {
-    success: bool,
-    stderr: String,
-    stdout: String,
-}
-
-/// Runs `cmd` (stdin closed), killing it after `limit`: a run that needs the kill fails
-/// the test.
-fn run_within(cmd: &mut Command, limit: Duration) -> Run {
-    let mut child = cmd
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut stdout = child.stdout.take().unwrap();
-    let mut stderr = child.stderr.take().unwrap();
-    let out = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = stdout.read_to_string(&mut s);
-        s
-    });
-    let err = std::thread::spawn(move || {
-        let mut s = String::new();
-        let _ = stderr.read_to_string(&mut s);
-        s
-    });
-    let started = Instant::now();
-    let status = loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            break status;
-        }
-        if started.elapsed() > limit {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("{cmd:?} did not end within {limit:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    let run = Run {
-        success: status.success(),
-        stdout: out.join().unwrap(),
-        stderr: err.join().unwrap(),
-    };
-    assert!(
-        !run.stderr.contains("panicked") && status.code().is_some(),
-        "{cmd:?} crashed ({status}): {}",
-        run.stderr
-    );
-    run
-}
+use common::{bin, run_within};
 
 /// Runs `cmd`, which must fail within 5 s with `needle` in its error.
 fn refused(cmd: &mut Command, needle: &str) -> String {

@@ -245,6 +245,16 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
     if failed > 0 || cracks > 0 || coverage > 0 {
         bail!("{failed} clients failed, {cracks} cracks, {coverage} coverage errors");
     }
+    for p in &points {
+        if let Some(why) = crate::fly::fetch_failure(
+            p.bytes_fetched,
+            p.requests,
+            p.fetch_errors,
+            p.fetch_timeouts,
+        ) {
+            bail!("{} clients: {why}", p.clients);
+        }
+    }
     Ok(())
 }
 

@@ -2,9 +2,10 @@
 //! for mosaics, and `quincunx serve` on a free port.
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
-use std::io::{BufRead, BufReader};
+use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
 
 /// The `quincunx` binary under test.
 pub fn bin() -> Command {
@@ -142,4 +143,57 @@ pub fn serve_with(repos: &[(&str, &Path)], flags: &[&str]) -> Server {
         .trim_end_matches('/')
         .to_string();
     Server { child, url }
+}
+
+/// A run's exit and output.
+pub struct Run {
+    pub success: bool,
+    pub stderr: String,
+    pub stdout: String,
+}
+
+/// Runs `cmd` (stdin closed), killing it after `limit`: a run that needs the kill fails
+/// the test.
+pub fn run_within(cmd: &mut Command, limit: Duration) -> Run {
+    let mut child = cmd
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stdout = child.stdout.take().unwrap();
+    let mut stderr = child.stderr.take().unwrap();
+    let out = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = stdout.read_to_string(&mut s);
+        s
+    });
+    let err = std::thread::spawn(move || {
+        let mut s = String::new();
+        let _ = stderr.read_to_string(&mut s);
+        s
+    });
+    let started = Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if started.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{cmd:?} did not end within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let run = Run {
+        success: status.success(),
+        stdout: out.join().unwrap(),
+        stderr: err.join().unwrap(),
+    };
+    assert!(
+        !run.stderr.contains("panicked") && status.code().is_some(),
+        "{cmd:?} crashed ({status}): {}",
+        run.stderr
+    );
+    run
 }
