@@ -203,10 +203,11 @@ fn special_files_as_a_part_end_merge_at_once() {
 #[test]
 fn crafted_parts_are_clear_errors_within_100_mb() {
     if !has_prlimit() {
-        println!("SKIP crafted_parts_are_clear_errors_within_100_mb: no prlimit");
-        if std::env::var("REQUIRE_PRLIMIT").as_deref() == Ok("1") {
-            panic!("REQUIRE_PRLIMIT=1 but prlimit is missing");
-        }
+        quincunx_testkit::skip::skip(
+            "crafted_parts_are_clear_errors_within_100_mb",
+            "REQUIRE_PRLIMIT",
+            "prlimit (util-linux) is missing",
+        );
         return;
     }
     let dir = tempfile::tempdir().unwrap();

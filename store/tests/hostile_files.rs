@@ -87,9 +87,9 @@ fn a_fifo_a_device_or_a_socket_as_the_repository_file_is_refused_at_once() {
     ] {
         let repo = dir.path().join(kind);
         std::fs::create_dir(&repo).unwrap();
+        // mkfifo is coreutils: always there where this store runs.
         let Some(_keep) = special(kind, &repo.join(PACK_FILE)) else {
-            println!("SKIP {kind}: mkfifo is not available");
-            continue;
+            panic!("{kind}: could not make one (mkfifo)");
         };
         let err = open_within(&repo, Duration::from_secs(5)).err().unwrap();
         assert!(matches!(err, StoreError::NotAFile(..)), "{kind}: {err}");
