@@ -37,6 +37,17 @@ pub fn provider() -> Arc<CryptoProvider> {
     Arc::clone(PROVIDER.get_or_init(|| Arc::new(rustls_graviola::default_provider())))
 }
 
+/// A client configuration with no trusted roots, for an HTTP client that builds one even
+/// when it speaks only cleartext (reqwest): it can verify nothing, so it never carries a
+/// connection.
+pub fn cleartext_placeholder() -> Result<ClientConfig, TlsError> {
+    Ok(ClientConfig::builder_with_provider(provider())
+        .with_safe_default_protocol_versions()
+        .map_err(|e| TlsError::Config(e.to_string()))?
+        .with_root_certificates(RootCertStore::empty())
+        .with_no_client_auth())
+}
+
 /// The system's trusted roots, loaded once per process.
 fn system_roots() -> &'static [CertificateDer<'static>] {
     static ROOTS: OnceLock<Vec<CertificateDer<'static>>> = OnceLock::new();

@@ -52,7 +52,13 @@ impl ReqwestDriver {
             _ => (builder.http2_prior_knowledge(), config.max_in_flight.max(1)),
         };
         let builder = match tls {
-            None => builder,
+            // reqwest builds a rustls configuration even for http://, and without a
+            // process-wide default provider that panics ("No provider set"): give it one
+            // of ours, which plain HTTP never uses.
+            None => builder.use_preconfigured_tls(
+                crate::fetch::tls::cleartext_placeholder()
+                    .map_err(|e| FetchError::Thread(format!("HTTP client: {e}")))?,
+            ),
             Some(tls) => {
                 let rustls = match config.transport {
                     Transport::Plain => tls.http1_config(),
