@@ -203,7 +203,7 @@ fn cases(blob: &str, sphere: &str) -> Vec<(&'static str, Vec<u8>, Expect)> {
         (
             "CONNECT (authority-form)",
             raw("CONNECT t:80 HTTP/1.1\r\nHost: t:80\r\n\r\n"),
-            Keep(404),
+            Keep(405),
         ),
         (
             "OPTIONS * (asterisk-form)",
