@@ -174,6 +174,19 @@ fn take<R: RenderDomain>(
     (pic, streamed, view)
 }
 
+/// [`take`] of `shot` on a new Earth session, and the radii of its lowest and highest
+/// heights.
+fn take_earth(gpu: &Gpu, shot: &Shot) -> (Picture, View, [f64; 2]) {
+    let mut session = earth();
+    let (pic, _, view) = take(gpu, &mut session, shot, MAGENTA);
+    let world = session.dag().refiner().world_frame(&session.world(), 0);
+    let Geometry::Planet { radius_m, .. } = world.geometry else {
+        panic!("a planet")
+    };
+    let (low, high) = session.height_range();
+    (pic, view, [radius_m + low, radius_m + high])
+}
+
 // ---------------------------------------------------------------- reference images
 
 /// How far an image is from its reference.
@@ -538,13 +551,7 @@ fn planet_views_show_no_background_inside_the_disc() {
                 fov_deg,
                 ..shot(Place::LatLon(lat, lon), height_m, -90.0)
             };
-            let mut session = earth();
-            let (pic, _, view) = take(&gpu, &mut session, &s, MAGENTA);
-            let world = session.dag().refiner().world_frame(&session.world(), 0);
-            let Geometry::Planet { radius_m, .. } = world.geometry else {
-                panic!("a planet")
-            };
-            let r = radius_m + session.height_range().0;
+            let (pic, view, [r, outer]) = take_earth(&gpu, &s);
             let truth = truth_map(&view, |d| Some(meets_sphere(view.eye, d, r)));
             let c = count(&pic.image, &truth);
             println!(
@@ -562,7 +569,6 @@ fn planet_views_show_no_background_inside_the_disc() {
             );
             // Around the disc the sky (the sphere of the highest height may reach a little
             // beyond the lowest one's, so only far outside it).
-            let outer = radius_m + session.height_range().1;
             let sky = truth_map(&view, |d| Some(meets_sphere(view.eye, d, outer)));
             let s = count(&pic.image, &sky);
             assert_eq!(
@@ -596,14 +602,8 @@ fn a_planet_from_1_m_to_100_000_km_shows_no_background_inside_the_terrain() {
             fov_deg,
             ..shot(Place::LatLon(0.0, 10.0), height_m, pitch_deg)
         };
-        let mut session = earth();
-        let (pic, _, view) = take(&gpu, &mut session, &s, MAGENTA);
-        let world = session.dag().refiner().world_frame(&session.world(), 0);
-        let Geometry::Planet { radius_m, .. } = world.geometry else {
-            panic!("a planet")
-        };
         // Every ray that meets the sphere of the lowest height crosses the terrain.
-        let r = radius_m + session.height_range().0;
+        let (pic, view, [r, _]) = take_earth(&gpu, &s);
         let truth = truth_map(&view, |d| meets_sphere(view.eye, d, r).then_some(true));
         let c = count(&pic.image, &truth);
         println!(

@@ -638,6 +638,18 @@ mod tests {
         Ok(out)
     }
 
+    /// `stream` split in two at every byte decodes to `want`.
+    fn decodes_at_every_cut(stream: &[u8], want: &[(u16, Vec<u8>)]) {
+        for cut in 0..=stream.len() {
+            let (a, b) = stream.split_at(cut);
+            assert_eq!(
+                decode_all(&[a, b], Limits::default()).unwrap(),
+                want,
+                "{cut}"
+            );
+        }
+    }
+
     #[test]
     fn a_response_split_at_every_byte_decodes_the_same() {
         let mut stream = ok("hello");
@@ -650,14 +662,7 @@ mod tests {
             (200, Vec::new()),
             (200, b"world!".to_vec()),
         ];
-        for cut in 0..=stream.len() {
-            let (a, b) = stream.split_at(cut);
-            assert_eq!(
-                decode_all(&[a, b], Limits::default()).unwrap(),
-                want,
-                "{cut}"
-            );
-        }
+        decodes_at_every_cut(&stream, &want);
         let bytes: Vec<&[u8]> = stream.chunks(1).collect();
         assert_eq!(decode_all(&bytes, Limits::default()).unwrap(), want);
     }
@@ -749,14 +754,7 @@ mod tests {
         stream.extend(b"HTTP/1.1 100 Continue\r\n\r\n");
         stream.extend(ok("world"));
         let want = vec![(200, b"hello".to_vec()), (200, b"world".to_vec())];
-        for cut in 0..=stream.len() {
-            let (a, b) = stream.split_at(cut);
-            assert_eq!(
-                decode_all(&[a, b], Limits::default()).unwrap(),
-                want,
-                "{cut}"
-            );
-        }
+        decodes_at_every_cut(&stream, &want);
         // Only interim answers so far: nothing to hand out yet, and no error.
         let only = b"HTTP/1.1 100 Continue\r\n\r\n";
         assert!(decode_all(&[only], Limits::default()).unwrap().is_empty());
