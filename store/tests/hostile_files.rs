@@ -5,14 +5,15 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+mod common;
+
 use std::path::Path;
 use std::sync::mpsc;
 use std::time::Duration;
 
 use quincunx_store::pack::PackWriter;
 use quincunx_store::{
-    Attribute, FORMAT_VERSION, Metadata, NodataPolicy, PACK_FILE, Repository, RepositoryBuilder,
-    StoreError,
+    FORMAT_VERSION, Metadata, PACK_FILE, Repository, RepositoryBuilder, StoreError,
 };
 
 fn metadata() -> Metadata {
@@ -20,27 +21,9 @@ fn metadata() -> Metadata {
         format_version: FORMAT_VERSION,
         complete: true,
         content_hash: "0123456789abcdef".repeat(4),
-        domain: quincunx_store::Domain::Planar,
-        m: 6,
-        n: 32,
         levels: 2,
-        attribute: Attribute {
-            kind: quincunx_store::AttributeKind::Elevation,
-            units: "m".into(),
-        },
-        extent: [65, 65],
-        nodata: NodataPolicy {
-            source_count: 0,
-            handling: quincunx_store::NodataHandling::None,
-        },
-        georef: None,
-        radius_m: None,
-        channels: vec![],
         build: serde_json::json!({}),
-        level_stats: vec![],
-        coverage: None,
-        inline_max_bytes: None,
-        static_export: false,
+        ..common::metadata()
     }
 }
 

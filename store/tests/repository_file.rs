@@ -4,41 +4,13 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use quincunx_store::{
-    Attribute, Metadata, NodataPolicy, PACK_FILE, Repository, RepositoryBuilder, StoreError,
-};
-
-fn metadata() -> Metadata {
-    Metadata {
-        format_version: 0,
-        complete: false,
-        content_hash: String::new(),
-        domain: quincunx_store::Domain::Planar,
-        m: 6,
-        n: 32,
-        levels: 3,
-        attribute: Attribute {
-            kind: quincunx_store::AttributeKind::Elevation,
-            units: "m".into(),
-        },
-        extent: [65, 65],
-        nodata: NodataPolicy {
-            source_count: 0,
-            handling: quincunx_store::NodataHandling::None,
-        },
-        georef: None,
-        radius_m: None,
-        channels: vec![],
-        build: serde_json::json!({"tool": "golden"}),
-        level_stats: vec![],
-        coverage: None,
-        inline_max_bytes: None,
-        static_export: false,
-    }
-}
+use common::metadata;
+use quincunx_store::{Metadata, PACK_FILE, Repository, RepositoryBuilder, StoreError};
 
 /// 600 blobs of 1-120 bytes over three levels: a few dozen 1 KiB pages.
 fn pairs() -> BTreeMap<Vec<u8>, Vec<u8>> {
