@@ -14,8 +14,13 @@
 use crate::entropy::{self, CodecModel, EntropyError, ModelDecoder, ModelEncoder};
 use crate::lifting::DiamondMask;
 
-/// Current blob format version.
-pub const VERSION: u8 = 4;
+/// Current blob format version. Version 5 changed only what the side-information classes
+/// mean (a true upper bound on the departure of the finest surface, monotone up the DAG:
+/// `docs/blob-format.md`); the layout is version 4's.
+pub const VERSION: u8 = 5;
+/// Oldest version still decoded: version 4 blobs have the same layout, and their classes
+/// are the older, tighter estimate (largest departure of any one level, not the sum).
+pub const MIN_VERSION: u8 = 4;
 /// Bytes before the payload.
 pub const HEADER_BYTES: usize = 3;
 
@@ -26,7 +31,7 @@ pub enum DecodeError {
     #[error("blob of {0} bytes is shorter than its header")]
     TooShort(usize),
     /// Unknown format version.
-    #[error("blob version {0} is not supported (expected {VERSION})")]
+    #[error("blob version {0} is not supported (expected {MIN_VERSION} to {VERSION})")]
     Version(u8),
     /// The blob's diamond size differs from the repository's.
     #[error("blob diamond size 2^{got} does not match the repository's N = {expected}")]
@@ -177,7 +182,7 @@ pub fn decode_into(
         return Err(DecodeError::TooShort(bytes.len()));
     }
     let head = bytes[0];
-    if head >> 4 != VERSION {
+    if !(MIN_VERSION..=VERSION).contains(&(head >> 4)) {
         return Err(DecodeError::Version(head >> 4));
     }
     if (head & 15) as u32 != ctx.n.trailing_zeros() {

@@ -1227,7 +1227,8 @@ pub(crate) fn side_entry(gamma: u64, has_data: bool) -> u8 {
 
 /// A diamond's side information from its own measure and its children's results:
 /// `(gamma, has_data, (min, max))` where gamma bounds how far the finer surfaces below it
-/// depart from its own grid, `has_data` says whether it or any descendant has a nonzero
+/// (the finest decoded one included) depart from its own piecewise-linear surface (and
+/// from its grid's range), `has_data` says whether it or any descendant has a nonzero
 /// detail (`own_data`: its own matrix has one) and `(min, max)` bounds the subtree's values.
 pub(crate) fn side_info(
     m: &Measure,
@@ -1235,14 +1236,20 @@ pub(crate) fn side_info(
     children: impl Iterator<Item = (u64, bool, (i64, i64))>,
 ) -> (u64, bool, (i64, i64)) {
     let (mut lo, mut hi) = (m.grid_min.min(m.fine_min), m.grid_max.max(m.fine_max));
-    let mut gam = (m.delta2 + 1) / 2;
+    let mut below = 0i64;
     let mut data = own_data;
     for (g, d, (clo, chi)) in children {
         lo = lo.min(clo);
         hi = hi.max(chi);
-        gam = gam.max(g as i64);
+        below = below.max(i64::try_from(g).unwrap_or(i64::MAX));
         data |= d;
     }
+    // The triangulations nest (a child's triangles halve its parent's), so on each of the
+    // children's triangles the difference of the two surfaces is linear and its largest
+    // value, `(delta2 + 1) / 2`, is at a vertex. The finest surface is then within
+    // `(delta2 + 1) / 2 + max(children's bounds)` of this diamond's own surface, and so
+    // is every reconstruction in between: an upper bound, monotone up the DAG.
+    let mut gam = ((m.delta2 + 1) / 2).saturating_add(below);
     if m.fine_min > m.fine_max {
         // No valid point of its own (sparse mode): its grid bounds nothing, so the subtree's
         // whole range is the departure (0 for an empty subtree, whose bounds stay empty).

@@ -62,7 +62,9 @@ export class DecodeError extends Error {
 // Blob header (codec/src/blob.rs).
 
 /** Current blob format version. */
-export const VERSION = 4;
+export const VERSION = 5;
+// Version 4 blobs have the same layout (only the side-information classes' meaning changed).
+export const MIN_VERSION = 4;
 /** Bytes before the payload. */
 export const HEADER_BYTES = 3;
 
@@ -755,8 +757,8 @@ export function decodeBlobInto(bytes, ctx, model, q) {
     });
   }
   const head = bytes[0];
-  if (head >> 4 !== VERSION) {
-    throw new DecodeError(`blob version ${head >> 4} is not supported (expected ${VERSION})`, "Version", {
+  if (head >> 4 < MIN_VERSION || head >> 4 > VERSION) {
+    throw new DecodeError(`blob version ${head >> 4} is not supported (expected ${MIN_VERSION} to ${VERSION})`, "Version", {
       version: head >> 4,
     });
   }

@@ -178,7 +178,7 @@ test("header errors carry the Rust fields", () => {
   e = fail(v3);
   assert.equal(e.kind, "Version");
   assert.equal(e.version, 3);
-  assert.match(e.message, /version 3 is not supported \(expected 4\)/);
+  assert.match(e.message, /version 3 is not supported \(expected 4 to 5\)/);
   const size = bytes.slice();
   size[0] = 0x46;
   e = fail(size);
