@@ -388,6 +388,38 @@ fn golden_files(enc: &Encoded, mode: &str) -> Vec<(String, Vec<u8>)> {
     files
 }
 
+/// Version 4 blobs (the same layout; their side-information classes were the largest
+/// departure of any one level, not the sum) still decode: each to the detail matrix the
+/// version 5 encoder codes for it, with classes never above version 5's.
+#[test]
+fn version_4_golden_blobs_still_decode() {
+    let g = golden_grid();
+    let enc = encode_grid_with(&g, RateMode::RmsM(2.0), RdoMode::Off);
+    let geom = RasterGeometry::new(enc.width, enc.height, enc.n).unwrap();
+    let dir = golden_dir().join("v4_rms_2m");
+    let old_model = CodecModel::from_bytes(&std::fs::read(dir.join("model.bin")).unwrap()).unwrap();
+    let mut checked = 0;
+    for (l, i, bytes) in blobs_with_contexts(&enc) {
+        let old = std::fs::read(dir.join(format!("{l}_{i}.bin"))).unwrap();
+        assert_eq!(old[0] >> 4, 4, "{l}_{i}.bin is a version 4 blob");
+        assert_eq!(bytes[0] >> 4, blob::VERSION);
+        let ctx = BlobContext {
+            step: enc.steps[l],
+            ..geom.blob_context(l, i)
+        };
+        let old = blob::decode(&old, &ctx, &old_model).unwrap();
+        let new = blob::decode(&bytes, &ctx, &enc.model).unwrap();
+        assert_eq!(old.q, new.q, "{l}_{i}");
+        assert_eq!(old.child_classes.len(), new.child_classes.len());
+        for (a, b) in old.child_classes.iter().zip(&new.child_classes) {
+            let ((a, _), (b, _)) = (entropy::split_side(*a), entropy::split_side(*b));
+            assert!(a <= b, "{l}_{i}: version 4 class {a} above version 5's {b}");
+        }
+        checked += 1;
+    }
+    assert!(checked >= 4, "{checked} blobs compared");
+}
+
 #[test]
 fn golden_blobs_are_unchanged() {
     let bless = std::env::var("QUINCUNX_BLESS").is_ok_and(|v| v == "1");
