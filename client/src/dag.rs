@@ -73,6 +73,11 @@ pub struct Node<I = PlanarId> {
     /// The side-information class its first parent's blob carries for it: a bound on how
     /// far its finer surface departs from its grid (`None` until known).
     pub class: Option<u8>,
+    /// The class of its error bound for the geometric metric: [`Node::class`] once known,
+    /// and until then (or where no blob carries one: children of a diamond without a
+    /// blob) the smallest class of a refined parent's bound, which bounds it too (a
+    /// parent's bound is at least its children's). `None` for the roots.
+    pub bound_class: Option<u8>,
     /// Smallest and largest grid value over its present halves.
     pub z_range: (i32, i32),
     /// Its frame corners `[E1, P1, E2, P2]` (id units; planar `z = 0`, planets: points
@@ -184,6 +189,7 @@ impl<R: Domain> Dag<R> {
                     expected: [true, true],
                     refined: None,
                     class: None,
+                    bound_class: None,
                     colour: colour.as_ref().and_then(|c| c.root_grids(root)),
                 };
                 (root, node)
@@ -378,12 +384,20 @@ impl<R: Domain> Dag<R> {
             _ => None,
         };
         let classes: HashMap<R::Id, u8> = refined.child_classes.iter().copied().collect();
+        let inherited = node.bound_class;
         let children = self.children(id);
         // Each child gets the half that lies in this diamond, from its fresh lattices.
         for &child in children.iter() {
             self.add_half(child, &refined, colour_refined.as_deref())?;
-            if let (Some(class), Some(node)) = (classes.get(&child), self.nodes.get_mut(&child)) {
-                node.class = Some(*class);
+            if let Some(node) = self.nodes.get_mut(&child) {
+                let class = classes.get(&child).copied();
+                if class.is_some() {
+                    node.class = class;
+                }
+                node.bound_class = [node.bound_class, class, inherited]
+                    .into_iter()
+                    .flatten()
+                    .min();
             }
         }
         // The lattices are not kept: a child's half never changes while this diamond
@@ -490,6 +504,7 @@ impl<R: Domain> Dag<R> {
                         .map(|p| parents.contains(&p) && self.refiner.is_refinable(p)),
                     refined: None,
                     class: None,
+                    bound_class: None,
                     colour: colour_half
                         .and_then(|(grids, _)| layer_node(self.colour.as_deref(), child, grids)),
                 }

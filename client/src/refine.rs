@@ -14,14 +14,19 @@
 //! The frame stops when the budget is spent. The DAG stays consistent after every single
 //! operation, so the cut is crack-free whenever the frame ends.
 //!
-//! **Error** is `max(edge, texel)`: the mean projected edge length of a diamond's grid and,
-//! with a colour layer, the mean projected size of its texels, in pixels, measured at the
-//! nearest point of its bounding box.
-//! The box is the diamond's footprint times its height range, widened by the side
-//! information bound its parent's blob carries. That makes it conservative for culling.
-//! The same bound skips refinement of flat regions: when refining could move the surface
-//! by less than [`RefineConfig::flat_fraction`] of the tolerance, the diamond is not
-//! refined.
+//! **Error**, in pixels, measured at the nearest point of the diamond's bounding box (its
+//! footprint times its height range, widened by the side-information bound its parent's
+//! blob carries, which makes it conservative for culling), by [`Metric`]:
+//! - [`Metric::Geometric`] (the default): the diamond's error bound (the side information:
+//!   how far the finest decoded surface, and every one between, departs from the surface
+//!   it draws; `docs/blob-format.md`) projected there, so a tolerance of 1 px means no
+//!   point of the surface drawn is more than about 1 px from where the full-resolution
+//!   surface would put it. With a colour layer, the larger of that and the projected size
+//!   of its texels (the texel rule: a colour texel is at most the tolerance).
+//! - [`Metric::Sampling`] (the paper's): `max(edge, texel)`, the mean projected edge length
+//!   of its grid and, with a colour layer, the projected size of its texels. The side
+//!   information bound then only skips refinement of flat regions: when refining could
+//!   move the surface by less than [`RefineConfig::flat_fraction`] of the tolerance.
 
 use std::cell::RefCell;
 use std::cmp::Ordering;
@@ -31,6 +36,7 @@ use std::time::Duration;
 
 use glam::DVec3;
 use quincunx_codec::diamond::PlanarId;
+use quincunx_codec::entropy::class_bound;
 use quincunx_codec::incremental::Details;
 
 use crate::colour::ColourDetails;
@@ -95,9 +101,51 @@ impl Clock for SystemClock {
     }
 }
 
+/// What a diamond's error is: what the tolerance in pixels bounds (see the module docs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Metric {
+    /// The projected geometric error bound of the blobs' side information (with colour,
+    /// at least the projected texel size).
+    #[default]
+    Geometric,
+    /// The projected grid spacing (and texel size): sampling density, whatever the data.
+    Sampling,
+}
+
+impl Metric {
+    /// The metric's name on the command line and in figures.
+    pub fn name(self) -> &'static str {
+        match self {
+            Metric::Geometric => "geometric",
+            Metric::Sampling => "sampling",
+        }
+    }
+}
+
+impl std::fmt::Display for Metric {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Metric {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "geometric" => Ok(Metric::Geometric),
+            "sampling" => Ok(Metric::Sampling),
+            _ => Err(format!("unknown metric {s:?} (geometric or sampling)")),
+        }
+    }
+}
+
 /// Tuning of refinement.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RefineConfig {
+    /// What the tolerance bounds: the projected geometric error (the default) or the
+    /// projected sampling density.
+    pub metric: Metric,
     /// Coarsen when the error is below `tolerance * hysteresis`. Below 1 it keeps
     /// diamonds that hover around the tolerance from being refined and coarsened in turn
     /// while the camera jitters, at the price of a cut that depends on the path taken;
@@ -123,6 +171,7 @@ pub struct RefineConfig {
 impl Default for RefineConfig {
     fn default() -> Self {
         RefineConfig {
+            metric: Metric::default(),
             hysteresis: 1.0,
             flat_fraction: 0.1,
             max_dag_bytes: None,
@@ -198,10 +247,14 @@ impl<I: Ord> Ord for Key<I> {
     }
 }
 
+/// The geometric error (metres) of a diamond whose bound is not known yet (a root): large
+/// enough to be refined whenever it is visible, finite so that products stay numbers.
+const UNKNOWN_BOUND_M: f64 = 1e30;
+
 /// How a diamond looks from the camera.
 #[derive(Clone, Copy, Debug)]
 pub struct Appearance {
-    /// Projected mean edge length, pixels.
+    /// Projected error by the [`Metric`], pixels.
     pub error_px: f64,
     /// Inside the frustum (conservatively).
     pub visible: bool,
@@ -255,22 +308,51 @@ impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
         let bound_m = node.bound_m(w);
         let z = node.height_bounds_m(w);
         let (bbox, edge_m) = dag.refiner().footprint(w, id, &node.corners, z);
-        // max(edge, texel): texels are edges divided by the texels per edge.
-        let error_m = if node.colour.is_some() {
-            edge_m * (1.0 / dag.texels_per_edge()).max(1.0)
-        } else {
-            edge_m
-        };
+        let texels = dag.texels_per_edge();
+        let texel_m = if texels > 0.0 { edge_m / texels } else { 0.0 };
         let distance_m = bbox.distance(self.view.eye).max(View::NEAR_M);
         let px_per_m = self.px_at_1m / distance_m;
-        // Flatness speaks for the heights only: with colour, the texels decide.
-        let flat =
-            node.class.is_some() && node.colour.is_none() && bound_m * px_per_m < self.flat_px;
-        // Refining needs error > tolerance and (with a known class) no flatness: both
-        // only grow as the camera comes closer.
-        let mut trigger_m = error_m * self.px_at_1m / self.view.tolerance_px;
-        if node.class.is_some() && node.colour.is_none() {
-            trigger_m = trigger_m.min(bound_m * self.px_at_1m / self.flat_px);
+        let (error_m, flat, mut trigger_m);
+        match self.config.metric {
+            Metric::Geometric => {
+                // The bound's class; 0 below the data's finest level (nothing finer is
+                // coded there; procedural detail is not counted); unknown (a root):
+                // always worth refining.
+                let geometric_m = if !dag.refiner().is_coded(id) {
+                    0.0
+                } else {
+                    node.bound_class.map_or(UNKNOWN_BOUND_M, |k| {
+                        class_bound(k) as f64 * w.value_scale_m().abs()
+                    })
+                };
+                // The texel rule where refining brings colour data (not below the colour
+                // layer's finest level, nor outside it).
+                error_m = if dag.colour_blob_id(id).is_some() {
+                    geometric_m.max(texel_m)
+                } else {
+                    geometric_m
+                };
+                flat = false;
+                trigger_m = error_m * self.px_at_1m / self.view.tolerance_px;
+            }
+            Metric::Sampling => {
+                // max(edge, texel): texels are edges divided by the texels per edge.
+                error_m = if node.colour.is_some() {
+                    edge_m.max(texel_m)
+                } else {
+                    edge_m
+                };
+                // Flatness speaks for the heights only: with colour, the texels decide.
+                flat = node.class.is_some()
+                    && node.colour.is_none()
+                    && bound_m * px_per_m < self.flat_px;
+                // Refining needs error > tolerance and (with a known class) no flatness:
+                // both only grow as the camera comes closer.
+                trigger_m = error_m * self.px_at_1m / self.view.tolerance_px;
+                if node.class.is_some() && node.colour.is_none() {
+                    trigger_m = trigger_m.min(bound_m * self.px_at_1m / self.flat_px);
+                }
+            }
         }
         Appearance {
             error_px: error_m * px_per_m,

@@ -13,6 +13,7 @@ use quincunx_client::fetch::tls::ConnectOptions;
 use quincunx_client::flight::{
     self, BuiltinFlights, Flight, FlightReport, FlyOptions, FrameRecord, percentile,
 };
+use quincunx_client::refine::Metric;
 use quincunx_client::session::{AnySession, Session, SessionConfig};
 use quincunx_client::view::View;
 use quincunx_codec::incremental::Procedural;
@@ -47,6 +48,11 @@ pub struct FlyArgs {
     /// Screen-space tolerance, pixels.
     #[arg(long, default_value_t = 1.0)]
     pub tolerance_px: f64,
+    /// What the tolerance bounds: `geometric` (the projected error bound of the data: no
+    /// point drawn more than about the tolerance from the full-resolution surface; with
+    /// colour, texels at most the tolerance too) or `sampling` (projected grid spacing).
+    #[arg(long, default_value_t = Metric::Geometric)]
+    pub metric: Metric,
     /// `pipelined`, `plain` or `h2`.
     #[arg(long, default_value = "pipelined")]
     pub transport: Transport,
@@ -139,6 +145,7 @@ impl FlyArgs {
             procedural_noise: 0,
             path: path.into(),
             tolerance_px: 1.0,
+            metric: Metric::default(),
             transport: Transport::Pipelined,
             link: None,
             connections: 2,
@@ -269,6 +276,7 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
             _ => Procedural::Zero,
         },
         refine: quincunx_client::refine::RefineConfig {
+            metric: args.metric,
             max_dag_bytes: args
                 .dag_budget_mb
                 .map(|mb| (mb.max(0.0) * 1_048_576.0) as usize),

@@ -6,6 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use quincunx_client::refine::{Metric, RefineConfig};
 use quincunx_client::session::{AnySession, Session, SessionConfig};
 use quincunx_render::domain::RenderDomain;
 use quincunx_render::offscreen::Gpu;
@@ -51,6 +52,11 @@ pub struct RenderArgs {
     /// Screen-space error tolerance, pixels.
     #[arg(long, default_value_t = 1.0)]
     pub tolerance_px: f64,
+    /// What the tolerance bounds: `geometric` (the projected error bound of the data: no
+    /// point drawn more than about the tolerance from the full-resolution surface; with
+    /// colour, texels at most the tolerance too) or `sampling` (projected grid spacing).
+    #[arg(long, default_value_t = Metric::Geometric)]
+    pub metric: Metric,
     /// Background `R,G,B` (0-255).
     #[arg(long, default_value = "135,170,210", value_parser = parse_rgb)]
     pub background: [u8; 3],
@@ -133,6 +139,10 @@ pub fn run(args: &RenderArgs) -> Result<()> {
         args.colour.as_deref(),
         SessionConfig {
             connect: crate::fly::link_options(args.ca_cert.as_ref(), None),
+            refine: RefineConfig {
+                metric: args.metric,
+                ..RefineConfig::default()
+            },
             ..SessionConfig::default()
         },
     )

@@ -31,7 +31,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use quincunx_client::fetch::link::LinkProxy;
 use quincunx_client::flight::{self, BuiltinFlights, Flight, Leg, NeededSet, Pose};
-use quincunx_client::refine::RefineConfig;
+use quincunx_client::refine::{Metric, RefineConfig};
 use quincunx_client::session::{Session, SessionConfig, SessionError};
 use quincunx_client::view::View;
 use quincunx_codec::incremental::{PlanarRefiner, SphereRefiner};
@@ -68,6 +68,10 @@ pub struct TradeArgs {
     /// diamond at the finest level).
     #[arg(long, value_delimiter = ',', default_value = "0.5,1,2,4,8")]
     pub tolerances: Vec<f64>,
+    /// Refinement metrics to measure, each at every tolerance (`geometric`, `sampling`):
+    /// one curve per metric in the charts.
+    #[arg(long, value_delimiter = ',', default_value = "geometric,sampling")]
+    pub metrics: Vec<Metric>,
     /// `jump`, `approach`, `low-flight`, `extremes` (planets) or a JSON flight file.
     #[arg(long, default_value = "jump")]
     pub path: String,
@@ -126,6 +130,9 @@ pub struct TradeArgs {
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 #[serde(default)]
 pub struct TradePoint {
+    /// Refinement metric (what the tolerance bounds).
+    #[serde(with = "metric_name", default = "metric_name::older")]
+    pub metric: Metric,
     /// Tolerance, pixels.
     pub tolerance_px: f64,
     /// Triangles drawn per frame, median and largest.
@@ -213,12 +220,13 @@ pub struct TradePoint {
     pub needed_max_error_px: f64,
     /// Cut halves of the needed-set views, summed.
     pub needed_halves: usize,
-    /// The needed set refined ignoring the blobs' side information: bytes and halves.
+    /// The needed set refined ignoring the blobs' side information (the sampling metric
+    /// without its flat-ground rule, whatever the point's metric): bytes and halves.
     pub needed_bytes_ignoring_side_info: u64,
     /// Halves.
     pub needed_halves_ignoring_side_info: usize,
-    /// `needed_halves_ignoring_side_info / needed_halves`: how much finer flat ground
-    /// is refined without the side information than its data needs.
+    /// `needed_halves_ignoring_side_info / needed_halves`: how much finer the surface is
+    /// refined without the side information than the point's metric refines it.
     pub side_info_halves_saved: f64,
     /// Peak GPU bytes of the flight's renderer, and its budget.
     pub gpu_bytes_peak: u64,
@@ -306,6 +314,27 @@ pub struct TradeReport {
     pub seconds: f64,
 }
 
+/// A metric by its name in the JSON reports (older reports, without one, were sampling).
+mod metric_name {
+    use quincunx_client::refine::Metric;
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(m: &Metric, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(m.name())
+    }
+
+    /// The metric of a report written before there was a choice.
+    pub fn older() -> Metric {
+        Metric::Sampling
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Metric, D::Error> {
+        String::deserialize(d)?
+            .parse()
+            .map_err(serde::de::Error::custom)
+    }
+}
+
 /// A view captured at the end of a leg.
 struct Capture {
     leg: usize,
@@ -367,6 +396,9 @@ impl TradeDomain for SphereRefiner {
 pub fn run(args: &TradeArgs) -> Result<()> {
     if args.tolerances.is_empty() {
         bail!("--tolerances: give at least one");
+    }
+    if args.metrics.is_empty() {
+        bail!("--metrics: give at least one");
     }
     if let Some(t) = args
         .tolerances
@@ -442,10 +474,11 @@ fn parse_link_arg(s: &str) -> Result<Option<(f64, f64)>> {
 }
 
 /// The flight-like settings of one tolerance.
-fn fly_args(args: &TradeArgs, url: &str, tolerance_px: f64) -> FlyArgs {
+fn fly_args(args: &TradeArgs, url: &str, metric: Metric, tolerance_px: f64) -> FlyArgs {
     FlyArgs {
         color: args.colour.clone(),
         tolerance_px,
+        metric,
         viewport: args.viewport,
         seed: args.seed,
         check_every: args.check_every,
@@ -461,10 +494,12 @@ fn fly_args(args: &TradeArgs, url: &str, tolerance_px: f64) -> FlyArgs {
 /// only what refinement asks for; the needed sets under the flight's cut budget.
 fn exact_config(
     args: &TradeArgs,
+    metric: Metric,
     flat_fraction: Option<f64>,
     max_cut_halves: Option<usize>,
 ) -> SessionConfig {
     let mut refine = RefineConfig {
+        metric,
         max_cut_halves,
         ..RefineConfig::default()
     };
@@ -508,13 +543,16 @@ fn study<R: TradeDomain>(
     let mut points = Vec::new();
     let mut captures: Vec<Vec<Capture>> = Vec::new();
     let mut adapter = String::new();
-    for &t in &args.tolerances {
-        tracing::info!(tolerance_px = t, "flying");
-        let (point, caps, name) = fly_point::<R>(args, &flight, link, t, &chosen, extremes)
-            .with_context(|| format!("tolerance {t} px"))?;
-        adapter = name;
-        points.push(point);
-        captures.push(caps);
+    for &metric in &args.metrics {
+        for &t in &args.tolerances {
+            tracing::info!(%metric, tolerance_px = t, "flying");
+            let (point, caps, name) =
+                fly_point::<R>(args, &flight, link, metric, t, &chosen, extremes)
+                    .with_context(|| format!("{metric} metric, tolerance {t} px"))?;
+            adapter = name;
+            points.push(point);
+            captures.push(caps);
+        }
     }
     // References, one view at a time (each holds a full-resolution cut).
     let gpu = Gpu::headless().context("starting the renderer")?;
@@ -581,11 +619,12 @@ fn fly_point<R: TradeDomain>(
     args: &TradeArgs,
     flight: &Flight,
     link: Option<(f64, f64)>,
+    metric: Metric,
     tolerance_px: f64,
     chosen: &[usize],
     jitter: bool,
 ) -> Result<(TradePoint, Vec<Capture>, String)> {
-    let (proxy, mut session, fa) = flight_session::<R>(args, link, tolerance_px, None)?;
+    let (proxy, mut session, fa) = flight_session::<R>(args, link, metric, tolerance_px, None)?;
     let opts = fly_options(&fa);
     let mut drawer = FrameDrawer::new(&mut session, &fa)?;
     let mut frames = Vec::new();
@@ -648,7 +687,7 @@ fn fly_point<R: TradeDomain>(
     // Cracks and coverage errors of every flight, the first's and those below.
     let (mut cracks, mut coverage_errors) = (report.cracks, report.coverage_errors);
     for run in 1..args.runs {
-        let again = fly_again::<R>(args, flight, link, tolerance_px, bound)
+        let again = fly_again::<R>(args, flight, link, metric, tolerance_px, bound)
             .with_context(|| format!("run {}", run + 1))?;
         cracks += again.cracks;
         coverage_errors += again.coverage_errors;
@@ -664,7 +703,7 @@ fn fly_point<R: TradeDomain>(
                 name: format!("{} (one leg)", flight.name),
                 legs: vec![leg.clone()],
             };
-            let r = fly_again::<R>(args, &alone, link, tolerance_px, bound)
+            let r = fly_again::<R>(args, &alone, link, metric, tolerance_px, bound)
                 .with_context(|| format!("cold start {} of run {}", one_run.len() + 1, run + 1))?;
             cracks += r.cracks;
             coverage_errors += r.coverage_errors;
@@ -673,27 +712,29 @@ fn fly_point<R: TradeDomain>(
         colds.push(one_run);
     }
     let cold = pool_jumps(&colds);
-    // The needed set, with and without the side information.
+    // The needed set, with and without the side information (the sampling metric
+    // without its flat-ground rule).
     let wait = Duration::from_secs_f64(args.reference_wait_s);
-    let needed = |flat: Option<f64>| -> Result<NeededSet> {
+    let needed = |metric: Metric, flat: Option<f64>| -> Result<NeededSet> {
         Ok(flight::needed_for_views(
             || {
                 R::open(
                     &args.url,
                     &args.repo,
                     args.colour.as_deref(),
-                    exact_config(args, flat, Some(cut_budget_halves)),
+                    exact_config(args, metric, flat, Some(cut_budget_halves)),
                 )
             },
             &report.final_views,
             wait,
         )?)
     };
-    let with = needed(None)?;
-    let without = needed(Some(0.0))?;
+    let with = needed(metric, None)?;
+    let without = needed(Metric::Sampling, Some(0.0))?;
     let needed_halves: usize = with.views.iter().map(|v| v.cut_halves).sum();
     let halves_without: usize = without.views.iter().map(|v| v.cut_halves).sum();
     let point = TradePoint {
+        metric,
         tolerance_px,
         triangles_median: render.triangles_p50,
         triangles_max: render.triangles_max,
@@ -773,6 +814,7 @@ type Link = (LinkProxy, String);
 fn flight_session<R: TradeDomain>(
     args: &TradeArgs,
     link: Option<(f64, f64)>,
+    metric: Metric,
     tolerance_px: f64,
     bound: Option<Option<usize>>,
 ) -> Result<(Option<Link>, Session<R>, FlyArgs)> {
@@ -780,7 +822,7 @@ fn flight_session<R: TradeDomain>(
     let url = proxy
         .as_ref()
         .map_or(args.url.as_str(), |(_, u)| u.as_str());
-    let fa = fly_args(args, url, tolerance_px);
+    let fa = fly_args(args, url, metric, tolerance_px);
     let mut config = session_config(&fa);
     config.connect =
         crate::fly::link_options(args.ca_cert.as_ref(), proxy.as_ref().map(|(p, _)| p));
@@ -800,10 +842,12 @@ fn fly_again<R: TradeDomain>(
     args: &TradeArgs,
     flight: &Flight,
     link: Option<(f64, f64)>,
+    metric: Metric,
     tolerance_px: f64,
     bound: Option<usize>,
 ) -> Result<flight::FlightReport> {
-    let (_proxy, mut session, fa) = flight_session::<R>(args, link, tolerance_px, Some(bound))?;
+    let (_proxy, mut session, fa) =
+        flight_session::<R>(args, link, metric, tolerance_px, Some(bound))?;
     let opts = fly_options(&fa);
     // The same per-frame work as the first run: its cut changes are taken (and dropped).
     Ok(flight::fly_with(&mut session, flight, &opts, |s, _, _| {
@@ -853,7 +897,9 @@ fn reference_view<R: TradeDomain>(
         &args.url,
         &args.repo,
         args.colour.as_deref(),
-        exact_config(args, None, None),
+        // Sampling at 0 px: every visible diamond to the finest coded level, whatever
+        // its bound says.
+        exact_config(args, Metric::Sampling, None, None),
     )?;
     let view = View {
         tolerance_px: 0.0,
@@ -1010,7 +1056,8 @@ fn print(report: &TradeReport, args: &TradeArgs) -> Result<()> {
             )),
         );
         outln!(
-            "{:>6} {:>10} {:>8} {:>8} {:>12} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            "{:>9} {:>6} {:>10} {:>8} {:>8} {:>12} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8}",
+            "metric",
             "tol px",
             "triangles",
             "refine",
@@ -1025,7 +1072,8 @@ fn print(report: &TradeReport, args: &TradeArgs) -> Result<()> {
         );
         for p in &report.points {
             outln!(
-                "{:>6} {:>10.0} {:>8.3} {:>8.3} {:>12} {:>8} {:>8} {:>8} {:>8.3} {:>8.3} {:>8.3}",
+                "{:>9} {:>6} {:>10.0} {:>8.3} {:>8.3} {:>12} {:>8} {:>8} {:>8} {:>8.3} {:>8.3} {:>8.3}",
+                p.metric.name(),
                 p.tolerance_px,
                 p.triangles_median,
                 p.refine_ms_median,
@@ -1147,14 +1195,20 @@ pub fn replot(dir: &Path) -> Result<()> {
         ),
     ];
     for (name, title, y_label, log_y, get) in charts {
+        // One curve per report and metric.
         let series: Vec<Series> = reports
             .iter()
-            .map(|r| Series {
-                name: r.label.clone(),
+            .flat_map(|r| {
+                let mut metrics: Vec<Metric> = r.points.iter().map(|p| p.metric).collect();
+                metrics.dedup();
+                metrics.into_iter().map(move |m| (r, m))
+            })
+            .map(|(r, metric)| Series {
+                name: format!("{} ({metric})", r.label),
                 points: r
                     .points
                     .iter()
-                    .filter(|p| p.tolerance_px > 0.0)
+                    .filter(|p| p.metric == metric && p.tolerance_px > 0.0)
                     .filter_map(|p| get(p).map(|y| (p.tolerance_px, y)))
                     .filter(|&(_, y)| y.is_finite() && (!log_y || y > 0.0))
                     .collect(),

@@ -14,6 +14,7 @@ use anyhow::{Context, Result, anyhow, bail};
 use clap::Args;
 use glam::DVec3;
 use quincunx_client::domain::World;
+use quincunx_client::refine::{Metric, RefineConfig};
 use quincunx_client::session::{AnySession, Session, SessionConfig};
 use quincunx_client::view::View;
 use quincunx_render::domain::RenderDomain;
@@ -85,6 +86,11 @@ pub struct ViewArgs {
     /// Screen-space error tolerance, pixels.
     #[arg(long, default_value_t = 1.0)]
     pub tolerance_px: f64,
+    /// What the tolerance bounds: `geometric` (the projected error bound of the data: no
+    /// point drawn more than about the tolerance from the full-resolution surface; with
+    /// colour, texels at most the tolerance too) or `sampling` (projected grid spacing).
+    #[arg(long, default_value_t = Metric::Geometric)]
+    pub metric: Metric,
     /// Window size `WxH` (physical pixels).
     #[arg(long, default_value = "1280x720", value_parser = crate::fly::parse_viewport)]
     pub size: [u32; 2],
@@ -134,6 +140,10 @@ pub fn run(args: &ViewArgs) -> Result<()> {
         args.colour.as_deref(),
         SessionConfig {
             connect: crate::fly::link_options(args.ca_cert.as_ref(), None),
+            refine: RefineConfig {
+                metric: args.metric,
+                ..RefineConfig::default()
+            },
             ..SessionConfig::default()
         },
     )

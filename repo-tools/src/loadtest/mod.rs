@@ -37,6 +37,7 @@ use serde::Serialize;
 
 use flight::{FlightPlan, Rng, Stream};
 use latency::Histogram;
+use quincunx_client::refine::Metric;
 use quincunx_client::fetch::http1::{self, Connection, Endpoint, GetTemplate, Http1Error, Limits};
 
 /// Options of `quincunx loadtest`.
@@ -68,6 +69,11 @@ pub struct LoadtestArgs {
     /// `--mode fly`: screen-space tolerance, pixels.
     #[arg(long, default_value_t = 1.0)]
     pub tolerance_px: f64,
+    /// What the tolerance bounds: `geometric` (the projected error bound of the data: no
+    /// point drawn more than about the tolerance from the full-resolution surface; with
+    /// colour, texels at most the tolerance too) or `sampling` (projected grid spacing).
+    #[arg(long, default_value_t = Metric::Geometric)]
+    pub metric: Metric,
     /// `--mode fly`: check each client's cut for cracks every this many frames (0 never).
     #[arg(long, default_value_t = 10)]
     pub check_every: usize,

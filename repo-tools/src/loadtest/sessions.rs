@@ -406,6 +406,7 @@ fn fly_client(args: &LoadtestArgs, path: &str, i: usize, opts: &FlyOptions) -> R
         connections: 1,
         timeout: Duration::from_secs_f64(args.timeout_s),
         refine: quincunx_client::refine::RefineConfig {
+            metric: args.metric,
             max_dag_bytes: args.dag_budget_mb.map(|mb| (mb * 1_048_576.0) as usize),
             ..Default::default()
         },
