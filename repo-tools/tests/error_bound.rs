@@ -22,13 +22,23 @@
 //!    known.
 //!
 //! Sanity checks keep the mapping honest: the finest level's refined lattices equal the
-//! full-resolution decode at their sample positions, and the number of points compared is
-//! at least 90% of `(detail levels - 1) x samples` (every sample lies in a diamond of each
-//! level).
+//! full-resolution decode at their sample positions, and on elevation the points compared
+//! with a bound number at least 90% of `(detail levels - 1) x samples` (every sample lies
+//! in a diamond of each level). `earth_colour` has no elevation channel: its Y, Co and Cg
+//! channels are checked where their classes are known (Cg's roots have no blob, so none).
 //!
 //! Diagnostics (printed, not asserted): the same deviations with the cells split
 //! 4-8-mesh fashion (the diagonal through `(i, j)` where `i + j` is even, through
 //! `(i+1, j)` where it is odd), the triangulation that nests from level to level.
+//!
+//! Known limit of the bound: with every cell split along `i = j`, a child's triangulation
+//! does not halve its parent's. A child's cells with odd `i + j` have their diagonal
+//! across a parent grid edge (it joins two parent cell centres), where the parent's
+//! surface bends, so the child can depart from its parent by more than the parent's
+//! measured `delta2 / 2`. The bundled repositories stay within their classes (the classes
+//! round up, and the sum over levels is loose), but not every repository does: korea
+//! built with `--diamond-size 9 --rms-m 2` has diamond (328, 552) of level 12 depart by
+//! 191 quanta from a class-16 bound of 182. `QUINCUNX_BOUND_REPOS` checks such builds.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod common;
@@ -542,11 +552,15 @@ fn median(v: &mut [f64]) -> f64 {
     }
 }
 
-/// Checks every channel of a bundled repository (dense ones; sparse ones are skipped).
+/// Checks every channel of a bundled repository.
 fn check_repository(name: &str) {
+    check_repository_at(name, &demo_dir().join(name));
+}
+
+/// Checks every channel of the repository at `path` (dense ones; sparse ones are skipped).
+fn check_repository_at(name: &str, path: &Path) {
     let started = Instant::now();
-    let path = demo_dir().join(name);
-    let repo = Repository::open(&path).unwrap();
+    let repo = Repository::open(path).unwrap();
     let meta = repo.metadata().clone();
     if meta.coverage.is_some() {
         eprintln!("{name}: sparse repository, skipped");
@@ -689,4 +703,17 @@ fn earth_bounds_hold_for_every_diamond() {
 #[test]
 fn earth_colour_bounds_hold_for_every_diamond() {
     check_repository("earth_colour");
+}
+
+/// Further repositories, by path, in `QUINCUNX_BOUND_REPOS` (separated by commas), checked
+/// the same way; nothing without it.
+#[test]
+fn repositories_named_in_the_environment() {
+    let Ok(paths) = std::env::var("QUINCUNX_BOUND_REPOS") else {
+        eprintln!("QUINCUNX_BOUND_REPOS unset: no further repository checked");
+        return;
+    };
+    for path in paths.split(',').filter(|p| !p.is_empty()) {
+        check_repository_at(path, Path::new(path));
+    }
 }
