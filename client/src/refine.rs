@@ -19,9 +19,10 @@
 //! blob carries, which makes it conservative for culling), by [`Metric`]:
 //! - [`Metric::Geometric`] (the default): the diamond's error bound (the side information:
 //!   how far the finest decoded surface, and every one between, departs from the surface
-//!   it draws; `docs/blob-format.md`) projected there, so a tolerance of 1 px means no
-//!   point of the surface drawn is more than about 1 px from where the full-resolution
-//!   surface would put it. With a colour layer, the larger of that and the projected size
+//!   it draws; `docs/blob-format.md`) projected there, times the box's off-axis factor
+//!   ([`View::off_axis_factor_of`]: a vertical step off the view's axis looks larger), so
+//!   a tolerance of 1 px means no point of the surface drawn is more than 1 px from where
+//!   the full-resolution surface would put it. With a colour layer, the larger of that and the projected size
 //!   of its texels (the texel rule: a colour texel is at most the tolerance).
 //! - [`Metric::Sampling`] (the paper's): `max(edge, texel)`, the mean projected edge length
 //!   of its grid and, with a colour layer, the projected size of its texels. The side
@@ -325,15 +326,27 @@ impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
                         class_bound(k) as f64 * w.value_scale_m().abs()
                     })
                 };
+                // A vertical step of `geometric_m` at the box's nearest point, off the
+                // view's axis, looks up to the box's off-axis factor larger than on it.
+                let off_axis = self.view.off_axis_factor_of(&bbox);
                 // The texel rule where refining brings colour data (not below the colour
                 // layer's finest level, nor outside it).
-                error_m = if dag.colour_blob_id(id).is_some() {
-                    geometric_m.max(texel_m)
+                let texel_rule = dag.colour_blob_id(id).is_some();
+                error_m = if texel_rule {
+                    (geometric_m * off_axis).max(texel_m)
                 } else {
-                    geometric_m
+                    geometric_m * off_axis
                 };
                 flat = false;
-                trigger_m = error_m * self.px_at_1m / self.view.tolerance_px;
+                // The box's factor changes as the camera turns: deferrals assume the
+                // viewport's largest.
+                let most_m = geometric_m * self.view.off_axis_factor();
+                trigger_m = if texel_rule {
+                    most_m.max(texel_m)
+                } else {
+                    most_m
+                } * self.px_at_1m
+                    / self.view.tolerance_px;
             }
             Metric::Sampling => {
                 // max(edge, texel): texels are edges divided by the texels per edge.

@@ -1173,6 +1173,24 @@ pub(crate) fn measure(
                 let t2 = coarse[i * w + j] as i64 + coarse[(i + 1) * w + j + 1] as i64;
                 m.delta2 = m.delta2.max((2 * v - t2).abs());
             }
+            // The shared edges with the cells below and to the right (see `edge_departures`).
+            let ok = |a: (usize, usize), b: (usize, usize), cell: (usize, usize)| {
+                mask.is_none_or(|mk| {
+                    mk.vertex(a.0, a.1) && mk.vertex(b.0, b.1) && mk.cell(cell.0, cell.1)
+                })
+            };
+            if j + 1 < n && ok((i, j + 1), (i + 1, j + 1), (i, j + 1)) {
+                let e = v + cells[i * n + j + 1] as i64
+                    - coarse[i * w + j + 1] as i64
+                    - coarse[(i + 1) * w + j + 1] as i64;
+                m.delta2 = m.delta2.max(e.abs());
+            }
+            if i + 1 < n && ok((i + 1, j), (i + 1, j + 1), (i + 1, j)) {
+                let e = v + cells[(i + 1) * n + j] as i64
+                    - coarse[(i + 1) * w + j] as i64
+                    - coarse[(i + 1) * w + j + 1] as i64;
+                m.delta2 = m.delta2.max(e.abs());
+            }
         }
     }
     if m.grid_min > m.grid_max {
@@ -1180,6 +1198,38 @@ pub(crate) fn measure(
         m.grid_max = m.fine_max;
     }
     m
+}
+
+/// Twice the largest departure, at the midpoints of the diamond's interior grid edges, of
+/// the segment joining the centres of the two cells on either side from the diamond's
+/// surface there (the edge's mean): `|c1 + c2 - a - b|`. Where a child's cell is split
+/// along such a segment (every other cell of a child's grid: its diagonals run parallel
+/// to its sides, which are its parents'), its triangles cross the diamond's edge, and the
+/// difference of the two surfaces, linear on each piece of their overlay, takes its
+/// largest value at one of the overlay's vertices: the diamond's vertices, the cell
+/// centres, or these midpoints. Taking every interior edge (whichever way the child
+/// splits it) keeps the measure an upper bound.
+fn edge_departures(n: usize, coarse: &[i32], cells: &[i32]) -> i64 {
+    let w = n + 1;
+    let mut d2 = 0i64;
+    for i in 0..n {
+        for j in 0..n {
+            let v = cells[i * n + j] as i64;
+            if j + 1 < n {
+                let e = v + cells[i * n + j + 1] as i64
+                    - coarse[i * w + j + 1] as i64
+                    - coarse[(i + 1) * w + j + 1] as i64;
+                d2 = d2.max(e.abs());
+            }
+            if i + 1 < n {
+                let e = v + cells[(i + 1) * n + j] as i64
+                    - coarse[(i + 1) * w + j] as i64
+                    - coarse[(i + 1) * w + j + 1] as i64;
+                d2 = d2.max(e.abs());
+            }
+        }
+    }
+    d2
 }
 
 /// [`measure`] of a diamond without invalid points: the same figures from plain loops
@@ -1206,6 +1256,7 @@ fn measure_full(n: usize, coarse: &[i32], fine: &[i32], cells: &[i32], mut m: Me
             d2 = d2.max((2 * v as i64 - (a as i64 + b as i64)).abs());
         }
     }
+    d2 = d2.max(edge_departures(n, coarse, cells));
     m.grid_min = gmin.into();
     m.grid_max = gmax.into();
     m.fine_min = fmin.into();
@@ -1244,9 +1295,10 @@ pub(crate) fn side_info(
         below = below.max(i64::try_from(g).unwrap_or(i64::MAX));
         data |= d;
     }
-    // The triangulations nest (a child's triangles halve its parent's), so on each of the
-    // children's triangles the difference of the two surfaces is linear and its largest
-    // value, `(delta2 + 1) / 2`, is at a vertex. The finest surface is then within
+    // On each piece of the overlay of this diamond's triangles and its children's, the
+    // difference of the two surfaces is linear, so its largest value, `(delta2 + 1) / 2`,
+    // is at one of the overlay's vertices, which `measure` visits (vertices, cell centres
+    // and interior edge midpoints: `edge_departures`). The finest surface is then within
     // `(delta2 + 1) / 2 + max(children's bounds)` of this diamond's own surface, and so
     // is every reconstruction in between: an upper bound, monotone up the DAG.
     let mut gam = ((m.delta2 + 1) / 2).saturating_add(below);

@@ -392,8 +392,7 @@ fn geometric_against_reference<R: RenderDomain>(
 /// for the tolerance itself.
 #[test]
 fn geometric_metric_keeps_the_error_within_the_tolerance() {
-    let Some(gpu) =
-        gpu_for_test("geometric_metric_keeps_the_error_within_the_tolerance").unwrap()
+    let Some(gpu) = gpu_for_test("geometric_metric_keeps_the_error_within_the_tolerance").unwrap()
     else {
         return;
     };

@@ -37,8 +37,8 @@ use serde::Serialize;
 
 use flight::{FlightPlan, Rng, Stream};
 use latency::Histogram;
-use quincunx_client::refine::Metric;
 use quincunx_client::fetch::http1::{self, Connection, Endpoint, GetTemplate, Http1Error, Limits};
+use quincunx_client::refine::Metric;
 
 /// Options of `quincunx loadtest`.
 #[derive(Args, Debug, Clone)]
