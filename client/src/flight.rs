@@ -501,6 +501,8 @@ pub struct FlightReport {
     pub jumps_budget_limited: usize,
     /// Body bytes fetched (prefetch included).
     pub bytes_fetched: u64,
+    /// Of them, the colour layer's (0 without one).
+    pub colour_bytes_fetched: u64,
     /// Body bytes of the distinct blobs of the final cuts: the cut at the last frame of
     /// each leg ([`Session::cut_blobs`]), united over the legs.
     pub bytes_in_final_cuts: u64,
@@ -737,6 +739,7 @@ pub fn fly_with<R: Domain>(
     report.check_ms_p50 = percentile(&check_ms, 0.5);
     report.check_ms_max = check_ms.last().copied().unwrap_or(0.0);
     report.bytes_fetched = fetch.bytes_fetched;
+    report.colour_bytes_fetched = session.colour_fetch_stats().map_or(0, |c| c.bytes_fetched);
     report.bytes_in_final_cuts = session.blob_bytes(&report.final_blobs);
     report.bytes_used_any_cut = session.bytes_used();
     report.fetch_waste = if report.bytes_in_final_cuts > 0 {

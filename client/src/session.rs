@@ -808,6 +808,14 @@ impl<R: Domain> Session<R> {
         lowest.is_finite().then_some(lowest)
     }
 
+    /// The colour layer's network thread's counters (`None` without a colour layer); the
+    /// elevation's are [`Session::fetch_stats`] less these.
+    pub fn colour_fetch_stats(&self) -> Option<FetchStats> {
+        self.colour
+            .as_ref()
+            .map(|(_, colour)| colour.fetcher.stats())
+    }
+
     /// The network threads' counters (elevation and colour added up).
     pub fn fetch_stats(&self) -> FetchStats {
         let mut stats = self.elevation.fetcher.stats();

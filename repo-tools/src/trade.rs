@@ -162,6 +162,8 @@ pub struct TradePoint {
     pub frames_per_s: f64,
     /// Body bytes fetched over the flight.
     pub bytes_fetched: u64,
+    /// Of them, the colour layer's (0 without one).
+    pub colour_bytes_fetched: u64,
     /// `bytes_fetched` over the flight's seconds.
     pub bytes_per_s: f64,
     /// Time to full quality after each jump of every run: median and largest (s).
@@ -749,6 +751,7 @@ fn fly_point<R: TradeDomain>(
         frames: report.frames,
         frames_per_s: report.frames_per_s,
         bytes_fetched: report.bytes_fetched,
+        colour_bytes_fetched: report.colour_bytes_fetched,
         bytes_per_s: if report.seconds > 0.0 {
             report.bytes_fetched as f64 / report.seconds
         } else {
