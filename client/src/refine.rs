@@ -341,12 +341,12 @@ impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
                 // The box's factor changes as the camera turns: deferrals assume the
                 // viewport's largest.
                 let most_m = geometric_m * self.view.off_axis_factor();
-                trigger_m = if texel_rule {
+                let deciding_m = if texel_rule {
                     most_m.max(texel_m)
                 } else {
                     most_m
-                } * self.px_at_1m
-                    / self.view.tolerance_px;
+                };
+                trigger_m = deciding_m * self.px_at_1m / self.view.tolerance_px;
             }
             Metric::Sampling => {
                 // max(edge, texel): texels are edges divided by the texels per edge.
@@ -555,6 +555,9 @@ enum Outcome {
     Done,
     Pending,
     Impossible,
+    /// Its parents refined, the diamond no longer wants splitting (its bound, in its
+    /// owner's blob, turned out smaller than the parent's it was judged by).
+    Unwanted,
 }
 
 impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
@@ -658,17 +661,15 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 break;
             }
             let mut newly = Vec::new();
+            let mut chain = HashSet::new();
             let outcome = self.refine_with_parents(
-                dag,
-                id,
-                error,
-                source,
-                &mut stats,
-                0,
-                &projector,
-                &mut newly,
-                &mut needed,
+                dag, id, error, source, &mut stats, 0, &projector, &mut newly, &mut chain,
             )?;
+            // Parents refined for a split that, once they were, no longer wanted it are not
+            // needed by it: the merge queue may coarsen them in this frame.
+            if !matches!(outcome, Outcome::Unwanted) {
+                needed.extend(chain);
+            }
             // Children of everything refined (the diamond and any parents it needed),
             // complete or not: an incomplete one gets its other parent refined first when
             // it comes up.
@@ -690,7 +691,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                     waiting += 1;
                     stats.max_error_px = stats.max_error_px.max(error);
                 }
-                Outcome::Impossible => {}
+                Outcome::Impossible | Outcome::Unwanted => {}
             }
             worked = stats.refined > refined_before;
         }
@@ -883,7 +884,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
                 )? {
                     Outcome::Done => {}
                     Outcome::Pending => pending = true,
-                    Outcome::Impossible => return Ok(Outcome::Impossible),
+                    Outcome::Impossible | Outcome::Unwanted => return Ok(Outcome::Impossible),
                 }
             }
         }
@@ -897,7 +898,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
         // its own sake (not as a parent) is refined only if it still wants to be, so the
         // cut does not depend on the order in which its parents arrived.
         if depth == 0 && !projector.wants_split(&projector.appearance(dag, id)) {
-            return Ok(Outcome::Impossible);
+            return Ok(Outcome::Unwanted);
         }
         if self
             .config

@@ -232,6 +232,10 @@ fn browser_views_match_render() {
             v.repo,
             "--size",
             &size,
+            // The page's JavaScript client refines by the sampling metric (its port
+            // predates the geometric one; the one-implementation issue replaces it).
+            "--metric",
+            "sampling",
         ])
         .arg("-o")
         .arg(&png)
