@@ -248,10 +248,6 @@ impl<I: Ord> Ord for Key<I> {
     }
 }
 
-/// The geometric error (metres) of a diamond whose bound is not known yet (a root): large
-/// enough to be refined whenever it is visible, finite so that products stay numbers.
-const UNKNOWN_BOUND_M: f64 = 1e30;
-
 /// How a diamond looks from the camera.
 #[derive(Clone, Copy, Debug)]
 pub struct Appearance {
@@ -316,31 +312,35 @@ impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
         let (error_m, flat, mut trigger_m);
         match self.config.metric {
             Metric::Geometric => {
-                // The bound's class; 0 below the data's finest level (nothing finer is
-                // coded there; procedural detail is not counted); unknown (a root):
-                // always worth refining.
-                let geometric_m = if !dag.refiner().is_coded(id) {
-                    0.0
+                // The bound, 0 below the data's finest level (nothing finer is coded
+                // there; procedural detail is not counted). A vertical step of that size
+                // at the box's nearest point, off the view's axis, looks up to the box's
+                // off-axis factor larger than on it; the box's factor changes as the
+                // camera turns, so deferrals assume the viewport's largest. Unknown (the
+                // roots, or blobs without side information): the sampling error.
+                let (geometric_m, most_m) = if !dag.refiner().is_coded(id) {
+                    (0.0, 0.0)
                 } else {
-                    node.bound_class.map_or(UNKNOWN_BOUND_M, |k| {
-                        class_bound(k) as f64 * w.value_scale_m().abs()
-                    })
+                    match node.bound_class {
+                        Some(k) => {
+                            let b = class_bound(k) as f64 * w.value_scale_m().abs();
+                            (
+                                b * self.view.off_axis_factor_of(&bbox),
+                                b * self.view.off_axis_factor(),
+                            )
+                        }
+                        None => (edge_m, edge_m),
+                    }
                 };
-                // A vertical step of `geometric_m` at the box's nearest point, off the
-                // view's axis, looks up to the box's off-axis factor larger than on it.
-                let off_axis = self.view.off_axis_factor_of(&bbox);
                 // The texel rule where refining brings colour data (not below the colour
                 // layer's finest level, nor outside it).
                 let texel_rule = dag.colour_blob_id(id).is_some();
                 error_m = if texel_rule {
-                    (geometric_m * off_axis).max(texel_m)
+                    geometric_m.max(texel_m)
                 } else {
-                    geometric_m * off_axis
+                    geometric_m
                 };
                 flat = false;
-                // The box's factor changes as the camera turns: deferrals assume the
-                // viewport's largest.
-                let most_m = geometric_m * self.view.off_axis_factor();
                 let deciding_m = if texel_rule {
                     most_m.max(texel_m)
                 } else {
@@ -403,7 +403,7 @@ impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
 /// far enough to bring it within the distance where its projected error (and its side
 /// information bound) could exceed the tolerance. Such diamonds are not re-evaluated
 /// before then, unless the diamond itself changed or the projection did (field of view,
-/// viewport, tolerance, world mapping). Visibility does not matter for them: a diamond
+/// viewport, tolerance, world mapping, metric). Visibility does not matter for them: a diamond
 /// that does not want refining when visible does not when hidden either.
 #[derive(Clone, Debug)]
 pub struct Refinement<I = PlanarId> {
@@ -413,7 +413,7 @@ pub struct Refinement<I = PlanarId> {
     travel_m: f64,
     last_eye: Option<DVec3>,
     /// What the deferrals were computed under.
-    projection: Option<(f64, [u32; 2], f64, [f64; 4])>,
+    projection: Option<(f64, [u32; 2], f64, [f64; 4], Metric)>,
     /// Per diamond: the travel at which to look again, and its generation then.
     deferred: IdMap<(f64, u64), I>,
     /// The last frame, when it changed nothing and waited for nothing: what it was run
@@ -469,6 +469,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             view.viewport_px,
             view.tolerance_px,
             world.fingerprint(),
+            self.config.metric,
         );
         if self.projection != Some(projection) {
             self.projection = Some(projection);

@@ -770,6 +770,23 @@ impl<R: Domain> Session<R> {
     pub fn warm_up(&mut self, timeout: Duration) -> Result<bool, SessionError> {
         let start = std::time::Instant::now();
         let views = self.refiner.overviews(&self.world, self.height_range());
+        // The overviews refine by sampling density whatever the session's metric: their
+        // purpose is tight height bounds everywhere (the built-in flights stand on them),
+        // and the geometric metric leaves a whole-raster view coarse, its bounds loose.
+        let metric = self.refinement.config.metric;
+        self.refinement.config.metric = crate::refine::Metric::Sampling;
+        let result = self.warm_up_views(views, start, timeout);
+        self.refinement.config.metric = metric;
+        result?;
+        Ok(self.roots_refined())
+    }
+
+    fn warm_up_views(
+        &mut self,
+        views: Vec<View>,
+        start: std::time::Instant,
+        timeout: Duration,
+    ) -> Result<(), SessionError> {
         // Each overview gets its share of the time, so a slow link still sees them all.
         let share = timeout / views.len().max(1) as u32;
         for (k, view) in views.into_iter().enumerate() {
@@ -782,7 +799,7 @@ impl<R: Domain> Session<R> {
                 std::thread::sleep(Duration::from_millis(2));
             }
         }
-        Ok(self.roots_refined())
+        Ok(())
     }
 
     /// Whether every root is refined.

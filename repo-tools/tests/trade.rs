@@ -121,6 +121,8 @@ fn trade_on_the_bundled_korea_crop() {
             "korea",
             "--tolerances",
             "0,1,4",
+            "--metrics",
+            "sampling,geometric",
             "--views",
             "3",
             "--runs",
@@ -130,8 +132,20 @@ fn trade_on_the_bundled_korea_crop() {
         ],
     );
     let points = r["points"].as_array().unwrap();
-    assert_eq!(points.len(), 3);
+    assert_eq!(points.len(), 6);
     check_points(points);
+    let metric = |p: &Value| p["metric"].as_str().unwrap().to_string();
+    assert!(points[..3].iter().all(|p| metric(p) == "sampling"));
+    assert!(points[3..].iter().all(|p| metric(p) == "geometric"));
+    // The geometric metric keeps its promise: no measured pixel above the tolerance,
+    // and a coarser tolerance still costs less.
+    for p in &points[4..] {
+        assert!(
+            f(p, "geometric_error_px_max") <= f(p, "tolerance_px"),
+            "{p}"
+        );
+    }
+    assert!(f(&points[4], "triangles_median") > f(&points[5], "triangles_median"));
     let (zero, one, four) = (&points[0], &points[1], &points[2]);
     // The reference's own refinement matches the reference exactly.
     assert!(zero["psnr_db"].is_null(), "{zero}");

@@ -23,6 +23,7 @@ use common::stream::{Served, converge, view_of};
 use glam::DVec3;
 use quincunx_client::domain::{Domain, World};
 use quincunx_client::flight::Flight;
+use quincunx_client::refine::{Metric, RefineConfig};
 use quincunx_client::session::{PlanetSession, Session, SessionConfig};
 use quincunx_client::view::View;
 use quincunx_codec::diamond::{PlanarDomain, SphereDomain};
@@ -329,20 +330,30 @@ fn texels_coarser_than_the_edges_refine_further() {
         viewport_px: [1920, 1080],
         tolerance_px: 4.0,
     };
-    let config = SessionConfig {
-        spacing_m: Some(1.0),
-        ..SessionConfig::default()
+    let halves = |metric: Metric| {
+        let config = SessionConfig {
+            spacing_m: Some(1.0),
+            refine: RefineConfig {
+                metric,
+                ..RefineConfig::default()
+            },
+            ..SessionConfig::default()
+        };
+        let plain: Session = Session::open(&server.url(), "gsi", config.clone()).unwrap();
+        let coloured: Session =
+            Session::open_with_colour(&server.url(), "gsi", "gsi_colour17", config).unwrap();
+        assert_eq!(coloured.dag().texels_per_edge(), 0.5);
+        (
+            converged_halves(plain, &view),
+            converged_halves(coloured, &view),
+        )
     };
-    let plain: Session = Session::open(&server.url(), "gsi", config.clone()).unwrap();
-    let coloured: Session =
-        Session::open_with_colour(&server.url(), "gsi", "gsi_colour17", config).unwrap();
-    assert_eq!(coloured.dag().texels_per_edge(), 0.5);
-    let (a, b) = (
-        converged_halves(plain, &view),
-        converged_halves(coloured, &view),
-    );
-    // Halving the error scale needs two more levels: about four times the halves.
-    assert!(b >= 3 * a, "{a} halves without colour, {b} with");
+    // Sampling: halving the error scale needs two more levels, about four times the halves.
+    let (a, b) = halves(Metric::Sampling);
+    assert!(b >= 3 * a, "sampling: {a} halves without colour, {b} with");
+    // Geometric: the texel rule refines where the heights alone would not.
+    let (a, b) = halves(Metric::Geometric);
+    assert!(b >= 2 * a, "geometric: {a} halves without colour, {b} with");
 }
 
 #[test]

@@ -57,11 +57,15 @@ fn a_jump_flight_over_a_planet_is_crack_free_and_ends_on_the_local_cut() {
     let mut session = PlanetSession::open(&server.url(), REPO, SessionConfig::default()).unwrap();
     assert_eq!(session.dag().len(), 6, "six face roots");
     let flight = Flight::builtin_for("jump", &mut session, 5).unwrap();
-    // Low views are above the planet's surface, within its height range.
+    // Low views are above the planet's surface, within its height range: 300 m above a
+    // conservative bound on its highest point (the warm-up's overview cut, refined by
+    // sampling density, widened by its error bounds, which sum every level's departure:
+    // 10.8 km here, against Everest's 8.8 km).
     let r = session.world().radius_m;
+    let highest = session.height_range().1;
     for leg in &flight.legs {
         let alt = DVec3::from_array(leg.from.eye).length() - r;
-        assert!((-11_000.0..10_000.0).contains(&alt), "{alt}");
+        assert!((-11_000.0..15_000.0).contains(&alt), "{alt} ({highest} m)");
     }
     let opts = FlyOptions {
         check_every: 1,
