@@ -31,14 +31,12 @@
 //! 4-8-mesh fashion (the diagonal through `(i, j)` where `i + j` is even, through
 //! `(i+1, j)` where it is odd), the triangulation that nests from level to level.
 //!
-//! Known limit of the bound: with every cell split along `i = j`, a child's triangulation
-//! does not halve its parent's. A child's cells with odd `i + j` have their diagonal
-//! across a parent grid edge (it joins two parent cell centres), where the parent's
-//! surface bends, so the child can depart from its parent by more than the parent's
-//! measured `delta2 / 2`. The bundled repositories stay within their classes (the classes
-//! round up, and the sum over levels is loose), but not every repository does: korea
-//! built with `--diamond-size 9 --rms-m 2` has diamond (328, 552) of level 12 depart by
-//! 191 quanta from a class-16 bound of 182. `QUINCUNX_BOUND_REPOS` checks such builds.
+//! The cells of a child with odd `i + j` have their diagonal across a parent grid edge
+//! (it joins two parent cell centres), so the encoder's measure also visits the parent's
+//! interior edge midpoints (`codec/src/encode.rs`, `edge_departures`). Without them, korea
+//! built with `--diamond-size 9 --rms-m 2` had diamond (328, 552) of level 12 depart by 191
+//! quanta from a class-16 bound of 182; `small_diamonds_cross_their_parents_edges_within_
+//! the_bound` keeps that build checked. `QUINCUNX_BOUND_REPOS` checks any other builds.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod common;
@@ -716,4 +714,24 @@ fn repositories_named_in_the_environment() {
     for path in paths.split(',').filter(|p| !p.is_empty()) {
         check_repository_at(path, Path::new(path));
     }
+}
+
+/// The build that found the parent-edge crossings (see the module docs): N = 8 over the
+/// bundled korea crop at RMS 2 m, where a child's cells cross its parent's grid edges on
+/// short diamonds.
+#[test]
+fn small_diamonds_cross_their_parents_edges_within_the_bound() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("error-bound-n8");
+    let _ = std::fs::remove_dir_all(&dir);
+    let source = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.json");
+    let o = bin()
+        .arg("build")
+        .arg(&source)
+        .arg("--output")
+        .arg(&dir)
+        .args(["--diamond-size", "9", "--rms-m", "2"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    check_repository_at("korea N=8 RMS 2 m", &dir);
 }
