@@ -413,7 +413,7 @@ pub struct Refinement<I = PlanarId> {
     travel_m: f64,
     last_eye: Option<DVec3>,
     /// What the deferrals were computed under.
-    projection: Option<(f64, [u32; 2], f64, [f64; 4], Metric)>,
+    projection: Option<Projection>,
     /// Per diamond: the travel at which to look again, and its generation then.
     deferred: IdMap<(f64, u64), I>,
     /// The last frame, when it changed nothing and waited for nothing: what it was run
@@ -424,6 +424,9 @@ pub struct Refinement<I = PlanarId> {
     /// camera (a jump waiting for its data) projects only the diamonds that changed.
     seen: Option<(Seen, Appearances<I>)>,
 }
+
+/// What deferrals depend on: field of view, viewport, tolerance, world mapping, metric.
+type Projection = (f64, [u32; 2], f64, [f64; 4], Metric);
 
 /// What appearances depend on besides the node.
 type Seen = (View, [f64; 4], RefineConfig);

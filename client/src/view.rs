@@ -121,7 +121,8 @@ impl View {
             );
             let d = c - self.eye;
             let cos = d.dot(axis) / d.length();
-            if !(cos > 0.0) {
+            // Behind the eye, at it, or not a number: the viewport's bound.
+            if cos.is_nan() || cos <= 0.0 {
                 return most;
             }
             worst = worst.max(1.0 / (cos * cos));
