@@ -219,6 +219,29 @@ mod tests {
     }
 
     #[test]
+    fn off_axis_factors_grow_away_from_the_axis_up_to_the_corner() {
+        let v = view();
+        // 1 + tan^2(30 deg) (1 + (16/9)^2) at 60 degrees and 16:9.
+        let most = 1.0 + (1.0 / 3.0) * (1.0 + (1920.0f64 / 1080.0).powi(2));
+        assert!((v.off_axis_factor() - most).abs() < 1e-12);
+        let axis = (v.target - v.eye).normalize();
+        let at = |p: DVec3, r: f64| Aabb {
+            min: p - DVec3::splat(r),
+            max: p + DVec3::splat(r),
+        };
+        // A small box on the axis: about 1.
+        let ahead = v.off_axis_factor_of(&at(v.eye + axis * 500.0, 0.01));
+        assert!((ahead - 1.0).abs() < 1e-6, "{ahead}");
+        // A box 45 degrees off the axis: 2 (1 / cos^2 45).
+        let side = axis.cross(DVec3::Z).normalize();
+        let off = v.off_axis_factor_of(&at(v.eye + (axis + side) * 500.0, 0.01));
+        assert!((off - 2.0).abs() < 1e-3, "{off}");
+        // Behind the eye, or around it: the viewport's largest.
+        assert_eq!(v.off_axis_factor_of(&at(v.eye - axis * 500.0, 1.0)), most);
+        assert_eq!(v.off_axis_factor_of(&at(v.eye, 1.0)), most);
+    }
+
+    #[test]
     fn distance_to_a_box_is_zero_inside() {
         let b = Aabb {
             min: DVec3::ZERO,
