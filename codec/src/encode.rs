@@ -1173,26 +1173,9 @@ pub(crate) fn measure(
                 let t2 = coarse[i * w + j] as i64 + coarse[(i + 1) * w + j + 1] as i64;
                 m.delta2 = m.delta2.max((2 * v - t2).abs());
             }
-            // The shared edges with the cells below and to the right (see `edge_departures`).
-            let ok = |a: (usize, usize), b: (usize, usize), cell: (usize, usize)| {
-                mask.is_none_or(|mk| {
-                    mk.vertex(a.0, a.1) && mk.vertex(b.0, b.1) && mk.cell(cell.0, cell.1)
-                })
-            };
-            if j + 1 < n && ok((i, j + 1), (i + 1, j + 1), (i, j + 1)) {
-                let e = v + cells[i * n + j + 1] as i64
-                    - coarse[i * w + j + 1] as i64
-                    - coarse[(i + 1) * w + j + 1] as i64;
-                m.delta2 = m.delta2.max(e.abs());
-            }
-            if i + 1 < n && ok((i + 1, j), (i + 1, j + 1), (i + 1, j)) {
-                let e = v + cells[(i + 1) * n + j] as i64
-                    - coarse[(i + 1) * w + j] as i64
-                    - coarse[(i + 1) * w + j + 1] as i64;
-                m.delta2 = m.delta2.max(e.abs());
-            }
         }
     }
+    m.delta2 = m.delta2.max(edge_departures(n, mask, coarse, cells));
     if m.grid_min > m.grid_max {
         m.grid_min = m.fine_min;
         m.grid_max = m.fine_max;
@@ -1208,20 +1191,31 @@ pub(crate) fn measure(
 /// difference of the two surfaces, linear on each piece of their overlay, takes its
 /// largest value at one of the overlay's vertices: the diamond's vertices, the cell
 /// centres, or these midpoints. Taking every interior edge (whichever way the child
-/// splits it) keeps the measure an upper bound.
-fn edge_departures(n: usize, coarse: &[i32], cells: &[i32]) -> i64 {
+/// splits it) keeps the measure an upper bound. With a mask, only edges whose ends and
+/// both cells are valid samples.
+fn edge_departures(
+    n: usize,
+    mask: Option<&crate::lifting::DiamondMask>,
+    coarse: &[i32],
+    cells: &[i32],
+) -> i64 {
     let w = n + 1;
+    let valid = |a: (usize, usize), b: (usize, usize), c: (usize, usize), d: (usize, usize)| {
+        mask.is_none_or(|mk| {
+            mk.vertex(a.0, a.1) && mk.vertex(b.0, b.1) && mk.cell(c.0, c.1) && mk.cell(d.0, d.1)
+        })
+    };
     let mut d2 = 0i64;
     for i in 0..n {
         for j in 0..n {
             let v = cells[i * n + j] as i64;
-            if j + 1 < n {
+            if j + 1 < n && valid((i, j + 1), (i + 1, j + 1), (i, j), (i, j + 1)) {
                 let e = v + cells[i * n + j + 1] as i64
                     - coarse[i * w + j + 1] as i64
                     - coarse[(i + 1) * w + j + 1] as i64;
                 d2 = d2.max(e.abs());
             }
-            if i + 1 < n {
+            if i + 1 < n && valid((i + 1, j), (i + 1, j + 1), (i, j), (i + 1, j)) {
                 let e = v + cells[(i + 1) * n + j] as i64
                     - coarse[(i + 1) * w + j] as i64
                     - coarse[(i + 1) * w + j + 1] as i64;
@@ -1256,7 +1250,7 @@ fn measure_full(n: usize, coarse: &[i32], fine: &[i32], cells: &[i32], mut m: Me
             d2 = d2.max((2 * v as i64 - (a as i64 + b as i64)).abs());
         }
     }
-    d2 = d2.max(edge_departures(n, coarse, cells));
+    d2 = d2.max(edge_departures(n, None, coarse, cells));
     m.grid_min = gmin.into();
     m.grid_max = gmax.into();
     m.fine_min = fmin.into();
