@@ -103,7 +103,11 @@ impl Clock for SystemClock {
 }
 
 /// What a diamond's error is: what the tolerance in pixels bounds (see the module docs).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+/// Serialised by its [`Metric::name`].
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
 pub enum Metric {
     /// The projected geometric error bound of the blobs' side information (with colour,
     /// at least the projected texel size).
@@ -270,6 +274,8 @@ struct Projector<'a, W, I> {
     config: RefineConfig,
     /// Pixels per metre at 1 m.
     px_at_1m: f64,
+    /// The viewport's largest off-axis factor ([`View::off_axis_factor`]).
+    off_axis: f64,
     /// Pixels below which a surface change is invisible (flat regions).
     flat_px: f64,
     /// Appearances computed under this view, world and tuning, with the generation of
@@ -324,29 +330,21 @@ impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
                     match node.bound_class {
                         Some(k) => {
                             let b = class_bound(k) as f64 * w.value_scale_m().abs();
-                            (
-                                b * self.view.off_axis_factor_of(&bbox),
-                                b * self.view.off_axis_factor(),
-                            )
+                            (b * self.view.off_axis_factor_of(&bbox), b * self.off_axis)
                         }
                         None => (edge_m, edge_m),
                     }
                 };
                 // The texel rule where refining brings colour data (not below the colour
                 // layer's finest level, nor outside it).
-                let texel_rule = dag.colour_blob_id(id).is_some();
-                error_m = if texel_rule {
-                    geometric_m.max(texel_m)
+                let texel_m = if dag.colour_blob_id(id).is_some() {
+                    texel_m
                 } else {
-                    geometric_m
+                    0.0
                 };
+                error_m = geometric_m.max(texel_m);
                 flat = false;
-                let deciding_m = if texel_rule {
-                    most_m.max(texel_m)
-                } else {
-                    most_m
-                };
-                trigger_m = deciding_m * self.px_at_1m / self.view.tolerance_px;
+                trigger_m = most_m.max(texel_m) * self.px_at_1m / self.view.tolerance_px;
             }
             Metric::Sampling => {
                 // max(edge, texel): texels are edges divided by the texels per edge.
@@ -493,6 +491,7 @@ impl<I: Copy + Eq + Ord + std::hash::Hash + std::fmt::Debug> Refinement<I> {
             world,
             config: self.config,
             px_at_1m: view.px_per_m(1.0),
+            off_axis: view.off_axis_factor(),
             flat_px: self.config.flat_fraction * view.tolerance_px,
             seen: RefCell::default(),
         }

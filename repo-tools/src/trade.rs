@@ -131,7 +131,7 @@ pub struct TradeArgs {
 #[serde(default)]
 pub struct TradePoint {
     /// Refinement metric (what the tolerance bounds).
-    #[serde(with = "metric_name", default = "metric_name::older")]
+    #[serde(default = "older_metric")]
     pub metric: Metric,
     /// Tolerance, pixels.
     pub tolerance_px: f64,
@@ -316,25 +316,9 @@ pub struct TradeReport {
     pub seconds: f64,
 }
 
-/// A metric by its name in the JSON reports (older reports, without one, were sampling).
-mod metric_name {
-    use quincunx_client::refine::Metric;
-    use serde::{Deserialize, Deserializer, Serializer};
-
-    pub fn serialize<S: Serializer>(m: &Metric, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_str(m.name())
-    }
-
-    /// The metric of a report written before there was a choice.
-    pub fn older() -> Metric {
-        Metric::Sampling
-    }
-
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Metric, D::Error> {
-        String::deserialize(d)?
-            .parse()
-            .map_err(serde::de::Error::custom)
-    }
+/// The metric of a report written before there was a choice.
+fn older_metric() -> Metric {
+    Metric::Sampling
 }
 
 /// A view captured at the end of a leg.
