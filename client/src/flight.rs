@@ -682,6 +682,7 @@ pub fn fly_with<R: Domain>(
             last_view = Some(view);
             on_frame(session, &view, &rec);
             // As good as it gets: the tolerance met, or the budgets reached.
+            let mut leg_done = false;
             if frame.refine.settled() {
                 let at = *full_at.get_or_insert(now);
                 if let Some(j) = jump.as_mut()
@@ -691,20 +692,22 @@ pub fn fly_with<R: Domain>(
                     j.budget_limited = !rec.full_quality;
                     j.bytes_fetched = fetch.bytes_fetched - bytes_at_start;
                 }
-                if leg
+                leg_done = leg
                     .settle_s
-                    .is_some_and(|s| now.saturating_sub(at).as_secs_f64() >= s)
-                {
-                    break;
-                }
+                    .is_some_and(|s| now.saturating_sub(at).as_secs_f64() >= s);
             } else {
                 full_at = None;
             }
-            // The next frame: no earlier than one period after this one started.
+            // The next frame: no earlier than one period after this one started, also
+            // when the leg ends here (the frame stays on screen for its period, so the
+            // frame rate never exceeds `fps`).
             let next = now + period;
             let after = clock(checking);
             if next > after {
                 std::thread::sleep(next - after);
+            }
+            if leg_done {
+                break;
             }
         }
         if let Some(view) = last_view {

@@ -460,8 +460,10 @@ fn a_fly_sweep_reports_every_point_through_a_link_per_client() {
         let t = |k: &str| p[k].as_f64().unwrap_or_else(|| panic!("{k} in {p}"));
         assert!(t("time_to_full_quality_s_p50") <= t("time_to_full_quality_s_p95"));
         assert!(t("time_to_full_quality_s_p95") <= t("time_to_full_quality_s_max"));
+        // Paced at 60 frames/s: every frame holds the screen for a whole period, the last
+        // of a leg too (the margin is the period's rounding to nanoseconds).
         assert!(
-            t("frames_per_s_p50") > 0.0 && t("frames_per_s_p50") <= 61.0,
+            t("frames_per_s_p50") > 0.0 && t("frames_per_s_p50") <= 60.001,
             "{p}"
         );
         assert!(t("rps") > 0.0);

@@ -401,6 +401,36 @@ fn the_runners_checks_are_kept_off_the_flight_clock_and_reported_apart() {
     server.kill();
 }
 
+#[test]
+fn the_frame_rate_never_exceeds_the_pace_when_legs_end_at_full_quality() {
+    let dir = tempfile::tempdir().unwrap();
+    let (built, _local) = build_korea(dir.path());
+    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
+    let mut session =
+        Session::<PlanarRefiner>::open(&server.url(), REPO, SessionConfig::default()).unwrap();
+    // Ten jumps to one high view, each ended as soon as it is at full quality: after the
+    // first, every leg is one frame. Each frame still holds the screen for its period.
+    let leg = r#"{"duration_s": 5, "jump": true, "settle_s": 0,
+        "from": {"eye": [40000, 30000, 60000], "target": [40000, 30001, 0]}}"#;
+    let legs = vec![leg; 10].join(",");
+    let flight = Flight::from_json("jumps", &format!(r#"{{"legs": [{legs}]}}"#)).unwrap();
+    let opts = FlyOptions {
+        viewport_px: [640, 360],
+        ..FlyOptions::default()
+    };
+    let report = flight::fly(&mut session, &flight, &opts, |_| {}).unwrap();
+    assert_eq!(report.jumps_unfinished, 0, "{report:?}");
+    assert!(report.frames >= 10, "{report:?}");
+    // The period's rounding to nanoseconds is the margin.
+    assert!(
+        report.frames_per_s > 0.0 && report.frames_per_s <= opts.fps * 1.000_01,
+        "{} frames in {} s",
+        report.frames,
+        report.seconds
+    );
+    assert!(report.seconds >= report.frames as f64 / opts.fps * 0.999_99);
+}
+
 /// A server that answers the metadata of `repo` from `upstream` at once and every other
 /// request with a head announcing 100 000 bytes and a body trickling a byte every 50 ms.
 fn start_trickler(upstream: std::net::SocketAddr, repo: &str) -> std::net::SocketAddr {
