@@ -412,7 +412,7 @@ fn the_frame_rate_never_exceeds_the_pace_when_legs_end_at_full_quality() {
     // first, every leg is one frame. Each frame still holds the screen for its period.
     let leg = r#"{"duration_s": 5, "jump": true, "settle_s": 0,
         "from": {"eye": [40000, 30000, 60000], "target": [40000, 30001, 0]}}"#;
-    let legs = vec![leg; 10].join(",");
+    let legs = [leg; 10].join(",");
     let flight = Flight::from_json("jumps", &format!(r#"{{"legs": [{legs}]}}"#)).unwrap();
     let opts = FlyOptions {
         viewport_px: [640, 360],
