@@ -107,7 +107,7 @@ impl Clock for SystemClock {
 #[derive(
     Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
 )]
-#[serde(rename_all = "lowercase")]
+#[serde(into = "String", try_from = "String")]
 pub enum Metric {
     /// The projected geometric error bound of the blobs' side information (with colour,
     /// at least the projected texel size).
@@ -118,12 +118,29 @@ pub enum Metric {
 }
 
 impl Metric {
-    /// The metric's name on the command line and in figures.
+    /// Every metric.
+    pub const ALL: [Metric; 2] = [Metric::Geometric, Metric::Sampling];
+
+    /// The metric's name on the command line, in reports and in figures.
     pub fn name(self) -> &'static str {
         match self {
             Metric::Geometric => "geometric",
             Metric::Sampling => "sampling",
         }
+    }
+}
+
+impl From<Metric> for String {
+    fn from(m: Metric) -> String {
+        m.name().to_string()
+    }
+}
+
+impl TryFrom<String> for Metric {
+    type Error = String;
+
+    fn try_from(s: String) -> Result<Self, Self::Error> {
+        s.parse()
     }
 }
 
@@ -137,11 +154,10 @@ impl std::str::FromStr for Metric {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "geometric" => Ok(Metric::Geometric),
-            "sampling" => Ok(Metric::Sampling),
-            _ => Err(format!("unknown metric {s:?} (geometric or sampling)")),
-        }
+        Metric::ALL
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| format!("unknown metric {s:?} (geometric or sampling)"))
     }
 }
 
@@ -962,5 +978,24 @@ fn want<R: Domain>(dag: &Dag<R>, source: &mut dyn DetailSource<R::Id>, id: R::Id
     }
     if let Some(c) = dag.colour_blob_id(id) {
         source.want_colour(id, c, priority);
+    }
+}
+
+#[cfg(test)]
+#[allow(clippy::unwrap_used)]
+mod tests {
+    use super::Metric;
+
+    #[test]
+    fn metrics_are_named_alike_in_json_on_the_command_line_and_in_figures() {
+        for m in Metric::ALL {
+            let json = serde_json::to_string(&m).unwrap();
+            assert_eq!(json, format!("\"{}\"", m.name()));
+            assert_eq!(serde_json::from_str::<Metric>(&json).unwrap(), m);
+            assert_eq!(m.name().parse::<Metric>().unwrap(), m);
+            assert_eq!(m.to_string(), m.name());
+        }
+        let err = serde_json::from_str::<Metric>("\"texel\"").unwrap_err();
+        assert!(err.to_string().contains("unknown metric"), "{err}");
     }
 }
