@@ -327,6 +327,15 @@ fn repositories_the_client_cannot_stream_are_refused_clearly() {
     server.kill();
 }
 
+/// The korea crop built in `dir`, served, and a session on it with the default config.
+fn served_korea(dir: &Path) -> (Served, Session<PlanarRefiner>) {
+    let (built, _local) = build_korea(dir);
+    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
+    let session =
+        Session::<PlanarRefiner>::open(&server.url(), REPO, SessionConfig::default()).unwrap();
+    (server, session)
+}
+
 /// One hold leg of `duration_s` over the middle of the korea crop.
 fn hold_flight(duration_s: f64) -> Flight {
     Flight::from_json(
@@ -342,10 +351,7 @@ fn hold_flight(duration_s: f64) -> Flight {
 #[test]
 fn the_runners_checks_are_kept_off_the_flight_clock_and_reported_apart() {
     let dir = tempfile::tempdir().unwrap();
-    let (built, _local) = build_korea(dir.path());
-    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
-    let mut session =
-        Session::<PlanarRefiner>::open(&server.url(), REPO, SessionConfig::default()).unwrap();
+    let (server, mut session) = served_korea(dir.path());
     // Every frame checked, and every check made 60 ms slower than it is: were the checks
     // on the flight's clock, a 2 s leg would hold at most 2 / 0.06 = 33 frames.
     let delay = Duration::from_millis(60);
@@ -404,10 +410,7 @@ fn the_runners_checks_are_kept_off_the_flight_clock_and_reported_apart() {
 #[test]
 fn the_frame_rate_never_exceeds_the_pace_when_legs_end_at_full_quality() {
     let dir = tempfile::tempdir().unwrap();
-    let (built, _local) = build_korea(dir.path());
-    let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
-    let mut session =
-        Session::<PlanarRefiner>::open(&server.url(), REPO, SessionConfig::default()).unwrap();
+    let (_server, mut session) = served_korea(dir.path());
     // Ten jumps to one high view, each ended as soon as it is at full quality: after the
     // first, every leg is one frame. Each frame still holds the screen for its period.
     let leg = r#"{"duration_s": 5, "jump": true, "settle_s": 0,
