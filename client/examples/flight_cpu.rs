@@ -14,7 +14,7 @@ use quincunx_client::dag::Dag;
 use quincunx_client::refine::{Availability, DetailSource, Refinement, SystemClock};
 use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::encode::{EncodeOptions, Grid, RateMode, encode};
+use quincunx_codec::encode::{EncodeOptions, FromEncoded, Grid, RateMode, encode};
 use quincunx_codec::incremental::{Details, PlanarRefiner};
 
 struct Decoded {

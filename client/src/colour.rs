@@ -15,8 +15,8 @@
 //! - **Blobs.** One request per diamond fetches its three channel blobs, framed
 //!   ([`quincunx_meta::channels`]); a channel without details has length 0.
 
-use quincunx_codec::colour::ycocg_r_to_rgb;
-use quincunx_codec::incremental::{Details, Procedural, RefineError, Refined};
+use quincunx_decoder::colour::ycocg_r_to_rgb;
+use quincunx_decoder::incremental::{Details, Procedural, RefineError, Refined};
 use quincunx_meta::Metadata;
 use quincunx_meta::channels::split_channels;
 

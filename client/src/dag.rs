@@ -11,17 +11,17 @@ use std::collections::{HashMap, HashSet};
 use std::hash::BuildHasherDefault;
 use std::sync::Arc;
 
-use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::incremental::{Details, PlanarRefiner, Refined};
-use quincunx_codec::lifting::DiamondMask;
+use quincunx_decoder::diamond::PlanarId;
+use quincunx_decoder::incremental::{Details, PlanarRefiner, Refined};
+use quincunx_decoder::lifting::DiamondMask;
 
 use crate::colour::{CHANNELS, ColourDetails, ColourLayer, ColourNode};
 pub use crate::domain::Half;
 use crate::domain::{Domain, World};
 pub use crate::open::DagError;
-use quincunx_codec::entropy::class_bound;
+use quincunx_decoder::entropy::class_bound;
 
-pub use quincunx_codec::diamond::{IdHasher, IdMap};
+pub use quincunx_decoder::diamond::{IdHasher, IdMap};
 
 /// One drawable triangle of the cut: a present half of an unrefined diamond.
 #[derive(Clone, Debug)]
@@ -912,8 +912,10 @@ impl CutCheck {
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
-    use quincunx_codec::encode::{CubeGrid, EncodeOptions, Grid, RateMode, encode, encode_sphere};
-    use quincunx_codec::incremental::SphereRefiner;
+    use quincunx_codec::encode::{
+        CubeGrid, EncodeOptions, FromEncoded, Grid, RateMode, encode, encode_sphere,
+    };
+    use quincunx_decoder::incremental::SphereRefiner;
 
     fn options(n: usize) -> EncodeOptions {
         EncodeOptions {

@@ -7,10 +7,12 @@
 //! centred at the origin).
 
 use glam::DVec3;
-use quincunx_codec::diamond::SphereDomain;
-use quincunx_codec::diamond::sphere::{axes, chart_of, cube_to_unit_sphere};
-use quincunx_codec::diamond::{PlanarId, SphereId};
-use quincunx_codec::incremental::{PlanarRefiner, Procedural, RefineError, Refiner, SphereRefiner};
+use quincunx_decoder::diamond::SphereDomain;
+use quincunx_decoder::diamond::sphere::{axes, chart_of, cube_to_unit_sphere};
+use quincunx_decoder::diamond::{PlanarId, SphereId};
+use quincunx_decoder::incremental::{
+    PlanarRefiner, Procedural, RefineError, Refiner, SphereRefiner,
+};
 use quincunx_meta::Metadata;
 
 use crate::open::{
@@ -128,7 +130,7 @@ pub trait Domain: Refiner + Sized {
     ) -> Result<Self, SessionError>;
 
     /// The refiner extended by `extra` procedural levels (see
-    /// [`quincunx_codec::incremental::Procedural`]).
+    /// [`quincunx_decoder::incremental::Procedural`]).
     fn with_procedural_levels(self, extra: usize, detail: Procedural) -> Result<Self, RefineError>;
 
     /// The exponent `m` of the id space (planar side, or a planet's cube half side, `2^m`).
@@ -589,7 +591,7 @@ impl Domain for SphereRefiner {
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
-    use quincunx_codec::diamond::{MAX_M, SphereDomain};
+    use quincunx_decoder::diamond::{MAX_M, SphereDomain};
 
     fn contains(b: &Aabb, p: DVec3) -> bool {
         let slack = 1e-6 * p.length().max(1.0);

@@ -33,7 +33,7 @@ use std::time::{Duration, Instant};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
-use quincunx_codec::incremental::{PlanarRefiner, SphereRefiner};
+use quincunx_decoder::incremental::{PlanarRefiner, SphereRefiner};
 
 use crate::domain::{Domain, World};
 use crate::session::{CutBlobs, Session, SessionError};

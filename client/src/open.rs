@@ -2,9 +2,9 @@
 //! (the incremental decoders and world mappings of planar repositories and planets).
 //! Sessions, domains and colour layers all depend on this; it depends on none of them.
 
-use quincunx_codec::coverage::Coverage;
-use quincunx_codec::entropy::CodecModel;
-use quincunx_codec::incremental::{PlanarRefiner, RefineError, Refiner, SphereRefiner};
+use quincunx_decoder::coverage::Coverage;
+use quincunx_decoder::entropy::CodecModel;
+use quincunx_decoder::incremental::{PlanarRefiner, RefineError, Refiner, SphereRefiner};
 use quincunx_meta::{ChannelCoding, Domain, Metadata, Registration};
 
 use crate::fetch::FetchError;

@@ -36,9 +36,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use glam::DVec3;
-use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::entropy::class_bound;
-use quincunx_codec::incremental::Details;
+use quincunx_decoder::diamond::PlanarId;
+use quincunx_decoder::entropy::class_bound;
+use quincunx_decoder::incremental::Details;
 
 use crate::colour::ColourDetails;
 use crate::dag::{Dag, DagError, IdMap};

@@ -53,8 +53,8 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use glam::DVec3;
-use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::incremental::{Details, PlanarRefiner, Procedural, Refiner, SphereRefiner};
+use quincunx_decoder::diamond::PlanarId;
+use quincunx_decoder::incremental::{Details, PlanarRefiner, Procedural, Refiner, SphereRefiner};
 use quincunx_meta::Metadata;
 use quincunx_meta::answer;
 

@@ -155,7 +155,7 @@ impl PlanarWorld {
 
 /// Where a planet's ids and integer samples are in the world: the cube (id units, half
 /// side `half_side`) mapped onto the sphere of `radius_m` centred at the origin by the
-/// equal-angle map ([`quincunx_codec::diamond::sphere::cube_to_unit_sphere`]), heights
+/// equal-angle map ([`quincunx_decoder::diamond::sphere::cube_to_unit_sphere`]), heights
 /// along the radius.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SphereWorld {

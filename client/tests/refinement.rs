@@ -17,7 +17,7 @@ use quincunx_client::refine::{
 };
 use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::encode::{EncodeOptions, Encoded, Grid, RateMode, encode};
+use quincunx_codec::encode::{EncodeOptions, Encoded, FromEncoded, Grid, RateMode, encode};
 use quincunx_codec::incremental::PlanarRefiner;
 
 /// The bundled 1025 x 1025 SRTM3 crop (int16 + JSON sidecar), cropped to 700 x 513 so

@@ -32,6 +32,7 @@ use rayon::prelude::*;
 use crate::blob::{self, BlobContext, DecodeError};
 use crate::coverage::Coverage;
 use crate::entropy::{self, CodecModel, ContextCounts};
+use crate::incremental::{PlanarRefiner, RefineError, SphereRefiner};
 use crate::raster::{
     Layout, RasterError, RasterGeometry, analyze_levels_with, synthesize_levels,
     synthesize_levels_par,
@@ -149,7 +150,7 @@ pub struct EncodeOptions {
 }
 
 /// Whether the RMS mode chooses detail indices by rate and distortion
-/// ([`entropy::rdo`]: fewer bits at the same RMS, a slower encode) or by rounding.
+/// ([`crate::rdo`]: fewer bits at the same RMS, a slower encode) or by rounding.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum RdoMode {
     /// Where it pays: when most indices are zero (see `RDO_AUTO_MAX_NONZERO`; korea:
@@ -379,6 +380,43 @@ impl Encoded {
     }
 }
 
+/// A refiner of an in-memory encoding (the decoder crate knows no encoder; tests and tools
+/// that encode in memory decode with this).
+pub trait FromEncoded: Sized {
+    /// The refiner of `enc`.
+    fn from_encoded(enc: &Encoded) -> Result<Self, RefineError>;
+}
+
+impl FromEncoded for PlanarRefiner {
+    fn from_encoded(enc: &Encoded) -> Result<Self, RefineError> {
+        PlanarRefiner::new(
+            enc.width,
+            enc.height,
+            enc.n,
+            enc.coverage.as_ref(),
+            enc.steps.clone(),
+            enc.model.clone(),
+            enc.root.clone(),
+        )
+    }
+}
+
+impl FromEncoded for SphereRefiner {
+    fn from_encoded(enc: &Encoded) -> Result<Self, RefineError> {
+        let EncodedDomain::Sphere { face_side } = enc.domain else {
+            return Err(RefineError::WrongDomain);
+        };
+        SphereRefiner::new(
+            face_side,
+            enc.n,
+            enc.coverage.as_ref(),
+            enc.steps.clone(),
+            enc.model.clone(),
+            enc.roots.clone(),
+        )
+    }
+}
+
 /// Rounding offset of the quantiser's decisions, in 1/256 of a step: 128 is round to
 /// nearest. Smaller values move values near a decision threshold to the smaller index
 /// (cheaper to code); reconstruction points stay uniform (no dead zone in the decoder).
@@ -508,15 +546,7 @@ pub(crate) fn histogram_entries(dense: Vec<u64>, sparse: BTreeMap<u32, u64>) -> 
 }
 
 /// Inverse of [`quantize`] (reconstruction at the bin centre).
-#[inline]
-pub fn dequantize(q: i32, s: u32) -> i32 {
-    if s == 256 {
-        return q;
-    }
-    let a = (q.unsigned_abs() as u64 * s as u64 + 128) >> 8;
-    let a = a.min(i32::MAX as u64) as i32;
-    if q < 0 { -a } else { a }
-}
+pub use quincunx_decoder::dequantize;
 
 /// Synthesis energy gain of a unit detail `d` levels above the finest, for diamond size `n`
 /// (measured once per `n` on an impulse, extrapolated geometrically past the probe depth).
@@ -1632,9 +1662,9 @@ impl Quantise {
         match cost_model {
             Some(model) if s > 256 => {
                 let step_units = s as f32 / 256.0;
-                entropy::rdo::quantize_matrix(
+                crate::rdo::quantize_matrix(
                     model,
-                    &entropy::rdo::Matrix {
+                    &crate::rdo::Matrix {
                         group: ctx.group,
                         n: self.n,
                         valid: ctx.mask.map(crate::lifting::DiamondMask::cells),
@@ -2140,15 +2170,6 @@ pub fn root_grid_bytes(root: &[i32]) -> Vec<u8> {
         }
     }
     out
-}
-
-impl From<RasterError> for DecodeError {
-    fn from(e: RasterError) -> Self {
-        DecodeError::Entropy(entropy::EntropyError::BadModel(match e {
-            RasterError::WrongLength { .. } => "raster length",
-            _ => "geometry",
-        }))
-    }
 }
 
 /// Decodes to integer values (full resolution, one thread), in the domain's sample order

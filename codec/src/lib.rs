@@ -1,31 +1,26 @@
-//! The quincunx codec: the shared vocabulary of the system.
+//! The quincunx encoder, on the format of `quincunx-decoder`.
 //!
-//! - [`diamond`]: diamond ids (planar and cube-mapped sphere), hierarchy laws, frames,
-//!   sample positions and storage keys.
-//! - [`lifting`]: integer-to-integer wavelet lifting of one diamond (analysis/synthesis).
 //! - [`raster`] / [`sphere_raster`] / [`encode`]: the whole-raster transform (planar
-//!   rasters and cube-mapped planets), rate control and blobs.
-//! - [`incremental`]: one diamond at a time, as a streaming client refines its cut.
-//! - [`stream`]: the out-of-core encoder of planar rasters (bounded memory, rows read on
-//!   demand, blobs handed out as they are coded).
-//! - [`coverage`]: which coarse blocks hold data, for sparse encoding (nodata areas are
-//!   left out of the hierarchy instead of being filled and coded).
-//! - [`colour`]: the reversible YCoCg-R colour transform.
+//!   rasters and cube-mapped planets), quantisation, rate control, model training, blobs,
+//!   and the whole-raster decode that checks them.
+//! - [`rdo`]: the rate-distortion quantiser.
+//! - [`stream`]: the out-of-core encoder of planar rasters and planets (bounded memory,
+//!   rows read on demand, blobs handed out as they are coded) and its shards.
+//! - [`fill`]: filling nodata holes before coding.
 //!
-//! The crate is pure: no I/O, no async. Untrusted bytes are decoded into `Result`s, never
-//! panics.
+//! The read side ([`blob`], [`entropy`], [`lifting`], [`incremental`], [`coverage`],
+//! [`colour`], [`diamond`]) is re-exported from `quincunx-decoder`, which clients depend on
+//! alone. The crate is pure: no I/O, no async. Untrusted bytes are decoded into `Result`s,
+//! never panics.
 
-pub mod blob;
-pub mod colour;
-pub mod coverage;
 pub mod encode;
-pub mod entropy;
 pub mod fill;
-pub mod incremental;
-pub mod lifting;
 pub mod raster;
+pub mod rdo;
 pub mod sphere_raster;
 pub mod stream;
 
+/// The format's read side, from `quincunx-decoder` (one definition, shared with clients).
+pub use quincunx_decoder::{blob, colour, coverage, entropy, incremental, lifting};
 /// Diamond ids and hierarchy laws (the `quincunx-diamond` crate).
 pub use quincunx_diamond as diamond;

@@ -10,90 +10,13 @@
 use rayon::prelude::*;
 
 use crate::blob::BlobContext;
-use crate::coverage::{BlockState, Coverage};
-use crate::diamond::{PlanarDomain, PlanarId, check_size};
+use crate::coverage::Coverage;
+use crate::diamond::PlanarId;
 use crate::lifting::{self, DiamondMask};
-
-/// Why a raster cannot be placed in a hierarchy.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum RasterError {
-    /// Zero width or height, or more samples than supported.
-    #[error("raster of {0} x {1} samples is empty or too large")]
-    BadDimensions(usize, usize),
-    /// The diamond size is not supported.
-    #[error(transparent)]
-    Id(#[from] crate::diamond::IdError),
-    /// A planet's face side is not `N` times a power of two (or is too small: `2 S >= 4`).
-    #[error("face side {face_side} is not N = {n} times a power of two (and at least 4)")]
-    FaceSide {
-        /// samples per face side
-        face_side: usize,
-        /// diamond size
-        n: usize,
-    },
-    /// The number of values does not match the dimensions.
-    #[error("expected {expected} values, got {got}")]
-    WrongLength {
-        /// width x height
-        expected: usize,
-        /// values given
-        got: usize,
-    },
-    /// A coverage's shape does not fit the geometry.
-    #[error("the coverage does not fit the geometry: {0}")]
-    Coverage(&'static str),
-}
-
-/// Where one diamond's samples live in the raster.
-#[derive(Clone, Debug)]
-pub struct DiamondSlot {
-    /// The diamond.
-    pub id: PlanarId,
-    x0: i64,
-    y0: i64,
-    a: [i64; 2],
-    b: [i64; 2],
-    /// Valid points; `None` when every vertex and cell is valid.
-    pub mask: Option<DiamondMask>,
-    /// Storage key of the diamond.
-    pub key: Vec<u8>,
-    /// Indices (in the next detail level) of its children that carry details.
-    pub children: Vec<usize>,
-    /// The subset of `children` whose side information this diamond's blob carries
-    /// (children whose first parent is this diamond), in side order.
-    pub owned: Vec<usize>,
-    /// For diamonds entirely inside the raster: raster index of vertex (0,0) and of cell
-    /// (0,0), and the index steps along i and j.
-    lin: Option<[isize; 4]>,
-}
-
-impl DiamondSlot {
-    fn vertex_xy(&self, i: usize, j: usize) -> (i64, i64) {
-        let (i, j) = (i as i64, j as i64);
-        (
-            self.x0 + i * self.a[0] + j * self.b[0],
-            self.y0 + i * self.a[1] + j * self.b[1],
-        )
-    }
-
-    fn cell_xy(&self, i: usize, j: usize) -> (i64, i64) {
-        let (x, y) = self.vertex_xy(i, j);
-        (
-            x + (self.a[0] + self.b[0]) / 2,
-            y + (self.a[1] + self.b[1]) / 2,
-        )
-    }
-
-    /// Raster position of vertex `(0, 0)` and the steps along `i` and `j`.
-    pub(crate) fn frame(&self) -> ([i64; 2], [i64; 2], [i64; 2]) {
-        ([self.x0, self.y0], self.a, self.b)
-    }
-
-    /// Number of valid cells (the number of coded details).
-    pub fn valid_cells(&self, n: usize) -> usize {
-        self.mask.as_ref().map_or(n * n, DiamondMask::valid_cells)
-    }
-}
+use quincunx_decoder::lattice::{Lattice, read_lattice, write_lattice};
+#[doc(inline)]
+pub use quincunx_decoder::raster::{DiamondSlot, RasterError, RasterFrame};
+use quincunx_decoder::raster::{apply_coverage, check_coverage, slot};
 
 /// The hierarchy a raster is placed in: domain, diamond size and, per detail level, the
 /// diamonds that meet the raster.
@@ -117,8 +40,8 @@ impl RasterGeometry {
     /// Places a `width x height` raster in the smallest hierarchy of `N x N` diamonds.
     pub fn new(width: usize, height: usize, n: usize) -> Result<Self, RasterError> {
         let frame = RasterFrame::new(width, height, n, None)?;
-        let domain = frame.domain;
-        let detail_levels = frame.detail_levels as u32;
+        let domain = frame.domain();
+        let detail_levels = frame.detail_levels() as u32;
         let rect = [0, width as i64 - 1, 0, height as i64 - 1];
         let mut levels: Vec<Vec<DiamondSlot>> = (0..detail_levels)
             .map(|level| {
@@ -167,18 +90,18 @@ impl RasterGeometry {
                 apply_coverage(s, n, width, height, coverage, &empty);
             });
         }
-        g.frame.coverage = Some(coverage.clone());
+        g.frame.set_coverage(Some(coverage.clone()));
         Ok(g)
     }
 
     /// Whether raster sample `(x, y)` is a valid point: inside the raster and, with a
     /// coverage, in a covered block.
     pub fn is_valid(&self, x: usize, y: usize) -> bool {
-        x < self.width
-            && y < self.height
+        x < self.frame.width()
+            && y < self.frame.height()
             && self
-                .coverage
-                .as_ref()
+                .frame
+                .coverage()
                 .is_none_or(|c| c.covers_point(0, x, y))
     }
 
@@ -197,11 +120,11 @@ impl RasterGeometry {
     pub fn root_slot(&self) -> DiamondSlot {
         // The root always meets the raster.
         slot(
-            &self.domain,
-            self.domain.root(),
-            self.n,
-            self.width,
-            self.height,
+            &self.frame.domain(),
+            self.frame.domain().root(),
+            self.frame.n(),
+            self.frame.width(),
+            self.frame.height(),
         )
         .unwrap_or_else(|| unreachable!())
     }
@@ -209,7 +132,7 @@ impl RasterGeometry {
     /// Reads the root vertex grid (invalid vertices read as 0).
     pub fn gather_root(&self, raster: &[i32]) -> Vec<i32> {
         let root = self.root_slot();
-        let mut v = vec![0; (self.n + 1) * (self.n + 1)];
+        let mut v = vec![0; (self.frame.n() + 1) * (self.frame.n() + 1)];
         self.gather_vertices(&root, raster, &mut v);
         v
     }
@@ -221,15 +144,19 @@ impl RasterGeometry {
     }
 
     fn index(&self, (x, y): (i64, i64)) -> Option<usize> {
-        if x >= 0 && y >= 0 && (x as usize) < self.width && (y as usize) < self.height {
-            Some(y as usize * self.width + x as usize)
+        if x >= 0
+            && y >= 0
+            && (x as usize) < self.frame.width()
+            && (y as usize) < self.frame.height()
+        {
+            Some(y as usize * self.frame.width() + x as usize)
         } else {
             None
         }
     }
 
     fn gather_vertices(&self, s: &DiamondSlot, raster: &[i32], v: &mut [i32]) {
-        let n = self.n;
+        let n = self.frame.n();
         if let Some([v0, _, si, sj]) = s.lin {
             read_lattice(raster, n + 1, v0, si, sj, v);
             return;
@@ -242,7 +169,7 @@ impl RasterGeometry {
     }
 
     fn gather_cells(&self, s: &DiamondSlot, raster: &[i32], c: &mut [i32]) {
-        let n = self.n;
+        let n = self.frame.n();
         if let Some([_, c0, si, sj]) = s.lin {
             read_lattice(raster, n, c0, si, sj, c);
             return;
@@ -266,7 +193,7 @@ impl RasterGeometry {
         start: usize,
         margin: usize,
     ) {
-        let n = self.n;
+        let n = self.frame.n();
         if let Some([v0, _, si, sj]) = s.lin {
             write_lattice(part, start, n + 1, margin, v0, si, sj, v);
             return;
@@ -282,7 +209,7 @@ impl RasterGeometry {
 
     /// Writes the cell centres that fall inside `part` (see [`Self::scatter_vertices`]).
     fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], part: &mut [i32], start: usize) {
-        let n = self.n;
+        let n = self.frame.n();
         if let Some([_, c0, si, sj]) = s.lin {
             write_lattice(part, start, n, 0, c0, si, sj, c);
             return;
@@ -461,226 +388,6 @@ pub(crate) trait Layout: Sync {
     fn coverage(&self) -> Option<&Coverage>;
     /// Per array entry, whether it is a valid point; `None` when every entry is.
     fn point_validity(&self) -> Option<Vec<bool>>;
-}
-
-/// The raster range holding `count` entries `base + j step` (`j = 0..count`), as
-/// `(first, last)` indices in ascending order.
-fn strided_span(base: isize, step: isize, count: usize) -> (usize, usize) {
-    let end = base + (count as isize - 1) * step;
-    (base.min(end) as usize, base.max(end) as usize)
-}
-
-/// The `m x m` sub-grid at `(o, o)` of a diamond's `w x w` lattice (buffer index
-/// `i w + j`), whose point `(i, j)` is raster index `base + i si + j sj`.
-///
-/// [`Lattice::lines`] walks it along the lattice direction with the shortest raster
-/// step. For a diamond rotated 45 degrees in the raster that is a diagonal of the
-/// lattice, which runs along a raster row: its points are 2 (or 2^k) samples apart
-/// instead of a raster row, so the accesses stream through cache lines and pages
-/// instead of touching a new page per sample (korea RMS 9 m decoding went from 80 to
-/// 89-93 M samples/s; docs/codec.md).
-struct Lattice {
-    m: usize,
-    o: usize,
-    w: usize,
-    base: isize,
-    si: isize,
-    sj: isize,
-}
-
-impl Lattice {
-    fn new(m: usize, o: usize, w: usize, base: isize, si: isize, sj: isize) -> Self {
-        Lattice {
-            m,
-            o,
-            w,
-            base,
-            si,
-            sj,
-        }
-    }
-
-    /// Calls `line(raster_start, raster_step, buffer_start, buffer_step, len)` for lines
-    /// covering the sub-grid exactly once.
-    fn lines(&self, mut line: impl FnMut(isize, isize, usize, usize, usize)) {
-        let (m, w) = (self.m, self.w);
-        if m == 0 {
-            return;
-        }
-        let mut at = |i: usize, j: usize, rs: isize, bs: usize, len: usize| {
-            let (i, j) = (self.o + i, self.o + j);
-            line(
-                self.base + i as isize * self.si + j as isize * self.sj,
-                rs,
-                i * w + j,
-                bs,
-                len,
-            );
-        };
-        let (si, sj) = (self.si, self.sj);
-        let steps = [sj, si, si + sj, si - sj].map(isize::unsigned_abs);
-        let best = (0..4).min_by_key(|&k| steps[k]).unwrap_or(0);
-        match best {
-            0 => (0..m).for_each(|i| at(i, 0, sj, 1, m)),
-            1 => (0..m).for_each(|j| at(0, j, si, w, m)),
-            2 => {
-                // Lines of constant j - i, from the corner (m - 1, 0) to (0, m - 1).
-                for i in (1..m).rev() {
-                    at(i, 0, si + sj, w + 1, m - i);
-                }
-                for j in 0..m {
-                    at(0, j, si + sj, w + 1, m - j);
-                }
-            }
-            _ => {
-                // Lines of constant i + j, stepping (i + 1, j - 1).
-                for j in 0..m {
-                    at(0, j, si - sj, w - 1, j + 1);
-                }
-                for i in 1..m {
-                    at(i, m - 1, si - sj, w - 1, m - i);
-                }
-            }
-        }
-    }
-}
-
-impl Lattice {
-    /// Lowest and highest raster index of the sub-grid.
-    fn span(&self) -> (isize, isize) {
-        let e = self.m.saturating_sub(1) as isize;
-        let b = self.base + self.o as isize * (self.si + self.sj);
-        let c = [
-            b,
-            b + e * self.si,
-            b + e * self.sj,
-            b + e * (self.si + self.sj),
-        ];
-        (
-            c.iter().copied().min().unwrap_or(b),
-            c.iter().copied().max().unwrap_or(b),
-        )
-    }
-
-    /// Writes the sub-grid of `buf` to the raster, as far as it falls in `part` (raster
-    /// indices `start..start + part.len()`).
-    fn write_part(&self, buf: &[i32], part: &mut [i32], start: usize) {
-        let (lo, hi) = self.span();
-        let (start, end) = (start as isize, (start + part.len()) as isize);
-        if hi < start || lo >= end {
-            return;
-        }
-        if lo >= start && hi < end {
-            self.lines(|r, rs, b, bs, len| write_line(part, r - start, rs, buf, b, bs, len));
-        } else {
-            self.lines(|r, rs, b, bs, len| {
-                let (t0, t1) = clip_line(r, rs, len, start, end);
-                if t0 < t1 {
-                    let r = r + t0 as isize * rs - start;
-                    write_line(part, r, rs, buf, b + t0 * bs, bs, t1 - t0);
-                }
-            });
-        }
-    }
-}
-
-/// Reads the `side x side` lattice whose point `(i, j)` is `raster[base + i si + j sj]`
-/// into `out` (row-major), walking the shortest raster step ([`Lattice`]).
-pub(crate) fn read_lattice(
-    raster: &[i32],
-    side: usize,
-    base: isize,
-    si: isize,
-    sj: isize,
-    out: &mut [i32],
-) {
-    Lattice::new(side, 0, side, base, si, sj)
-        .lines(|r, rs, b, bs, len| read_line(raster, r, rs, out, b, bs, len));
-}
-
-/// Writes rows and columns `margin..side - margin` of the `side x side` grid `v` back to
-/// the lattice of [`read_lattice`], as far as it falls in `part`, the raster entries from
-/// index `start` (the whole raster: `start` 0).
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn write_lattice(
-    part: &mut [i32],
-    start: usize,
-    side: usize,
-    margin: usize,
-    base: isize,
-    si: isize,
-    sj: isize,
-    v: &[i32],
-) {
-    Lattice::new(side - 2 * margin, margin, side, base, si, sj).write_part(v, part, start);
-}
-
-/// The range `t0..t1` of `t < len` with `start <= base + t step < end`.
-fn clip_line(base: isize, step: isize, len: usize, start: isize, end: isize) -> (usize, usize) {
-    let len = len as isize;
-    let (lo, hi) = match step.signum() {
-        0 if (start..end).contains(&base) => (0, len),
-        0 => (0, 0),
-        // ceil((start - base) / step) ..= floor((end - 1 - base) / step)
-        1 => (
-            -(base - start).div_euclid(step),
-            (end - 1 - base).div_euclid(step) + 1,
-        ),
-        _ => (
-            -(end - 1 - base).div_euclid(-step),
-            (base - start).div_euclid(-step) + 1,
-        ),
-    };
-    let (lo, hi) = (lo.clamp(0, len), hi.clamp(0, len));
-    (lo as usize, hi.max(lo) as usize)
-}
-
-/// `buf[b0 + t bstep] = raster[base + t step]` for `t < len`: the raster bounds are
-/// checked once per line (plain index loops: `step_by` divides to find its length, which
-/// costs more than the copy on the short diagonal lines).
-fn read_line(
-    raster: &[i32],
-    base: isize,
-    step: isize,
-    buf: &mut [i32],
-    b0: usize,
-    bstep: usize,
-    len: usize,
-) {
-    if len == 0 {
-        return;
-    }
-    let (lo, hi) = strided_span(base, step, len);
-    let span = &raster[lo..=hi];
-    let out = &mut buf[b0..=b0 + (len - 1) * bstep];
-    let mut r = base - lo as isize;
-    for t in 0..len {
-        out[t * bstep] = span[r as usize];
-        r += step;
-    }
-}
-
-/// `raster[base + t step] = buf[b0 + t bstep]` for `t < len`.
-fn write_line(
-    raster: &mut [i32],
-    base: isize,
-    step: isize,
-    buf: &[i32],
-    b0: usize,
-    bstep: usize,
-    len: usize,
-) {
-    if len == 0 {
-        return;
-    }
-    let (lo, hi) = strided_span(base, step, len);
-    let span = &mut raster[lo..=hi];
-    let src = &buf[b0..=b0 + (len - 1) * bstep];
-    let mut r = base - lo as isize;
-    for t in 0..len {
-        span[r as usize] = src[t * bstep];
-        r += step;
-    }
 }
 
 /// Diamonds transformed in parallel, then written back together ([`scatter_chunk`]):
@@ -905,7 +612,7 @@ impl Layout for RasterGeometry {
     type Slot = DiamondSlot;
 
     fn n(&self) -> usize {
-        self.n
+        self.frame.n()
     }
 
     fn slot_levels(&self) -> &[Vec<DiamondSlot>] {
@@ -913,7 +620,7 @@ impl Layout for RasterGeometry {
     }
 
     fn raster_len(&self) -> usize {
-        self.width * self.height
+        self.frame.width() * self.frame.height()
     }
 
     fn mask<'s>(&self, s: &'s DiamondSlot) -> Option<&'s DiamondMask> {
@@ -939,7 +646,8 @@ impl Layout for RasterGeometry {
     fn index_span(&self, s: &DiamondSlot) -> (usize, usize) {
         match s.lin {
             Some([v0, _, si, sj]) => {
-                let (lo, hi) = Lattice::new(self.n + 1, 0, self.n + 1, v0, si, sj).span();
+                let (lo, hi) =
+                    Lattice::new(self.frame.n() + 1, 0, self.frame.n() + 1, v0, si, sj).span();
                 (lo.max(0) as usize, hi.max(0) as usize)
             }
             None => (0, self.raster_len().saturating_sub(1)),
@@ -963,7 +671,7 @@ impl Layout for RasterGeometry {
     }
 
     fn scatter_roots(&self, roots: &[Vec<i32>], raster: &mut [i32]) -> Result<(), RasterError> {
-        let side = (self.n + 1) * (self.n + 1);
+        let side = (self.frame.n() + 1) * (self.frame.n() + 1);
         match roots {
             [root] if root.len() == side => {
                 self.scatter_root(root, raster);
@@ -979,7 +687,7 @@ impl Layout for RasterGeometry {
     fn clear_duplicates(&self, _mask: &mut [bool]) {}
 
     fn distinct_len(&self) -> usize {
-        self.width * self.height
+        self.frame.width() * self.frame.height()
     }
 
     fn fill_nodata(
@@ -989,269 +697,30 @@ impl Layout for RasterGeometry {
         out: &mut [i32],
         to_int: &(dyn Fn(f64) -> i32 + Sync),
     ) -> bool {
-        crate::fill::fill_into(self.width, self.height, values, valid, out, to_int)
+        crate::fill::fill_into(
+            self.frame.width(),
+            self.frame.height(),
+            values,
+            valid,
+            out,
+            to_int,
+        )
     }
 
     fn coverage(&self) -> Option<&Coverage> {
-        self.coverage.as_ref()
+        self.frame.coverage()
     }
 
     fn point_validity(&self) -> Option<Vec<bool>> {
-        self.coverage.as_ref()?;
+        self.frame.coverage()?;
         Some(
-            (0..self.width * self.height)
+            (0..self.frame.width() * self.frame.height())
                 .into_par_iter()
-                .map(|k| self.is_valid(k % self.width, k / self.width))
+                .map(|k| self.is_valid(k % self.frame.width(), k / self.frame.width()))
                 .collect(),
         )
     }
 }
-
-/// Checks that `coverage` is a block grid of a `width x height` raster.
-fn check_coverage(width: usize, height: usize, coverage: &Coverage) -> Result<(), RasterError> {
-    let b = coverage.block_side();
-    if coverage.faces() != 1
-        || coverage.cols() != (width - 1) / b + 1
-        || coverage.rows() != (height - 1) / b + 1
-    {
-        return Err(RasterError::Coverage("block grid of another raster size"));
-    }
-    Ok(())
-}
-
-/// Makes the points of slot `s` outside the covered blocks of `coverage` invalid.
-fn apply_coverage(
-    s: &mut DiamondSlot,
-    n: usize,
-    width: usize,
-    height: usize,
-    coverage: &Coverage,
-    empty: &DiamondMask,
-) {
-    let (w, h) = (width as i64, height as i64);
-    let inside = |(x, y): (i64, i64)| x >= 0 && y >= 0 && x < w && y < h;
-    let covered =
-        |(x, y): (i64, i64)| inside((x, y)) && coverage.covers_point(0, x as usize, y as usize);
-    let corners = [(0, 0), (n, 0), (n, n), (0, n)].map(|(i, j)| s.vertex_xy(i, j));
-    let range = |k: usize, hi: i64| {
-        let lo = corners.iter().map(|c| [c.0, c.1][k]).min().unwrap_or(0);
-        let up = corners.iter().map(|c| [c.0, c.1][k]).max().unwrap_or(0);
-        [lo.max(0) as usize, up.min(hi - 1).max(0) as usize]
-    };
-    match coverage.state(0, range(0, w), range(1, h)) {
-        BlockState::Full => {}
-        BlockState::Empty => s.mask = Some(empty.clone()),
-        BlockState::Mixed => {
-            s.mask = Some(DiamondMask::from_fn(
-                n,
-                |i, j| covered(s.vertex_xy(i, j)),
-                |i, j| covered(s.cell_xy(i, j)),
-            ));
-        }
-    }
-}
-
-/// Where a raster sits in the hierarchy, without the per-diamond tables of
-/// [`RasterGeometry`]: what is needed of one diamond is derived from its id, so a client
-/// holds memory for the diamonds it looks at, not for the repository's.
-#[derive(Clone, Debug)]
-pub struct RasterFrame {
-    width: usize,
-    height: usize,
-    n: usize,
-    domain: PlanarDomain,
-    detail_levels: usize,
-    coverage: Option<Coverage>,
-}
-
-impl RasterFrame {
-    /// The frame of a `width x height` raster coded with `N x N` diamonds (the hierarchy
-    /// of [`RasterGeometry::new`]) and, for sparse repositories, its coverage.
-    pub fn new(
-        width: usize,
-        height: usize,
-        n: usize,
-        coverage: Option<&Coverage>,
-    ) -> Result<Self, RasterError> {
-        check_size(n)?;
-        if width == 0 || height == 0 || width > 1 << 24 || height > 1 << 24 {
-            return Err(RasterError::BadDimensions(width, height));
-        }
-        let extent = (width.max(height) - 1).max(1) as u64;
-        let mut k = 0u32;
-        while ((n as u64) << k) < extent {
-            k += 1;
-        }
-        let m = n.trailing_zeros() + k;
-        let domain = PlanarDomain::new(m.max(1))?;
-        if let Some(c) = coverage {
-            check_coverage(width, height, c)?;
-        }
-        Ok(RasterFrame {
-            width,
-            height,
-            n,
-            domain,
-            detail_levels: 2 * k as usize,
-            coverage: coverage.cloned(),
-        })
-    }
-
-    /// Raster width.
-    pub fn width(&self) -> usize {
-        self.width
-    }
-
-    /// Raster height.
-    pub fn height(&self) -> usize {
-        self.height
-    }
-
-    /// Diamond size `N`.
-    pub fn n(&self) -> usize {
-        self.n
-    }
-
-    /// The planar domain (id units = raster samples).
-    pub fn domain(&self) -> PlanarDomain {
-        self.domain
-    }
-
-    /// Number of levels that carry details.
-    pub fn detail_levels(&self) -> usize {
-        self.detail_levels
-    }
-
-    /// The coverage (sparse repositories).
-    pub fn coverage(&self) -> Option<&Coverage> {
-        self.coverage.as_ref()
-    }
-
-    /// The detail level of `id` if it is a diamond of a detail level.
-    fn detail_level(&self, id: PlanarId) -> Option<usize> {
-        let level = self.domain.level(id).ok()? as usize;
-        (level < self.detail_levels).then_some(level)
-    }
-
-    /// Whether diamond `id` carries details: of a detail level, with a point in the
-    /// raster (the diamonds of [`RasterGeometry::level`]). Builds no mask.
-    pub fn is_coded(&self, id: PlanarId) -> bool {
-        self.detail_level(id).is_some() && self.meets(id)
-    }
-
-    /// Whether a vertex or cell of diamond `id` lies in the raster.
-    fn meets(&self, id: PlanarId) -> bool {
-        let Some(s) = bare_slot(&self.domain, id, self.n) else {
-            return false;
-        };
-        let (w, h) = (self.width as i64, self.height as i64);
-        let inside = |(x, y): (i64, i64)| x >= 0 && y >= 0 && x < w && y < h;
-        let n = self.n;
-        // Every point lies in the box of the corners: a box outside the raster has none.
-        let corners = [(0, 0), (n, 0), (n, n), (0, n)].map(|(i, j)| s.vertex_xy(i, j));
-        let lo = |k: usize| corners.iter().map(|c| [c.0, c.1][k]).min().unwrap_or(0);
-        let hi = |k: usize| corners.iter().map(|c| [c.0, c.1][k]).max().unwrap_or(-1);
-        if lo(0) >= w || hi(0) < 0 || lo(1) >= h || hi(1) < 0 {
-            return false;
-        }
-        corners.iter().any(|&c| inside(c))
-            || (0..=n).any(|i| (0..=n).any(|j| inside(s.vertex_xy(i, j))))
-            || (0..n).any(|i| (0..n).any(|j| inside(s.cell_xy(i, j))))
-    }
-
-    /// The slot of a diamond that carries details (its level, storage key and mask, the
-    /// raster's edges and coverage applied; no child indices), `None` for others.
-    pub fn slot(&self, id: PlanarId) -> Option<(usize, DiamondSlot)> {
-        let level = self.detail_level(id)?;
-        let mut s = slot(&self.domain, id, self.n, self.width, self.height)?;
-        if let Some(c) = &self.coverage {
-            apply_coverage(
-                &mut s,
-                self.n,
-                self.width,
-                self.height,
-                c,
-                &DiamondMask::none(self.n),
-            );
-        }
-        Some((level, s))
-    }
-
-    /// The blob context of a coded diamond's slot at `level` with `owned` owned children.
-    pub fn slot_context<'a>(
-        &self,
-        level: usize,
-        s: &'a DiamondSlot,
-        owned: usize,
-    ) -> BlobContext<'a> {
-        BlobContext::of_level(
-            &s.key,
-            self.n,
-            self.detail_levels,
-            level,
-            s.mask.as_ref(),
-            owned,
-        )
-    }
-}
-
-/// A diamond's frame as a slot (no key, mask or placement), `None` outside the domain.
-fn bare_slot(domain: &PlanarDomain, id: PlanarId, n: usize) -> Option<DiamondSlot> {
-    let c = domain.corners(id).ok()?;
-    let ni = n as i64;
-    let a = [(c[1][0] - c[0][0]) / ni, (c[1][1] - c[0][1]) / ni];
-    let b = [(c[3][0] - c[0][0]) / ni, (c[3][1] - c[0][1]) / ni];
-    Some(DiamondSlot {
-        id,
-        x0: c[0][0],
-        y0: c[0][1],
-        a,
-        b,
-        mask: None,
-        key: Vec::new(),
-        children: Vec::new(),
-        owned: Vec::new(),
-        lin: None,
-    })
-}
-
-/// The raster placement of a diamond, `None` if none of its points is in the raster.
-fn slot(
-    domain: &PlanarDomain,
-    id: PlanarId,
-    n: usize,
-    width: usize,
-    height: usize,
-) -> Option<DiamondSlot> {
-    let mut s = bare_slot(domain, id, n)?;
-    s.key = domain.key(id).ok()?;
-    let inside =
-        |(x, y): (i64, i64)| x >= 0 && y >= 0 && (x as usize) < width && (y as usize) < height;
-    let all_corners = [(0, 0), (n, 0), (n, n), (0, n)]
-        .iter()
-        .all(|&(i, j)| inside(s.vertex_xy(i, j)));
-    if !all_corners {
-        let mask = DiamondMask::from_fn(
-            n,
-            |i, j| inside(s.vertex_xy(i, j)),
-            |i, j| inside(s.cell_xy(i, j)),
-        );
-        if mask.valid_cells() == 0 && (0..=n).all(|i| (0..=n).all(|j| !mask.vertex(i, j))) {
-            return None;
-        }
-        s.mask = Some(mask);
-    } else {
-        let w = width as isize;
-        let at = |(x, y): (i64, i64)| y as isize * w + x as isize;
-        let v0 = at(s.vertex_xy(0, 0));
-        let c0 = at(s.cell_xy(0, 0));
-        let si = at(s.vertex_xy(1, 0)) - v0;
-        let sj = at(s.vertex_xy(0, 1)) - v0;
-        s.lin = Some([v0, c0, si, sj]);
-    }
-    Some(s)
-}
-
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {

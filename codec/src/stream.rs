@@ -44,7 +44,8 @@ use crate::encode::{
 };
 use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::lifting::{self, DiamondMask};
-use crate::raster::{DiamondSlot, RasterGeometry, read_lattice, write_lattice};
+use crate::raster::{DiamondSlot, RasterGeometry};
+use quincunx_decoder::lattice::{read_lattice, write_lattice};
 
 mod cube;
 mod rms;

@@ -8,7 +8,9 @@ mod common;
 use std::collections::HashMap;
 
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::encode::{EncodeOptions, Encoded, RateMode, decode_integers, encode};
+use quincunx_codec::encode::{
+    EncodeOptions, Encoded, FromEncoded, RateMode, decode_integers, encode,
+};
 use quincunx_codec::incremental::{PlanarRefiner, RefineError, Refined};
 use quincunx_codec::raster::RasterGeometry;
 

@@ -8,7 +8,9 @@ mod common;
 use std::collections::HashMap;
 
 use quincunx_codec::diamond::SphereId;
-use quincunx_codec::encode::{self, EncodeOptions, Encoded, RateMode, decode_sphere_integers};
+use quincunx_codec::encode::{
+    self, EncodeOptions, Encoded, FromEncoded, RateMode, decode_sphere_integers,
+};
 use quincunx_codec::incremental::{RefineError, Refined, Refiner, SphereRefiner};
 
 fn planet(face_side: usize, n: usize, mode: RateMode) -> Encoded {

@@ -23,7 +23,7 @@ use std::collections::{BTreeMap, BTreeSet};
 use quincunx_codec::coverage::Coverage;
 use quincunx_codec::diamond::sphere::{cube_to_unit_sphere, unit_sphere_to_cube};
 use quincunx_codec::diamond::{SphereDomain, SphereId};
-use quincunx_codec::encode::{self, EncodeOptions, Encoded, RateMode};
+use quincunx_codec::encode::{self, EncodeOptions, Encoded, FromEncoded, RateMode};
 use quincunx_codec::incremental::{Refiner, SphereRefiner};
 use quincunx_codec::sphere_raster::{SphereFrame, SphereGeometry};
 use serde_json::{Value, json};

@@ -8,7 +8,9 @@ mod common;
 use std::collections::HashMap;
 
 use common::{bundled_korea, grid};
-use quincunx_codec::encode::{EncodeOptions, Encoded, RateMode, decode_integers, encode};
+use quincunx_codec::encode::{
+    EncodeOptions, Encoded, FromEncoded, RateMode, decode_integers, encode,
+};
 use quincunx_codec::incremental::{
     PlanarRefiner, Procedural, RefineError, Refined, Refiner, SphereRefiner,
 };

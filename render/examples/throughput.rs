@@ -38,7 +38,7 @@ use quincunx_client::dag::Dag;
 use quincunx_client::refine::{Availability, DetailSource, Refinement, SystemClock};
 use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::encode::{EncodeOptions, Encoded, Grid, RateMode, encode};
+use quincunx_codec::encode::{EncodeOptions, Encoded, FromEncoded, Grid, RateMode, encode};
 use quincunx_codec::incremental::PlanarRefiner;
 use quincunx_render::camera::default_light;
 use quincunx_render::offscreen::OFFSCREEN_FORMAT;

@@ -6,8 +6,8 @@ use glam::DVec3;
 use quincunx_client::dag::Half;
 use quincunx_client::domain::Domain;
 use quincunx_client::view::{PlanarWorld, SphereWorld};
-use quincunx_codec::diamond::sphere::unit_sphere_to_cube;
-use quincunx_codec::incremental::{PlanarRefiner, Refiner, SphereRefiner};
+use quincunx_decoder::diamond::sphere::unit_sphere_to_cube;
+use quincunx_decoder::incremental::{PlanarRefiner, Refiner, SphereRefiner};
 
 /// The integer geometry of a repository, as the shader sees it.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -69,7 +69,7 @@ impl WorldFrame {
                 h,
             ),
             Geometry::Planet { radius_m, .. } => {
-                let d = DVec3::from_array(quincunx_codec::diamond::sphere::cube_to_unit_sphere(
+                let d = DVec3::from_array(quincunx_decoder::diamond::sphere::cube_to_unit_sphere(
                     p.map(|x| x as f64),
                 ));
                 d * (radius_m + h)

@@ -15,7 +15,7 @@ use quincunx_client::dag::Dag;
 use quincunx_client::refine::{Availability, DetailSource};
 use quincunx_client::view::{PlanarWorld, View};
 use quincunx_codec::diamond::PlanarId;
-use quincunx_codec::encode::{EncodeOptions, Grid, RateMode, encode};
+use quincunx_codec::encode::{EncodeOptions, FromEncoded, Grid, RateMode, encode};
 use quincunx_codec::incremental::PlanarRefiner;
 use quincunx_render::offscreen::gpu_for_test_with;
 use quincunx_render::{Camera, RenderDomain};

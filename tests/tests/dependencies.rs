@@ -75,7 +75,7 @@ fn client_and_server_do_not_depend_on_wgpu() {
         "quincunx-render's tree lists no wgpu"
     );
     for (crate_name, known) in [
-        ("quincunx-client", "quincunx-codec "),
+        ("quincunx-client", "quincunx-decoder "),
         ("quincunx-server", "quincunx-store "),
     ] {
         let tree = tree_of(crate_name);

@@ -697,7 +697,7 @@ function opsFor(refiner, planar) {
 }
 
 // ---------------------------------------------------------------------------------------
-// Procedural levels (codec/src/incremental: `with_procedural_levels`, Procedural::Zero),
+// Procedural levels (decoder/src/incremental: `with_procedural_levels`, Procedural::Zero),
 // which the refiner ports leave out: levels below the coded ones refined with zero
 // details, so a colour layer and its elevation refine to the deeper one's depth.
 

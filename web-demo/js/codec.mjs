@@ -3,14 +3,14 @@
  * codec (spec: docs/blob-format.md).
  *
  * Ports, in the order of this file:
- * - `codec/src/blob.rs`: `DecodeError`, `crc16`, `BlobContext` (`blobContextOfLevel`),
+ * - `decoder/src/blob.rs`: `DecodeError`, `crc16`, `BlobContext` (`blobContextOfLevel`),
  *   `decodeBlob` / `decodeBlobInto` (`blob::decode` / `blob::decode_into`);
- * - `codec/src/entropy/range.rs`: the range decoder (`RangeDecoder`);
- * - `codec/src/entropy/mod.rs`: `CodecModel` (`parseModel` = `CodecModel::from_bytes`,
+ * - `decoder/src/entropy/range.rs`: the range decoder (`RangeDecoder`);
+ * - `decoder/src/entropy/mod.rs`: `CodecModel` (`parseModel` = `CodecModel::from_bytes`,
  *   with an exact copy of `MODEL_PROBS`), `group`, the side information and matrix
  *   readers, `classBound`, `gammaClass`, `splitSide`, `NO_DATA`;
  * - `codec/src/encode.rs`: `dequantize`;
- * - `codec/src/colour.rs`: `ycocgRToRgb` (inverse YCoCg-R) and `rgbToYcocgR`;
+ * - `decoder/src/colour.rs`: `ycocgRToRgb` (inverse YCoCg-R) and `rgbToYcocgR`;
  * - `meta/src/channels.rs`: `splitChannels`;
  * - `meta/src/answer.rs` (re-exported by `store/src/answer.rs`): `parsePackage`
  *   (`answer::parse`).
@@ -59,7 +59,7 @@ export class DecodeError extends Error {
 }
 
 // ---------------------------------------------------------------------------------------
-// Blob header (codec/src/blob.rs).
+// Blob header (decoder/src/blob.rs).
 
 /** Current blob format version. */
 export const VERSION = 5;
@@ -96,7 +96,7 @@ export function crc16(...parts) {
 }
 
 // ---------------------------------------------------------------------------------------
-// Model and context layout (codec/src/entropy/mod.rs).
+// Model and context layout (decoder/src/entropy/mod.rs).
 
 /** Number of level groups with their own contexts. */
 export const GROUPS = 6;
@@ -270,7 +270,7 @@ export function splitSide(entry) {
 }
 
 // ---------------------------------------------------------------------------------------
-// Range decoder (codec/src/entropy/range.rs), with a model's probabilities of one group.
+// Range decoder (decoder/src/entropy/range.rs), with a model's probabilities of one group.
 
 const TOP = 1 << 24;
 const EMPTY = new Uint8Array(0);
@@ -692,7 +692,7 @@ function readMatrix(d, n, q, cells, hideSigns) {
 }
 
 // ---------------------------------------------------------------------------------------
-// Blobs (codec/src/blob.rs).
+// Blobs (decoder/src/blob.rs).
 
 /**
  * What the decoder must know about a diamond besides its bytes (`BlobContext`):
@@ -841,7 +841,7 @@ export function dequantizeMatrix(q, s, out = new Int32Array(q.length)) {
 }
 
 // ---------------------------------------------------------------------------------------
-// Colour (codec/src/colour.rs).
+// Colour (decoder/src/colour.rs).
 
 /**
  * Inverse YCoCg-R of one pixel (`ycocg_r_to_rgb`).

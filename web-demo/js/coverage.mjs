@@ -1,5 +1,5 @@
 // Coverage of a sparse repository: which coarse blocks of a raster (or of a planet's
-// faces) hold data. A port of the decoder's side of codec/src/coverage.rs: parsing
+// faces) hold data. A port of the decoder's side of decoder/src/coverage.rs: parsing
 // (`Coverage.fromBytes`, hostile bytes throw DecodeError) and the queries diamond masks
 // are derived from (`coversPoint`, `state`). The encoder-side builders are not ported.
 //

@@ -1,6 +1,6 @@
 // Integer wavelet lifting of one diamond, and the gather/scatter between a refined
 // diamond's lattice and its children's grids: a bit-exact port of
-// codec/src/lifting/mod.rs and codec/src/lifting/gather.rs.
+// decoder/src/lifting/mod.rs and decoder/src/lifting/gather.rs.
 //
 // A diamond holds an (N+1) x (N+1) vertex grid `v` (row-major, `v[i * (N+1) + j]`).
 // Synthesis turns it into the level below's lattice inside its square: updated vertices

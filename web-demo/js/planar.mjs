@@ -1,7 +1,7 @@
 // The planar domain and its incremental decoder: a bit-exact port of
 // diamond/src/planar.rs (PlanarDomain, PlanarId), the per-diamond part of
-// codec/src/raster.rs (RasterFrame: placement, masks, keys, blob contexts) and
-// codec/src/incremental/mod.rs (PlanarRefiner), plus `reconstructPlanar`, which decodes a
+// decoder/src/raster.rs (RasterFrame: placement, masks, keys, blob contexts) and
+// decoder/src/incremental/mod.rs (PlanarRefiner), plus `reconstructPlanar`, which decodes a
 // whole repository through the refiner (the path the viewer uses) into the canonical
 // layout: per channel, width x height integers, row-major, as Rust's
 // `encode::decode_integers_with` gives them.

@@ -5,7 +5,7 @@
 //   equal-angle cube -> unit sphere map;
 // - the parts of codec/src/sphere_raster.rs a refiner needs (SphereFrame: a diamond's slot
 //   in the cube raster, its mask under a sparse coverage, its blob context);
-// - codec/src/incremental/sphere.rs (SphereRefiner: decode, synthesise, assemble a child's
+// - decoder/src/incremental/sphere.rs (SphereRefiner: decode, synthesise, assemble a child's
 //   grid from its parents' lattices, also across cube edges);
 // - `reconstructSphere(meta, getBlob)`: every diamond of every level refined through the
 //   SphereRefiner, written into the cube raster as the whole-planet decoder
@@ -595,7 +595,7 @@ export function planetPoint(p, radiusM, heightM) {
 }
 
 // ---------------------------------------------------------------------------------------
-// The cube raster and single diamonds in it (codec/src/sphere_raster.rs).
+// The cube raster and single diamonds in it (decoder/src/sphere_raster.rs).
 
 /// An affine index map: vertex (i, j) at `v0 + i si + j sj`, cell (i, j) at
 /// `c0 + i si + j sj` (cube-raster indices).
@@ -979,7 +979,7 @@ export class SphereFrame {
 
 
 // ---------------------------------------------------------------------------------------
-// Incremental decoding (codec/src/incremental/sphere.rs and the shared parts of mod.rs).
+// Incremental decoding (decoder/src/incremental/sphere.rs and the shared parts of mod.rs).
 
 /// A refinement error (incremental::RefineError): a bug of the caller or bad data.
 export class RefineError extends DecodeError {

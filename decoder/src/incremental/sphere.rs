@@ -13,7 +13,6 @@ use super::{
 use crate::coverage::Coverage;
 use crate::diamond::sphere::unfold;
 use crate::diamond::{SphereDomain, SphereId};
-use crate::encode::{Encoded, EncodedDomain};
 use crate::entropy::CodecModel;
 use crate::lifting;
 use crate::sphere_raster::{SphereFrame, SphereSlot};
@@ -86,21 +85,6 @@ impl SphereRefiner {
     fn procedural_level(&self, id: SphereId) -> Option<usize> {
         let level = self.geometry.domain().level(id).ok();
         self.extension.level(self.geometry.detail_levels(), level)
-    }
-
-    /// The refiner of an in-memory planet encoding.
-    pub fn from_encoded(enc: &Encoded) -> Result<SphereRefiner, RefineError> {
-        let EncodedDomain::Sphere { face_side } = enc.domain else {
-            return Err(RefineError::WrongDomain);
-        };
-        SphereRefiner::new(
-            face_side,
-            enc.n,
-            enc.coverage.as_ref(),
-            enc.steps.clone(),
-            enc.model.clone(),
-            enc.roots.clone(),
-        )
     }
 
     /// The id space.

@@ -1,5 +1,5 @@
 //! Coverage: which coarse blocks of a raster (or of a planet's faces) hold data, for the
-//! sparse encoding mode ([`crate::encode::EncodeOptions::sparse`]).
+//! sparse encoding mode (`quincunx_codec::encode::EncodeOptions::sparse`).
 //!
 //! The sample array is cut into square blocks of `B x B` samples (`B` a power of two),
 //! aligned at sample 0: block `(col, row)` of a face spans samples `col B ..= (col+1) B`
@@ -82,7 +82,7 @@ pub struct Coverage {
 
 /// Whether the blocks met by a rectangle are all covered, none, or some.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum BlockState {
+pub enum BlockState {
     /// Every block met is covered.
     Full,
     /// No block met is covered (or no block is met).

@@ -2,7 +2,7 @@
 //! unchanged).
 //!
 //! The plain quantiser rounds each detail on its own. This one walks a matrix in the
-//! coefficient coder's order ([`super::write_matrix`]: 4x4 blocks in raster order, cells
+//! coefficient coder's order ([`crate::entropy::write_matrix`]: 4x4 blocks in raster order, cells
 //! in raster order) with the coder's own contexts and adaptive probabilities, starting
 //! from a trained [`CodecModel`], and picks for each cell the index among the nearest,
 //! one less and zero that minimises `squared error + lambda x bits`. Then each block as
@@ -11,12 +11,12 @@
 
 use std::sync::OnceLock;
 
-use super::range::{Prob, adapt};
-use super::{
+use crate::encode::dequantize;
+use crate::entropy::range::{Prob, adapt};
+use crate::entropy::{
     Causal, CodecModel, Decision, HIDDEN_SIGN_MIN, NONZERO, PER_GROUP, QUAD, SIGN, activity_class,
     magnitude_decisions, on_ring, rice, sig_ctx,
 };
-use crate::encode::dequantize;
 
 /// Cost in bits of a decision whose probability is `p / 2^16`, by `p >> 4`.
 fn cost_table() -> &'static [f32; 4096] {
@@ -83,7 +83,7 @@ impl Model<'_> {
 /// What the quantiser needs to know about one matrix.
 #[derive(Clone, Copy, Debug)]
 pub struct Matrix<'a> {
-    /// Level group ([`super::group`]).
+    /// Level group ([`crate::entropy::group`]).
     pub group: usize,
     /// Cells per side.
     pub n: usize,
@@ -138,7 +138,7 @@ pub fn quantize_matrix(
     let base = g * PER_GROUP;
     let lambda = matrix.lambda;
     let mut m = Model {
-        probs: model.probs[base..base + PER_GROUP].to_vec(),
+        probs: model.probs()[base..base + PER_GROUP].to_vec(),
         log: Vec::with_capacity(256),
         cost: cost_table(),
     };

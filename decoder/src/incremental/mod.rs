@@ -10,7 +10,7 @@
 //! Every value a diamond's grid receives comes from exactly one parent lattice point.
 //! Shared edges are unfiltered boundary vertices that both parents carry identically.
 //! Neighbouring grids in any cut therefore agree bit for bit, and the values equal those
-//! of the whole-raster decoder ([`crate::encode::decode_integers`]); the tests check
+//! of the whole-raster decoder (`quincunx_codec::encode::decode_integers`); the tests check
 //! both.
 //!
 //! [`PlanarRefiner`] covers the planar domain, [`SphereRefiner`] planets. Neither holds
@@ -25,8 +25,8 @@ pub use sphere::SphereRefiner;
 
 use crate::blob::{self, DecodeError};
 use crate::coverage::Coverage;
+use crate::dequantize;
 use crate::diamond::{IdError, PlanarDomain, PlanarId};
-use crate::encode::{Encoded, dequantize};
 use crate::entropy::CodecModel;
 use crate::lifting::{self, DiamondMask};
 use crate::raster::{RasterError, RasterFrame};
@@ -114,7 +114,7 @@ pub struct Details<I = PlanarId> {
 pub struct DiamondInfo<I = PlanarId> {
     /// Detail level (0 = the root).
     pub level: usize,
-    /// Storage key (the blob's key in the repository; [`Encoded::blobs_by_key`] finds it
+    /// Storage key (the blob's key in the repository; `quincunx_codec::encode::Encoded::blobs_by_key` finds it
     /// in an encoder's output).
     pub key: Vec<u8>,
     /// Valid points (`None` = all): vertices outside the raster or its coverage are
@@ -503,19 +503,6 @@ impl PlanarRefiner {
                 |i, j| inside(at(2 * i as i64 + 1, 2 * j as i64 + 1)),
             )
         })
-    }
-
-    /// The refiner of an in-memory planar encoding.
-    pub fn from_encoded(enc: &Encoded) -> Result<PlanarRefiner, RefineError> {
-        PlanarRefiner::new(
-            enc.width,
-            enc.height,
-            enc.n,
-            enc.coverage.as_ref(),
-            enc.steps.clone(),
-            enc.model.clone(),
-            enc.root.clone(),
-        )
     }
 
     /// Diamond size `N`.

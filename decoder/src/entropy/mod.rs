@@ -25,7 +25,6 @@
 //!   at korea RMS 1 m the escapes alone were 9 % of the bytes.)
 
 pub mod range;
-pub mod rdo;
 
 use range::{Decoder, Encoder, HALF, Prob};
 
@@ -33,16 +32,22 @@ use range::{Decoder, Encoder, HALF, Prob};
 /// capped at `GROUPS - 1`).
 pub const GROUPS: usize = 6;
 
-const NONZERO: usize = 0;
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub const NONZERO: usize = 0;
 const GAMMA_ZERO: usize = 1;
 const GAMMA_UNARY: usize = 2; // 16
-const QUAD: usize = 18; // 4 sizes x 3
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub const QUAD: usize = 18; // 4 sizes x 3
 /// Activity classes (significance contexts per ring position).
 const CLASSES: usize = 10;
 const SIG: usize = 30; // CLASSES x (inside, outer ring)
 /// Sign contexts: the signs of W, N, NW and NE.
 const SIGNS: usize = 81;
-const SIGN: usize = SIG + 2 * CLASSES;
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub const SIGN: usize = SIG + 2 * CLASSES;
 /// Exp-Golomb prefix positions of magnitude escapes with their own context (the last
 /// shared by all longer prefixes).
 const ESCAPES: usize = 16;
@@ -52,7 +57,9 @@ const MAG_BINS: usize = 14;
 /// Magnitude context sets per ring position: 3 activity buckets for `k = 0`, then
 /// `k = 1..=6` and one for larger `k`.
 const RING_SETS: usize = 10;
-const PER_GROUP: usize = MAG + 2 * RING_SETS * MAG_BINS;
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub const PER_GROUP: usize = MAG + 2 * RING_SETS * MAG_BINS;
 /// Largest Golomb-Rice parameter (bounds the bypass bits of one magnitude's low part).
 const RICE_MAX: u32 = 15;
 /// Sign hiding (blob version 4, quantised levels only): in a 4x4 block with at least this
@@ -117,6 +124,11 @@ const MODEL_PROBS: [Prob; 256] = [
 ];
 
 impl CodecModel {
+    /// The starting probability of every context.
+    pub fn probs(&self) -> &[Prob] {
+        &self.probs
+    }
+
     /// A model from per-context counts of zeros and ones (each probability rounded to a
     /// model byte, so a model survives [`CodecModel::to_bytes`] exactly).
     pub fn from_counts(counts: &ContextCounts) -> Self {
@@ -201,12 +213,12 @@ impl Default for ContextCounts {
 
 impl ContextCounts {
     /// The counts, `[zeros, ones]` per context (a sharded build's parts carry them).
-    pub(crate) fn to_pairs(&self) -> Vec<[u64; 2]> {
+    pub fn to_pairs(&self) -> Vec<[u64; 2]> {
         self.counts.clone()
     }
 
     /// Counts from [`ContextCounts::to_pairs`]; `None` if the context count differs.
-    pub(crate) fn from_pairs(counts: Vec<[u64; 2]>) -> Option<Self> {
+    pub fn from_pairs(counts: Vec<[u64; 2]>) -> Option<Self> {
         (counts.len() == CONTEXTS).then_some(ContextCounts { counts })
     }
 
@@ -399,7 +411,9 @@ const ACTIVITY: [u8; 50] = {
 
 /// Class of activity `a`: 0, 1-2, 3-4, 5-6, 7-9, 10-13, 14-19, 20-29, 30-49, 50+.
 #[inline(always)]
-fn activity_class(a: u32) -> usize {
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub fn activity_class(a: u32) -> usize {
     ACTIVITY
         .get(a as usize)
         .map_or(CLASSES - 1, |&c| c as usize)
@@ -428,13 +442,15 @@ impl Blocks {
 
 /// The coefficients coded so far, padded with two zero columns on each side and two zero
 /// rows on top, so every cell's causal neighbours are read without bounds tests.
-struct Causal {
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub struct Causal {
     w: usize,
     v: Vec<i32>,
 }
 
 impl Causal {
-    fn new(n: usize) -> Self {
+    pub fn new(n: usize) -> Self {
         Causal {
             w: n + 4,
             v: vec![0; (n + 4) * (n + 2)],
@@ -442,20 +458,20 @@ impl Causal {
     }
 
     #[inline(always)]
-    fn set(&mut self, i: usize, j: usize, x: i32) {
+    pub fn set(&mut self, i: usize, j: usize, x: i32) {
         self.v[(i + 2) * self.w + j + 2] = x;
     }
 
     /// Indices in `v` of the row above cell `(i, j)` (at its column) and of the cell.
     #[inline(always)]
-    fn at(&self, i: usize, j: usize) -> (usize, usize) {
+    pub fn at(&self, i: usize, j: usize) -> (usize, usize) {
         let up = (i + 1) * self.w + j + 2;
         (up, up + self.w)
     }
 
     /// W, N, NW and NE of cell `(i, j)` (0 outside the matrix or not yet coded).
     #[inline(always)]
-    fn near(&self, i: usize, j: usize) -> [i32; 4] {
+    pub fn near(&self, i: usize, j: usize) -> [i32; 4] {
         let (up, here) = self.at(i, j);
         [self.v[here - 1], self.v[up], self.v[up - 1], self.v[up + 1]]
     }
@@ -463,7 +479,7 @@ impl Causal {
     /// Activity of coefficient `(i, j)`: `2|W| + 2|N| + |NW| + |NE| + |WW| + |NN|`
     /// (saturating; `WW`, `NN` two cells west and north; outside the matrix counts as 0).
     #[inline(always)]
-    fn activity(&self, i: usize, j: usize) -> u32 {
+    pub fn activity(&self, i: usize, j: usize) -> u32 {
         let [w, nn, nw, ne] = self.near(i, j);
         let (up, here) = self.at(i, j);
         2u32.saturating_mul(w.unsigned_abs())
@@ -477,7 +493,7 @@ impl Causal {
     /// Sign context of coefficient `(i, j)`: the signs of W, N, NW and NE (81). Asked only
     /// for nonzero coefficients.
     #[inline(always)]
-    fn sign_context(&self, i: usize, j: usize) -> usize {
+    pub fn sign_context(&self, i: usize, j: usize) -> usize {
         let [w, nn, nw, ne] = self.near(i, j);
         27 * sgn3(nw) + 9 * sgn3(ne) + 3 * sgn3(w) + sgn3(nn)
     }
@@ -486,20 +502,26 @@ impl Causal {
 /// Whether cell `(i, j)` of an `n x n` matrix is on its outer ring, where the transform
 /// predicts with order 2 only (larger details).
 #[inline(always)]
-fn on_ring(n: usize, i: usize, j: usize) -> bool {
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub fn on_ring(n: usize, i: usize, j: usize) -> bool {
     i == 0 || j == 0 || i + 1 == n || j + 1 == n
 }
 
 /// Significance context of a coefficient of activity class `class`.
 #[inline(always)]
-fn sig_ctx(class: usize, ring: bool) -> usize {
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub fn sig_ctx(class: usize, ring: bool) -> usize {
     SIG + class + CLASSES * ring as usize
 }
 
 /// Golomb-Rice parameter and magnitude context set of a coefficient with activity `a`
 /// (activity class `class`; `ring`: on the outer ring).
 #[inline(always)]
-fn rice(a: u32, class: usize, ring: bool) -> (u32, usize) {
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub fn rice(a: u32, class: usize, ring: bool) -> (u32, usize) {
     let t = a.saturating_add(8) / 16;
     let k = if t < 2 {
         0
@@ -680,7 +702,9 @@ pub fn write_matrix<S: BitSink>(
 
 /// One binary decision of a coded value.
 #[derive(Clone, Copy)]
-enum Decision {
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub enum Decision {
     /// A context-coded bit (context relative to the level group).
     Bit(usize, bool),
     /// `count` equiprobable bits of a value.
@@ -693,7 +717,9 @@ enum Decision {
 /// bypass suffix), then the `kr` low bits in bypass. The coder and the rate-distortion
 /// quantiser's costs both walk this.
 #[inline(always)]
-fn magnitude_decisions(set: usize, kr: u32, mag: u32, mut emit: impl FnMut(Decision)) {
+/// Used by the encoder's rate-distortion quantiser (`quincunx_codec::rdo`).
+#[doc(hidden)]
+pub fn magnitude_decisions(set: usize, kr: u32, mag: u32, mut emit: impl FnMut(Decision)) {
     let hi = mag >> kr;
     let mut b = 0;
     while b < MAG_BINS {

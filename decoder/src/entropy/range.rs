@@ -18,8 +18,9 @@ pub type Prob = u16;
 /// Neutral probability.
 pub const HALF: Prob = 1 << (PROB_BITS - 1);
 
+/// Moves probability `p` (of a 0) towards the coded `bit` at the adaptation [`RATE`].
 #[inline(always)]
-pub(crate) fn adapt(p: &mut Prob, bit: bool) {
+pub fn adapt(p: &mut Prob, bit: bool) {
     if bit {
         *p -= *p >> RATE;
     } else {
