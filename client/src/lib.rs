@@ -1,5 +1,10 @@
-//! The quincunx streaming client core: what people embed in their apps and what load
-//! tests simulate. No GPU needed.
+//! The quincunx streaming client: what people embed in their apps and what load tests
+//! simulate. No GPU needed.
+//!
+//! The modules without I/O ([`view`], [`dag`], [`refine`], [`open`], [`domain`],
+//! [`colour`], and the request schedule and caches of [`fetch`]) are
+//! `quincunx-client-core`'s, re-exported here; this crate adds the network thread, the
+//! transports, the system clock ([`refine::SystemClock`]), [`session`] and [`flight`].
 //!
 //! - [`view`]: the camera (`f64` throughout), frustum, projected sizes, world mapping.
 //! - [`dag`]: the in-core diamond DAG from the roots down to the current cut, with
@@ -36,12 +41,10 @@
 /// uses these types, whatever glam version it names itself.
 pub use glam;
 
-pub mod colour;
-pub mod dag;
-pub mod domain;
 pub mod fetch;
 pub mod flight;
-pub mod open;
 pub mod refine;
 pub mod session;
-pub mod view;
+
+#[doc(inline)]
+pub use quincunx_client_core::{colour, dag, domain, open, view};

@@ -463,15 +463,6 @@ impl<T: Weigh + Send + Sync + 'static> Layer<T> {
     }
 }
 
-impl<I: Send + Sync + 'static> Weigh for Details<I> {
-    fn weight_bytes(&self) -> usize {
-        std::mem::size_of::<Self>()
-            + self.h.capacity() * std::mem::size_of::<i32>()
-            + self.child_classes.capacity() * std::mem::size_of::<(I, u8)>()
-            + self.empty_children.capacity() * std::mem::size_of::<I>()
-    }
-}
-
 /// A set of blobs by layer (see [`Session::cut_blobs`]).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct CutBlobs {

@@ -1,5 +1,7 @@
 //! The client's modules form layers: no module reaches, through `crate::` paths, a
-//! module that reaches back to it. Read from the sources, so a new cycle fails here.
+//! module that reaches back to it (the core's modules and the native client's, read as
+//! one graph). The core does no I/O: no clock, thread, socket or runtime is named in its
+//! sources. Read from the sources, so a new cycle or a clock fails here.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -72,11 +74,66 @@ fn cycle_from(graph: &BTreeMap<String, BTreeSet<String>>, from: &str) -> Option<
     None
 }
 
+/// The client's sources and the core's (`../client-core/src`), as one graph.
+fn client_graph() -> BTreeMap<String, BTreeSet<String>> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let mut graph = module_graph(&root.join("src"));
+    for (module, uses) in module_graph(&root.join("../client-core/src")) {
+        graph.entry(module).or_default().extend(uses);
+    }
+    graph
+}
+
+/// Every `.rs` file under `dir`.
+fn sources(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for entry in fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            out.extend(sources(&path));
+        } else if path.extension().is_some_and(|e| e == "rs") {
+            out.push(path);
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn the_core_names_no_clock_thread_socket_or_runtime() {
+    let core = Path::new(env!("CARGO_MANIFEST_DIR")).join("../client-core/src");
+    let files = sources(&core);
+    assert!(files.len() >= 9, "client-core sources not found: {files:?}");
+    let banned = [
+        "Instant",
+        "elapsed()",
+        "SystemTime",
+        "std::thread",
+        "std::net",
+        "tokio",
+        "reqwest",
+        "std::fs",
+        "std::io::Read",
+    ];
+    let mut found = Vec::new();
+    for file in &files {
+        let text = fs::read_to_string(file).unwrap();
+        // Only the code: the tests below `#[cfg(test)]` may use a real clock.
+        let code = text.split("#[cfg(test)]").next().unwrap_or("");
+        for word in banned {
+            if code.contains(word) {
+                found.push(format!("{}: {word}", file.display()));
+            }
+        }
+    }
+    assert!(found.is_empty(), "I/O in the sans-IO core: {found:#?}");
+}
+
 #[test]
 fn client_modules_have_no_cycles() {
-    let graph = module_graph(&Path::new(env!("CARGO_MANIFEST_DIR")).join("src"));
+    let graph = client_graph();
     for expected in [
-        "dag", "domain", "colour", "session", "refine", "open", "fetch",
+        "dag", "domain", "colour", "session", "refine", "open", "fetch", "view", "flight",
     ] {
         assert!(graph.contains_key(expected), "module {expected} not found");
     }

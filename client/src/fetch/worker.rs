@@ -113,6 +113,7 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
             shared: Arc::clone(&shared),
             results: results_tx.clone(),
             sched: Scheduler::new(),
+            origin: now,
             bandwidth: Bandwidth::new(),
             charged: HashMap::new(),
             driver,
@@ -245,6 +246,8 @@ struct Worker<T> {
     shared: Arc<Shared<T>>,
     results: std_mpsc::Sender<Results<T>>,
     sched: Scheduler,
+    /// The scheduler's time origin (it counts time as a `Duration` since this).
+    origin: Instant,
     bandwidth: Bandwidth,
     cap: Option<Cap>,
     /// Bytes taken from the cap's bucket per request in flight, settled on completion.
@@ -268,6 +271,11 @@ enum Event {
 const NEVER: Duration = Duration::from_secs(3600);
 
 impl<T: Weigh + Send + Sync + 'static> Worker<T> {
+    /// `now` on the scheduler's clock.
+    fn since(&self, now: Instant) -> Duration {
+        now.saturating_duration_since(self.origin)
+    }
+
     async fn run(
         mut self,
         mut commands: UnboundedReceiver<Command>,
@@ -276,7 +284,9 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
         loop {
             let now = Instant::now();
             let wake = [
-                self.sched.next_retry(now),
+                self.sched
+                    .next_retry(self.since(now))
+                    .map(|t| self.origin + t),
                 self.cap.as_ref().and_then(Cap::ready_at),
             ]
             .into_iter()
@@ -311,7 +321,7 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
                     }
                     let now = Instant::now();
                     self.bandwidth.on_submit(now);
-                    self.sched.set_wants(&wants, &prefetch, now);
+                    self.sched.set_wants(&wants, &prefetch, self.since(now));
                 }
                 Event::Done(Some(first)) => {
                     self.complete(first);
@@ -343,9 +353,10 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
             return;
         }
         let keys = {
+            let t = self.since(now);
             let cache = lock(&self.shared.cache);
             self.sched
-                .next(now, room, |k| cache.is_leaf(k) || cache.contains(k))
+                .next(t, room, |k| cache.is_leaf(k) || cache.contains(k))
         };
         let expected = self.bandwidth.mean_bytes().max(1.0);
         for key in keys {
@@ -373,7 +384,7 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
             if packaged {
                 self.packaged.insert(key);
             }
-            self.sched.issued(key, now);
+            self.sched.issued(key, self.since(now));
             self.stats.requests += 1;
         }
     }
@@ -388,7 +399,7 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
         self.driver.finished(done.slot);
         let in_flight_before = self.sched.in_flight();
         let packaged = self.packaged.remove(&done.key);
-        let Some((latency, issued_as)) = self.sched.finished(done.key, now) else {
+        let Some((latency, issued_as)) = self.sched.finished(done.key, self.since(now)) else {
             return;
         };
         let key = done.key;
@@ -471,12 +482,12 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
             max: self.config.max_backoff,
         };
         let give_up = if error.is_transient() {
-            let failures = self.sched.failed(key, now, backoff);
+            let failures = self.sched.failed(key, self.since(now), backoff);
             tracing::debug!(?key, failures, %error, "transient failure");
             failures >= self.config.max_attempts
         } else {
             tracing::debug!(?key, %error, "permanent failure");
-            self.sched.hold(key, now, backoff.max);
+            self.sched.hold(key, self.since(now), backoff.max);
             true
         };
         if give_up {

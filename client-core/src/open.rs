@@ -55,7 +55,8 @@ pub enum SessionError {
     Dag(#[from] DagError),
 }
 
-pub(crate) fn metadata_error(name: &str, reason: impl Into<String>) -> SessionError {
+/// A [`SessionError::Metadata`] naming repository `name`.
+pub fn metadata_error(name: &str, reason: impl Into<String>) -> SessionError {
     SessionError::Metadata {
         name: name.to_string(),
         reason: reason.into(),

@@ -1,8 +1,9 @@
 //! The request queue: wanted keys in priority order, what is in flight, and per-key
-//! backoff after failures. Pure: time is passed in.
+//! backoff after failures. Pure: time is passed in, as the time since an origin the
+//! caller chooses (its start, say), so the queue runs wherever a clock can be read.
 
 use std::collections::HashMap;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use super::Key;
 
@@ -18,7 +19,7 @@ pub enum Class {
 #[derive(Clone, Copy, Debug)]
 struct Retry {
     failures: u32,
-    not_before: Instant,
+    not_before: Duration,
 }
 
 /// Backoff settings.
@@ -50,7 +51,7 @@ pub struct Scheduler {
     wants: HashMap<Key, (Class, f32)>,
     /// Wanted keys, most urgent first (wants before prefetches, then by priority).
     order: Vec<Key>,
-    in_flight: HashMap<Key, (Instant, Class)>,
+    in_flight: HashMap<Key, (Duration, Class)>,
     retry: HashMap<Key, Retry>,
 }
 
@@ -62,7 +63,7 @@ impl Scheduler {
 
     /// Replaces the wanted keys. A key in both lists is a want; the last priority given to
     /// a key wins. Keys not listed are dropped from the queue (requests in flight carry on).
-    pub fn set_wants(&mut self, wants: &[(Key, f32)], prefetch: &[(Key, f32)], now: Instant) {
+    pub fn set_wants(&mut self, wants: &[(Key, f32)], prefetch: &[(Key, f32)], now: Duration) {
         self.wants.clear();
         for &(k, p) in prefetch {
             self.wants.insert(k, (Class::Prefetch, p));
@@ -100,7 +101,7 @@ impl Scheduler {
 
     /// Up to `max` keys to request now, most urgent first, leaving out keys in flight,
     /// backing off, or for which `skip` is true (cached, known leaves).
-    pub fn next(&self, now: Instant, max: usize, mut skip: impl FnMut(Key) -> bool) -> Vec<Key> {
+    pub fn next(&self, now: Duration, max: usize, mut skip: impl FnMut(Key) -> bool) -> Vec<Key> {
         let mut out = Vec::new();
         for &k in &self.order {
             if out.len() >= max {
@@ -119,16 +120,16 @@ impl Scheduler {
     }
 
     /// Records that `key` was requested.
-    pub fn issued(&mut self, key: Key, now: Instant) {
+    pub fn issued(&mut self, key: Key, now: Duration) {
         let class = self.class(key).unwrap_or(Class::Want);
         self.in_flight.insert(key, (now, class));
     }
 
     /// Records that `key`'s request ended: its latency and the class it was issued as.
-    pub fn finished(&mut self, key: Key, now: Instant) -> Option<(Duration, Class)> {
+    pub fn finished(&mut self, key: Key, now: Duration) -> Option<(Duration, Class)> {
         self.in_flight
             .remove(&key)
-            .map(|(at, class)| (now.saturating_duration_since(at), class))
+            .map(|(at, class)| (now.saturating_sub(at), class))
     }
 
     /// Forgets `key`'s failures (it was answered).
@@ -138,7 +139,7 @@ impl Scheduler {
 
     /// Counts a failure of `key` and schedules its next attempt; returns the failures in a
     /// row so far.
-    pub fn failed(&mut self, key: Key, now: Instant, backoff: Backoff) -> u32 {
+    pub fn failed(&mut self, key: Key, now: Duration, backoff: Backoff) -> u32 {
         let failures = self.retry.get(&key).map_or(0, |r| r.failures) + 1;
         let not_before = now + backoff.delay(failures);
         self.retry.insert(
@@ -152,7 +153,7 @@ impl Scheduler {
     }
 
     /// Holds `key` back for `delay` (after a permanent failure).
-    pub fn hold(&mut self, key: Key, now: Instant, delay: Duration) {
+    pub fn hold(&mut self, key: Key, now: Duration, delay: Duration) {
         let failures = self.retry.get(&key).map_or(0, |r| r.failures);
         self.retry.insert(
             key,
@@ -164,7 +165,7 @@ impl Scheduler {
     }
 
     /// When the earliest wanted key now backing off may be requested.
-    pub fn next_retry(&self, now: Instant) -> Option<Instant> {
+    pub fn next_retry(&self, now: Duration) -> Option<Duration> {
         self.retry
             .iter()
             .filter(|(k, r)| {
@@ -211,7 +212,7 @@ mod tests {
 
     #[test]
     fn keys_come_out_by_priority_and_wants_before_prefetch() {
-        let now = Instant::now();
+        let now = Duration::from_secs(1000);
         let mut s = Scheduler::new();
         s.set_wants(
             &[(k(1), 1.0), (k(2), 3.0), (k(3), 2.0)],
@@ -225,7 +226,7 @@ mod tests {
 
     #[test]
     fn in_flight_keys_are_not_issued_twice_and_dropped_wants_are_not_issued() {
-        let now = Instant::now();
+        let now = Duration::from_secs(1000);
         let mut s = Scheduler::new();
         s.set_wants(&[(k(1), 1.0), (k(2), 2.0)], &[], now);
         s.issued(k(2), now);
@@ -245,7 +246,7 @@ mod tests {
 
     #[test]
     fn failures_back_off_exponentially_up_to_the_cap() {
-        let now = Instant::now();
+        let now = Duration::from_secs(1000);
         let mut s = Scheduler::new();
         s.set_wants(&[(k(1), 1.0)], &[], now);
         assert_eq!(s.failed(k(1), now, B), 1);
