@@ -86,6 +86,47 @@ fn client_and_server_do_not_depend_on_wgpu() {
     }
 }
 
+/// Crates of `tree` whose names are in `names`.
+fn named<'t>(tree: &'t str, names: &[&str]) -> Vec<&'t str> {
+    tree.lines()
+        .filter(|l| names.iter().any(|n| l.starts_with(&format!("{n} "))))
+        .collect()
+}
+
+#[test]
+fn clients_decode_without_the_encoder_and_the_core_without_io() {
+    // The codec itself is built on the decoder and rayon: the filter finds them there.
+    let codec = tree_of("quincunx-codec");
+    assert_eq!(
+        named(&codec, &["quincunx-decoder", "rayon"]).len(),
+        2,
+        "{codec}"
+    );
+    for crate_name in [
+        "quincunx-decoder",
+        "quincunx-client-core",
+        "quincunx-client",
+        "quincunx-render",
+    ] {
+        let tree = tree_of(crate_name);
+        assert!(
+            !named(&tree, &["quincunx-diamond"]).is_empty(),
+            "{crate_name}: {tree}"
+        );
+        let encoder = named(&tree, &["quincunx-codec", "rayon"]);
+        assert!(encoder.is_empty(), "{crate_name} depends on {encoder:?}");
+    }
+    // The sans-IO core: no runtime, HTTP or TLS (the native client has them all).
+    let io = ["tokio", "reqwest", "hyper", "rustls", "mio"];
+    assert!(named(&tree_of("quincunx-client"), &io).len() >= 4);
+    let core = tree_of("quincunx-client-core");
+    let found = named(&core, &io);
+    assert!(
+        found.is_empty(),
+        "quincunx-client-core depends on {found:?}"
+    );
+}
+
 #[test]
 fn the_client_reads_metadata_without_the_store() {
     let tree = tree_of("quincunx-client");
