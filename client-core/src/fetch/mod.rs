@@ -2,7 +2,9 @@
 //! failed, the decoded-value cache and the request schedule. The network thread that acts
 //! on them is the native client's (`quincunx_client::fetch`).
 
+pub mod bandwidth;
 pub mod cache;
+pub mod planner;
 pub mod schedule;
 
 use std::time::Duration;
@@ -129,5 +131,127 @@ impl<I: Send + Sync + 'static> Weigh for Details<I> {
             + self.h.capacity() * std::mem::size_of::<i32>()
             + self.child_classes.capacity() * std::mem::size_of::<(I, u8)>()
             + self.empty_children.capacity() * std::mem::size_of::<I>()
+    }
+}
+
+/// Errors counted by class.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ErrorCounts {
+    /// 4xx answers.
+    pub client_status: u64,
+    /// 5xx (and other unexpected) answers.
+    pub server_status: u64,
+    /// Connection failures, resets and truncated responses.
+    pub connection: u64,
+    /// Malformed responses.
+    pub protocol: u64,
+    /// Timeouts.
+    pub timeout: u64,
+    /// Decode errors.
+    pub decode: u64,
+    /// TLS handshake and certificate failures.
+    pub tls: u64,
+}
+
+impl ErrorCounts {
+    /// Counts one error.
+    pub fn count(&mut self, e: &FetchError) {
+        match e.kind() {
+            ErrorKind::ClientStatus => self.client_status += 1,
+            ErrorKind::ServerStatus => self.server_status += 1,
+            ErrorKind::Connection => self.connection += 1,
+            ErrorKind::Protocol => self.protocol += 1,
+            ErrorKind::Timeout => self.timeout += 1,
+            ErrorKind::Decode => self.decode += 1,
+            ErrorKind::Tls => self.tls += 1,
+            ErrorKind::Other => {}
+        }
+    }
+
+    /// Adds another set of counts.
+    pub fn add(&mut self, o: &ErrorCounts) {
+        self.client_status += o.client_status;
+        self.server_status += o.server_status;
+        self.connection += o.connection;
+        self.protocol += o.protocol;
+        self.timeout += o.timeout;
+        self.decode += o.decode;
+        self.tls += o.tls;
+    }
+
+    /// All errors.
+    pub fn total(&self) -> u64 {
+        self.client_status
+            + self.server_status
+            + self.connection
+            + self.protocol
+            + self.timeout
+            + self.decode
+            + self.tls
+    }
+}
+
+/// A snapshot of the network thread's counters.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FetchStats {
+    /// Requests written (including retries).
+    pub requests: u64,
+    /// Answers received with status 200 (leaves included).
+    pub responses: u64,
+    /// Body bytes of 200 answers.
+    pub bytes_fetched: u64,
+    /// Keys answered with an empty body.
+    pub leaves: u64,
+    /// Keys whose values came inside another key's answer.
+    pub carried: u64,
+    /// Wants answered from the cache or the leaf set, without a request.
+    pub cache_hits: u64,
+    /// Requests outstanding now.
+    pub in_flight: usize,
+    /// Wanted keys not yet requested.
+    pub queued: usize,
+    /// Requests the bandwidth estimate allows outstanding now.
+    pub window: usize,
+    /// Estimated delivered rate (body bytes), bit/s; 0 before the first estimate.
+    pub bandwidth_bit_s: f64,
+    /// Estimated round trip (the least request latency seen).
+    pub rtt: Option<Duration>,
+    /// Smoothed latency of recent answers (EWMA): the RTT plus transfer and queueing
+    /// time. Well above [`FetchStats::rtt`], answers queue on the link.
+    pub latency: Option<Duration>,
+    /// Mean body size of fetched blobs (EWMA), bytes.
+    pub mean_blob_bytes: f64,
+    /// Errors by class (each failed attempt counts).
+    pub errors: ErrorCounts,
+}
+
+impl FetchStats {
+    /// Adds the counters of another network thread (a second layer's): counts, bytes,
+    /// windows and rates add up; the round trip is the least; the mean blob size is
+    /// weighted by responses.
+    pub fn add(&mut self, o: &FetchStats) {
+        let responses = self.responses + o.responses;
+        if responses > 0 {
+            self.mean_blob_bytes = (self.mean_blob_bytes * self.responses as f64
+                + o.mean_blob_bytes * o.responses as f64)
+                / responses as f64;
+        }
+        self.requests += o.requests;
+        self.responses = responses;
+        self.bytes_fetched += o.bytes_fetched;
+        self.leaves += o.leaves;
+        self.carried += o.carried;
+        self.cache_hits += o.cache_hits;
+        self.in_flight += o.in_flight;
+        self.queued += o.queued;
+        self.window += o.window;
+        self.bandwidth_bit_s += o.bandwidth_bit_s;
+        self.rtt = match (self.rtt, o.rtt) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
+        // The slower layer's: a queue on either link shows.
+        self.latency = self.latency.max(o.latency);
+        self.errors.add(&o.errors);
     }
 }

@@ -11,23 +11,25 @@
 //! `fetch` sees keys and priorities, never the DAG. A key is a diamond centre `[x, y, z]`
 //! (planar ids use `z = 0`), see [`Remote`].
 //!
-//! Inside the thread:
-//! - a [`cache::DecodedCache`] of decoded values (LRU, byte budget) and the set of known
-//!   leaves, shared with the frame loop and consulted before anything is requested;
+//! Inside the thread, every decision is the core's [`planner::Planner`] (no I/O; time is
+//! passed in as a `Duration` since the thread started):
 //! - a [`schedule::Scheduler`]: the wanted keys in priority order, what is in flight, and
 //!   per-key retry backoff after transient failures;
 //! - a [`bandwidth::Bandwidth`] estimator: EWMA of the delivered rate and of the blob size,
 //!   and a minimum-latency RTT estimate. The number of requests outstanding is held to what
 //!   can arrive within about one RTT plus one frame at the estimated rate, so the queue
-//!   stays in the client, where priorities can still change;
-//! - a [`Transport`]: pipelined HTTP/1.1 over K persistent connections ([`http1`], our own
-//!   strict parser), plain HTTP/1.1 over K connections, or HTTP/2 over one connection;
-//!   each speaks TLS for `https://` URLs ([`tls`]).
+//!   stays in the client, where priorities can still change.
+//!
+//! The thread adds the clock, a [`cache::DecodedCache`] of decoded values (LRU, byte
+//! budget) and the set of known leaves, shared with the frame loop and consulted before
+//! anything is requested, the decode function, and a [`Transport`]: pipelined HTTP/1.1
+//! over K persistent connections ([`http1`], our own strict parser), plain HTTP/1.1 over K
+//! connections, or HTTP/2 over one connection; each speaks TLS for `https://` URLs
+//! ([`tls`]).
 //!
 //! [`link`] is an emulated narrow, high-latency link (an in-process throttling TCP proxy)
 //! for tests and measurements.
 
-pub mod bandwidth;
 pub mod http1;
 pub mod link;
 mod remote;
@@ -41,7 +43,9 @@ use std::time::Duration;
 use bytes::Bytes;
 
 #[doc(inline)]
-pub use quincunx_client_core::fetch::{ErrorKind, FetchError, Key, Weigh, cache, schedule};
+pub use quincunx_client_core::fetch::{
+    ErrorCounts, ErrorKind, FetchError, FetchStats, Key, Weigh, bandwidth, cache, planner, schedule,
+};
 pub use remote::Remote;
 pub use worker::Fetcher;
 
@@ -191,127 +195,18 @@ impl FetchConfig {
             limits: http1::Limits::default(),
         }
     }
-}
 
-/// Errors counted by class.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct ErrorCounts {
-    /// 4xx answers.
-    pub client_status: u64,
-    /// 5xx (and other unexpected) answers.
-    pub server_status: u64,
-    /// Connection failures, resets and truncated responses.
-    pub connection: u64,
-    /// Malformed responses.
-    pub protocol: u64,
-    /// Timeouts.
-    pub timeout: u64,
-    /// Decode errors.
-    pub decode: u64,
-    /// TLS handshake and certificate failures.
-    pub tls: u64,
-}
-
-impl ErrorCounts {
-    /// Counts one error.
-    pub fn count(&mut self, e: &FetchError) {
-        match e.kind() {
-            ErrorKind::ClientStatus => self.client_status += 1,
-            ErrorKind::ServerStatus => self.server_status += 1,
-            ErrorKind::Connection => self.connection += 1,
-            ErrorKind::Protocol => self.protocol += 1,
-            ErrorKind::Timeout => self.timeout += 1,
-            ErrorKind::Decode => self.decode += 1,
-            ErrorKind::Tls => self.tls += 1,
-            ErrorKind::Other => {}
+    /// The settings the core's [`planner::Planner`] decides with.
+    pub fn planner(&self) -> planner::PlannerConfig {
+        planner::PlannerConfig {
+            initial_in_flight: self.initial_in_flight,
+            max_in_flight: self.max_in_flight,
+            bandwidth_cap_bit_s: self.bandwidth_cap_bit_s,
+            max_attempts: self.max_attempts,
+            retry_backoff: self.retry_backoff,
+            max_backoff: self.max_backoff,
+            static_export: self.remote.static_export,
         }
-    }
-
-    /// Adds another set of counts.
-    pub fn add(&mut self, o: &ErrorCounts) {
-        self.client_status += o.client_status;
-        self.server_status += o.server_status;
-        self.connection += o.connection;
-        self.protocol += o.protocol;
-        self.timeout += o.timeout;
-        self.decode += o.decode;
-        self.tls += o.tls;
-    }
-
-    /// All errors.
-    pub fn total(&self) -> u64 {
-        self.client_status
-            + self.server_status
-            + self.connection
-            + self.protocol
-            + self.timeout
-            + self.decode
-            + self.tls
-    }
-}
-
-/// A snapshot of the network thread's counters.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct FetchStats {
-    /// Requests written (including retries).
-    pub requests: u64,
-    /// Answers received with status 200 (leaves included).
-    pub responses: u64,
-    /// Body bytes of 200 answers.
-    pub bytes_fetched: u64,
-    /// Keys answered with an empty body.
-    pub leaves: u64,
-    /// Keys whose values came inside another key's answer.
-    pub carried: u64,
-    /// Wants answered from the cache or the leaf set, without a request.
-    pub cache_hits: u64,
-    /// Requests outstanding now.
-    pub in_flight: usize,
-    /// Wanted keys not yet requested.
-    pub queued: usize,
-    /// Requests the bandwidth estimate allows outstanding now.
-    pub window: usize,
-    /// Estimated delivered rate (body bytes), bit/s; 0 before the first estimate.
-    pub bandwidth_bit_s: f64,
-    /// Estimated round trip (the least request latency seen).
-    pub rtt: Option<Duration>,
-    /// Smoothed latency of recent answers (EWMA): the RTT plus transfer and queueing
-    /// time. Well above [`FetchStats::rtt`], answers queue on the link.
-    pub latency: Option<Duration>,
-    /// Mean body size of fetched blobs (EWMA), bytes.
-    pub mean_blob_bytes: f64,
-    /// Errors by class (each failed attempt counts).
-    pub errors: ErrorCounts,
-}
-
-impl FetchStats {
-    /// Adds the counters of another network thread (a second layer's): counts, bytes,
-    /// windows and rates add up; the round trip is the least; the mean blob size is
-    /// weighted by responses.
-    pub fn add(&mut self, o: &FetchStats) {
-        let responses = self.responses + o.responses;
-        if responses > 0 {
-            self.mean_blob_bytes = (self.mean_blob_bytes * self.responses as f64
-                + o.mean_blob_bytes * o.responses as f64)
-                / responses as f64;
-        }
-        self.requests += o.requests;
-        self.responses = responses;
-        self.bytes_fetched += o.bytes_fetched;
-        self.leaves += o.leaves;
-        self.carried += o.carried;
-        self.cache_hits += o.cache_hits;
-        self.in_flight += o.in_flight;
-        self.queued += o.queued;
-        self.window += o.window;
-        self.bandwidth_bit_s += o.bandwidth_bit_s;
-        self.rtt = match (self.rtt, o.rtt) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
-        };
-        // The slower layer's: a queue on either link shows.
-        self.latency = self.latency.max(o.latency);
-        self.errors.add(&o.errors);
     }
 }
 

@@ -1,6 +1,6 @@
 //! The network thread and its handle, [`Fetcher`].
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashSet;
 use std::sync::mpsc as std_mpsc;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -8,9 +8,9 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use tokio::sync::mpsc::{UnboundedReceiver, UnboundedSender, unbounded_channel};
 
-use super::bandwidth::{Bandwidth, Cap};
-use super::cache::DecodedCache;
-use super::schedule::{Backoff, Class, Scheduler};
+use quincunx_client_core::fetch::cache::DecodedCache;
+use quincunx_client_core::fetch::planner::{Answer, Planner};
+
 use super::transport::{Completion, Driver, Request};
 use super::{
     Decode, Decoded, FetchConfig, FetchError, FetchStats, Fetched, Key, Unpack, Weigh, lock,
@@ -105,21 +105,15 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
         });
         let (commands, commands_rx) = unbounded_channel();
         let (results_tx, results) = std_mpsc::channel();
-        let now = Instant::now();
+        let planner = Planner::new(config.planner(), Duration::ZERO);
         let worker = Worker {
-            cap: config.bandwidth_cap_bit_s.map(|c| Cap::new(c, now)),
             config,
             decode,
             shared: Arc::clone(&shared),
             results: results_tx.clone(),
-            sched: Scheduler::new(),
-            origin: now,
-            bandwidth: Bandwidth::new(),
-            charged: HashMap::new(),
+            planner,
+            origin: Instant::now(),
             driver,
-            stats: FetchStats::default(),
-            package_above: None,
-            packaged: HashSet::new(),
         };
         let thread = std::thread::Builder::new()
             .name("quincunx-fetch".into())
@@ -239,26 +233,17 @@ impl<T> Drop for Fetcher<T> {
     }
 }
 
-/// The network thread's state.
+/// The network thread: the transports and the clock around the core's [`Planner`].
 struct Worker<T> {
     config: FetchConfig,
     decode: Unpack<T>,
     shared: Arc<Shared<T>>,
     results: std_mpsc::Sender<Results<T>>,
-    sched: Scheduler,
-    /// The scheduler's time origin (it counts time as a `Duration` since this).
+    /// Every decision: what to request, how many, what an answer means.
+    planner: Planner,
+    /// The planner's time origin (it counts time as a `Duration` since this).
     origin: Instant,
-    bandwidth: Bandwidth,
-    cap: Option<Cap>,
-    /// Bytes taken from the cap's bucket per request in flight, settled on completion.
-    charged: HashMap<Key, f64>,
     driver: Driver,
-    /// The thread's own counters, published to `shared.stats` after each event.
-    stats: FetchStats,
-    /// Priority from which keys are asked for as packages (latest submit).
-    package_above: Option<f32>,
-    /// Keys in flight asked for as packages.
-    packaged: HashSet<Key>,
 }
 
 enum Event {
@@ -283,15 +268,10 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
     ) {
         loop {
             let now = Instant::now();
-            let wake = [
-                self.sched
-                    .next_retry(self.since(now))
-                    .map(|t| self.origin + t),
-                self.cap.as_ref().and_then(Cap::ready_at),
-            ]
-            .into_iter()
-            .flatten()
-            .min();
+            let wake = self
+                .planner
+                .wake_at(self.since(now))
+                .map(|t| self.origin + t);
             let sleep_until = tokio::time::Instant::from_std(wake.unwrap_or(now + NEVER));
             let event = tokio::select! {
                 biased;
@@ -307,21 +287,20 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
                     package_above,
                 })) => {
                     // Only the latest frame's wants matter.
-                    let (mut wants, mut prefetch) = (wants, prefetch);
-                    self.package_above = package_above;
+                    let (mut wants, mut prefetch, mut package_above) =
+                        (wants, prefetch, package_above);
                     while let Ok(next) = commands.try_recv() {
                         match next {
                             Command::Wants {
                                 wants: w,
                                 prefetch: p,
                                 package_above: a,
-                            } => (wants, prefetch, self.package_above) = (w, p, a),
+                            } => (wants, prefetch, package_above) = (w, p, a),
                             Command::Stop => return,
                         }
                     }
-                    let now = Instant::now();
-                    self.bandwidth.on_submit(now);
-                    self.sched.set_wants(&wants, &prefetch, self.since(now));
+                    let now = self.since(Instant::now());
+                    self.planner.submit(&wants, &prefetch, package_above, now);
                 }
                 Event::Done(Some(first)) => {
                     self.complete(first);
@@ -339,53 +318,32 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
 
     /// Requests the most urgent keys the window, the cap and the transport allow.
     fn issue(&mut self, now: Instant) {
-        self.bandwidth.advance(now, self.sched.in_flight());
-        let window = self.bandwidth.window(
-            self.config.initial_in_flight,
-            self.config.max_in_flight,
-            self.config.bandwidth_cap_bit_s,
-        );
-        self.stats.window = window;
-        let room = window
-            .saturating_sub(self.sched.in_flight())
-            .min(self.driver.free_slots());
-        if room == 0 {
-            return;
-        }
-        let keys = {
-            let t = self.since(now);
+        let now = self.since(now);
+        let planned = {
             let cache = lock(&self.shared.cache);
-            self.sched
-                .next(t, room, |k| cache.is_leaf(k) || cache.contains(k))
+            self.planner.plan(now, self.driver.free_slots(), |k| {
+                cache.is_leaf(k) || cache.contains(k)
+            })
         };
-        let expected = self.bandwidth.mean_bytes().max(1.0);
-        for key in keys {
-            if let Some(cap) = &mut self.cap {
-                if !cap.try_take(now, expected) {
-                    break;
-                }
-                self.charged.insert(key, expected);
-            }
-            let packaged = self
-                .package_above
-                .is_some_and(|t| self.sched.priority(key).is_some_and(|p| p >= t));
-            let path = if packaged {
-                self.config.remote.package_path(key)
+        let mut planned = planned.into_iter();
+        while let Some(request) = planned.next() {
+            let path = if request.packaged {
+                self.config.remote.package_path(request.key)
             } else {
-                self.config.remote.blob_path(key)
+                self.config.remote.blob_path(request.key)
             };
-            if !self.driver.send(Request { key, path }) {
-                if let (Some(cap), Some(charged)) = (&mut self.cap, self.charged.remove(&key)) {
-                    cap.correct(charged, 0.0);
+            if !self.driver.send(Request {
+                key: request.key,
+                path,
+            }) {
+                self.planner.unsent(request.key);
+                for rest in planned {
+                    self.planner.unsent(rest.key);
                 }
                 break;
             }
-            tracing::trace!(?key, packaged, "request");
-            if packaged {
-                self.packaged.insert(key);
-            }
-            self.sched.issued(key, self.since(now));
-            self.stats.requests += 1;
+            tracing::trace!(key = ?request.key, packaged = request.packaged, "request");
+            self.planner.sent(request, now);
         }
     }
 
@@ -395,65 +353,33 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
 
     /// Handles the end of one request.
     fn complete(&mut self, done: Completion) {
-        let now = Instant::now();
+        let now = self.since(Instant::now());
         self.driver.finished(done.slot);
-        let in_flight_before = self.sched.in_flight();
-        let packaged = self.packaged.remove(&done.key);
-        let Some((latency, issued_as)) = self.sched.finished(done.key, self.since(now)) else {
-            return;
-        };
         let key = done.key;
-        if let (Some(cap), Some(charged)) = (&mut self.cap, self.charged.remove(&key)) {
-            let actual = match &done.result {
-                Ok((_, body)) => body.len() as f64,
-                Err(_) => 0.0,
-            };
-            cap.correct(charged, actual);
-        }
-        // Report to the frame loop what it asked for (not prefetches it no longer wants).
-        let report = issued_as == Class::Want || self.sched.class(key) == Some(Class::Want);
-        let answer = match done.result {
-            Ok((200, body)) => Ok(body),
-            // A static export has no file for a leaf.
-            Ok((404, _)) if self.config.remote.static_export => Ok(Bytes::new()),
-            Ok((status, _)) => Err(FetchError::Status(status)),
-            Err(e) => Err(e),
-        };
-        match answer {
-            Ok(body) => {
-                self.answered(key, body, packaged, latency, report);
-                self.bandwidth.advance(now, in_flight_before);
+        match self.planner.complete(key, done.result, now) {
+            Answer::Stale | Answer::Failed(None) => {}
+            Answer::Failed(Some(error)) => self.deliver(key, Fetched::Failed(error)),
+            Answer::Leaf { report } => {
+                lock(&self.shared.cache).mark_leaf(key);
+                if report {
+                    self.deliver(key, Fetched::Leaf);
+                }
             }
-            Err(error) => {
-                self.bandwidth.advance(now, in_flight_before);
-                self.failed(key, error, now, report);
-            }
+            Answer::Body {
+                body,
+                packaged,
+                report,
+            } => self.decoded(key, body, packaged, report),
         }
     }
 
-    /// A 200 answer: a leaf, or a blob to decode and cache.
-    fn answered(&mut self, key: Key, body: Bytes, packaged: bool, latency: Duration, report: bool) {
-        let len = body.len();
-        self.stats.responses += 1;
-        self.stats.bytes_fetched += len as u64;
-        self.bandwidth.on_answer(len, Some(latency));
-        self.sched.succeeded(key);
-        self.sched.unwant(key);
-        if body.is_empty() {
-            self.stats.leaves += 1;
-            lock(&self.shared.cache).mark_leaf(key);
-            if report {
-                self.deliver(key, Fetched::Leaf);
-            }
-            return;
-        }
+    /// A body to decode and cache, with whatever it carried.
+    fn decoded(&mut self, key: Key, body: Bytes, packaged: bool, report: bool) {
         match (self.decode)(key, body, packaged) {
             Ok(Decoded { value, carried }) => {
                 // Carried keys first: once the asked key is cached, so is what it carried.
                 for (k, v) in carried {
-                    self.stats.carried += 1;
-                    let wanted = self.sched.class(k) == Some(Class::Want);
-                    self.sched.unwant(k);
+                    let wanted = self.planner.carried(k);
                     let v = Arc::new(v);
                     lock(&self.shared.cache).insert(k, Arc::clone(&v));
                     if wanted {
@@ -467,47 +393,19 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
                 }
             }
             Err(reason) => {
-                let now = Instant::now();
-                self.failed(key, FetchError::Decode(reason), now, report);
-            }
-        }
-    }
-
-    /// A failed attempt: retried after a backoff if transient, reported if permanent or
-    /// after `max_attempts` failures in a row.
-    fn failed(&mut self, key: Key, error: FetchError, now: Instant, report: bool) {
-        self.stats.errors.count(&error);
-        let backoff = Backoff {
-            base: self.config.retry_backoff,
-            max: self.config.max_backoff,
-        };
-        let give_up = if error.is_transient() {
-            let failures = self.sched.failed(key, self.since(now), backoff);
-            tracing::debug!(?key, failures, %error, "transient failure");
-            failures >= self.config.max_attempts
-        } else {
-            tracing::debug!(?key, %error, "permanent failure");
-            self.sched.hold(key, self.since(now), backoff.max);
-            true
-        };
-        if give_up {
-            self.sched.unwant(key);
-            if report {
-                self.deliver(key, Fetched::Failed(error));
+                let now = self.since(Instant::now());
+                if let Some(error) = self.planner.decode_failed(key, reason, now, report) {
+                    self.deliver(key, Fetched::Failed(error));
+                }
             }
         }
     }
 
     fn publish(&mut self) {
-        self.stats.in_flight = self.sched.in_flight();
-        self.stats.queued = self.sched.queued();
-        self.stats.bandwidth_bit_s = self.bandwidth.rate_bit_s();
-        self.stats.rtt = self.bandwidth.rtt();
-        self.stats.latency = self.bandwidth.latency();
-        self.stats.mean_blob_bytes = self.bandwidth.mean_bytes();
+        let stats = self.planner.stats().clone();
         let mut shared = lock(&self.shared.stats);
         let cache_hits = shared.cache_hits;
-        *shared = self.stats.clone();
+        *shared = stats;
         shared.cache_hits = cache_hits;
     }
 }

@@ -1,4 +1,5 @@
-//! Bandwidth estimation and the request allowance. Pure: time is passed in.
+//! Bandwidth estimation and the request allowance. Pure: time is passed in, as the time
+//! since an origin the caller picks.
 //!
 //! The delivered rates (body bytes, and answers) are measured over *busy* time only (while
 //! at least one request is outstanding), so an idle client does not read as a slow link.
@@ -10,7 +11,7 @@
 //! leaves, which cost a round of headers but carry no body. Everything beyond the window
 //! waits in the client's queue, where priorities can still change.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 /// Busy time per rate sample.
 const SAMPLE: Duration = Duration::from_millis(100);
@@ -39,8 +40,8 @@ pub struct Bandwidth {
     rtt: Option<Duration>,
     latency_s: Option<f64>,
     frame: Option<Duration>,
-    last_submit: Option<Instant>,
-    last_advance: Option<Instant>,
+    last_submit: Option<Duration>,
+    last_advance: Option<Duration>,
     sample_bytes: u64,
     sample_answers: u64,
     sample_busy: Duration,
@@ -61,11 +62,11 @@ impl Bandwidth {
 
     /// Accounts the time since the last call as busy if `in_flight > 0`. Call before every
     /// change of the number of requests in flight.
-    pub fn advance(&mut self, now: Instant, in_flight: usize) {
+    pub fn advance(&mut self, now: Duration, in_flight: usize) {
         if let Some(last) = self.last_advance
             && in_flight > 0
         {
-            self.sample_busy += now.saturating_duration_since(last);
+            self.sample_busy += now.saturating_sub(last);
         }
         self.last_advance = Some(now);
         if self.sample_busy >= SAMPLE {
@@ -81,9 +82,9 @@ impl Bandwidth {
     }
 
     /// A frame submitted its wants at `now`.
-    pub fn on_submit(&mut self, now: Instant) {
+    pub fn on_submit(&mut self, now: Duration) {
         if let Some(last) = self.last_submit.replace(now) {
-            let dt = now.saturating_duration_since(last).min(MAX_FRAME);
+            let dt = now.saturating_sub(last).min(MAX_FRAME);
             self.frame = Some(match self.frame {
                 Some(old) => old.mul_f64(1.0 - FRAME_ALPHA) + dt.mul_f64(FRAME_ALPHA),
                 None => dt,
@@ -158,13 +159,13 @@ pub struct Cap {
     rate_bytes_s: f64,
     burst_bytes: f64,
     tokens: f64,
-    last: Instant,
+    last: Duration,
 }
 
 impl Cap {
     /// A full bucket for `cap_bit_s`, holding 100 ms worth (at least one packet). The
     /// bucket may go into debt by one request, so any answer size gets through.
-    pub fn new(cap_bit_s: f64, now: Instant) -> Self {
+    pub fn new(cap_bit_s: f64, now: Duration) -> Self {
         let rate_bytes_s = (cap_bit_s / 8.0).max(1.0);
         let burst_bytes = (rate_bytes_s * 0.1).max(1500.0);
         Cap {
@@ -175,14 +176,14 @@ impl Cap {
         }
     }
 
-    fn refill(&mut self, now: Instant) {
-        let dt = now.saturating_duration_since(self.last).as_secs_f64();
+    fn refill(&mut self, now: Duration) {
+        let dt = now.saturating_sub(self.last).as_secs_f64();
         self.tokens = (self.tokens + dt * self.rate_bytes_s).min(self.burst_bytes);
         self.last = now;
     }
 
     /// Takes `bytes` if the bucket is not in debt.
-    pub fn try_take(&mut self, now: Instant, bytes: f64) -> bool {
+    pub fn try_take(&mut self, now: Duration, bytes: f64) -> bool {
         self.refill(now);
         if self.tokens <= 0.0 {
             return false;
@@ -197,7 +198,7 @@ impl Cap {
     }
 
     /// When the bucket is out of debt again, if it is in debt.
-    pub fn ready_at(&self) -> Option<Instant> {
+    pub fn ready_at(&self) -> Option<Duration> {
         (self.tokens <= 0.0)
             .then(|| self.last + Duration::from_secs_f64((-self.tokens + 1.0) / self.rate_bytes_s))
     }
@@ -210,7 +211,7 @@ mod tests {
 
     #[test]
     fn the_window_is_the_bandwidth_delay_product_with_headroom() {
-        let t0 = Instant::now();
+        let t0 = Duration::from_secs(1000);
         let mut b = Bandwidth::new();
         assert_eq!(b.window(8, 64, None), 8);
         // 500 kB/s of 2 kB answers, 100 ms latency, over busy time only.
@@ -240,7 +241,7 @@ mod tests {
     fn empty_answers_still_open_the_window() {
         // 1,000 empty leaves per second at 100 ms: the window follows the answer rate,
         // not the (zero) body rate.
-        let t0 = Instant::now();
+        let t0 = Duration::from_secs(1000);
         let mut b = Bandwidth::new();
         let mut t = t0;
         b.advance(t, 0);
@@ -272,7 +273,7 @@ mod tests {
 
     #[test]
     fn the_cap_bucket_holds_requests_back_until_refilled() {
-        let t0 = Instant::now();
+        let t0 = Duration::from_secs(1000);
         let mut c = Cap::new(8.0 * 100_000.0, t0); // 100 kB/s, 10 kB burst
         assert!(c.try_take(t0, 6_000.0));
         assert!(c.try_take(t0, 10_000.0));
