@@ -32,4 +32,5 @@ pub mod domain;
 pub mod fetch;
 pub mod open;
 pub mod refine;
+pub mod stream;
 pub mod view;

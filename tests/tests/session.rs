@@ -7,7 +7,9 @@
 //! - a server killed mid-flight and restarted: no panic, every frame consistent, and the
 //!   same final cut once it is back;
 //! - `quincunx fly` with a flight file, and its errors;
-//! - repositories the client cannot stream are refused with clear errors.
+//! - repositories the client cannot stream are refused with clear errors;
+//! - the sans-IO core alone, fed answers from a local copy with made-up time, reaches the
+//!   same cut.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 mod common;
@@ -18,10 +20,20 @@ use std::time::{Duration, Instant};
 use common::stream::{Served, converge, cut_of, reference_cut, view_of};
 use quincunx_client::fetch::link::LinkProxy;
 use quincunx_client::flight::{self, Flight, FlyOptions};
-use quincunx_client::session::{PlanetSession, Session, SessionConfig, SessionError};
-use quincunx_codec::incremental::PlanarRefiner;
+use quincunx_client::session::{
+    PlanetSession, Session, SessionConfig, SessionError, Store, Stores, StreamConfig, StreamCore,
+};
+use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
+
+use glam::DVec3;
+use quincunx_client::fetch::{FetchStats, Key};
+use quincunx_client::refine::Clock;
+use quincunx_client::view::View;
+use quincunx_codec::incremental::{Details, PlanarRefiner, Procedural, Refiner};
 use quincunx_repo_tools::fly::{self, FlyArgs};
 use quincunx_server::RepoConfig;
+use quincunx_store::Repository;
 
 const REPO: &str = "korea";
 
@@ -499,4 +511,123 @@ fn a_flight_against_a_trickling_server_reports_its_timeouts() {
         "{err}"
     );
     server.kill();
+}
+
+/// The answers a test hands the core: what a data access layer would hold.
+#[derive(Default)]
+struct Answers {
+    values: std::cell::RefCell<HashMap<Key, Arc<Details>>>,
+    leaves: std::cell::RefCell<HashSet<Key>>,
+}
+
+impl Store<Details> for Answers {
+    fn is_leaf(&self, key: Key) -> bool {
+        self.leaves.borrow().contains(&key)
+    }
+
+    fn cached(&self, key: Key) -> Option<Arc<Details>> {
+        self.values.borrow().get(&key).cloned()
+    }
+
+    fn contains(&self, key: Key) -> bool {
+        self.values.borrow().contains_key(&key)
+    }
+}
+
+/// A clock that never moves: every frame may refine all it can.
+struct Frozen;
+
+impl Clock for Frozen {
+    fn now(&self) -> Duration {
+        Duration::ZERO
+    }
+}
+
+#[test]
+fn the_core_alone_streams_to_the_cut_refining_locally_gives() {
+    // No server, socket, thread or clock: each frame's requests are answered from a local
+    // copy before the next frame (one round trip a frame), time is made up.
+    let dir = tempfile::tempdir().unwrap();
+    let (_, local) = build_korea(dir.path());
+    let repo = Repository::open(&local).unwrap();
+    let mut core = StreamCore::<PlanarRefiner>::new(
+        REPO,
+        repo.metadata(),
+        None,
+        StreamConfig::default(),
+        None,
+        Procedural::Zero,
+    )
+    .unwrap();
+    let b = core.bounds();
+    let view = View {
+        eye: DVec3::new(b.min.x, b.min.y, b.max.z + 2_000.0),
+        target: (b.min + b.max) / 2.0,
+        up: DVec3::Z,
+        fov_y_rad: 60f64.to_radians(),
+        viewport_px: [1920, 1080],
+        tolerance_px: 1.0,
+    };
+    let answers = Answers::default();
+    let mut pending: Vec<Key> = Vec::new();
+    let mut asked: HashSet<Key> = HashSet::new();
+    for frame in 0..400u64 {
+        for key in pending.drain(..) {
+            let id = PlanarRefiner::id_of(key);
+            let info = core.refiner().info(id).unwrap();
+            let value = repo
+                .get(&info.key)
+                .unwrap()
+                .map(|blob| Arc::new(core.refiner().decode(id, &blob).unwrap()));
+            match &value {
+                Some(v) => answers.values.borrow_mut().insert(key, Arc::clone(v)),
+                None => {
+                    answers.leaves.borrow_mut().insert(key);
+                    None
+                }
+            };
+            core.arrived(key, value);
+        }
+        let stores = Stores {
+            elevation: &answers,
+            colour: None,
+        };
+        let now = Duration::from_millis(16 * frame);
+        let (f, requests) = core
+            .frame(
+                &view,
+                now,
+                Duration::from_secs(1),
+                &Frozen,
+                stores,
+                FetchStats::default,
+            )
+            .unwrap();
+        let check = core.dag().check_cut();
+        assert!(check.ok(), "frame {frame}: {check:?}");
+        let submit = requests.elevation;
+        if f.refine.converged && submit.wants.is_empty() {
+            let expected = reference_cut::<PlanarRefiner>(&local, REPO, &view, core.world());
+            assert!(expected.len() > 100, "{}", expected.len());
+            assert!(cut_of(core.dag()) == expected, "the core's cut differs");
+            assert!(asked.len() > 100, "{}", asked.len());
+            return;
+        }
+        // A want is never something held; prefetches may be (the network thread's
+        // planner skips those, as here).
+        for &(key, _) in &submit.wants {
+            let held = answers.contains(key) || answers.is_leaf(key);
+            assert!(!held, "frame {frame}: wants {key:?}, which it holds");
+        }
+        // A prefetch may name a want (routed to the owner whose package carries it): the
+        // network thread's schedule keeps one request, as here.
+        for &(key, _) in submit.wants.iter().chain(&submit.prefetch) {
+            if answers.contains(key) || answers.is_leaf(key) || pending.contains(&key) {
+                continue;
+            }
+            asked.insert(key);
+            pending.push(key);
+        }
+    }
+    panic!("the core did not converge in 400 frames");
 }

@@ -15,10 +15,10 @@
 //   projected screen-space error (max of edge and texel), missing parents first, merge
 //   queue with hysteresis, deferred re-evaluation, side-information flatness, frustum and
 //   horizon culling, optional memory and cut budgets.
-// - session.rs and fetch/: `Session` (below), a priority fetch queue with a bounded
-//   number of requests in flight (shared by both layers), cancellation of requests no
-//   longer wanted (AbortController), retries with backoff, a decoded-details cache (LRU
-//   by bytes) and the set of known leaves, packages (`.../p/...` when the metadata has
+// - client-core's stream.rs, session.rs and fetch/: `Session` (below), a priority fetch
+//   queue with a bounded number of requests in flight (shared by both layers),
+//   cancellation of requests no longer wanted (AbortController), retries with backoff, a
+//   decoded-details cache (LRU by bytes) and the set of known leaves, packages (`.../p/...` when the metadata has
 //   `inline_max_bytes`), empty answers (and 404s of a static export) as leaves, lookahead
 //   below wanted diamonds and prefetch along the predicted camera.
 // - decoding off the main thread: worker.mjs in a small pool of module workers when
@@ -2114,7 +2114,7 @@ function rehydrate(ops, key, value) {
 }
 
 // ---------------------------------------------------------------------------------------
-// Layers: one repository's data access (session.rs `Layer`, fetch/worker.rs, schedule.rs).
+// Layers: one repository's data access (client-core stream.rs `LayerState`, fetch/planner.rs, schedule.rs).
 
 const keyString = (k) => `${k[0]},${k[1]},${k[2]}`;
 const WANT = 0;
@@ -2185,7 +2185,7 @@ async function openRemote(baseUrl, name, fetchFn, timeoutMs) {
   };
 }
 
-/** How a repository's answers carry small owned children (session.rs `Packing`). */
+/** How a repository's answers carry small owned children (client-core stream.rs `Packing`). */
 function packingOf(meta, ops) {
   const limit = meta.inline_max_bytes;
   if (limit == null) return null;
@@ -2261,7 +2261,7 @@ class Layer {
     return failed;
   }
 
-  /** The data of `key` if here (null: a leaf), else PENDING (session.rs `lookup`). */
+  /** The data of `key` if here (null: a leaf), else PENDING (client-core stream.rs `LayerState::lookup`). */
   lookup(key, parents) {
     const ks = keyString(key);
     if (this.arrived.has(ks)) return this.arrived.get(ks);
@@ -2337,7 +2337,7 @@ class Layer {
 }
 
 // ---------------------------------------------------------------------------------------
-// Camera motion for prefetch (session.rs `CameraTrack`).
+// Camera motion for prefetch (client-core stream.rs `CameraTrack`).
 
 class CameraTrack {
   constructor() {
@@ -2367,7 +2367,7 @@ class CameraTrack {
 }
 
 // ---------------------------------------------------------------------------------------
-// The session (session.rs `Session`).
+// The session (client-core stream.rs `StreamCore`, wrapped by session.rs `Session`).
 
 function defaultWorkers() {
   const cores = typeof navigator !== "undefined" && navigator.hardwareConcurrency ? navigator.hardwareConcurrency : 2;
