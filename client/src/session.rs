@@ -357,7 +357,7 @@ impl<R: Domain> Session<R> {
     }
 
     /// Opens elevation repository `name` with colour repository `colour` (both served at
-    /// `base_url`), matched at run time ([`ColourLayer::match_to`]).
+    /// `base_url`), matched at run time ([`crate::colour::ColourLayer::match_to`]).
     pub fn open_with_colour(
         base_url: &str,
         name: &str,

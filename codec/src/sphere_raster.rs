@@ -12,7 +12,7 @@
 //! # Units and levels
 //! Id units are samples: the domain is the cube `[-S, S]^3` (`m = log2 S`), and the sample
 //! `(f, u, v)` is the cube point [`SphereFrame::sample_position`]. Positions returned by
-//! [`SphereDomain::vertex_position`] are in id units x `2N`. `face_side = N 2^k`, so the
+//! [`crate::diamond::SphereDomain::vertex_position`] are in id units x `2N`. `face_side = N 2^k`, so the
 //! face roots (level 0) have a vertex spacing of `2^k` samples and the `2k` detail levels
 //! `0 ..= 2k - 1` end with rotated diamonds of half-diagonal `N` whose cells land exactly
 //! on the samples (the same choice as the planar [`crate::raster`]). With `k = 0` the six

@@ -77,7 +77,7 @@ export function worldFrame(meta, colourN = 0) {
 
 const EARTH_RADIUS_M = 6_371_008.8;
 
-/** Metres between samples of a planar repository (client/src/open.rs `planar_world`). */
+/** Metres between samples of a planar repository (client-core/src/open.rs `planar_world`). */
 export function planarSpacingM(meta) {
   const g = meta.georef;
   if (!g) return 1;

@@ -1023,7 +1023,7 @@ export class SphereRefiner {
   }
 
   /// The refiner of channel `channel` of a planet's metadata.json object (the checks of
-  /// client/src/open.rs sphere_channel_refiner).
+  /// client-core/src/open.rs sphere_channel_refiner).
   static fromMetadata(meta, channel = 0) {
     const bad = (reason) => new DecodeError(`repository metadata: ${reason}`);
     if (meta === null || typeof meta !== "object") throw bad("not an object");
@@ -1341,7 +1341,7 @@ export class SphereRefiner {
   }
 
   /// The position of grid vertex (i, j) of `id` in fine units (1/N sample) x 2N, exact at
-  /// every level (client/src/domain.rs sphere_vertex_fine): a point on the cube of half
+  /// every level (client-core/src/domain.rs sphere_vertex_fine): a point on the cube of half
   /// side S N 2N. `planetPoint(vertexFine(id, i, j), radius, height)` places the vertex
   /// in the world (only the direction matters, so the unit is free). null on bad input.
   vertexFine(id, i, j) {

@@ -94,7 +94,7 @@ function metadata(name) {
   return metaCache.get(name);
 }
 
-/** Whether colour repository `c` covers the ground of elevation `e` (client/src/colour.rs). */
+/** Whether colour repository `c` covers the ground of elevation `e` (client-core/src/colour.rs). */
 function coloursMatch(e, c) {
   if (c.attribute?.kind !== "colour" || c.channels?.length !== 3 || c.domain !== e.domain) return false;
   if (e.domain === "sphere") {

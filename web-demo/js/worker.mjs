@@ -1,7 +1,7 @@
 // Decoding off the main thread: a module Web Worker that turns the bytes of one answer
 // (a blob, or a package carrying small owned children's blobs) into decoded details,
 // what the Rust client's network thread does (client/src/session.rs `Layer::spawn`'s
-// decode and `Packing::unpack`, client/src/colour.rs `ColourLayer::decode`).
+// decode and `Packing::unpack`, client-core/src/colour.rs `ColourLayer::decode`).
 //
 // The same code runs inline: client.mjs imports `AnswerDecoder` and calls it directly
 // when `Worker` does not exist (node tests) or a worker cannot start.
