@@ -49,15 +49,22 @@ pub struct StreamConfig {
     pub prefetch_max: usize,
     /// Levels below each wanted diamond whose blobs are requested ahead (as prefetch)
     /// while the wanted diamond's projected error says they will be wanted too (about
-    /// `error / sqrt(2)^depth` above the tolerance); 0 disables it. See also
+    /// `error / sqrt(2)^depth` above the tolerance). This hides the round trip per level
+    /// a view would otherwise pay on its way down; 0 disables it. See also
     /// [`StreamConfig::lookahead_min_blobs`].
     pub lookahead_levels: usize,
     /// No lookahead while one round trip of the link (estimated bandwidth x RTT) carries
     /// fewer than this many mean-sized blobs and the link queues (answers take more than
-    /// 1.25 times the RTT).
+    /// 1.25 times the RTT): on such a link the bandwidth, not the round trips, bounds how
+    /// fast a view fills, and lookahead answers would only queue ahead of wanted ones.
     pub lookahead_min_blobs: f64,
-    /// Ask for packages where the projected error is at least `package_factor x
-    /// tolerance`; `None`: bare blobs only.
+    /// Ask for packages (a blob with its small owned children's, for repositories with an
+    /// inlining limit) where the diamond's children and grandchildren will want refining
+    /// too: projected error at least `package_factor x tolerance`. `None`: bare blobs
+    /// only. The default, 2, is where the grandchildren's error (about half the
+    /// diamond's) still exceeds the tolerance. With a 300-byte limit, 1 or sqrt(2)
+    /// fetched 1.28 or 1.19 times what the planet's jump flight used, 2 1.10
+    /// (`docs/streaming.md`, "Packages").
     pub package_factor: Option<f64>,
 }
 

@@ -94,24 +94,17 @@ pub struct SessionConfig {
     pub bandwidth_cap_bit_s: Option<f64>,
     /// Byte budget of the decoded-details cache (per layer: a colour layer has its own).
     pub cache_bytes: usize,
-    /// Refinement tuning.
+    /// Refinement tuning ([`StreamConfig::refine`]).
     pub refine: RefineConfig,
-    /// How far ahead the camera is predicted for prefetching; zero disables prefetch.
+    /// [`StreamConfig::prefetch_ahead`]: how far ahead the camera is predicted.
     pub prefetch_ahead: Duration,
-    /// How often the predicted camera is evaluated (it costs a pass over the DAG).
+    /// [`StreamConfig::prefetch_every`]: how often the predicted camera is evaluated.
     pub prefetch_every: Duration,
-    /// Most prefetch keys submitted at once.
+    /// [`StreamConfig::prefetch_max`]: most prefetch keys submitted at once.
     pub prefetch_max: usize,
-    /// Levels below each wanted diamond whose blobs are requested ahead (as prefetch)
-    /// while the wanted diamond's projected error says they will be wanted too (about
-    /// `error / sqrt(2)^depth` above the tolerance). This hides the round trip per level
-    /// a view would otherwise pay on its way down; 0 disables it. See also
-    /// [`SessionConfig::lookahead_min_blobs`].
+    /// [`StreamConfig::lookahead_levels`]: levels requested ahead below wanted diamonds.
     pub lookahead_levels: usize,
-    /// No lookahead while one round trip of the link (estimated bandwidth x RTT) carries
-    /// fewer than this many mean-sized blobs and the link queues (answers take more than
-    /// 1.25 times the RTT): on such a link the bandwidth, not the round trips, bounds how fast
-    /// a view fills, and lookahead answers would only queue ahead of wanted ones.
+    /// [`StreamConfig::lookahead_min_blobs`]: no lookahead on a link this narrow that queues.
     pub lookahead_min_blobs: f64,
     /// Metres between samples; `None` derives it from the metadata's georeference
     /// (latitude/longitude grids on a sphere of [`EARTH_RADIUS_M`]; projected grids in
@@ -126,13 +119,7 @@ pub struct SessionConfig {
     /// With a colour layer, the details made up below the shallower layer's finest level
     /// so the DAG refines to the deeper one's (zero: smooth interpolation).
     pub procedural: Procedural,
-    /// Ask for packages (a blob with its small owned children's, for repositories with an
-    /// inlining limit) where the diamond's children and grandchildren will want refining
-    /// too: projected error at least `package_factor x tolerance`. `None`: bare blobs
-    /// only. The default, 2, is where the grandchildren's error (about half the
-    /// diamond's) still exceeds the tolerance. With a 300-byte limit, 1 or sqrt(2)
-    /// fetched 1.28 or 1.19 times what the planet's jump flight used, 2 1.10
-    /// (`docs/streaming.md`, "Packages").
+    /// [`StreamConfig::package_factor`]: packages from this multiple of the tolerance.
     pub package_factor: Option<f64>,
     /// How to reach the server beyond its URL: an extra trusted CA for `https://` (PEM,
     /// besides the system's roots) and an address to connect to instead of the host's.
