@@ -56,7 +56,7 @@ pub enum SessionError {
 }
 
 /// A [`SessionError::Metadata`] naming repository `name`.
-pub fn metadata_error(name: &str, reason: impl Into<String>) -> SessionError {
+pub(crate) fn metadata_error(name: &str, reason: impl Into<String>) -> SessionError {
     SessionError::Metadata {
         name: name.to_string(),
         reason: reason.into(),

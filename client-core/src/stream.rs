@@ -391,6 +391,15 @@ pub struct Stores<'a, R: Refiner> {
     pub colour: Option<&'a dyn Store<ColourDetails<R::Id>>>,
 }
 
+// By hand: a derive would ask `R: Copy` of the refiner, which only names the id type.
+impl<R: Refiner> Clone for Stores<'_, R> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<R: Refiner> Copy for Stores<'_, R> {}
+
 /// What a frame asks of the data access layers.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Requests {
@@ -594,9 +603,8 @@ impl<R: Domain> StreamCore<R> {
                 }
             }
         }
-        let fetchable = |core: &Self, id| core.fetchable(id, stores.elevation, colour_store);
-        let mut ahead = self.lookahead(&wanted, levels, view.tolerance_px, &fetchable);
-        ahead.extend(self.prefetch(view, now, &wanted, &fetchable));
+        let mut ahead = self.lookahead(&wanted, levels, view.tolerance_px, stores);
+        ahead.extend(self.prefetch(view, now, &wanted, stores));
         ahead.sort_by(|a, b| b.1.total_cmp(&a.1));
         ahead.dedup_by_key(|(id, _)| *id);
         ahead.truncate(self.config.prefetch_max);
@@ -640,14 +648,9 @@ impl<R: Domain> StreamCore<R> {
 
     /// Whether some layer would fetch data for diamond `id` (coded there and not known
     /// to be a leaf).
-    fn fetchable(
-        &self,
-        id: R::Id,
-        elevation: &dyn Store<Details<R::Id>>,
-        colour: Option<&dyn Store<ColourDetails<R::Id>>>,
-    ) -> bool {
-        (self.refiner.is_coded(id) && !self.elevation.is_leaf(elevation, R::key_of(id)))
-            || match (&self.colour, colour) {
+    fn fetchable(&self, id: R::Id, stores: Stores<'_, R>) -> bool {
+        (self.refiner.is_coded(id) && !self.elevation.is_leaf(stores.elevation, R::key_of(id)))
+            || match (&self.colour, stores.colour) {
                 (Some((layer, state)), Some(store)) => layer
                     .colour_id(id)
                     .is_some_and(|c| layer.is_coded(c) && !state.is_leaf(store, R::key_of(c))),
@@ -663,7 +666,7 @@ impl<R: Domain> StreamCore<R> {
         wanted: &HashMap<R::Id, f32>,
         levels: usize,
         tolerance_px: f64,
-        fetchable: &dyn Fn(&Self, R::Id) -> bool,
+        stores: Stores<'_, R>,
     ) -> Vec<(R::Id, f32)> {
         if levels == 0 {
             return Vec::new();
@@ -679,7 +682,7 @@ impl<R: Domain> StreamCore<R> {
                     continue;
                 }
                 for &c in self.dag.children(id).iter() {
-                    if wanted.contains_key(&c) || !fetchable(self, c) {
+                    if wanted.contains_key(&c) || !self.fetchable(c, stores) {
                         continue;
                     }
                     let e = out.entry(c).or_insert(0.0);
@@ -728,7 +731,7 @@ impl<R: Domain> StreamCore<R> {
         view: &View,
         now: Duration,
         wanted: &HashMap<R::Id, f32>,
-        fetchable: &dyn Fn(&Self, R::Id) -> bool,
+        stores: Stores<'_, R>,
     ) -> Vec<(R::Id, f32)> {
         self.camera.observe(now, view.eye);
         let ahead = self.config.prefetch_ahead.as_secs_f64();
@@ -749,7 +752,7 @@ impl<R: Domain> StreamCore<R> {
         self.refinement
             .wanted_splits(&self.dag, &predicted, self.world)
             .into_iter()
-            .filter(|(id, _)| !wanted.contains_key(id) && fetchable(self, *id))
+            .filter(|(id, _)| !wanted.contains_key(id) && self.fetchable(*id, stores))
             .map(|(id, e)| (id, e as f32))
             .collect()
     }

@@ -68,7 +68,6 @@ use crate::refine::{RefineConfig, SystemClock};
 use crate::view::{Aabb, View};
 
 pub use crate::dag::{Patch, PatchChanges};
-use crate::open::metadata_error;
 pub use crate::open::{
     EARTH_RADIUS_M, SessionError, planar_channel_refiner, planar_refiner, planar_world,
     sphere_channel_refiner, sphere_refiner, sphere_world,
@@ -191,22 +190,22 @@ impl<T: Weigh + Send + Sync + 'static> Store<T> for Fetcher<T> {
 }
 
 impl<T: Weigh + Send + Sync + 'static> Layer<T> {
-    /// Starts the network thread of repository `remote` whose blobs `decode` decodes.
+    /// Starts the network thread of repository `remote` whose blobs `decode` decodes
+    /// (unpacking packages as `packing`, the core's reading of its metadata, says).
     fn spawn(
         remote: Remote,
         meta: Metadata,
         config: &SessionConfig,
+        packing: Option<Packing>,
         decode: impl Fn(Key, &[u8]) -> Result<T, String> + Send + Sync + 'static,
     ) -> Result<Layer<T>, SessionError> {
         let blob_bytes: Arc<Mutex<HashMap<Key, u32>>> = Arc::default();
-        let packing = Packing::of(&meta).map_err(|e| metadata_error(&remote.name, e))?;
         let decode: Unpack<T> = {
             let sizes = Arc::clone(&blob_bytes);
             let decode = move |key: Key, bytes: &[u8]| {
                 lock(&sizes).insert(key, u32::try_from(bytes.len()).unwrap_or(u32::MAX));
                 decode(key, bytes)
             };
-            let packing = packing.clone();
             Arc::new(move |key: Key, bytes: Bytes, packaged: bool| {
                 let Some(packing) = packing.as_ref().filter(|_| packaged) else {
                     return Ok(Decoded {
@@ -374,18 +373,24 @@ impl<R: Domain> Session<R> {
         )?;
         let elevation = {
             let refiner = Arc::clone(core.refiner());
-            Layer::spawn(remote, meta, &config, move |key, bytes| {
+            let packing = core.elevation().packing().cloned();
+            Layer::spawn(remote, meta, &config, packing, move |key, bytes| {
                 refiner
                     .decode(R::id_of(key), bytes)
                     .map_err(|e| e.to_string())
             })?
         };
-        let colour = match (colour, core.colour_layer()) {
-            (Some((remote, meta)), Some(layer)) => {
+        let colour = match (colour, core.colour_layer(), core.colour()) {
+            (Some((remote, meta)), Some(layer), Some(state)) => {
                 let decoder = Arc::clone(layer);
-                Some(Layer::spawn(remote, meta, &config, move |key, bytes| {
-                    decoder.decode(R::id_of(key), bytes)
-                })?)
+                let packing = state.packing().cloned();
+                Some(Layer::spawn(
+                    remote,
+                    meta,
+                    &config,
+                    packing,
+                    move |key, bytes| decoder.decode(R::id_of(key), bytes),
+                )?)
             }
             _ => None,
         };
