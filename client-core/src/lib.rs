@@ -14,6 +14,8 @@
 //!   mappings its metadata gives; it depends on no module above it.
 //! - [`domain`]: what differs between planar repositories and planets (world boxes,
 //!   exact vertex positions, coverage probes); everything above is generic over it.
+//! - [`fine`]: exact vertex positions in fine units, each patch as an affine map, and
+//!   the geometry a renderer draws ([`fine::WorldFrame`]).
 //! - [`colour`]: an optional colour repository matched at run time to the elevation one
 //!   (different depths and diamond sizes; procedural detail below the shallower layer).
 //!
@@ -30,6 +32,7 @@ pub mod colour;
 pub mod dag;
 pub mod domain;
 pub mod fetch;
+pub mod fine;
 pub mod open;
 pub mod refine;
 pub mod stream;

@@ -47,4 +47,4 @@ pub mod refine;
 pub mod session;
 
 #[doc(inline)]
-pub use quincunx_client_core::{colour, dag, domain, open, view};
+pub use quincunx_client_core::{colour, dag, domain, fine, open, view};

@@ -37,7 +37,11 @@ pub use quincunx_client::glam;
 pub use wgpu;
 
 pub mod camera;
-pub mod domain;
+/// What the renderer needs of a domain (exact fine-unit positions, affine patches, the
+/// world frame): the client core's [`quincunx_client::fine`], under its old path.
+pub mod domain {
+    pub use quincunx_client::fine::*;
+}
 pub mod error;
 pub mod ground;
 pub mod offscreen;

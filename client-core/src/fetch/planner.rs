@@ -38,6 +38,22 @@ pub struct PlannerConfig {
     pub static_export: bool,
 }
 
+impl Default for PlannerConfig {
+    /// The native client's defaults (`FetchConfig::new`): 8 requests before a bandwidth
+    /// estimate, at most 256, four attempts, backoff from 50 ms to 2 s.
+    fn default() -> Self {
+        PlannerConfig {
+            initial_in_flight: 8,
+            max_in_flight: 256,
+            bandwidth_cap_bit_s: None,
+            max_attempts: 4,
+            retry_backoff: Duration::from_millis(50),
+            max_backoff: Duration::from_secs(2),
+            static_export: false,
+        }
+    }
+}
+
 /// A request to send.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Planned {

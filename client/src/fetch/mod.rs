@@ -178,19 +178,20 @@ impl FetchConfig {
     /// Blobs are small (hundreds of bytes), so a 4 Mbit/s, 100 ms link holds about a
     /// hundred answers in flight: depth and in-flight limits are set well above that.
     pub fn new(remote: Remote) -> Self {
+        let planned = planner::PlannerConfig::default();
         FetchConfig {
             remote,
             transport: Transport::Pipelined,
             connections: 2,
             pipeline_depth: 64,
-            max_in_flight: 256,
-            initial_in_flight: 8,
-            bandwidth_cap_bit_s: None,
+            max_in_flight: planned.max_in_flight,
+            initial_in_flight: planned.initial_in_flight,
+            bandwidth_cap_bit_s: planned.bandwidth_cap_bit_s,
             request_timeout: Duration::from_secs(10),
             request_deadline: DEFAULT_REQUEST_DEADLINE,
-            max_attempts: 4,
-            retry_backoff: Duration::from_millis(50),
-            max_backoff: Duration::from_secs(2),
+            max_attempts: planned.max_attempts,
+            retry_backoff: planned.retry_backoff,
+            max_backoff: planned.max_backoff,
             cache_bytes: 64 << 20,
             limits: http1::Limits::default(),
         }

@@ -1,11 +1,12 @@
-//! What the renderer needs of a domain: exact vertex positions in a common integer unit
-//! (the *fine unit*), as a per-patch affine map the shader evaluates, and how fine units
-//! and samples become metres.
+//! What a renderer needs of a domain: exact vertex positions in a common integer unit
+//! (the *fine unit*), as a per-patch affine map a shader evaluates, and how fine units
+//! and samples become metres. Here, not in `quincunx-render`, so that every renderer
+//! (the wgpu one, the browser's WebGL2 one through `quincunx-web`) reads the same maps.
 
+use crate::dag::Half;
+use crate::domain::Domain;
+use crate::view::{PlanarWorld, SphereWorld};
 use glam::DVec3;
-use quincunx_client::dag::Half;
-use quincunx_client::domain::Domain;
-use quincunx_client::view::{PlanarWorld, SphereWorld};
 use quincunx_decoder::diamond::sphere::unit_sphere_to_cube;
 use quincunx_decoder::incremental::{PlanarRefiner, Refiner, SphereRefiner};
 
