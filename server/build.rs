@@ -1,6 +1,7 @@
 //! Compiles the web demo's page and modules into the binary: writes `demo_files.rs`, the
 //! table `site.rs` serves `/demo/<path>` from (`web-demo/index.html` and every file under
-//! `web-demo/js/`; the demo's tools, tests and npm packages stay out).
+//! `web-demo/js/`, the WebAssembly module included; the demo's tools, tests and npm
+//! packages stay out).
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -13,6 +14,7 @@ fn content_type(path: &Path) -> Option<&'static str> {
         "json" => "application/json",
         "svg" => "image/svg+xml",
         "png" => "image/png",
+        "wasm" => "application/wasm",
         _ => return None,
     })
 }

@@ -41,6 +41,12 @@ fn server_does_not_depend_on_the_codec() {
 
 /// `cargo tree` of `crate_name` (normal and build edges), one crate a line.
 fn tree_of(crate_name: &str) -> String {
+    cargo_tree(crate_name, "normal,build", &[])
+}
+
+/// `cargo tree` of `crate_name` over the dependency kinds `edges`, one crate a line, with
+/// `extra` arguments (a `--target`).
+fn cargo_tree(crate_name: &str, edges: &str, extra: &[&str]) -> String {
     let output = Command::new(env!("CARGO"))
         .current_dir(common::workspace_root())
         .args([
@@ -49,15 +55,16 @@ fn tree_of(crate_name: &str) -> String {
             "-p",
             crate_name,
             "-e",
-            "normal,build",
+            edges,
             "--prefix",
             "none",
         ])
+        .args(extra)
         .output()
         .unwrap();
     assert!(
         output.status.success(),
-        "cargo tree -p {crate_name} failed: {}",
+        "cargo tree -p {crate_name} -e {edges} {extra:?} failed: {}",
         String::from_utf8_lossy(&output.stderr)
     );
     String::from_utf8_lossy(&output.stdout).into_owned()
@@ -93,6 +100,15 @@ fn named<'t>(tree: &'t str, names: &[&str]) -> Vec<&'t str> {
         .collect()
 }
 
+/// The names of `names` that no crate of `tree` has.
+fn unnamed<'n>(tree: &str, names: &[&'n str]) -> Vec<&'n str> {
+    names
+        .iter()
+        .copied()
+        .filter(|n| named(tree, &[n]).is_empty())
+        .collect()
+}
+
 #[test]
 fn clients_decode_without_the_encoder_and_the_core_without_io() {
     // The codec itself is built on the decoder and rayon: the filter finds them there.
@@ -125,6 +141,34 @@ fn clients_decode_without_the_encoder_and_the_core_without_io() {
         found.is_empty(),
         "quincunx-client-core depends on {found:?}"
     );
+}
+
+#[test]
+fn the_web_module_has_no_encoder_io_or_gpu() {
+    // The browser's module (web-demo/js/quincunx.wasm) decodes and streams with the same
+    // crates as the native client, minus everything the page does itself: the network is
+    // fetch(), threads are workers, drawing is WebGL2. Every target's dependencies count,
+    // wasm32's included.
+    let all_targets = ["--target", "all"];
+    let encoder = ["quincunx-codec", "rayon"];
+    let io = ["tokio", "reqwest", "hyper", "rustls", "mio"];
+    // The filters find each kind where it is: the encoder in the module's own tests (the
+    // codec encodes what they decode), I/O in the native client, wgpu in the renderer.
+    let with_tests = cargo_tree("quincunx-web", "normal,build,dev", &all_targets);
+    let missing = unnamed(&with_tests, &encoder);
+    assert!(missing.is_empty(), "no {missing:?} in {with_tests}");
+    assert!(named(&tree_of("quincunx-client"), &io).len() >= 4);
+    assert!(!wgpu_crates(&tree_of("quincunx-render")).is_empty());
+
+    let tree = cargo_tree("quincunx-web", "normal,build", &all_targets);
+    // What it is built on: an empty output would prove nothing.
+    let base = ["quincunx-decoder", "quincunx-client-core"];
+    let missing = unnamed(&tree, &base);
+    assert!(missing.is_empty(), "no {missing:?} in {tree}");
+    let mut found = named(&tree, &encoder);
+    found.extend(named(&tree, &io));
+    found.extend(wgpu_crates(&tree));
+    assert!(found.is_empty(), "quincunx-web depends on {found:?}");
 }
 
 #[test]

@@ -8,8 +8,6 @@
 // Each test crate uses a different subset of these helpers.
 #![allow(dead_code)]
 
-pub mod vectors;
-
 use std::path::{Path, PathBuf};
 
 use quincunx_codec::diamond::sphere::cube_to_unit_sphere;

@@ -1,0 +1,289 @@
+//! The module's calls on plain byte buffers, as the exports in `abi.rs` make them (and as
+//! native tests make them): objects by handle, numbers little-endian, JSON where the page
+//! wants objects.
+
+use std::collections::HashMap;
+
+use bytes::Bytes;
+use glam::DVec3;
+
+use quincunx_client_core::fetch::{FetchError, Key};
+use quincunx_client_core::refine::Clock;
+use quincunx_decoder::incremental::{PlanarRefiner, SphereRefiner};
+use quincunx_meta::Domain as MetaDomain;
+
+use crate::client::{Camera, Client, WebError, ms, view_of};
+use crate::decode::AnswerDecoder;
+use crate::open::Open;
+use crate::wire::{Reader, Writer};
+
+/// A client in its domain.
+pub enum AnyClient {
+    /// On a plane.
+    Planar(Box<Client<PlanarRefiner>>),
+    /// On a planet.
+    Sphere(Box<Client<SphereRefiner>>),
+}
+
+/// Calls `$e` with `$c` bound to the client, whatever its domain.
+macro_rules! with_client {
+    ($client:expr, $c:ident => $e:expr) => {
+        match $client {
+            AnyClient::Planar($c) => $e,
+            AnyClient::Sphere($c) => $e,
+        }
+    };
+}
+
+enum Object {
+    Decoder(AnswerDecoder),
+    Client(AnyClient),
+}
+
+/// Every object the page holds, by handle.
+#[derive(Default)]
+pub struct Module {
+    objects: HashMap<u32, Object>,
+    next: u32,
+}
+
+fn parse_open(input: &[u8]) -> Result<Open, WebError> {
+    serde_json::from_slice(input).map_err(|e| format!("opening: {e}"))
+}
+
+/// What an answer's `kind` byte says happened.
+fn result_of(
+    kind: u8,
+    r: &mut Reader<'_>,
+    rest: &[u8],
+) -> Result<Result<(u16, Bytes), FetchError>, WebError> {
+    let text = || String::from_utf8_lossy(rest).into_owned();
+    Ok(match kind {
+        0 => {
+            let status = u16::try_from(r.u32().map_err(|e| e.to_string())?)
+                .map_err(|_| "status out of range".to_string())?;
+            let body = r
+                .take(rest.len().saturating_sub(4))
+                .map_err(|e| e.to_string())?;
+            Ok((status, Bytes::copy_from_slice(body)))
+        }
+        1 => Err(FetchError::Connection(text())),
+        2 => Err(FetchError::Timeout(ms(r
+            .f64()
+            .map_err(|e| e.to_string())?)?)),
+        k => return Err(format!("answer kind {k}")),
+    })
+}
+
+impl Module {
+    fn insert(&mut self, o: Object) -> u32 {
+        self.next = self.next.wrapping_add(1).max(1);
+        self.objects.insert(self.next, o);
+        self.next
+    }
+
+    /// Drops object `h`.
+    pub fn free(&mut self, h: u32) {
+        self.objects.remove(&h);
+    }
+
+    fn client(&mut self, h: u32) -> Result<&mut AnyClient, WebError> {
+        match self.objects.get_mut(&h) {
+            Some(Object::Client(c)) => Ok(c),
+            _ => Err(format!("no client {h}")),
+        }
+    }
+
+    /// A decoder of the session the JSON [`Open`] describes.
+    pub fn decoder_new(&mut self, input: &[u8]) -> Result<u32, WebError> {
+        let d = AnswerDecoder::new(&parse_open(input)?)?;
+        Ok(self.insert(Object::Decoder(d)))
+    }
+
+    /// Decodes an answer: input `u8 layer, u8 packaged, key, body`.
+    pub fn decoder_decode(&mut self, h: u32, input: &[u8]) -> Result<Vec<u8>, WebError> {
+        let Some(Object::Decoder(d)) = self.objects.get(&h) else {
+            return Err(format!("no decoder {h}"));
+        };
+        let mut r = Reader::new(input);
+        let (layer, packaged, key) = header(&mut r)?;
+        d.decode(layer, key, &input[HEADER..], packaged != 0)
+    }
+
+    /// A client of the session the JSON [`Open`] describes.
+    pub fn client_new(&mut self, input: &[u8], now_ms: f64) -> Result<u32, WebError> {
+        let open = parse_open(input)?;
+        let now = ms(now_ms)?;
+        let c = match open.elevation.meta.domain {
+            MetaDomain::Planar => AnyClient::Planar(Box::new(Client::new(&open, now)?)),
+            MetaDomain::Sphere => AnyClient::Sphere(Box::new(Client::new(&open, now)?)),
+        };
+        Ok(self.insert(Object::Client(c)))
+    }
+
+    /// An answer: input `u8 layer, u8 kind, key`, then for kind 0 (HTTP) `u32 status,
+    /// body`, 1 (connection failure) a message, 2 (timeout) `f64 ms`. Returns 0, or 1 /
+    /// 2 when the body is to be decoded bare / as a package.
+    pub fn client_answer(&mut self, h: u32, input: &[u8], now_ms: f64) -> Result<i32, WebError> {
+        let now = ms(now_ms)?;
+        let mut r = Reader::new(input);
+        let (layer, kind, key) = header(&mut r)?;
+        let result = result_of(kind, &mut r, &input[HEADER..])?;
+        let decode = with_client!(self.client(h)?, c => c.answer(layer, key, result, now)?);
+        Ok(match decode {
+            None => 0,
+            Some(false) => 1,
+            Some(true) => 2,
+        })
+    }
+
+    /// A decoded body: input `u8 layer, u8 0, key`, then the decoder's output.
+    pub fn client_decoded(&mut self, h: u32, input: &[u8], now_ms: f64) -> Result<(), WebError> {
+        let now = ms(now_ms)?;
+        let mut r = Reader::new(input);
+        let (layer, _, key) = header(&mut r)?;
+        with_client!(self.client(h)?, c => c.decoded(layer, key, &input[HEADER..], now))
+    }
+
+    /// A body the decoder refused: input `u8 layer, u8 0, key`, then the reason (UTF-8).
+    pub fn client_decode_failed(
+        &mut self,
+        h: u32,
+        input: &[u8],
+        now_ms: f64,
+    ) -> Result<(), WebError> {
+        let now = ms(now_ms)?;
+        let mut r = Reader::new(input);
+        let (layer, _, key) = header(&mut r)?;
+        let reason = String::from_utf8_lossy(&input[HEADER..]).into_owned();
+        with_client!(self.client(h)?, c => c.decode_failed(layer, key, reason, now))
+    }
+
+    /// One frame: input `f64 position[3], forward[3], up[3], fov_y_rad, tolerance_px,
+    /// u32 viewport[2]`; `budget_ms` of refinement read from `clock`. Returns flags: 1
+    /// full quality (nothing left to refine or fetch for the view), 2 settled (full
+    /// quality, or the best cut the budgets allow), 4 converged (nothing left at all).
+    pub fn client_frame(
+        &mut self,
+        h: u32,
+        input: &[u8],
+        now_ms: f64,
+        budget_ms: f64,
+        clock: &dyn Clock,
+    ) -> Result<i32, WebError> {
+        let now = ms(now_ms)?;
+        let budget = ms(budget_ms)?;
+        let mut r = Reader::new(input);
+        let mut v3 = || -> Result<DVec3, WebError> {
+            let mut a = [0.0; 3];
+            for x in &mut a {
+                *x = r.f64().map_err(|e| e.to_string())?;
+            }
+            Ok(DVec3::from_array(a))
+        };
+        let (position, forward, up) = (v3()?, v3()?, v3()?);
+        let fov_y_rad = r.f64().map_err(|e| e.to_string())?;
+        let tolerance = r.f64().map_err(|e| e.to_string())?;
+        let viewport = [
+            r.u32().map_err(|e| e.to_string())?,
+            r.u32().map_err(|e| e.to_string())?,
+        ];
+        r.finish().map_err(|e| e.to_string())?;
+        let camera = Camera {
+            position,
+            forward,
+            up,
+            fov_y_rad,
+        };
+        let view = view_of(camera, viewport, tolerance)?;
+        let f = with_client!(self.client(h)?, c => c.frame(&view, now, budget, clock))?;
+        let wanted = f.wanted == 0;
+        Ok(i32::from(f.refine.full_quality && wanted)
+            | i32::from(f.refine.settled() && wanted) << 1
+            | i32::from(f.refine.converged) << 2)
+    }
+
+    /// The requests to send now: `u32 count, (u8 layer, u8 packaged, key)*`.
+    pub fn client_plan(&mut self, h: u32, now_ms: f64) -> Result<Vec<u8>, WebError> {
+        let now = ms(now_ms)?;
+        let planned = with_client!(self.client(h)?, c => c.plan(now));
+        let mut w = Writer::default();
+        w.count(planned.len());
+        for (layer, key, packaged) in planned {
+            w.u8(layer);
+            w.u8(u8::from(packaged));
+            w.key(key);
+        }
+        Ok(w.out)
+    }
+
+    /// Milliseconds until the planners next act on their own (a retry), or -1.
+    pub fn client_wake_in(&mut self, h: u32, now_ms: f64) -> Result<f64, WebError> {
+        let now = ms(now_ms)?;
+        let at = with_client!(self.client(h)?, c => c.wake_at(now));
+        Ok(at.map_or(-1.0, |t| t.saturating_sub(now).as_secs_f64() * 1000.0))
+    }
+
+    /// The cut's changes ([`Client::cut_changes`]).
+    pub fn client_changes(&mut self, h: u32) -> Result<Vec<u8>, WebError> {
+        Ok(with_client!(self.client(h)?, c => c.cut_changes()))
+    }
+
+    /// The next changes report the whole cut.
+    pub fn client_restart(&mut self, h: u32) -> Result<(), WebError> {
+        with_client!(self.client(h)?, c => c.restart_cut_changes());
+        Ok(())
+    }
+
+    /// Bounds the cut (`max < 0`: unbounded).
+    pub fn client_set_max_cut_halves(&mut self, h: u32, max: f64) -> Result<(), WebError> {
+        let max = (max >= 0.0).then(|| max.min(usize::MAX as f64) as usize);
+        with_client!(self.client(h)?, c => c.set_max_cut_halves(max));
+        Ok(())
+    }
+
+    /// JSON: the world frame and metric.
+    pub fn client_info(&mut self, h: u32) -> Result<Vec<u8>, WebError> {
+        Ok(with_client!(self.client(h)?, c => c.info())
+            .to_string()
+            .into_bytes())
+    }
+
+    /// JSON: the figures.
+    pub fn client_stats(&mut self, h: u32) -> Result<Vec<u8>, WebError> {
+        Ok(with_client!(self.client(h)?, c => c.stats())
+            .to_string()
+            .into_bytes())
+    }
+
+    /// JSON: the cut check.
+    pub fn client_check(&mut self, h: u32) -> Result<Vec<u8>, WebError> {
+        Ok(with_client!(self.client(h)?, c => c.check_cut())
+            .to_string()
+            .into_bytes())
+    }
+
+    /// `f64 lo, f64 hi`: the cut's height range, metres.
+    pub fn client_height_range(&mut self, h: u32) -> Result<Vec<u8>, WebError> {
+        let (lo, hi) = with_client!(self.client(h)?, c => c.height_range());
+        let mut w = Writer::default();
+        w.f64(lo);
+        w.f64(hi);
+        Ok(w.out)
+    }
+}
+
+impl Module {
+    /// A whole repository ([`crate::reconstruct::reconstruct_call`]).
+    pub fn reconstruct(&mut self, input: &[u8]) -> Result<Vec<u8>, WebError> {
+        crate::reconstruct::reconstruct_call(input)
+    }
+}
+
+/// Bytes of the common header: `u8, u8, key`.
+const HEADER: usize = 2 + 24;
+
+fn header(r: &mut Reader<'_>) -> Result<(u8, u8, Key), WebError> {
+    let e = |e: crate::wire::WireError| e.to_string();
+    Ok((r.u8().map_err(e)?, r.u8().map_err(e)?, r.key().map_err(e)?))
+}
