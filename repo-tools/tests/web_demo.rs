@@ -1,6 +1,7 @@
-//! The web demo's tests, run from `cargo test`: the JavaScript decoder's `node --test`
-//! suite on the bundled repositories (their exports and `verify --json` reference hashes),
-//! and the browser test: headless Chromium on the demo page against `quincunx render`.
+//! The web demo's tests, run from `cargo test`: the `node --test` suite of the WebAssembly
+//! module and the page's client on the bundled repositories (their exports and `verify
+//! --json` reference hashes), and the browser test: headless Chromium on the demo page
+//! against `quincunx render`.
 //!
 //! Needs `node` (and, for the browser test, `/usr/bin/chromium` and
 //! `web-demo/node_modules/playwright-core`, which `.ci/run` installs); without them the
@@ -57,9 +58,9 @@ fn bundled() -> &'static (PathBuf, PathBuf) {
     })
 }
 
-/// `node --test web-demo/test/`: the decoder's golden tests, the reconstruction of every
-/// bundled repository against `quincunx verify --json`, corrupt and truncated blobs, the
-/// geometry and the client.
+/// `node --test web-demo/test/`: the module's golden and hostile-input tests, the
+/// reconstruction of every bundled repository against `quincunx verify --json`, corrupt
+/// and truncated blobs, and the client against a real server.
 #[test]
 fn node_test_suite() {
     if !has_node() {
@@ -232,10 +233,6 @@ fn browser_views_match_render() {
             v.repo,
             "--size",
             &size,
-            // The page's JavaScript client refines by the sampling metric (its port
-            // predates the geometric one; the one-implementation issue replaces it).
-            "--metric",
-            "sampling",
         ])
         .arg("-o")
         .arg(&png)

@@ -266,7 +266,7 @@ async fn listing_metadata_health_metrics_and_demo_answer() {
     );
     // Every module the page imports is compiled in, as JavaScript.
     for module in [
-        "viewer", "client", "codec", "planar", "sphere", "lifting", "worker",
+        "viewer", "client", "wasm", "worker", "render", "camera", "ground",
     ] {
         let r = get(&f.state, &format!("/demo/js/{module}.mjs")).await;
         assert_eq!(r.status, StatusCode::OK, "{module}");

@@ -10,7 +10,32 @@
 //
 // Vectors are plain arrays [x, y, z]; matrices are column-major Float64Array(16).
 
-import { cubeToUnitSphere, unitSphereToCube } from "./sphere.mjs";
+/**
+ * The equal-angle map from the cube [-1, 1]^3 (any scale) to the unit sphere
+ * (quincunx-diamond `sphere::cube_to_unit_sphere`; the shader evaluates the same map).
+ */
+export function cubeToUnitSphere(p) {
+  const big = Math.max(Math.abs(p[0]), Math.abs(p[1]), Math.abs(p[2]));
+  if (big === 0 || !p.every((x) => Number.isFinite(x))) return [p[0], p[1], p[2]];
+  const q = [0, 0, 0];
+  for (let k = 0; k < 3; k++) {
+    const x = p[k] / big;
+    q[k] = Math.abs(p[k]) === big ? Math.sign(x) : Math.tan((Math.PI / 4) * x);
+  }
+  const norm = Math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
+  return [q[0] / norm, q[1] / norm, q[2] / norm];
+}
+
+/** Inverse of `cubeToUnitSphere`: a direction to the cube [-1, 1]^3. */
+export function unitSphereToCube(q) {
+  const big = Math.max(Math.abs(q[0]), Math.abs(q[1]), Math.abs(q[2]));
+  if (big === 0 || !q.every((x) => Number.isFinite(x))) return [q[0], q[1], q[2]];
+  const p = [0, 0, 0];
+  for (let k = 0; k < 3; k++) {
+    p[k] = Math.abs(q[k]) === big ? Math.sign(q[k]) : Math.atan(q[k] / big) / (Math.PI / 4);
+  }
+  return p;
+}
 
 /** Near plane (metres): reversed Z with an infinite far plane. */
 export const NEAR_M = 0.05;

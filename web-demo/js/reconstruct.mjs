@@ -2,17 +2,19 @@
 // layout of docs/blob-format.md ("Reconstruction hash"): every point in the domain's
 // sample order, its channels' decoded integers one after another, each i32 little-endian.
 // `quincunx verify --json` prints the same hash as `decoded_sha256`.
+//
+// The reconstruction runs in the WebAssembly module (web/src/reconstruct.rs: the Rust
+// refiners, level by level, as a client refines); this file adds the hash.
 
-import { reconstructPlanar } from "./planar.mjs";
-import { reconstructSphere } from "./sphere.mjs";
+import { loadWasm } from "./wasm.mjs";
 
-/// Decodes every blob of a repository through the refiners (the code the viewer runs).
-/// `getBlob(centre)` gives a diamond's stored bytes (`null` = a leaf). Returns one
-/// Int32Array per channel in the domain's sample order.
-export function reconstruct(meta, getBlob) {
-  if (meta.domain === "planar") return reconstructPlanar(meta, getBlob);
-  if (meta.domain === "sphere") return reconstructSphere(meta, getBlob);
-  throw new Error(`unknown domain ${JSON.stringify(meta.domain)}`);
+/// Decodes every blob of a repository through the refiners. `meta` is its metadata.json,
+/// `blobs` a Map of every stored blob by centre ("x/y" on the plane, "x/y/z" on a
+/// planet) to its bytes (Uint8Array; a missing diamond is a leaf). Resolves to one
+/// Int32Array per channel in the domain's sample order; rejects with the module's
+/// message (WasmError) on bad metadata, a corrupt blob or a blob of no diamond.
+export async function reconstruct(meta, blobs) {
+  return (await loadWasm()).reconstruct(meta, blobs);
 }
 
 /// The canonical bytes of `channels` (equal lengths), interleaved per point.

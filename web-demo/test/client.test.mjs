@@ -1,4 +1,4 @@
-// The browser client (js/client.mjs, js/worker.mjs) against a real `quincunx serve` over
+// The browser client (js/client.mjs on the WebAssembly client core, js/worker.mjs) against a real `quincunx serve` over
 // a loopback socket, with the bundled demo repositories (korea: planar; earth and
 // earth_colour: a planet and its colour). Prints SKIP when the binary or the
 // repositories are absent.
@@ -24,24 +24,26 @@ import { existsSync, mkdtempSync, readFileSync, rmSync, statSync } from "node:fs
 import { createServer } from "node:http";
 import { tmpdir } from "node:os";
 import { join, normalize } from "node:path";
+import { fileURLToPath } from "node:url";
 import { Worker as NodeWorker } from "node:worker_threads";
 
-import { Half, Session, SessionError, View, patchKey } from "../js/client.mjs";
+import { Half, Session, SessionError, patchKey } from "../js/client.mjs";
 
-const BIN = "/work/main/target/release/quincunx";
-const REPOS = { korea: "/work/demo/korea", earth: "/work/demo/earth", earth_colour: "/work/demo/earth_colour" };
+const workspace = fileURLToPath(new URL("../..", import.meta.url));
+// Set by the Rust harness (repo-tools/tests/web_demo.rs): then nothing may be missing.
+const harnessed = process.env.QUINCUNX_DEMO_DIR !== undefined;
+const BIN = process.env.QUINCUNX_BIN ?? join(workspace, "target", "release", "quincunx");
+const DEMO = process.env.QUINCUNX_DEMO_DIR ?? join(workspace, "target", "tmp", "web-demo", "demo");
+const REPOS = { korea: join(DEMO, "korea"), earth: join(DEMO, "earth"), earth_colour: join(DEMO, "earth_colour") };
 
 let server = null;
 let absent = null;
 
 before(async () => {
-  if (!existsSync(BIN)) {
-    absent = `no ${BIN}`;
-    return;
-  }
-  const missing = Object.values(REPOS).filter((p) => !existsSync(p));
+  const missing = [BIN, ...Object.values(REPOS)].filter((p) => !existsSync(p));
   if (missing.length > 0) {
     absent = `no ${missing.join(", ")}`;
+    if (harnessed) throw new Error(absent);
     return;
   }
   server = await startServer();
@@ -129,7 +131,7 @@ function planetCamera(session, latDeg, lonDeg, heightM, pitchDeg = -90, headingD
   const n = [-up[0] * up[2], -up[1] * up[2], 1 - up[2] * up[2]];
   const l = Math.hypot(...n);
   const north = n.map((x) => x / l);
-  const base = up.map((x) => x * session.world.radiusM);
+  const base = up.map((x) => x * session.world.frame().geometry.radiusM);
   return orient(base, up, north, heightM, pitchDeg, headingDeg);
 }
 
@@ -183,9 +185,7 @@ class Mirror {
       this.patches.set(p.key, p);
       this.entered += 1;
     }
-    const cut = this.session.dag.cut();
-    assert.equal(this.patches.size, cut.length, "the mirrored cut is the cut");
-    for (const [id, half] of cut) assert.ok(this.patches.has(patchKey(id, half)));
+    assert.equal(this.patches.size, this.session.checkCut().halves, "the mirrored cut is the cut");
     return ch;
   }
 
@@ -249,16 +249,9 @@ async function stream(session, mirror, camera, { done = (s) => s.fullQuality, ti
 const converged = (s) => s.converged;
 
 /** Every visible diamond of the cut meets the tolerance (or is as fine as it gets). */
-function assertMeetsTolerance(session, camera) {
-  const view = View.fromCamera(camera, { tolerancePx: 1, viewportPx: [1280, 720] });
-  let visible = 0;
-  for (const node of session.dag.nodes.values()) {
-    if (node.refined !== null || !session.dag.refiner.isRefinable(node.id)) continue;
-    const a = session.refinement.appearance(session.dag, view, session.world, node.id);
-    if (a.visible) visible += 1;
-    assert.ok(!(a.visible && !a.flat && a.errorPx > 1), `${String(node.id)} is visible at ${a.errorPx} px`);
-  }
-  return visible;
+function assertMeetsTolerance(session) {
+  const f = session.stats().frame;
+  assert.ok(f.fullQuality && f.maxErrorPx <= 1, `a visible diamond is ${f.maxErrorPx} px off`);
 }
 
 // ---- the tests ----------------------------------------------------------------------
@@ -270,7 +263,9 @@ test("a planar session reaches full quality straight down, every frame crack-fre
   try {
     assert.equal(session.domain, "planar");
     assert.equal(session.n, 32);
-    assert.deepEqual(session.world.extent, [1025, 1025]);
+    const g = session.world.frame().geometry;
+    assert.deepEqual(g.extentFine.map((e) => e / 32 + 1), [1025, 1025]);
+    assert.equal(session.metric, "geometric");
     const mirror = new Mirror(session);
     const camera = planarCamera(session, 0.5, 0.5, 30_000);
     const st = await stream(session, mirror, camera, { maxInFlight: 4 });
@@ -282,7 +277,7 @@ test("a planar session reaches full quality straight down, every frame crack-fre
     assert.ok(st.bytesReceived > 0 && st.responses > 0);
     assert.ok(counting.peak <= 4, `${counting.peak} requests at once`);
     assert.ok(counting.peak >= 2, "requests overlap");
-    assert.ok(assertMeetsTolerance(session, camera) > 0);
+    assertMeetsTolerance(session);
     const c = session.checkCut();
     assert.ok(c.ok && c.sharedVertices > 0 && c.probes > 0, JSON.stringify(c));
     const m = mirror.cracks();
@@ -292,7 +287,7 @@ test("a planar session reaches full quality straight down, every frame crack-fre
     session.update(camera, { tolerancePx: 1, viewportPx: [1280, 720], budgetMs: 8 });
     const held = mirror.take();
     assert.equal(held.entered.length + held.left.length, 0);
-    assert.equal(session.stats().frame.refine.reused, true);
+    assert.equal(session.stats().frame.reused, true);
   } finally {
     session.close();
   }
@@ -372,18 +367,17 @@ test("a planet with its colour layer reaches full quality crack-free in heights 
       // Low over the Himalaya: the colour is refined procedurally below its levels.
       planetCamera(session, 27.9, 86.9, 20_000, -20, 45),
     ]) {
-      const st = await stream(session, mirror, camera, { maxInFlight: 2 });
+      // The bound is per repository, as in the native client: 2 + 2.
+      const st = await stream(session, mirror, camera, { maxInFlight: 4 });
       assert.equal(st.errors.total, 0, st.lastError);
-      assertMeetsTolerance(session, camera);
+      assertMeetsTolerance(session);
       const c = session.checkCut();
       assert.ok(c.ok && c.colourShared > 0 && c.colourCracks === 0, JSON.stringify(c));
     }
-    assert.ok(counting.peak <= 2, `${counting.peak} requests at once`);
+    assert.ok(counting.peak <= 4, `${counting.peak} requests at once`);
     for (const p of mirror.patches.values()) {
       assert.ok(p.colour !== null && p.colour.length === 3 && p.colour[0].length === 65 * 65);
     }
-    // Horizon culling is on once the roots' children are known.
-    assert.ok(session.world.occluderRadiusM > 6_300_000, String(session.world.occluderRadiusM));
     const rgb = session.colourLayer.rgb([...mirror.patches.values()][0].colour, 0);
     assert.ok(rgb.every((x) => Number.isInteger(x) && x >= 0 && x <= 255));
     const g = session.heightAt(planetCamera(session, 27.9, 86.9, 20_000).position);
@@ -420,7 +414,7 @@ test("a cut budget is never exceeded, and shrinking it coarsens at once", async 
     session.setMaxCutHalves(160);
     const within = (max) => (s) => {
       assert.ok(s.patches <= max && mirror.patches.size <= max, `${s.patches} halves over ${max}`);
-      return s.settled && s.frame.refine.converged;
+      return s.settled && s.frame.converged;
     };
     const st = await stream(session, mirror, camera, { done: within(160), budgetMs: 50 });
     assert.ok(st.budgetLimited && !st.fullQuality && st.patches > 100, JSON.stringify(st));
@@ -507,6 +501,11 @@ test("a static export's 404s are leaves", async () => {
   });
   try {
     execFileSync(BIN, ["export", REPOS.korea, dir, "--name", "korea"], { stdio: "ignore" });
+    // A blob the view needs is missing too: a static export cannot tell that 404 from an
+    // empty blob's, so it is a leaf (coarser there, no error).
+    const meta = JSON.parse(readFileSync(join(dir, "repos", "korea", "metadata.json"), "utf8"));
+    const version = join(dir, "repos", "korea", "v", meta.content_hash.slice(0, 16));
+    for (const kind of ["d", "p"]) rmSync(join(version, kind, "768", "256"), { force: true });
     await new Promise((r) => files.listen(0, "127.0.0.1", r));
     const base = `http://127.0.0.1:${files.address().port}`;
     const session = await Session.open(base, "korea", { maxInFlight: 6 });
@@ -514,28 +513,8 @@ test("a static export's 404s are leaves", async () => {
       assert.equal(session.meta.static_export, true);
       const st = await stream(session, new Mirror(session), planarCamera(session, 0.5, 0.5, 30_000), {});
       assert.equal(st.errors.total, 0, st.lastError);
-      assert.ok(st.leaves <= missing, `${missing} 404s, ${st.leaves} leaves`);
-      // Leaves are mostly known without asking (their owners flag them): ask for one
-      // that is not, through the fetch queue, as a frame would.
-      const layer = session._layers[0];
-      const version = session.meta.content_hash.slice(0, 16);
-      const refiner = session.dag.refiner;
-      let leaf = null;
-      for (const node of session.dag.nodes.values()) {
-        for (const c of [node.id, ...session.dag.children(node.id)]) {
-          const file = join(dir, "repos", "korea", "v", version, "d", String(c.x), String(c.y));
-          if (refiner.isCoded(c) && !existsSync(file) && !layer.isLeaf(`${c.x},${c.y},0`)) leaf = c;
-        }
-      }
-      assert.ok(leaf !== null, "a diamond without a blob, not yet known as a leaf");
-      const ks = `${leaf.x},${leaf.y},0`;
-      const before = missing;
-      session._submit(layer, [[[leaf.x, leaf.y, 0], 1]], [], null);
-      session._pump();
-      for (let t = 0; t < 500 && !layer.cache.leaves.has(ks); t++) await sleep(10);
-      assert.ok(layer.cache.leaves.has(ks), "the 404 made it a leaf");
-      assert.ok(missing > before);
-      assert.equal(session.stats().errors.total, 0, session.stats().lastError);
+      assert.ok(missing > 0 && st.leaves > 0 && st.leaves <= missing, `${missing} 404s, ${st.leaves} leaves`);
+      assert.ok(st.fullQuality);
     } finally {
       session.close();
     }
@@ -585,8 +564,9 @@ test("decoding in workers gives the cut decoding inline gives", async () => {
     const session = await Session.open(server.base, "earth", { colour: "earth_colour", workers });
     try {
       const camera = planetCamera(session, -60, -30, 20_000_000);
-      await stream(session, new Mirror(session), camera, { done: converged, budgetMs: 200, check: false });
-      return [session.workers, session.dag.cut().map(([id, h]) => patchKey(id, h))];
+      const mirror = new Mirror(session);
+      await stream(session, mirror, camera, { done: converged, budgetMs: 200, check: false });
+      return [session.workers, [...mirror.patches.keys()].sort()];
     } finally {
       session.close();
     }

@@ -1,13 +1,15 @@
-// decode-repo.mjs against the Rust decoder: every bundled repository's export
-// reconstructs to the `decoded_sha256` that `quincunx verify --json` prints, and a
-// corrupt or truncated blob file makes the tool fail with a message, not a crash.
+// decode-repo.mjs (the WebAssembly module's reconstruction, web/src/reconstruct.rs)
+// against the native Rust decoder: every bundled repository's export, and small sparse,
+// colour and planet repositories built here, reconstruct to the `decoded_sha256` that
+// `quincunx verify --json` prints; a corrupt or truncated blob file, or a blob file of no
+// diamond, makes the tool fail with a one-line message, not a crash.
 // Data: QUINCUNX_BIN, QUINCUNX_DEMO_DIR, QUINCUNX_EXPORT_DIR (set by
 // repo-tools/tests/web_demo.rs), else this machine's defaults; SKIP when absent.
 
 import { test } from "node:test";
 import assert from "node:assert/strict";
 import { execFileSync, spawnSync } from "node:child_process";
-import { cpSync, existsSync, mkdtempSync, readdirSync, readFileSync, rmSync, statSync, writeFileSync } from "node:fs";
+import { cpSync, existsSync, mkdirSync, mkdtempSync, readdirSync, readFileSync, rmSync, statSync, writeFileSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { dirname, join } from "node:path";
 import { fileURLToPath } from "node:url";
@@ -34,24 +36,74 @@ function decodeRepo(dir, name) {
   return { status: r.status, out: r.stdout, err: r.stderr };
 }
 
+/// `quincunx verify --json` of a repository.
+function verify(repo) {
+  const report = JSON.parse(execFileSync(bin, ["verify", repo, "--json"], { encoding: "utf8" }));
+  assert.equal(report.blob_errors, 0);
+  assert.match(report.decoded_sha256, /^[0-9a-f]{64}$/);
+  return report;
+}
+
+/// decode-repo on repository `name` of export `dir` equals verify of `repo`; the report.
+function sameHash(name, repo, dir) {
+  const rust = verify(repo);
+  const wasm = decodeRepo(dir, name);
+  assert.equal(wasm.status, 0, wasm.err);
+  const report = JSON.parse(wasm.out);
+  const meta = JSON.parse(readFileSync(join(dir, "repos", name, "metadata.json"), "utf8"));
+  const [a, b] = meta.extent;
+  const points = meta.domain === "sphere" ? 6 * (a + 1) * (a + 1) : a * b;
+  assert.equal(report.samples, points);
+  assert.equal(report.channels, meta.channels.length);
+  assert.equal(report.sha256, rust.decoded_sha256, `${name}: the module's reconstruction differs from verify's`);
+  console.log(
+    `${name}: ${report.sha256.slice(0, 16)}, WASM ${report.decode_msamples_per_s.toFixed(2)} M samples/s, ` +
+      `Rust ${rust.decode_msamples_per_s.toFixed(2)} M samples/s`,
+  );
+  return { meta, report };
+}
+
 for (const name of ["korea", "earth", "earth_colour"]) {
-  test(`${name}: the JS reconstruction hash equals quincunx verify's`, (t) => {
+  test(`${name}: the WASM reconstruction hash equals quincunx verify's`, (t) => {
     if (missing(t.name)) return;
-    const rust = JSON.parse(execFileSync(bin, ["verify", join(demo, name), "--json"], { encoding: "utf8" }));
-    const js = decodeRepo(exported, name);
-    assert.equal(js.status, 0, js.err);
-    const report = JSON.parse(js.out);
-    const meta = JSON.parse(readFileSync(join(exported, "repos", name, "metadata.json"), "utf8"));
-    const [a, b] = meta.extent;
-    const points = meta.domain === "sphere" ? 6 * (a + 1) * (a + 1) : a * b;
-    assert.equal(report.samples, points);
-    assert.equal(report.channels, meta.channels.length);
-    assert.match(rust.decoded_sha256, /^[0-9a-f]{64}$/);
-    assert.equal(report.sha256, rust.decoded_sha256);
-    console.log(
-      `${name}: ${report.sha256.slice(0, 16)}, JS ${report.decode_msamples_per_s.toFixed(2)} M samples/s, ` +
-        `Rust ${rust.decode_msamples_per_s.toFixed(2)} M samples/s`,
-    );
+    sameHash(name, join(demo, name), exported);
+  });
+}
+
+/// Small repositories built from data/ here: `[name, build arguments, check]`.
+const built = [
+  [
+    "gsi_sparse",
+    ["data/fixture_gsi_dem_256.json", "--sparse", "--diamond-size", "9", "--max-error-m", "0.1"],
+    (meta) => assert.ok(meta.coverage, "a sparse repository has a coverage"),
+  ],
+  [
+    "gsi_colour",
+    ["data/fixture_gsi_color_256.jpg", "--colour", "--rms-m", "2"],
+    (meta) => assert.equal(meta.channels.length, 3),
+  ],
+  [
+    "etopo_planet",
+    ["data/etopo20_global.json", "--planet", "--face-side", "64", "--diamond-size", "17", "--rms-m", "20"],
+    (meta) => assert.equal(meta.domain, "sphere"),
+  ],
+];
+
+for (const [name, args, check] of built) {
+  test(`${name}: a small repository built here reconstructs to verify's hash`, (t) => {
+    if (!existsSync(bin)) return console.log(`SKIP ${t.name}: quincunx binary not found at ${bin}`);
+    const source = join(workspace, args[0]);
+    if (!existsSync(source)) return console.log(`SKIP ${t.name}: ${source} not found`);
+    const work = mkdtempSync(join(tmpdir(), `qx-decode-${name}-`));
+    try {
+      const repo = join(work, name);
+      execFileSync(bin, ["build", source, ...args.slice(1), "-o", repo], { stdio: "ignore" });
+      execFileSync(bin, ["export", repo, join(work, "x"), "--name", name], { stdio: "ignore" });
+      const { meta } = sameHash(name, repo, join(work, "x"));
+      check(meta);
+    } finally {
+      rmSync(work, { recursive: true, force: true });
+    }
   });
 }
 
@@ -83,14 +135,15 @@ test("a corrupt or truncated blob file is an error with a message", (t) => {
       ["header only", (b) => b.subarray(0, 3)],
       ["empty", () => new Uint8Array(0)],
     ];
+    cpSync(src, copy, { recursive: true });
+    // A blob of a coarse level with a payload: the largest of the first files.
+    const target = files.slice(0, 8).reduce((a, f) => (statSync(f).size > statSync(a).size ? f : a));
+    const path = join(copy, target.slice(src.length));
+    const original = readFileSync(path);
     for (const [label, mutate] of cases) {
-      rmSync(copy, { recursive: true, force: true });
-      cpSync(src, copy, { recursive: true });
-      // A blob of a coarse level with a payload: the largest of the first files.
-      const target = files.slice(0, 8).reduce((a, f) => (statSync(f).size > statSync(a).size ? f : a));
-      const path = join(copy, target.slice(src.length));
-      writeFileSync(path, mutate(new Uint8Array(readFileSync(path))));
+      writeFileSync(path, mutate(new Uint8Array(original)));
       const r = decodeRepo(copy);
+      writeFileSync(path, original);
       if (label === "empty") {
         // An empty file is what a server answers for a leaf: it decodes (as a leaf) or
         // fails cleanly, never crashes.
@@ -100,6 +153,34 @@ test("a corrupt or truncated blob file is an error with a message", (t) => {
       assert.equal(r.status, 1, `${label}: expected failure, got ${r.out}`);
       assert.match(r.err, /^decode-repo: decoding .*: .+/, label);
       assert.doesNotMatch(r.err, /\n\s+at /, `${label}: a stack trace escaped: ${r.err}`);
+    }
+  } finally {
+    rmSync(work, { recursive: true, force: true });
+  }
+});
+
+test("a blob file of no diamond is an error naming it", (t) => {
+  if (missing(t.name)) return;
+  const work = mkdtempSync(join(tmpdir(), "qx-decode-"));
+  try {
+    const src = join(exported, "repos", "korea");
+    const copy = join(work, "korea");
+    const meta = JSON.parse(readFileSync(join(src, "metadata.json"), "utf8"));
+    const d = join(copy, "v", meta.content_hash.slice(0, 16), "d");
+    // (3, 5) is a diamond of a level finer than the repository's; the others no centre.
+    cpSync(src, copy, { recursive: true });
+    for (const [parts, named] of [
+      [["3", "5"], "3/5"],
+      [["4", "4", "1"], "4/4/1"],
+      [["abc", "1"], "abc/1"],
+    ]) {
+      mkdirSync(join(d, ...parts.slice(0, -1)), { recursive: true });
+      writeFileSync(join(d, ...parts), new Uint8Array([1, 2, 3]));
+      const r = decodeRepo(copy);
+      rmSync(join(d, parts[0]), { recursive: true });
+      assert.equal(r.status, 1, `${named}: expected failure, got ${r.out}`);
+      assert.match(r.err, /^decode-repo: .+\n$/, named);
+      assert.ok(r.err.includes(named), `${named}: ${r.err}`);
     }
   } finally {
     rmSync(work, { recursive: true, force: true });

@@ -1,86 +1,97 @@
 #!/usr/bin/env node
-// Decoding speed of web-demo/js/codec.mjs on the golden blobs (web-demo/test/golden/
-// codec-*.json), for comparison with the Rust decoder: decodes every blob repeatedly for
-// about `--seconds` (default 3) of CPU time after a warm-up and prints one JSON line,
-// {"msamples_per_s": ..., ...}, counting N x N decoded cells per blob. Rates are per
-// second of this process's CPU time (robust to other load on the machine); the wall-clock
-// rate is printed beside it.
+// Decoding speed of the WebAssembly decoder (js/quincunx.wasm through js/wasm.mjs:
+// `decoder.decode`, one answer's bytes to the details a client receives, copies across
+// the module's boundary included) on the answers of test/golden/wasm-decode.json that
+// decode: the committed golden blobs of codec/tests/golden, every coding path, packages,
+// colour layers and planets. After a warm-up, each run decodes a set round after round
+// for at least --min-ms (default 300); the rates are medians of --runs (default 7) runs,
+// in blobs (answers) and input megabytes per second of wall-clock time, and for the
+// golden blobs also in decoded samples (N x N cells per blob). Prints one JSON line.
 //
-// Usage: node web-demo/tools/bench-codec.mjs [--seconds S]
+// Whole repositories (decode and synthesis to full resolution) are bench-decode.mjs's.
+//
+// Usage: node web-demo/tools/bench-codec.mjs [--runs N] [--min-ms MS]
 
 import { readFileSync } from "node:fs";
-import { fileURLToPath } from "node:url";
 
-import { decodeBlobInto, parseModel } from "../js/codec.mjs";
+import { loadWasm } from "../js/wasm.mjs";
 
 const args = process.argv.slice(2);
-const at = args.indexOf("--seconds");
-const seconds = at >= 0 ? Number(args[at + 1]) : 3;
-
-const fromHex = (s) => Uint8Array.from(s.match(/../g) ?? [], (h) => parseInt(h, 16));
-
-function blobs(name) {
-  const file = JSON.parse(readFileSync(fileURLToPath(new URL(`../test/golden/${name}`, import.meta.url)), "utf8"));
-  const models = new Map(Object.entries(file.models).map(([k, hex]) => [k, parseModel(fromHex(hex))]));
-  return file.vectors.map((v) => {
-    let cells = null;
-    if (v.cells !== null) {
-      const bits = fromHex(v.cells);
-      cells = new Uint8Array(v.n * v.n);
-      for (let k = 0; k < cells.length; k++) cells[k] = (bits[k >> 3] >> (k & 7)) & 1;
-    }
-    return {
-      bytes: fromHex(v.blob),
-      model: models.get(v.model),
-      ctx: { key: fromHex(v.key), n: v.n, group: v.group, cells, ownedChildren: v.ownedChildren, step: v.step },
-      q: new Int32Array(v.n * v.n),
-    };
-  });
-}
-
-const cpuSeconds = () => {
-  const { user, system } = process.cpuUsage();
-  return (user + system) / 1e6;
+const option = (name, fallback) => {
+  const at = args.indexOf(name);
+  return at >= 0 ? Number(args[at + 1]) : fallback;
 };
+const RUNS = option("--runs", 7);
+const MIN_MS = option("--min-ms", 300);
 
-/** Decodes `set` round after round for `secs` of CPU time; returns rates per CPU second. */
-function measure(set, secs) {
-  let samples = 0;
-  let bytes = 0;
-  let rounds = 0;
-  const start = cpuSeconds();
-  const wallStart = process.hrtime.bigint();
-  let elapsed = 0;
-  while (elapsed < secs) {
-    for (const b of set) {
-      decodeBlobInto(b.bytes, b.ctx, b.model, b.q);
-      samples += b.q.length;
-      bytes += b.bytes.length;
+const golden = JSON.parse(readFileSync(new URL("../test/golden/wasm-decode.json", import.meta.url), "utf8"));
+const wasm = await loadWasm();
+
+/** Every answer that decodes, with its decoder and the samples of its own blob. */
+const answers = golden.cases.flatMap((c) => {
+  const decoder = wasm.decoder(c.open);
+  return c.answers
+    .filter((a) => a.error === undefined && !a.what.startsWith("hostile"))
+    .map((a) => {
+      const bytes = new Uint8Array(Buffer.from(a.bytes, "base64"));
+      // The output starts with the elevation details' length (web/src/wire.rs).
+      const out = decoder.decode(a.layer, a.key, bytes, a.packaged);
+      const samples = a.layer === 0 ? new DataView(out.buffer).getUint32(0, true) : 0;
+      return { set: c.name.split("/")[0], decoder, layer: a.layer, key: a.key, packaged: a.packaged, bytes, samples };
+    });
+});
+
+const median = (xs) => [...xs].sort((a, b) => a - b)[xs.length >> 1];
+
+/** Median rates of decoding `set` over RUNS runs of at least MIN_MS each. */
+function measure(set) {
+  const bytes = set.reduce((s, a) => s + a.bytes.length, 0);
+  const samples = set.reduce((s, a) => s + a.samples, 0);
+  const rates = { blobs: [], bytes: [], samples: [] };
+  for (let run = 0; run < RUNS; run++) {
+    let rounds = 0;
+    const start = performance.now();
+    let elapsed = 0;
+    while (elapsed < MIN_MS) {
+      for (const a of set) a.decoder.decode(a.layer, a.key, a.bytes, a.packaged);
+      rounds++;
+      elapsed = performance.now() - start;
     }
-    rounds++;
-    elapsed = cpuSeconds() - start;
+    const seconds = elapsed / 1000;
+    rates.blobs.push((rounds * set.length) / seconds);
+    rates.bytes.push((rounds * bytes) / seconds);
+    rates.samples.push((rounds * samples) / seconds);
   }
-  const wall = Number(process.hrtime.bigint() - wallStart) / 1e9;
-  return { samples_per_s: samples / elapsed, bytes_per_s: bytes / elapsed, wall_samples_per_s: samples / wall, rounds };
+  const round = (x) => Math.round(x * 1000) / 1000;
+  return {
+    blobs: set.length,
+    bytes_per_round: bytes,
+    blobs_per_s: Math.round(median(rates.blobs)),
+    mbytes_per_s: round(median(rates.bytes) / 1e6),
+    msamples_per_s: round(median(rates.samples) / 1e6),
+  };
 }
 
-const golden = blobs("codec-committed-golden.json");
-const paths = blobs("codec-encoder-paths.json");
-const all = [...golden, ...paths];
-measure(all, Math.min(1, seconds / 3)); // warm-up: let the JIT optimise
-const total = measure(all, seconds);
-const committed = measure(golden, seconds / 3);
-const round = (x) => Math.round(x * 1000) / 1000;
+// Warm-up: let the engine tier the module up.
+const warm = performance.now();
+while (performance.now() - warm < 500) for (const a of answers) a.decoder.decode(a.layer, a.key, a.bytes, a.packaged);
+
+const all = measure(answers);
+const committed = measure(answers.filter((a) => a.set === "golden"));
+const paths = measure(answers.filter((a) => a.set === "paths"));
 console.log(
   JSON.stringify({
-    msamples_per_s: round(total.samples_per_s / 1e6),
-    mbytes_per_s: round(total.bytes_per_s / 1e6),
-    wall_msamples_per_s: round(total.wall_samples_per_s / 1e6),
-    committed_golden_msamples_per_s: round(committed.samples_per_s / 1e6),
-    blobs: all.length,
-    samples_per_round: all.reduce((s, b) => s + b.q.length, 0),
-    bytes_per_round: all.reduce((s, b) => s + b.bytes.length, 0),
-    rounds: total.rounds,
+    blobs_per_s: all.blobs_per_s,
+    mbytes_per_s: all.mbytes_per_s,
+    committed_golden_blobs_per_s: committed.blobs_per_s,
+    committed_golden_mbytes_per_s: committed.mbytes_per_s,
+    committed_golden_msamples_per_s: committed.msamples_per_s,
+    paths_blobs_per_s: paths.blobs_per_s,
+    paths_mbytes_per_s: paths.mbytes_per_s,
+    blobs: all.blobs,
+    bytes_per_round: all.bytes_per_round,
+    runs: RUNS,
+    min_ms: MIN_MS,
     node: process.version,
   }),
 );

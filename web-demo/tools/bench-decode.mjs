@@ -1,12 +1,14 @@
 #!/usr/bin/env node
-// Decode speed of the JavaScript decoder in node and in Chromium, against the Rust
-// decoder, on the same blobs: every blob of an exported repository decoded and
-// synthesised to full resolution (web-demo/js/reconstruct.mjs, the refiners the viewer
-// runs), medians of RUNS runs, one JSON line per repository.
+// Decode speed of the WebAssembly module in node and in Chromium, against the native Rust
+// decoder (`quincunx verify`), on the same blobs: every blob of an exported repository
+// decoded and synthesised to full resolution (web-demo/js/reconstruct.mjs: the Rust
+// refiners compiled to web-demo/js/quincunx.wasm, as the viewer runs them), medians of
+// RUNS runs (the module loaded first), one JSON line per repository.
 //
 // Usage: node web-demo/tools/bench-decode.mjs <server url> <export dir> <quincunx binary>
 //        <repo dir>... (each repo dir's last path component names its export)
-// The server (any `quincunx serve`) only provides the page origin the modules load from.
+// The server only provides the page origin the modules load from: `quincunx serve`
+// (the modules compiled into its binary), or web-demo/tools/dev-server.mjs (from disk).
 // Chromium: Debian's, headless (CHROMIUM, default /usr/bin/chromium), SwiftShader flags
 // as in browser-views.mjs. Samples are counted as `quincunx verify` counts them.
 
@@ -15,6 +17,7 @@ import { existsSync, readdirSync, readFileSync, statSync } from "node:fs";
 import { basename, join } from "node:path";
 import { chromium } from "playwright-core";
 import { canonicalSha256, reconstruct } from "../js/reconstruct.mjs";
+import { loadWasm } from "../js/wasm.mjs";
 
 const [url, exportDir, bin, ...repos] = process.argv.slice(2);
 if (!url || !exportDir || !bin || repos.length === 0) {
@@ -53,13 +56,13 @@ try {
     const [a, b] = meta.extent;
     const samples = (meta.domain === "sphere" ? 6 * a * b + 2 : a * b) * meta.channels.length;
 
-    const decoded = Object.fromEntries(Object.entries(blobs).map(([k, v]) => [k, new Uint8Array(Buffer.from(v, "base64"))]));
-    const getBlob = (c) => decoded[c.join("/")] ?? null;
+    const decoded = new Map(Object.entries(blobs).map(([k, v]) => [k, new Uint8Array(Buffer.from(v, "base64"))]));
+    await loadWasm();
     const nodeSeconds = [];
     let hash;
     for (let r = 0; r < RUNS; r++) {
       const t = performance.now();
-      const channels = reconstruct(meta, getBlob);
+      const channels = await reconstruct(meta, decoded);
       nodeSeconds.push((performance.now() - t) / 1000);
       if (r === 0) hash = await canonicalSha256(channels);
     }
@@ -67,19 +70,20 @@ try {
     const browserRuns = await page.evaluate(
       async ({ origin, meta, blobs, runs }) => {
         const { reconstruct, canonicalSha256 } = await import(`${origin}/demo/js/reconstruct.mjs`);
-        const bytes = {};
+        const { loadWasm } = await import(`${origin}/demo/js/wasm.mjs`);
+        const bytes = new Map();
         for (const [k, v] of Object.entries(blobs)) {
           const s = atob(v);
           const u = new Uint8Array(s.length);
           for (let i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
-          bytes[k] = u;
+          bytes.set(k, u);
         }
-        const getBlob = (c) => bytes[c.join("/")] ?? null;
+        await loadWasm();
         const seconds = [];
         let hash;
         for (let r = 0; r < runs; r++) {
           const t = performance.now();
-          const channels = reconstruct(meta, getBlob);
+          const channels = await reconstruct(meta, bytes);
           seconds.push((performance.now() - t) / 1000);
           if (r === 0) hash = await canonicalSha256(channels);
         }

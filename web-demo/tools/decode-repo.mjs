@@ -1,12 +1,15 @@
 #!/usr/bin/env node
 // Decodes every blob of a static export (`quincunx export <repo> <dir>`) with the
-// JavaScript decoder and prints the reconstruction's size and hash, in the canonical
-// layout of docs/blob-format.md, as one JSON line:
+// WebAssembly module (the Rust refiners, web/src/reconstruct.rs) and prints the
+// reconstruction's size and hash, in the canonical layout of docs/blob-format.md, as one
+// JSON line:
 //   {"repo": .., "domain": .., "channels": .., "samples": .., "sha256": .., ...}
 // `samples` is the number of points in the layout (width x height, or 6 (2S+1)^2 for a
 // planet: every copy of cube-edge points); `quincunx verify <repo> --json` prints the same
-// hash as `decoded_sha256`. Timing covers decoding and synthesis only (the blob files are
-// read into memory first); `decode_msamples_per_s` counts samples as `quincunx verify` does.
+// hash as `decoded_sha256`. Timing covers the module's call only (the blob files are read
+// into memory and the module loaded first; copying the blobs in and the values out
+// counts); `decode_msamples_per_s` counts samples as `quincunx verify` does. A blob file
+// of no diamond, a corrupt blob or bad metadata fails with the module's message.
 //
 // Usage: node web-demo/tools/decode-repo.mjs <export dir> [repository name]
 // (<export dir> holds repos/<name>/metadata.json; the name may be left out when it holds
@@ -15,6 +18,7 @@
 import { existsSync, readdirSync, readFileSync, statSync } from "node:fs";
 import { join } from "node:path";
 import { canonicalSha256, reconstruct } from "../js/reconstruct.mjs";
+import { loadWasm } from "../js/wasm.mjs";
 
 function fail(message) {
   process.stderr.write(`decode-repo: ${message}\n`);
@@ -45,6 +49,10 @@ function readBlobs(dir, version) {
       const next = [...parts, entry];
       if (statSync(p).isDirectory()) walk(p, next);
       else {
+        // Only centres reach the module (which names any of no diamond).
+        if (next.length < 2 || next.length > 3 || !next.every((s) => /^-?[0-9]+$/.test(s))) {
+          fail(`blob file ${next.join("/")} belongs to no diamond`);
+        }
         const b = readFileSync(p);
         blobs.set(next.join("/"), new Uint8Array(b.buffer, b.byteOffset, b.length));
         bytes += b.length;
@@ -67,22 +75,19 @@ async function main() {
   }
   const version = String(meta.content_hash ?? "").slice(0, 16);
   const { blobs, bytes } = readBlobs(dir, version);
-  const used = new Set();
-  const getBlob = (centre) => {
-    const k = centre.join("/");
-    used.add(k);
-    return blobs.get(k) ?? null;
-  };
+  try {
+    await loadWasm();
+  } catch (e) {
+    fail(`loading the WebAssembly module: ${e.message}`);
+  }
   const started = performance.now();
   let channels;
   try {
-    channels = reconstruct(meta, getBlob);
+    channels = await reconstruct(meta, blobs);
   } catch (e) {
     fail(`decoding ${dir}: ${e.message}`);
   }
   const seconds = (performance.now() - started) / 1000;
-  const unused = [...blobs.keys()].filter((k) => !used.has(k));
-  if (unused.length) fail(`${unused.length} blob files belong to no diamond, e.g. ${unused[0]}`);
   const samples = channels[0].length;
   // Decode speed counts the repository's samples as `quincunx verify` does (a planet's
   // distinct points, 6 a b + 2), so the two figures compare.
