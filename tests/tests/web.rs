@@ -46,6 +46,18 @@ fn served(dir: &Path) -> (Served, std::path::PathBuf, Open) {
     (server, built, open)
 }
 
+/// An oblique 1280 x 720 view over the middle of the crop, 1 px.
+fn oblique_view() -> View {
+    View {
+        eye: DVec3::new(40_000.0, 30_000.0, 6_000.0),
+        target: DVec3::new(50_000.0, 40_000.0, 0.0),
+        up: DVec3::Z,
+        fov_y_rad: 60f64.to_radians(),
+        viewport_px: [1280, 720],
+        tolerance_px: 1.0,
+    }
+}
+
 #[test]
 fn the_browsers_client_converges_to_the_local_cut_crack_free_over_http() {
     let dir = tempfile::tempdir().unwrap();
@@ -55,14 +67,7 @@ fn the_browsers_client_converges_to_the_local_cut_crack_free_over_http() {
     let mut client = Client::<PlanarRefiner>::new(&open, Duration::ZERO).unwrap();
     let decoder = AnswerDecoder::new(&open).unwrap();
     let clock = SystemClock(start);
-    let view = View {
-        eye: DVec3::new(40_000.0, 30_000.0, 6_000.0),
-        target: DVec3::new(50_000.0, 40_000.0, 0.0),
-        up: DVec3::Z,
-        fov_y_rad: 60f64.to_radians(),
-        viewport_px: [1280, 720],
-        tolerance_px: 1.0,
-    };
+    let view = oblique_view();
     let (mut requests, mut packages) = (0, 0);
     for frame in 0.. {
         assert!(frame < 2_000, "no convergence");
@@ -218,14 +223,7 @@ fn the_sans_io_client_stays_crack_free_through_scripted_faults() {
     let mut client = Client::<PlanarRefiner>::new(&open, Duration::ZERO).unwrap();
     let decoder = AnswerDecoder::new(&open).unwrap();
     let refiner = Arc::clone(client.core().refiner());
-    let view = View {
-        eye: DVec3::new(40_000.0, 30_000.0, 6_000.0),
-        target: DVec3::new(50_000.0, 40_000.0, 0.0),
-        up: DVec3::Z,
-        fov_y_rad: 60f64.to_radians(),
-        viewport_px: [1280, 720],
-        tolerance_px: 1.0,
-    };
+    let view = oblique_view();
     let clock = Manual(Cell::new(Duration::ZERO));
     let mut seed = 0x2545_f491_4f6c_dd1du64;
     let mut rng = move || {

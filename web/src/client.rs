@@ -121,20 +121,11 @@ impl<T: Weigh> Layer<T> {
         }
         r.finish()?;
         let report = self.decoding.remove(&key).unwrap_or(false);
-        // Carried keys first: once the asked key is cached, so is what it carried.
-        for (k, v) in carried {
-            let wanted = self.planner.carried(k);
-            let v = Arc::new(v);
-            self.cache.borrow_mut().insert(k, Arc::clone(&v));
-            if wanted {
-                self.delivered.push((k, Some(v)));
-            }
-        }
-        let value = Arc::new(value);
-        self.cache.borrow_mut().insert(key, Arc::clone(&value));
-        if report {
-            self.delivered.push((key, Some(value)));
-        }
+        let delivered = &mut self.delivered;
+        self.planner
+            .store_decoded(self.cache.get_mut(), key, value, carried, report, |k, v| {
+                delivered.push((k, Some(v)))
+            });
         Ok(())
     }
 
@@ -148,29 +139,11 @@ impl<T: Weigh> Layer<T> {
     /// A frame's requests: wants held here are answered at once (next frame), the rest
     /// go to the planner.
     fn submit(&mut self, submit: Submit, now: Duration) {
-        let mut wants = Vec::with_capacity(submit.wants.len());
-        for (k, p) in submit.wants {
-            let hit = {
-                let mut cache = self.cache.borrow_mut();
-                if cache.is_leaf(k) {
-                    Some(None)
-                } else {
-                    cache.get(k).map(Some)
-                }
-            };
-            match hit {
-                Some(v) => self.delivered.push((k, v)),
-                None => wants.push((k, p)),
-            }
-        }
-        let prefetch: Vec<_> = {
-            let cache = self.cache.borrow();
-            submit
-                .prefetch
-                .into_iter()
-                .filter(|&(k, _)| !cache.is_leaf(k) && !cache.contains(k))
-                .collect()
-        };
+        let (held, wants, prefetch) = self
+            .cache
+            .get_mut()
+            .answer_held(submit.wants, submit.prefetch);
+        self.delivered.extend(held);
         self.planner
             .submit(&wants, &prefetch, submit.package_above, now);
     }

@@ -24,11 +24,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use quincunx_codec::blob::{self, BlobContext};
-use quincunx_codec::encode::{
-    Encoded, EncodedDomain, FromEncoded, Grid, RateMode, encode, encode_sphere,
-};
+use quincunx_codec::encode::{Encoded, Grid, RateMode, encode, encode_sphere};
 use quincunx_codec::entropy::{self, CodecModel, ContextCounts, HIDDEN_SIGN_MIN, NO_DATA};
-use quincunx_codec::incremental::{PlanarRefiner, Refiner, SphereRefiner};
 use quincunx_codec::raster::RasterGeometry;
 use quincunx_meta::answer::{self, IdSpace};
 use quincunx_meta::channels::frame_channels;
@@ -36,7 +33,7 @@ use quincunx_meta::{ChannelCoding, Domain, LevelStats, Metadata, Rate};
 use quincunx_web::api::Module;
 
 mod common;
-use common::{metadata, options, planet, raster};
+use common::{geometry_of, metadata, options, planet, raster};
 use serde_json::{Value, json};
 
 type Key = [i64; 3];
@@ -220,22 +217,7 @@ fn repo(name: &str, mut meta: Metadata, blobs: BTreeMap<Key, Vec<u8>>) -> Repo {
 /// A repository of encoded channels `encs` (one geometry; three: colour).
 fn encoded_repo(name: &str, encs: &[&Encoded], inline_max_bytes: Option<u32>) -> Repo {
     let e = encs[0];
-    let (domain, m, levels, extent) = match e.domain {
-        EncodedDomain::Planar { width, height } => {
-            let r = PlanarRefiner::from_encoded(e).unwrap();
-            let extent = [width as u64, height as u64];
-            (Domain::Planar, r.domain().m(), r.detail_levels(), extent)
-        }
-        EncodedDomain::Sphere { face_side } => {
-            let r = SphereRefiner::from_encoded(e).unwrap();
-            (
-                Domain::Sphere,
-                r.domain().m(),
-                r.detail_levels(),
-                [face_side as u64; 2],
-            )
-        }
-    };
+    let (domain, m, levels, extent) = geometry_of(e);
     let names = if encs.len() == 3 {
         &["Y", "Co", "Cg"][..]
     } else {

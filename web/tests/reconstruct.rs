@@ -9,13 +9,13 @@ use quincunx_codec::encode::{
     Encoded, EncodedDomain, FromEncoded, RateMode, decode_integers, decode_sphere_integers, encode,
     encode_sphere,
 };
-use quincunx_codec::incremental::{PlanarRefiner, Refiner, SphereRefiner};
+use quincunx_codec::incremental::{PlanarRefiner, SphereRefiner};
 use quincunx_meta::channels::frame_channels;
 use quincunx_meta::{ChannelCoding, Domain, Metadata, Rate};
 use quincunx_web::reconstruct::reconstruct_call;
 
 mod common;
-use common::{metadata, options, planet, raster};
+use common::{geometry_of, metadata, options, planet, raster};
 
 type Key = [i64; 3];
 
@@ -28,19 +28,7 @@ type Mutation = (&'static str, fn(&mut Vec<u8>));
 /// The metadata record of channels `encs` (one geometry), as a build writes it.
 fn metadata_of(encs: &[&Encoded]) -> Metadata {
     let e = encs[0];
-    let (domain, m, levels, extent) = match e.domain {
-        EncodedDomain::Planar { width, height } => {
-            let r = PlanarRefiner::from_encoded(e).unwrap();
-            let extent = [width as u64, height as u64];
-            (Domain::Planar, r.domain().m(), r.detail_levels(), extent)
-        }
-        EncodedDomain::Sphere { face_side } => {
-            let r = SphereRefiner::from_encoded(e).unwrap();
-            let extent = [face_side as u64; 2];
-            let m = r.domain().m();
-            (Domain::Sphere, m, r.detail_levels(), extent)
-        }
-    };
+    let (domain, m, levels, extent) = geometry_of(e);
     let colour = encs.len() == 3;
     let names = if colour {
         &["Y", "Co", "Cg"][..]

@@ -76,6 +76,32 @@ impl<T: Weigh> DecodedCache<T> {
         Some(Arc::clone(&entry.value))
     }
 
+    /// A frame's requests against what is held: the wants answered here (`None`: a
+    /// leaf), the wants to ask for, and the prefetch keys neither held nor leaves.
+    #[allow(clippy::type_complexity)]
+    pub fn answer_held(
+        &mut self,
+        wants: Vec<(Key, f32)>,
+        prefetch: Vec<(Key, f32)>,
+    ) -> (Vec<(Key, Option<Arc<T>>)>, Vec<(Key, f32)>, Vec<(Key, f32)>) {
+        let mut held = Vec::new();
+        let mut ask = Vec::with_capacity(wants.len());
+        for (k, p) in wants {
+            if self.is_leaf(k) {
+                held.push((k, None));
+            } else if let Some(v) = self.get(k) {
+                held.push((k, Some(v)));
+            } else {
+                ask.push((k, p));
+            }
+        }
+        let prefetch = prefetch
+            .into_iter()
+            .filter(|&(k, _)| !self.is_leaf(k) && !self.contains(k))
+            .collect();
+        (held, ask, prefetch)
+    }
+
     /// Whether `key` is cached, without touching its recency.
     pub fn contains(&self, key: Key) -> bool {
         self.entries.contains_key(&key)

@@ -11,13 +11,15 @@
 //! [`Planner::carried`], a refusal to [`Planner::decode_failed`].
 
 use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::Bytes;
 
 use super::bandwidth::{Bandwidth, Cap};
+use super::cache::DecodedCache;
 use super::schedule::{Backoff, Class, Scheduler};
-use super::{FetchError, FetchStats, Key};
+use super::{FetchError, FetchStats, Key, Weigh};
 
 /// The settings the decisions follow (the native client's `FetchConfig` holds them).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -252,6 +254,33 @@ impl Planner {
         let wanted = self.sched.class(key) == Some(Class::Want);
         self.sched.unwant(key);
         wanted
+    }
+
+    /// Caches what decoding `key`'s body gave: the values it carried first (so that once
+    /// `key` is cached, so is everything it carried), then its own; each goes to
+    /// `deliver` when the frame loop wants it (`report`: as [`Answer::Body`] said).
+    pub fn store_decoded<T: Weigh>(
+        &mut self,
+        cache: &mut DecodedCache<T>,
+        key: Key,
+        value: T,
+        carried: Vec<(Key, T)>,
+        report: bool,
+        mut deliver: impl FnMut(Key, Arc<T>),
+    ) {
+        for (k, v) in carried {
+            let wanted = self.carried(k);
+            let v = Arc::new(v);
+            cache.insert(k, Arc::clone(&v));
+            if wanted {
+                deliver(k, v);
+            }
+        }
+        let value = Arc::new(value);
+        cache.insert(key, Arc::clone(&value));
+        if report {
+            deliver(key, value);
+        }
     }
 
     /// The decoder refused `key`'s body (`report`: as [`Answer::Body`] said): the failure

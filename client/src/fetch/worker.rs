@@ -151,32 +151,13 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
         prefetch: Vec<(Key, f32)>,
         package_above: Option<f32>,
     ) {
-        let mut hits = 0u64;
-        let (wants, prefetch) = {
-            let mut cache = lock(&self.shared.cache);
-            let wants: Vec<_> = wants
-                .into_iter()
-                .filter(|&(k, _)| {
-                    let answer = if cache.is_leaf(k) {
-                        Fetched::Leaf
-                    } else if let Some(v) = cache.get(k) {
-                        Fetched::Data(v)
-                    } else {
-                        return true;
-                    };
-                    hits += 1;
-                    let _ = self.results_tx.send((k, answer));
-                    false
-                })
-                .collect();
-            let prefetch: Vec<_> = prefetch
-                .into_iter()
-                .filter(|&(k, _)| !cache.is_leaf(k) && !cache.contains(k))
-                .collect();
-            (wants, prefetch)
-        };
-        if hits > 0 {
-            lock(&self.shared.stats).cache_hits += hits;
+        let (held, wants, prefetch) = lock(&self.shared.cache).answer_held(wants, prefetch);
+        if !held.is_empty() {
+            lock(&self.shared.stats).cache_hits += held.len() as u64;
+        }
+        for (k, v) in held {
+            let answer = v.map_or(Fetched::Leaf, Fetched::Data);
+            let _ = self.results_tx.send((k, answer));
         }
         let _ = self.commands.send(Command::Wants {
             wants,
@@ -377,20 +358,17 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
     fn decoded(&mut self, key: Key, body: Bytes, packaged: bool, report: bool) {
         match (self.decode)(key, body, packaged) {
             Ok(Decoded { value, carried }) => {
-                // Carried keys first: once the asked key is cached, so is what it carried.
-                for (k, v) in carried {
-                    let wanted = self.planner.carried(k);
-                    let v = Arc::new(v);
-                    lock(&self.shared.cache).insert(k, Arc::clone(&v));
-                    if wanted {
-                        self.deliver(k, Fetched::Data(v));
-                    }
-                }
-                let value = Arc::new(value);
-                lock(&self.shared.cache).insert(key, Arc::clone(&value));
-                if report {
-                    self.deliver(key, Fetched::Data(value));
-                }
+                let results = &self.results;
+                self.planner.store_decoded(
+                    &mut lock(&self.shared.cache),
+                    key,
+                    value,
+                    carried,
+                    report,
+                    |k, v| {
+                        let _ = results.send((k, Fetched::Data(v)));
+                    },
+                );
             }
             Err(reason) => {
                 let now = self.since(Instant::now());

@@ -3,7 +3,10 @@
 #![allow(dead_code, clippy::unwrap_used, clippy::expect_used)]
 
 use quincunx_codec::diamond::sphere::cube_to_unit_sphere;
-use quincunx_codec::encode::{CubeGrid, EncodeOptions, Grid, RateMode};
+use quincunx_codec::encode::{
+    CubeGrid, EncodeOptions, Encoded, EncodedDomain, FromEncoded, Grid, RateMode,
+};
+use quincunx_codec::incremental::{PlanarRefiner, Refiner, SphereRefiner};
 use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_meta::{
     Attribute, AttributeKind, ChannelCoding, Domain, Metadata, NodataHandling, NodataPolicy,
@@ -119,5 +122,21 @@ pub fn metadata(
         coverage,
         inline_max_bytes,
         static_export: false,
+    }
+}
+
+/// The domain, `m`, detail levels and extent of an encoded channel.
+pub fn geometry_of(e: &Encoded) -> (Domain, u32, usize, [u64; 2]) {
+    match e.domain {
+        EncodedDomain::Planar { width, height } => {
+            let r = PlanarRefiner::from_encoded(e).unwrap();
+            let extent = [width as u64, height as u64];
+            (Domain::Planar, r.domain().m(), r.detail_levels(), extent)
+        }
+        EncodedDomain::Sphere { face_side } => {
+            let r = SphereRefiner::from_encoded(e).unwrap();
+            let extent = [face_side as u64; 2];
+            (Domain::Sphere, r.domain().m(), r.detail_levels(), extent)
+        }
     }
 }
