@@ -1,5 +1,5 @@
 //! Compiles the web demo's page and modules into the binary: writes `demo_files.rs`, the
-//! table `site.rs` serves `/demo/<path>` from (`web-demo/index.html` and every file under
+//! table (path, content type, ETag, bytes) `site.rs` serves `/demo/<path>` from (`web-demo/index.html` and every file under
 //! `web-demo/js/`, the WebAssembly module included; the demo's tools, tests and npm
 //! packages stay out).
 
@@ -33,6 +33,14 @@ fn collect(dir: &Path, out: &mut Vec<PathBuf>) {
     }
 }
 
+/// FNV-1a, 64 bits: the file's ETag (a validator, not a security hash: the page's files
+/// are the server's own).
+fn fnv1a(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325, |h, &b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+    })
+}
+
 fn main() {
     let manifest = PathBuf::from(std::env::var_os("CARGO_MANIFEST_DIR").unwrap_or_default());
     let demo = manifest.join("../web-demo");
@@ -53,9 +61,14 @@ fn main() {
             continue;
         };
         let absolute = std::fs::canonicalize(file).unwrap_or_else(|_| file.clone());
+        let bytes = match std::fs::read(&absolute) {
+            Ok(b) => b,
+            Err(e) => panic!("reading {}: {e}", absolute.display()),
+        };
+        let etag = format!("\"{:016x}-{:x}\"", fnv1a(&bytes), bytes.len());
         let _ = writeln!(
             table,
-            "    ({name:?}, {kind:?}, include_bytes!({:?})),",
+            "    ({name:?}, {kind:?}, {etag:?}, include_bytes!({:?})),",
             absolute.display().to_string()
         );
     }
