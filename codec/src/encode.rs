@@ -34,10 +34,10 @@ use crate::coverage::Coverage;
 use crate::entropy::{self, CodecModel, ContextCounts};
 use crate::incremental::{PlanarRefiner, RefineError, SphereRefiner};
 use crate::raster::{
-    Layout, RasterError, RasterGeometry, analyze_levels_with, synthesize_levels,
-    synthesize_levels_par,
+    EncodeLayout, RasterError, RasterGeometry, analyze_levels_with, synthesize_levels_par,
 };
 use crate::sphere_raster::SphereGeometry;
+use quincunx_decoder::layout::{ChannelCoding, Layout, decode_levels};
 
 /// How the encoder trades rate for accuracy.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -636,7 +636,7 @@ struct Integerised {
     offset: f64,
 }
 
-fn integerise<G: Layout>(
+fn integerise<G: EncodeLayout>(
     geom: &G,
     values_m: &[f64],
     quantum_m: Option<f64>,
@@ -959,7 +959,7 @@ pub(crate) fn trains_on(level_len: usize, index: usize) -> bool {
 
 /// A model trained on the diamonds `(level, index)` that `include` accepts, among those
 /// [`trains_on`] samples, each diamond's decisions written into the counts by `count`.
-pub(crate) fn train_model<G: Layout>(
+pub(crate) fn train_model<G: EncodeLayout>(
     geom: &G,
     include: impl Fn(usize, usize) -> bool + Sync,
     count: impl Fn(&mut ContextCounts, usize, usize) + Sync,
@@ -1439,7 +1439,7 @@ impl SideInfo {
     }
 
     /// The class bytes the blob of diamond `(l, i)` carries for its owned children.
-    fn classes_of<G: Layout>(&self, geom: &G, l: usize, i: usize) -> Vec<u8> {
+    fn classes_of<G: EncodeLayout>(&self, geom: &G, l: usize, i: usize) -> Vec<u8> {
         geom.owned(&geom.slot_levels()[l][i])
             .iter()
             .map(|&k| side_entry(self.gamma[l + 1][k], self.has_data[l + 1][k]))
@@ -1449,7 +1449,7 @@ impl SideInfo {
 
 /// The side-information stage: from the quantised details (which diamonds have indices)
 /// and each diamond's measures of its decoded surface.
-pub(crate) fn side_information<G: Layout>(
+pub(crate) fn side_information<G: EncodeLayout>(
     geom: &G,
     has_indices: impl Fn(usize, usize) -> bool,
     measures: &[Vec<Measure>],
@@ -1490,7 +1490,7 @@ pub(crate) fn side_information<G: Layout>(
 
 /// The coding stage: trains the model (on a subsample of the large levels, see
 /// `trains_on`) on what the blobs will hold, then codes every diamond that has data.
-pub(crate) fn code_blobs<'q, G: Layout>(
+pub(crate) fn code_blobs<'q, G: EncodeLayout>(
     geom: &G,
     steps: &[u32],
     quantized: &(dyn Fn(usize, usize) -> Cow<'q, [i32]> + Sync),
@@ -1510,7 +1510,7 @@ pub(crate) fn code_blobs<'q, G: Layout>(
 
 /// The entropy model the blobs are coded with, trained (on a subsample of the large
 /// levels, see `trains_on`) on what they will hold.
-pub(crate) fn blob_model<'q, G: Layout>(
+pub(crate) fn blob_model<'q, G: EncodeLayout>(
     geom: &G,
     steps: &[u32],
     quantized: &(dyn Fn(usize, usize) -> Cow<'q, [i32]> + Sync),
@@ -1539,7 +1539,7 @@ pub(crate) fn blob_model<'q, G: Layout>(
 }
 
 /// Diamond `(l, i)`'s blob, if it has data.
-pub(crate) fn code_blob<G: Layout>(
+pub(crate) fn code_blob<G: EncodeLayout>(
     geom: &G,
     steps: &[u32],
     model: &CodecModel,
@@ -1628,7 +1628,7 @@ impl Quantise {
 
     /// Counts diamond `(l, i)`'s details `h`, rounded at step `s` in place, into `acc`
     /// (the rate-distortion cost model's training).
-    pub(crate) fn count_rounded<G: Layout>(
+    pub(crate) fn count_rounded<G: EncodeLayout>(
         &self,
         acc: &mut entropy::ContextCounts,
         geom: &G,
@@ -1818,7 +1818,7 @@ pub(crate) fn search_scale(
 }
 
 /// The in-memory verifier: decodes into a raster buffer reused between attempts.
-struct InMemory<'a, G: Layout> {
+struct InMemory<'a, G: EncodeLayout> {
     geom: &'a G,
     details: &'a [Vec<Vec<i32>>],
     roots: &'a [Vec<i32>],
@@ -1830,7 +1830,7 @@ struct InMemory<'a, G: Layout> {
     kept: Option<Kept>,
 }
 
-impl<G: Layout> Verifier for InMemory<'_, G> {
+impl<G: EncodeLayout> Verifier for InMemory<'_, G> {
     fn train_cost(&mut self, q: &Quantise, st: &[u32]) -> Result<CodecModel, EncodeError> {
         let (geom, details) = (self.geom, self.details);
         Ok(train_model(
@@ -1905,7 +1905,7 @@ impl<G: Layout> Verifier for InMemory<'_, G> {
 /// `details`, which then hold the kept attempt's indices. `error_of` measures a decoded
 /// raster against the source, and `raster` is a buffer for the decodes.
 #[allow(clippy::too_many_arguments)]
-fn control_rms<G: Layout>(
+fn control_rms<G: EncodeLayout>(
     geom: &G,
     details: &mut [Vec<Vec<i32>>],
     roots: &[Vec<i32>],
@@ -2008,7 +2008,7 @@ impl Source<'_> {
 /// analyse leaves to root (`analyze_levels_with`), rate control (`control_rms`, or for
 /// the exact modes the analysis' own measures), side information (`side_information`),
 /// training and coding (`code_blobs`), and the report.
-fn encode_layout<G: Layout>(
+fn encode_layout<G: EncodeLayout>(
     geom: &G,
     domain: EncodedDomain,
     values_m: Cow<'_, [f64]>,
@@ -2251,43 +2251,17 @@ fn decode_layout<G: Layout>(
     if geom.coverage() != enc.coverage.as_ref() {
         return Err(RasterError::Coverage("the geometry was built with another coverage").into());
     }
-    raster.clear();
-    raster.resize(geom.raster_len(), 0);
-    let raster = &mut raster[..];
-    geom.scatter_roots(roots, raster)?;
-    let mut q = Vec::with_capacity(enc.n * enc.n);
-    synthesize_levels::<G, DecodeError>(geom, raster, |l, i, h| {
-        let Some(bytes) = enc
-            .blobs
-            .get(l)
-            .and_then(|b| b.get(i))
-            .and_then(Option::as_deref)
-        else {
-            return Ok(false);
-        };
-        let step = enc.steps.get(l).copied().unwrap_or(256);
-        let ctx = BlobContext {
-            step,
-            ..geom.blob_context(l, i)
-        };
-        blob::decode_into(bytes, &ctx, &enc.model, &mut q)?;
-        // A blob that only carries its children's side information has no nonzero
-        // detail: synthesising it is the prediction alone (`lifting::synthesize_zero`).
-        let mut any = false;
-        for (dst, &x) in h.iter_mut().zip(q.iter()) {
-            any |= x != 0;
-            *dst = dequantize(x, step);
-        }
-        Ok(any)
-    })?;
-    if let Some(valid) = geom.point_validity() {
-        raster
-            .iter_mut()
-            .zip(&valid)
-            .filter(|(_, ok)| !**ok)
-            .for_each(|(x, _)| *x = 0);
-    }
-    Ok(())
+    let coding = ChannelCoding {
+        roots,
+        steps: &enc.steps,
+        model: &enc.model,
+    };
+    decode_levels(
+        geom,
+        coding,
+        |l, i| enc.blobs.get(l)?.get(i)?.as_deref(),
+        raster,
+    )
 }
 
 /// Decodes to metres. Invalid points of a sparse encoding decode to `NaN` (nodata).

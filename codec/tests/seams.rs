@@ -17,7 +17,7 @@ use std::collections::{BTreeMap, HashMap};
 
 use quincunx_codec::diamond::{PlanarDomain, PlanarId};
 use quincunx_codec::lifting::{self, DiamondMask, child_half, scatter_to_child};
-use quincunx_codec::raster::RasterGeometry;
+use quincunx_codec::raster::{RasterGeometry, Transform};
 
 const N: usize = 32;
 const W: usize = N + 1;

@@ -16,6 +16,7 @@ use quincunx_codec::encode::{
     self, CubeGrid, EncodeOptions, Encoded, EncodedDomain, RateMode, decode_sphere_integers,
 };
 use quincunx_codec::lifting;
+use quincunx_codec::raster::Transform;
 use quincunx_codec::sphere_raster::SphereGeometry;
 
 fn synthetic_planet(face_side: usize, n: usize) -> CubeGrid {

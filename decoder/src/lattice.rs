@@ -222,3 +222,61 @@ fn write_line(
         r += step;
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lattice_lines_cover_each_point_once_in_every_orientation() {
+        let w_raster = 1000isize;
+        // Axis-aligned, transposed and both 45-degree rotations, at several spacings.
+        for (si, sj) in [
+            (w_raster, 1),
+            (1, w_raster),
+            (2 * w_raster, -2),
+            (w_raster + 1, -w_raster + 1),
+            (w_raster + 1, w_raster - 1),
+            (-w_raster - 1, w_raster - 1),
+            (2 * w_raster - 2, -2 * w_raster - 2),
+        ] {
+            for (m, o, w) in [(33, 0, 33), (32, 0, 32), (31, 1, 33), (1, 0, 1), (2, 0, 2)] {
+                let base = 400 * w_raster + 400;
+                let mut seen = Vec::new();
+                Lattice::new(m, o, w, base, si, sj).lines(|r, rs, b, bs, len| {
+                    for t in 0..len {
+                        seen.push((r + t as isize * rs, b + t * bs));
+                    }
+                });
+                let mut want: Vec<(isize, usize)> = (o..o + m)
+                    .flat_map(|i| {
+                        (o..o + m)
+                            .map(move |j| (base + i as isize * si + j as isize * sj, i * w + j))
+                    })
+                    .collect();
+                seen.sort_unstable();
+                want.sort_unstable();
+                assert_eq!(seen, want, "si {si} sj {sj} m {m} o {o}");
+                // Written part by part (cut anywhere), the raster is what one write gives.
+                let lat = Lattice::new(m, o, w, base, si, sj);
+                let buf: Vec<i32> = (0..(w * w) as i32).map(|x| x + 1).collect();
+                let len = (1000 * w_raster) as usize;
+                let mut whole = vec![0; len];
+                lat.write_part(&buf, &mut whole, 0);
+                for part_len in [1usize, 7, 999, 1000, 4093, 65536] {
+                    let mut parts = vec![0; len];
+                    for (p, part) in parts.chunks_mut(part_len).enumerate() {
+                        lat.write_part(&buf, part, p * part_len);
+                    }
+                    assert!(parts == whole, "si {si} sj {sj} m {m} parts of {part_len}");
+                }
+                let (lo, hi) = lat.span();
+                assert_eq!(whole.iter().position(|&x| x != 0), usize::try_from(lo).ok());
+                assert_eq!(
+                    whole.iter().rposition(|&x| x != 0),
+                    usize::try_from(hi).ok()
+                );
+            }
+        }
+    }
+}

@@ -5,7 +5,9 @@
 //! - [`lifting`]: integer wavelet lifting of one diamond (synthesis, and the analysis
 //!   the encoder runs).
 //! - [`raster`] / [`sphere_raster`]: where a planar raster or a cube-mapped planet sits in
-//!   the hierarchy, one diamond at a time.
+//!   the hierarchy, one diamond at a time, and the tables of every diamond.
+//! - [`layout`]: the whole-raster decoder, every level synthesised in place (what
+//!   `quincunx verify` and the browser's whole-repository decode run).
 //! - [`incremental`]: decoding one diamond at a time, as a streaming client refines its cut.
 //! - [`coverage`]: which blocks of a sparse repository hold data.
 //! - [`colour`]: the reversible YCoCg-R colour transform.
@@ -20,6 +22,7 @@ pub mod coverage;
 pub mod entropy;
 pub mod incremental;
 pub mod lattice;
+pub mod layout;
 pub mod lifting;
 pub mod raster;
 pub mod sphere_raster;

@@ -5,12 +5,14 @@
 //! sits in the planar domain `[0, S]^2` with `S = N 2^k` the smallest such square that
 //! holds it; id units are raster samples, so the finest data lattice is the integer grid
 //! and levels `0 ..= 2k - 1` carry details. Points outside the raster are *invalid*: they
-//! are never read, never coded, and cost nothing. The whole-raster tables and transform
-//! (`RasterGeometry`) are the encoder's, in `quincunx-codec`.
+//! are never read, never coded, and cost nothing. [`RasterGeometry`] holds the tables of
+//! every diamond, for the whole-raster transform ([`crate::layout`]).
 
 use crate::blob::BlobContext;
 use crate::coverage::{BlockState, Coverage};
 use crate::diamond::{PlanarDomain, PlanarId, check_size};
+use crate::lattice::{Lattice, read_lattice, write_lattice};
+use crate::layout::{Layout, synthesize_levels};
 use crate::lifting::DiamondMask;
 
 /// Why a raster cannot be placed in a hierarchy.
@@ -353,4 +355,327 @@ pub fn slot(
         s.lin = Some([v0, c0, si, sj]);
     }
     Some(s)
+}
+
+/// The hierarchy a raster is placed in: domain, diamond size and, per detail level, the
+/// diamonds that meet the raster.
+#[derive(Clone, Debug)]
+pub struct RasterGeometry {
+    frame: RasterFrame,
+    levels: Vec<Vec<DiamondSlot>>,
+}
+
+/// The geometry answers everything its frame does (placement of the raster and of single
+/// diamonds); its own methods are those that need the tables.
+impl std::ops::Deref for RasterGeometry {
+    type Target = RasterFrame;
+
+    fn deref(&self) -> &RasterFrame {
+        &self.frame
+    }
+}
+
+impl RasterGeometry {
+    /// Places a `width x height` raster in the smallest hierarchy of `N x N` diamonds.
+    pub fn new(width: usize, height: usize, n: usize) -> Result<Self, RasterError> {
+        let frame = RasterFrame::new(width, height, n, None)?;
+        let domain = frame.domain();
+        let detail_levels = frame.detail_levels() as u32;
+        let rect = [0, width as i64 - 1, 0, height as i64 - 1];
+        let mut levels: Vec<Vec<DiamondSlot>> = (0..detail_levels)
+            .map(|level| {
+                domain
+                    .diamonds_meeting(level, rect)
+                    .into_iter()
+                    .filter_map(|id| slot(&domain, id, n, width, height))
+                    .collect()
+            })
+            .collect();
+        for level in 0..levels.len().saturating_sub(1) {
+            let index: std::collections::HashMap<PlanarId, usize> = levels[level + 1]
+                .iter()
+                .enumerate()
+                .map(|(k, s)| (s.id, k))
+                .collect();
+            levels[level].iter_mut().for_each(|s| {
+                for child in domain.children(s.id).unwrap_or_default() {
+                    if let Some(&k) = index.get(&child) {
+                        s.children.push(k);
+                        if domain.parents(child).ok().and_then(|p| p.first().copied()) == Some(s.id)
+                        {
+                            s.owned.push(k);
+                        }
+                    }
+                }
+            });
+        }
+        Ok(RasterGeometry { frame, levels })
+    }
+
+    /// Like [`RasterGeometry::new`], with the points outside the covered blocks of
+    /// `coverage` invalid too (sparse mode, see [`crate::coverage`]): diamonds that meet
+    /// uncovered blocks get masks. The diamonds are those of [`RasterGeometry::new`].
+    pub fn with_coverage(
+        width: usize,
+        height: usize,
+        n: usize,
+        coverage: &Coverage,
+    ) -> Result<Self, RasterError> {
+        let mut g = Self::new(width, height, n)?;
+        check_coverage(width, height, coverage)?;
+        let empty = DiamondMask::none(n);
+        for level in &mut g.levels {
+            level.iter_mut().for_each(|s| {
+                apply_coverage(s, n, width, height, coverage, &empty);
+            });
+        }
+        g.frame.set_coverage(Some(coverage.clone()));
+        Ok(g)
+    }
+
+    /// Whether raster sample `(x, y)` is a valid point: inside the raster and, with a
+    /// coverage, in a covered block.
+    pub fn is_valid(&self, x: usize, y: usize) -> bool {
+        x < self.frame.width()
+            && y < self.frame.height()
+            && self
+                .frame
+                .coverage()
+                .is_none_or(|c| c.covers_point(0, x, y))
+    }
+
+    /// The diamonds of a detail level that meet the raster.
+    pub fn level(&self, level: usize) -> &[DiamondSlot] {
+        &self.levels[level]
+    }
+
+    /// What the blob decoder must know about diamond `index` of detail level `level`.
+    pub fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
+        let s = &self.levels[level][index];
+        self.frame.slot_context(level, s, s.owned.len())
+    }
+
+    /// The root diamond's slot (level 0), used for the root grid.
+    pub fn root_slot(&self) -> DiamondSlot {
+        // The root always meets the raster.
+        slot(
+            &self.frame.domain(),
+            self.frame.domain().root(),
+            self.frame.n(),
+            self.frame.width(),
+            self.frame.height(),
+        )
+        .unwrap_or_else(|| unreachable!())
+    }
+
+    /// Reads the root vertex grid (invalid vertices read as 0).
+    pub fn gather_root(&self, raster: &[i32]) -> Vec<i32> {
+        let root = self.root_slot();
+        let mut v = vec![0; (self.frame.n() + 1) * (self.frame.n() + 1)];
+        self.gather_vertices(&root, raster, &mut v);
+        v
+    }
+
+    /// Writes the root vertex grid into the raster.
+    pub fn scatter_root(&self, root_grid: &[i32], raster: &mut [i32]) {
+        let root = self.root_slot();
+        self.scatter_vertices(&root, root_grid, raster, 0, 0);
+    }
+
+    fn index(&self, (x, y): (i64, i64)) -> Option<usize> {
+        if x >= 0
+            && y >= 0
+            && (x as usize) < self.frame.width()
+            && (y as usize) < self.frame.height()
+        {
+            Some(y as usize * self.frame.width() + x as usize)
+        } else {
+            None
+        }
+    }
+
+    fn gather_vertices(&self, s: &DiamondSlot, raster: &[i32], v: &mut [i32]) {
+        let n = self.frame.n();
+        if let Some([v0, _, si, sj]) = s.lin {
+            read_lattice(raster, n + 1, v0, si, sj, v);
+            return;
+        }
+        for i in 0..=n {
+            for j in 0..=n {
+                v[i * (n + 1) + j] = self.index(s.vertex_xy(i, j)).map_or(0, |k| raster[k]);
+            }
+        }
+    }
+
+    fn gather_cells(&self, s: &DiamondSlot, raster: &[i32], c: &mut [i32]) {
+        let n = self.frame.n();
+        if let Some([_, c0, si, sj]) = s.lin {
+            read_lattice(raster, n, c0, si, sj, c);
+            return;
+        }
+        for i in 0..n {
+            for j in 0..n {
+                c[i * n + j] = self.index(s.cell_xy(i, j)).map_or(0, |k| raster[k]);
+            }
+        }
+    }
+
+    /// Writes vertices `margin..=n - margin` of each row and column: margin 0 writes the
+    /// whole grid, margin 1 only the interior, which is all lifting ever changes
+    /// (boundary vertices are never updated). Only raster indices inside `part`
+    /// (`raster[start..start + part.len()]`) are written.
+    fn scatter_vertices(
+        &self,
+        s: &DiamondSlot,
+        v: &[i32],
+        part: &mut [i32],
+        start: usize,
+        margin: usize,
+    ) {
+        let n = self.frame.n();
+        if let Some([v0, _, si, sj]) = s.lin {
+            write_lattice(part, start, n + 1, margin, v0, si, sj, v);
+            return;
+        }
+        for i in margin..=n - margin {
+            for j in margin..=n - margin {
+                if let Some(x) = self.part_entry(s.vertex_xy(i, j), part, start) {
+                    *x = v[i * (n + 1) + j];
+                }
+            }
+        }
+    }
+
+    /// Writes the cell centres that fall inside `part` (see [`Self::scatter_vertices`]).
+    fn scatter_cells(&self, s: &DiamondSlot, c: &[i32], part: &mut [i32], start: usize) {
+        let n = self.frame.n();
+        if let Some([_, c0, si, sj]) = s.lin {
+            write_lattice(part, start, n, 0, c0, si, sj, c);
+            return;
+        }
+        for i in 0..n {
+            for j in 0..n {
+                if let Some(x) = self.part_entry(s.cell_xy(i, j), part, start) {
+                    *x = c[i * n + j];
+                }
+            }
+        }
+    }
+
+    /// The entry of `part` (raster indices from `start`) at a raster position, if both
+    /// are inside.
+    fn part_entry<'p>(
+        &self,
+        xy: (i64, i64),
+        part: &'p mut [i32],
+        start: usize,
+    ) -> Option<&'p mut i32> {
+        let k = self.index(xy)?.checked_sub(start)?;
+        part.get_mut(k)
+    }
+
+    /// Inverse transform in place: the raster holds the root-level values on entry (see
+    /// [`RasterGeometry::scatter_root`]) and the full-resolution values on exit.
+    /// `details(level, index, h)` fills the detail matrix `h` of a diamond and returns
+    /// `Ok(false)` when the diamond has none (zeros). Runs on the calling thread.
+    pub fn synthesize<E>(
+        &self,
+        raster: &mut [i32],
+        details: impl FnMut(usize, usize, &mut [i32]) -> Result<bool, E>,
+    ) -> Result<(), E>
+    where
+        E: From<RasterError>,
+    {
+        synthesize_levels(self, raster, details)
+    }
+}
+
+impl Layout for RasterGeometry {
+    type Slot = DiamondSlot;
+
+    fn n(&self) -> usize {
+        self.frame.n()
+    }
+
+    fn slot_levels(&self) -> &[Vec<DiamondSlot>] {
+        &self.levels
+    }
+
+    fn raster_len(&self) -> usize {
+        self.frame.width() * self.frame.height()
+    }
+
+    fn mask<'s>(&self, s: &'s DiamondSlot) -> Option<&'s DiamondMask> {
+        s.mask.as_ref()
+    }
+
+    fn children<'s>(&self, s: &'s DiamondSlot) -> &'s [usize] {
+        &s.children
+    }
+
+    fn owned<'s>(&self, s: &'s DiamondSlot) -> &'s [usize] {
+        &s.owned
+    }
+
+    fn gather_vertices(&self, s: &DiamondSlot, raster: &[i32], v: &mut [i32]) {
+        RasterGeometry::gather_vertices(self, s, raster, v);
+    }
+
+    fn gather_cells(&self, s: &DiamondSlot, raster: &[i32], c: &mut [i32]) {
+        RasterGeometry::gather_cells(self, s, raster, c);
+    }
+
+    fn index_span(&self, s: &DiamondSlot) -> (usize, usize) {
+        match s.lin {
+            Some([v0, _, si, sj]) => {
+                let (lo, hi) =
+                    Lattice::new(self.frame.n() + 1, 0, self.frame.n() + 1, v0, si, sj).span();
+                (lo.max(0) as usize, hi.max(0) as usize)
+            }
+            None => (0, self.raster_len().saturating_sub(1)),
+        }
+    }
+
+    fn scatter_interior_part(&self, s: &DiamondSlot, v: &[i32], part: &mut [i32], start: usize) {
+        self.scatter_vertices(s, v, part, start, 1);
+    }
+
+    fn scatter_cells_part(&self, s: &DiamondSlot, c: &[i32], part: &mut [i32], start: usize) {
+        RasterGeometry::scatter_cells(self, s, c, part, start);
+    }
+
+    fn blob_context(&self, level: usize, index: usize) -> BlobContext<'_> {
+        RasterGeometry::blob_context(self, level, index)
+    }
+
+    fn gather_roots(&self, raster: &[i32]) -> Vec<Vec<i32>> {
+        vec![self.gather_root(raster)]
+    }
+
+    fn scatter_roots(&self, roots: &[Vec<i32>], raster: &mut [i32]) -> Result<(), RasterError> {
+        let side = (self.frame.n() + 1) * (self.frame.n() + 1);
+        match roots {
+            [root] if root.len() == side => {
+                self.scatter_root(root, raster);
+                Ok(())
+            }
+            _ => Err(RasterError::WrongLength {
+                expected: side,
+                got: roots.iter().map(Vec::len).sum(),
+            }),
+        }
+    }
+
+    fn coverage(&self) -> Option<&Coverage> {
+        self.frame.coverage()
+    }
+
+    fn point_validity(&self) -> Option<Vec<bool>> {
+        self.frame.coverage()?;
+        Some(
+            (0..self.frame.width() * self.frame.height())
+                .map(|k| self.is_valid(k % self.frame.width(), k / self.frame.width()))
+                .collect(),
+        )
+    }
 }

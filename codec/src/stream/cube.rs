@@ -50,7 +50,7 @@ use crate::encode::{
 };
 use crate::entropy::CodecModel;
 use crate::lifting;
-use crate::raster::Layout;
+use crate::raster::{EncodeLayout, Layout};
 use crate::sphere_raster::SphereGeometry;
 
 mod shard;

@@ -505,6 +505,21 @@ impl PlanarRefiner {
         })
     }
 
+    /// The placement of the raster and of single diamonds.
+    pub fn frame(&self) -> &RasterFrame {
+        &self.geometry
+    }
+
+    /// Quantiser step per coded detail level, in 1/256 integer units.
+    pub fn steps(&self) -> &[u32] {
+        &self.steps
+    }
+
+    /// The entropy model the blobs were coded with.
+    pub fn model(&self) -> &CodecModel {
+        &self.model
+    }
+
     /// Diamond size `N`.
     pub fn n(&self) -> usize {
         self.geometry.n()

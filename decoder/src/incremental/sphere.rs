@@ -97,6 +97,16 @@ impl SphereRefiner {
         &self.geometry
     }
 
+    /// Quantiser step per coded detail level, in 1/256 integer units.
+    pub fn steps(&self) -> &[u32] {
+        &self.steps
+    }
+
+    /// The entropy model the blobs were coded with.
+    pub fn model(&self) -> &CodecModel {
+        &self.model
+    }
+
     fn slot_of(&self, id: SphereId) -> Result<(usize, SphereSlot), RefineError> {
         self.geometry
             .coded_slot(id)

@@ -37,7 +37,7 @@ use super::{
 };
 use crate::coverage::Coverage;
 use crate::encode::{EncodeError, EncodeReport, PASS_CHUNK, SideInfo, Tally, rms_of_pieces};
-use crate::raster::Layout;
+use crate::raster::{EncodeLayout, Layout};
 use crate::sphere_raster::SphereGeometry;
 use crate::stream::{ShardFigures, ShardSpec};
 
