@@ -165,7 +165,7 @@ fn hostile_calls_on_the_byte_api_are_errors_not_panics() {
         let _ = m.client_decode_failed(handle, &input, now);
         let _ = m.client_frame(handle, &input, now, 1.0, &Clock);
         let _ = m.decoder_decode(if round % 5 == 0 { client } else { decoder }, &input);
-        let _ = m.reconstruct(&input);
+        let _ = m.reconstruct(&input, (round % 3) as u32, &Clock);
     }
     for t in [f64::NAN, f64::INFINITY, -1.0] {
         let _ = m.client_plan(client, t);

@@ -4,17 +4,20 @@
 // `quincunx verify --json` prints the same hash as `decoded_sha256`.
 //
 // The reconstruction runs in the WebAssembly module (web/src/reconstruct.rs: the Rust
-// refiners, level by level, as a client refines); this file adds the hash.
+// whole-raster decoder `quincunx verify` runs, or the refiners, level by level, as a
+// client refines); this file adds the hash.
 
 import { loadWasm } from "./wasm.mjs";
 
-/// Decodes every blob of a repository through the refiners. `meta` is its metadata.json,
-/// `blobs` a Map of every stored blob by centre ("x/y" on the plane, "x/y/z" on a
-/// planet) to its bytes (Uint8Array; a missing diamond is a leaf). Resolves to one
-/// Int32Array per channel in the domain's sample order; rejects with the module's
-/// message (WasmError) on bad metadata, a corrupt blob or a blob of no diamond.
-export async function reconstruct(meta, blobs) {
-  return (await loadWasm()).reconstruct(meta, blobs);
+/// Decodes every blob of a repository. `meta` is its metadata.json, `blobs` a Map of every
+/// stored blob by centre ("x/y" on the plane, "x/y/z" on a planet) to its bytes
+/// (Uint8Array; a missing diamond is a leaf), `which` the decoder ("whole" or
+/// "refiners": the same values). Resolves to `{channels, decodeSeconds}`: one Int32Array
+/// per channel in the domain's sample order, and the decode alone as the module timed it
+/// (Wasm.reconstruct); rejects with the module's message (WasmError) on bad metadata, a
+/// corrupt blob or a blob of no diamond.
+export async function reconstruct(meta, blobs, which = "whole") {
+  return (await loadWasm()).reconstruct(meta, blobs, which);
 }
 
 /// The canonical bytes of `channels` (equal lengths), interleaved per point.

@@ -7,7 +7,7 @@
 //   const decoder = wasm.decoder(open);       // open: {elevation: {name, meta}, colour, config}
 //   decoder.decode(layer, key, bytes, packaged) -> Uint8Array (the details, web/src/wire.rs)
 //   const client = wasm.client(open, nowMs);  // see client.mjs
-//   wasm.reconstruct(meta, blobs)             // a whole repository (tools/decode-repo.mjs)
+//   wasm.reconstruct(meta, blobs, which)      // a whole repository (tools/decode-repo.mjs)
 //
 // Failures inside the module are WasmError with the Rust message; bad input never traps.
 
@@ -50,6 +50,8 @@ export function loadWasm(url = new URL("./quincunx.wasm", import.meta.url)) {
 }
 
 const encoder = new TextEncoder();
+/// The decoders of `reconstruct`, by their ABI codes (web/src/reconstruct.rs).
+const DECODERS = { whole: 0, refiners: 1 };
 const decoder = new TextDecoder();
 
 /** The instance and its calls. */
@@ -101,11 +103,17 @@ export class Wasm {
   }
 
   /**
-   * A whole repository at full resolution through the refiners: `meta` (metadata.json),
-   * `blobs` (Map "x/y" or "x/y/z" -> Uint8Array). Returns one Int32Array per channel in
-   * the canonical sample order (docs/blob-format.md, "Reconstruction hash").
+   * A whole repository at full resolution: `meta` (metadata.json), `blobs` (Map "x/y" or
+   * "x/y/z" -> Uint8Array), `which` decoder: "whole" (the whole-raster decoder `quincunx verify`
+   * runs) or "refiners" (one diamond at a time, as a viewer refines). Returns `channels`,
+   * one Int32Array per channel in the canonical sample order (docs/blob-format.md,
+   * "Reconstruction hash"; both decoders give the same values), and `decodeSeconds`, the
+   * decode alone as the module timed it (as `quincunx verify` times its decode: not
+   * parsing the metadata, building the geometry or copying bytes in and out).
    */
-  reconstruct(meta, blobs) {
+  reconstruct(meta, blobs, which = "whole") {
+    const code = DECODERS[which];
+    if (code === undefined) throw new Error(`unknown decoder ${which}: whole or refiners`);
     const metaBytes = encoder.encode(JSON.stringify(meta));
     let size = 4 + metaBytes.length + 4;
     for (const b of blobs.values()) size += 24 + 4 + b.length;
@@ -128,17 +136,16 @@ export class Wasm {
       buf.set(bytes, at);
       at += bytes.length;
     }
-    this.check(this.x.qx_reconstruct(this.input(buf)));
+    this.check(this.x.qx_reconstruct(this.input(buf), code));
     const out = this.output();
     const v = new DataView(out.buffer);
     const channels = v.getUint32(0, true);
     const samples = v.getUint32(4, true);
+    const decodeSeconds = v.getFloat64(8, true);
+    // Views of the one copy: the values start at byte 16, 4-byte aligned.
     const result = [];
-    for (let c = 0; c < channels; c++) {
-      const start = 8 + c * samples * 4;
-      result.push(new Int32Array(out.buffer.slice(start, start + samples * 4)));
-    }
-    return result;
+    for (let c = 0; c < channels; c++) result.push(new Int32Array(out.buffer, 16 + c * samples * 4, samples));
+    return { channels: result, decodeSeconds };
   }
 }
 

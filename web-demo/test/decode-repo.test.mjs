@@ -31,8 +31,9 @@ function missing(name) {
   return false;
 }
 
-function decodeRepo(dir, name) {
-  const r = spawnSync(process.execPath, [tool, dir, name], { encoding: "utf8" });
+function decodeRepo(dir, name, which = "whole") {
+  const args = [tool, "--decoder", which, dir, ...(name ? [name] : [])];
+  const r = spawnSync(process.execPath, args, { encoding: "utf8" });
   return { status: r.status, out: r.stdout, err: r.stderr };
 }
 
@@ -44,23 +45,31 @@ function verify(repo) {
   return report;
 }
 
-/// decode-repo on repository `name` of export `dir` equals verify of `repo`; the report.
+/// decode-repo on repository `name` of export `dir`, by both of the module's decoders
+/// (whole-raster and refiners), equals verify of `repo`; the metadata.
 function sameHash(name, repo, dir) {
   const rust = verify(repo);
-  const wasm = decodeRepo(dir, name);
-  assert.equal(wasm.status, 0, wasm.err);
-  const report = JSON.parse(wasm.out);
   const meta = JSON.parse(readFileSync(join(dir, "repos", name, "metadata.json"), "utf8"));
-  const [a, b] = meta.extent;
-  const points = meta.domain === "sphere" ? 6 * (a + 1) * (a + 1) : a * b;
-  assert.equal(report.samples, points);
-  assert.equal(report.channels, meta.channels.length);
-  assert.equal(report.sha256, rust.decoded_sha256, `${name}: the module's reconstruction differs from verify's`);
-  console.log(
-    `${name}: ${report.sha256.slice(0, 16)}, WASM ${report.decode_msamples_per_s.toFixed(2)} M samples/s, ` +
-      `Rust ${rust.decode_msamples_per_s.toFixed(2)} M samples/s`,
-  );
-  return { meta, report };
+  for (const which of ["whole", "refiners"]) {
+    const wasm = decodeRepo(dir, name, which);
+    assert.equal(wasm.status, 0, wasm.err);
+    const report = JSON.parse(wasm.out);
+    const [a, b] = meta.extent;
+    const points = meta.domain === "sphere" ? 6 * (a + 1) * (a + 1) : a * b;
+    assert.equal(report.decoder, which);
+    assert.equal(report.samples, points);
+    assert.equal(report.channels, meta.channels.length);
+    assert.equal(
+      report.sha256,
+      rust.decoded_sha256,
+      `${name}: the module's reconstruction (${which}) differs from verify's`,
+    );
+    console.log(
+      `${name} (${which}): ${report.sha256.slice(0, 16)}, WASM ${report.decode_msamples_per_s.toFixed(2)} M samples/s, ` +
+        `Rust ${rust.decode_msamples_per_s.toFixed(2)} M samples/s`,
+    );
+  }
+  return { meta };
 }
 
 for (const name of ["korea", "earth", "earth_colour"]) {
@@ -142,17 +151,19 @@ test("a corrupt or truncated blob file is an error with a message", (t) => {
     const original = readFileSync(path);
     for (const [label, mutate] of cases) {
       writeFileSync(path, mutate(new Uint8Array(original)));
-      const r = decodeRepo(copy);
-      writeFileSync(path, original);
-      if (label === "empty") {
-        // An empty file is what a server answers for a leaf: it decodes (as a leaf) or
-        // fails cleanly, never crashes.
-        assert.ok(r.status === 0 || /^decode-repo: /.test(r.err), `${label}: ${r.err}`);
-        continue;
+      for (const which of ["whole", "refiners"]) {
+        const r = decodeRepo(copy, undefined, which);
+        if (label === "empty") {
+          // An empty file is what a server answers for a leaf: it decodes (as a leaf) or
+          // fails cleanly, never crashes.
+          assert.ok(r.status === 0 || /^decode-repo: /.test(r.err), `${label}: ${r.err}`);
+          continue;
+        }
+        assert.equal(r.status, 1, `${label} (${which}): expected failure, got ${r.out}`);
+        assert.match(r.err, /^decode-repo: decoding .*: .+/, label);
+        assert.doesNotMatch(r.err, /\n\s+at /, `${label}: a stack trace escaped: ${r.err}`);
       }
-      assert.equal(r.status, 1, `${label}: expected failure, got ${r.out}`);
-      assert.match(r.err, /^decode-repo: decoding .*: .+/, label);
-      assert.doesNotMatch(r.err, /\n\s+at /, `${label}: a stack trace escaped: ${r.err}`);
+      writeFileSync(path, original);
     }
   } finally {
     rmSync(work, { recursive: true, force: true });
@@ -176,11 +187,13 @@ test("a blob file of no diamond is an error naming it", (t) => {
     ]) {
       mkdirSync(join(d, ...parts.slice(0, -1)), { recursive: true });
       writeFileSync(join(d, ...parts), new Uint8Array([1, 2, 3]));
-      const r = decodeRepo(copy);
+      for (const which of ["whole", "refiners"]) {
+        const r = decodeRepo(copy, undefined, which);
+        assert.equal(r.status, 1, `${named} (${which}): expected failure, got ${r.out}`);
+        assert.match(r.err, /^decode-repo: .+\n$/, named);
+        assert.ok(r.err.includes(named), `${named} (${which}): ${r.err}`);
+      }
       rmSync(join(d, parts[0]), { recursive: true });
-      assert.equal(r.status, 1, `${named}: expected failure, got ${r.out}`);
-      assert.match(r.err, /^decode-repo: .+\n$/, named);
-      assert.ok(r.err.includes(named), `${named}: ${r.err}`);
     }
   } finally {
     rmSync(work, { recursive: true, force: true });

@@ -1,9 +1,14 @@
 #!/usr/bin/env node
 // Decode speed of the WebAssembly module in node and in Chromium, against the native Rust
 // decoder (`quincunx verify`), on the same blobs: every blob of an exported repository
-// decoded and synthesised to full resolution (web-demo/js/reconstruct.mjs: the Rust
-// refiners compiled to web-demo/js/quincunx.wasm, as the viewer runs them), medians of
-// RUNS runs (the module loaded first), one JSON line per repository.
+// decoded and synthesised to full resolution (web-demo/js/reconstruct.mjs, compiled to
+// web-demo/js/quincunx.wasm) by each of the module's decoders: "whole" (the whole-raster
+// decoder `verify` runs) and "refiners" (one diamond at a time, as the viewer refines).
+// Medians of RUNS runs (the module loaded first), one JSON line per repository and
+// decoder. `*_msamples_per_s` time what `verify` times, the decode alone (the module's
+// own clock: the blobs and parsed coding in, full-resolution values out);
+// `*_call_msamples_per_s` the whole call from JavaScript (also the copies in and out,
+// parsing the metadata and building the geometry).
 //
 // Usage: node web-demo/tools/bench-decode.mjs <server url> <export dir> <quincunx binary>
 //        <repo dir>... (each repo dir's last path component names its export)
@@ -58,40 +63,6 @@ try {
 
     const decoded = new Map(Object.entries(blobs).map(([k, v]) => [k, new Uint8Array(Buffer.from(v, "base64"))]));
     await loadWasm();
-    const nodeSeconds = [];
-    let hash;
-    for (let r = 0; r < RUNS; r++) {
-      const t = performance.now();
-      const channels = await reconstruct(meta, decoded);
-      nodeSeconds.push((performance.now() - t) / 1000);
-      if (r === 0) hash = await canonicalSha256(channels);
-    }
-
-    const browserRuns = await page.evaluate(
-      async ({ origin, meta, blobs, runs }) => {
-        const { reconstruct, canonicalSha256 } = await import(`${origin}/demo/js/reconstruct.mjs`);
-        const { loadWasm } = await import(`${origin}/demo/js/wasm.mjs`);
-        const bytes = new Map();
-        for (const [k, v] of Object.entries(blobs)) {
-          const s = atob(v);
-          const u = new Uint8Array(s.length);
-          for (let i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
-          bytes.set(k, u);
-        }
-        await loadWasm();
-        const seconds = [];
-        let hash;
-        for (let r = 0; r < runs; r++) {
-          const t = performance.now();
-          const channels = await reconstruct(meta, bytes);
-          seconds.push((performance.now() - t) / 1000);
-          if (r === 0) hash = await canonicalSha256(channels);
-        }
-        return { seconds, hash };
-      },
-      { origin: url, meta, blobs, runs: RUNS },
-    );
-
     const rust = [];
     let rustHash;
     for (let r = 0; r < RUNS; r++) {
@@ -99,22 +70,66 @@ try {
       rust.push(v.decode_msamples_per_s);
       rustHash = v.decoded_sha256;
     }
-    const nodeRate = samples / median(nodeSeconds) / 1e6;
-    const chromeRate = samples / median(browserRuns.seconds) / 1e6;
     const rustRate = median(rust);
-    process.stdout.write(
-      JSON.stringify({
-        repo: name,
-        samples,
-        runs: RUNS,
-        same_hash: hash === rustHash && browserRuns.hash === rustHash,
-        rust_msamples_per_s: rustRate,
-        node_msamples_per_s: nodeRate,
-        chromium_msamples_per_s: chromeRate,
-        node_over_rust: nodeRate / rustRate,
-        chromium_over_rust: chromeRate / rustRate,
-      }) + "\n",
-    );
+    for (const which of ["whole", "refiners"]) {
+      const nodeCalls = [];
+      const nodeDecodes = [];
+      let hash;
+      for (let r = 0; r < RUNS; r++) {
+        const t = performance.now();
+        const { channels, decodeSeconds } = await reconstruct(meta, decoded, which);
+        nodeCalls.push((performance.now() - t) / 1000);
+        nodeDecodes.push(decodeSeconds);
+        if (r === 0) hash = await canonicalSha256(channels);
+      }
+
+      const browserRuns = await page.evaluate(
+        async ({ origin, meta, blobs, runs, which }) => {
+          const { reconstruct, canonicalSha256 } = await import(`${origin}/demo/js/reconstruct.mjs`);
+          const { loadWasm } = await import(`${origin}/demo/js/wasm.mjs`);
+          const bytes = new Map();
+          for (const [k, v] of Object.entries(blobs)) {
+            const s = atob(v);
+            const u = new Uint8Array(s.length);
+            for (let i = 0; i < s.length; i++) u[i] = s.charCodeAt(i);
+            bytes.set(k, u);
+          }
+          await loadWasm();
+          const calls = [];
+          const decodes = [];
+          let hash;
+          for (let r = 0; r < runs; r++) {
+            const t = performance.now();
+            const { channels, decodeSeconds } = await reconstruct(meta, bytes, which);
+            calls.push((performance.now() - t) / 1000);
+            decodes.push(decodeSeconds);
+            if (r === 0) hash = await canonicalSha256(channels);
+          }
+          return { calls, decodes, hash };
+        },
+        { origin: url, meta, blobs, runs: RUNS, which },
+      );
+
+      const rate = (seconds) => samples / median(seconds) / 1e6;
+      const nodeRate = rate(nodeDecodes);
+      const chromeRate = rate(browserRuns.decodes);
+      process.stdout.write(
+        JSON.stringify({
+          repo: name,
+          decoder: which,
+          samples,
+          runs: RUNS,
+          same_hash: hash === rustHash && browserRuns.hash === rustHash,
+          rust_msamples_per_s: rustRate,
+          node_msamples_per_s: nodeRate,
+          chromium_msamples_per_s: chromeRate,
+          node_over_rust: nodeRate / rustRate,
+          chromium_over_rust: chromeRate / rustRate,
+          node_call_msamples_per_s: rate(nodeCalls),
+          chromium_call_msamples_per_s: rate(browserRuns.calls),
+        }) + "\n",
+      );
+    }
   }
 } finally {
   await browser.close();

@@ -1,17 +1,21 @@
 #!/usr/bin/env node
 // Decodes every blob of a static export (`quincunx export <repo> <dir>`) with the
-// WebAssembly module (the Rust refiners, web/src/reconstruct.rs) and prints the
+// WebAssembly module (web/src/reconstruct.rs: the whole-raster decoder `quincunx verify`
+// runs, or with `--decoder refiners` the refiners a viewer runs) and prints the
 // reconstruction's size and hash, in the canonical layout of docs/blob-format.md, as one
 // JSON line:
-//   {"repo": .., "domain": .., "channels": .., "samples": .., "sha256": .., ...}
+//   {"repo": .., "domain": .., "decoder": .., "channels": .., "samples": .., "sha256": .., ...}
 // `samples` is the number of points in the layout (width x height, or 6 (2S+1)^2 for a
 // planet: every copy of cube-edge points); `quincunx verify <repo> --json` prints the same
-// hash as `decoded_sha256`. Timing covers the module's call only (the blob files are read
-// into memory and the module loaded first; copying the blobs in and the values out
-// counts); `decode_msamples_per_s` counts samples as `quincunx verify` does. A blob file
-// of no diamond, a corrupt blob or bad metadata fails with the module's message.
+// hash as `decoded_sha256`. `decode_*` is the decode alone as the module times it (what
+// `quincunx verify` times), `call_*` the module's whole call (the blob files read into
+// memory and the module loaded first; copying the blobs in and the values out, parsing
+// the metadata and building the geometry count); both count samples as `quincunx verify`
+// does. A blob file of no diamond, a corrupt blob or bad metadata fails with the
+// module's message.
 //
-// Usage: node web-demo/tools/decode-repo.mjs <export dir> [repository name]
+// Usage: node web-demo/tools/decode-repo.mjs [--decoder whole|refiners] <export dir>
+//        [repository name]
 // (<export dir> holds repos/<name>/metadata.json; the name may be left out when it holds
 // one repository; a repos/<name> folder itself is accepted too.)
 
@@ -64,8 +68,15 @@ function readBlobs(dir, version) {
 }
 
 async function main() {
-  const [dirArg, name] = process.argv.slice(2);
-  if (!dirArg) fail("usage: decode-repo.mjs <export dir> [repository name]");
+  const args = process.argv.slice(2);
+  let which = "whole";
+  if (args[0] === "--decoder") {
+    which = args[1];
+    args.splice(0, 2);
+    if (which !== "whole" && which !== "refiners") fail(`--decoder takes whole or refiners, not ${which}`);
+  }
+  const [dirArg, name] = args;
+  if (!dirArg) fail("usage: decode-repo.mjs [--decoder whole|refiners] <export dir> [repository name]");
   const dir = repoDir(dirArg, name);
   let meta;
   try {
@@ -81,9 +92,9 @@ async function main() {
     fail(`loading the WebAssembly module: ${e.message}`);
   }
   const started = performance.now();
-  let channels;
+  let channels, decodeSeconds;
   try {
-    channels = await reconstruct(meta, blobs);
+    ({ channels, decodeSeconds } = await reconstruct(meta, blobs, which));
   } catch (e) {
     fail(`decoding ${dir}: ${e.message}`);
   }
@@ -98,13 +109,16 @@ async function main() {
     JSON.stringify({
       repo: dir,
       domain: meta.domain,
+      decoder: which,
       channels: channels.length,
       samples,
       sha256,
       blobs: blobs.size,
       blob_bytes: bytes,
-      decode_seconds: seconds,
-      decode_msamples_per_s: (counted * channels.length) / seconds / 1e6,
+      decode_seconds: decodeSeconds,
+      decode_msamples_per_s: (counted * channels.length) / decodeSeconds / 1e6,
+      call_seconds: seconds,
+      call_msamples_per_s: (counted * channels.length) / seconds / 1e6,
     }) + "\n",
   );
 }

@@ -10,8 +10,10 @@
 //! `answers`: every answer of `web-demo/test/golden/wasm-decode.json` that decodes, through
 //! `AnswerDecoder::decode` (medians of 7 runs of at least 300 ms, as bench-codec.mjs).
 //! `repo`: the whole-repository reconstruction of each named repository of a static
-//! export (`reconstruct_call`, median of 5 runs), samples counted as `quincunx verify`
-//! counts them.
+//! export (`reconstruct_call`, by the whole-raster decoder and by the refiners, median of
+//! 5 runs each): the decode alone as the call times it (`decode_*`, what `verify` times)
+//! and the whole call (`call_*`: parsing the input, metadata and geometry, writing the
+//! output), samples counted as `quincunx verify` counts them.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -21,6 +23,16 @@ use std::time::Instant;
 
 use quincunx_web::decode::AnswerDecoder;
 use quincunx_web::open::Open;
+use quincunx_web::reconstruct::{Decoder, reconstruct_call};
+
+/// The wall clock the call times its decode with.
+struct Wall(Instant);
+
+impl quincunx_client_core::refine::Clock for Wall {
+    fn now(&self) -> std::time::Duration {
+        self.0.elapsed()
+    }
+}
 
 fn median(mut xs: Vec<f64>) -> f64 {
     xs.sort_by(f64::total_cmp);
@@ -184,17 +196,25 @@ fn repo(dir: &Path, name: &str) {
     } else {
         a * b
     } * channels;
-    let mut seconds = Vec::new();
-    for _ in 0..5 {
-        let start = Instant::now();
-        std::hint::black_box(quincunx_web::reconstruct::reconstruct_call(&input)).unwrap();
-        seconds.push(start.elapsed().as_secs_f64());
+    for (decoder, label) in [(Decoder::Whole, "whole"), (Decoder::Refiners, "refiners")] {
+        let (mut calls, mut decodes) = (Vec::new(), Vec::new());
+        for _ in 0..5 {
+            let start = Instant::now();
+            let out = std::hint::black_box(reconstruct_call(&input, decoder, &Wall(start)));
+            calls.push(start.elapsed().as_secs_f64());
+            decodes.push(f64::from_le_bytes(out.unwrap()[8..16].try_into().unwrap()));
+        }
+        let (call, decode) = (median(calls), median(decodes));
+        let rate = |s: f64| counted as f64 / s / 1e6;
+        println!(
+            "{}",
+            serde_json::json!({
+                "native": true, "repo": name, "decoder": label,
+                "decode_seconds": decode, "decode_msamples_per_s": rate(decode),
+                "call_seconds": call, "call_msamples_per_s": rate(call),
+            })
+        );
     }
-    let s = median(seconds);
-    println!(
-        "{}",
-        serde_json::json!({"native": true, "repo": name, "decode_seconds": s, "decode_msamples_per_s": counted as f64 / s / 1e6})
-    );
 }
 
 fn main() {

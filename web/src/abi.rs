@@ -210,6 +210,8 @@ pub extern "C" fn qx_client_height_range(h: u32) -> i32 {
 
 /// [`Module::reconstruct`].
 #[unsafe(no_mangle)]
-pub extern "C" fn qx_reconstruct(len: u32) -> i32 {
-    status(call(len, |m, i| Ok((0, m.reconstruct(i)?))))
+pub extern "C" fn qx_reconstruct(len: u32, decoder: u32) -> i32 {
+    status(call(len, |m, i| {
+        Ok((0, m.reconstruct(i, decoder, &PageClock)?))
+    }))
 }

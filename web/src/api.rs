@@ -274,9 +274,17 @@ impl Module {
 }
 
 impl Module {
-    /// A whole repository ([`crate::reconstruct::reconstruct_call`]).
-    pub fn reconstruct(&mut self, input: &[u8]) -> Result<Vec<u8>, WebError> {
-        crate::reconstruct::reconstruct_call(input)
+    /// A whole repository ([`crate::reconstruct::reconstruct_call`]) by the decoder of
+    /// code `decoder` ([`crate::reconstruct::Decoder::from_code`]).
+    pub fn reconstruct(
+        &mut self,
+        input: &[u8],
+        decoder: u32,
+        clock: &dyn Clock,
+    ) -> Result<Vec<u8>, WebError> {
+        let decoder = crate::reconstruct::Decoder::from_code(decoder)
+            .ok_or_else(|| format!("unknown decoder {decoder}: 0 whole-raster, 1 refiners"))?;
+        crate::reconstruct::reconstruct_call(input, decoder, clock)
     }
 }
 

@@ -1,43 +1,251 @@
-//! A whole repository at full resolution through the refiners: what
-//! `web-demo/tools/decode-repo.mjs` hashes, to check the module against `quincunx verify`
-//! (the reconstruction hash of `docs/blob-format.md`).
+//! A whole repository at full resolution: what `web-demo/tools/decode-repo.mjs` hashes,
+//! to check the module against `quincunx verify` (the reconstruction hash of
+//! `docs/blob-format.md`), by either of two decoders:
 //!
-//! Every diamond of every detail level is refined coarse to fine as a client would (each
-//! child's grid cut from its refined parents' lattices), and each refined lattice is
-//! written into the domain's canonical sample layout; points outside a sparse
-//! repository's coverage end as 0, as the whole-raster decoder leaves them. Memory: the
-//! layout per channel, the output, and the lattices of one level.
+//! - [`Decoder::Whole`]: the whole-raster decoder `quincunx verify` runs
+//!   ([`quincunx_decoder::layout::decode_levels`]): each level synthesised in place in the
+//!   domain's sample layout. Memory: the layout per channel and the output.
+//! - [`Decoder::Refiners`]: every diamond of every detail level refined coarse to fine as
+//!   a client does (each child's grid cut from its refined parents' lattices), each
+//!   refined lattice written into the layout. Memory: also the lattices of one level.
+//!
+//! Points outside a sparse repository's coverage end as 0 in both.
 
 use std::collections::{HashMap, HashSet};
+use std::time::Duration;
 
 use quincunx_client_core::domain::Domain;
 use quincunx_client_core::fetch::Key;
 use quincunx_client_core::open::SessionError;
+use quincunx_client_core::refine::Clock;
 use quincunx_decoder::coverage::Coverage;
 use quincunx_decoder::diamond::{PlanarDomain, PlanarId, SphereId};
+use quincunx_decoder::entropy::CodecModel;
 use quincunx_decoder::incremental::{PlanarRefiner, RefineError, Refined, Refiner, SphereRefiner};
 use quincunx_decoder::lattice::write_lattice;
-use quincunx_decoder::raster::{self, DiamondSlot};
-use quincunx_decoder::sphere_raster::{SphereFrame, SphereSlot};
+use quincunx_decoder::layout::{ChannelCoding, Layout, decode_levels};
+use quincunx_decoder::raster::{self, DiamondSlot, RasterGeometry};
+use quincunx_decoder::sphere_raster::{SphereFrame, SphereGeometry, SphereSlot};
 use quincunx_meta::channels::split_channels;
 use quincunx_meta::{Domain as MetaDomain, Metadata};
 
 use crate::wire::{Reader, WireError};
 
+/// Bytes of the output's header (`u32 channels, u32 samples, f64 seconds`): the values
+/// after it are 4-byte aligned.
+pub const HEADER: usize = 16;
+
 /// Most values (samples times channels) a reconstruction holds: with the output, 8 bytes
 /// each, half of a 32-bit module's 4 GiB memory.
 pub const MAX_VALUES: usize = 1 << 28;
 
+/// Which decoder reconstructs (both give the same values, bit for bit).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Decoder {
+    /// The whole-raster decoder `quincunx verify` runs, level by level in place.
+    Whole,
+    /// The refiners a viewer runs, one diamond at a time.
+    Refiners,
+}
+
+impl Decoder {
+    /// The decoder of an ABI code: 0 whole-raster, 1 refiners.
+    pub fn from_code(code: u32) -> Option<Decoder> {
+        match code {
+            0 => Some(Decoder::Whole),
+            1 => Some(Decoder::Refiners),
+            _ => None,
+        }
+    }
+}
+
 /// Input `u32 meta_len, metadata JSON, u32 count, (key, u32 len, bytes)*` (each diamond's
-/// stored blob by its fetch key); output `u32 channels, u32 samples, i32 values` (channel
-/// after channel, canonical order), all little-endian.
-pub fn reconstruct_call(input: &[u8]) -> Result<Vec<u8>, String> {
+/// stored blob by its fetch key); output `u32 channels, u32 samples, f64 decode_seconds,
+/// i32 values` (channel after channel, canonical order), all little-endian.
+///
+/// `decode_seconds`, read from `clock`, is the decode and synthesis alone, as
+/// `quincunx verify` times its decode: from the blobs and the parsed coding (metadata,
+/// geometry tables) to the full-resolution values; not parsing the input or writing the
+/// output.
+pub fn reconstruct_call(
+    input: &[u8],
+    decoder: Decoder,
+    clock: &dyn Clock,
+) -> Result<Vec<u8>, String> {
     let (meta, blobs) = parse(input)?;
-    let channels = match meta.domain {
-        MetaDomain::Planar => reconstruct::<Plane>(&meta, blobs)?,
-        MetaDomain::Sphere => reconstruct::<Cube>(&meta, blobs)?,
+    let (channels, seconds) = match (meta.domain, decoder) {
+        (MetaDomain::Planar, Decoder::Whole) => whole::<PlanarRefiner>(&meta, blobs, clock)?,
+        (MetaDomain::Sphere, Decoder::Whole) => whole::<SphereRefiner>(&meta, blobs, clock)?,
+        (MetaDomain::Planar, Decoder::Refiners) => reconstruct::<Plane>(&meta, blobs, clock)?,
+        (MetaDomain::Sphere, Decoder::Refiners) => reconstruct::<Cube>(&meta, blobs, clock)?,
     };
-    output(channels)
+    output(channels, seconds)
+}
+
+/// Seconds of `clock` since `start`.
+fn since(clock: &dyn Clock, start: Duration) -> f64 {
+    clock.now().saturating_sub(start).as_secs_f64()
+}
+
+/// A domain's whole-raster geometry, as its refiner's parameters give it.
+trait WholeRaster: Domain {
+    type Geometry: Layout;
+    /// Samples of the domain's layout (cheap: checked before the geometry is built).
+    fn sample_len(&self) -> usize;
+    /// The geometry (with the repository's coverage, if any).
+    fn geometry(&self) -> Result<Self::Geometry, String>;
+    /// The diamond at `index` of detail level `level`.
+    fn id_at(g: &Self::Geometry, level: usize, index: usize) -> Self::Id;
+    /// Every root vertex grid, in root order.
+    fn root_grids(&self) -> Vec<Vec<i32>>;
+    /// Quantiser steps per level.
+    fn level_steps(&self) -> &[u32];
+    /// The entropy model.
+    fn coding_model(&self) -> &CodecModel;
+}
+
+impl WholeRaster for PlanarRefiner {
+    type Geometry = RasterGeometry;
+
+    fn sample_len(&self) -> usize {
+        let (w, h) = self.raster_size();
+        w.saturating_mul(h)
+    }
+
+    fn geometry(&self) -> Result<RasterGeometry, String> {
+        let (w, h) = self.raster_size();
+        match self.frame().coverage() {
+            None => RasterGeometry::new(w, h, self.n()),
+            Some(c) => RasterGeometry::with_coverage(w, h, self.n(), c),
+        }
+        .map_err(|e| format!("metadata: {e}"))
+    }
+
+    fn id_at(g: &RasterGeometry, level: usize, index: usize) -> PlanarId {
+        g.level(level)[index].id
+    }
+
+    fn root_grids(&self) -> Vec<Vec<i32>> {
+        vec![self.root().1.to_vec()]
+    }
+
+    fn level_steps(&self) -> &[u32] {
+        self.steps()
+    }
+
+    fn coding_model(&self) -> &CodecModel {
+        self.model()
+    }
+}
+
+impl WholeRaster for SphereRefiner {
+    type Geometry = SphereGeometry;
+
+    fn sample_len(&self) -> usize {
+        self.frame().cube_len()
+    }
+
+    fn geometry(&self) -> Result<SphereGeometry, String> {
+        let f = self.frame();
+        match f.coverage() {
+            None => SphereGeometry::new(f.face_side(), f.n()),
+            Some(c) => SphereGeometry::with_coverage(f.face_side(), f.n(), c),
+        }
+        .map_err(|e| format!("metadata: {e}"))
+    }
+
+    fn id_at(g: &SphereGeometry, level: usize, index: usize) -> SphereId {
+        g.level(level)[index].id
+    }
+
+    fn root_grids(&self) -> Vec<Vec<i32>> {
+        self.roots().into_iter().map(|(_, g)| g.to_vec()).collect()
+    }
+
+    fn level_steps(&self) -> &[u32] {
+        self.steps()
+    }
+
+    fn coding_model(&self) -> &CodecModel {
+        self.model()
+    }
+}
+
+/// Decodes every channel of the repository `meta` describes with the whole-raster
+/// decoder; `blobs` by fetch key. One sample array per channel, and the seconds of the
+/// decode (see [`reconstruct_call`]).
+fn whole<R: WholeRaster>(
+    meta: &Metadata,
+    mut blobs: HashMap<Key, &[u8]>,
+    clock: &dyn Clock,
+) -> Result<(Vec<Vec<i32>>, f64), String> {
+    let count = meta.channels.len();
+    let refiners = (0..count)
+        .map(|c| R::channel_from_metadata("", meta, c).map_err(metadata_error))
+        .collect::<Result<Vec<_>, _>>()?;
+    let r0 = refiners.first().ok_or("metadata: no channels")?;
+    let len = r0.sample_len();
+    if len.saturating_mul(count) > MAX_VALUES {
+        return Err(format!(
+            "{count} x {len} values are too many to reconstruct in memory (at most {MAX_VALUES})"
+        ));
+    }
+    let geom = r0.geometry()?;
+    // Each diamond's blob, split into its channels' parts, by level and index.
+    let mut parts: Vec<Vec<Vec<Option<&[u8]>>>> = Vec::with_capacity(geom.slot_levels().len());
+    for (level, slots) in geom.slot_levels().iter().enumerate() {
+        let mut row = Vec::with_capacity(slots.len());
+        for index in 0..slots.len() {
+            let key = R::key_of(R::id_at(&geom, level, index));
+            row.push(match blobs.remove(&key).filter(|b| !b.is_empty()) {
+                None => Vec::new(),
+                Some(b) => {
+                    split_channels(b, count).map_err(|e| format!("blob {}: {e}", key_text(key)))?
+                }
+            });
+        }
+        parts.push(row);
+    }
+    if let Some(&k) = blobs.keys().min() {
+        return Err(format!(
+            "blob {} belongs to no diamond of the repository",
+            key_text(k)
+        ));
+    }
+    let roots: Vec<Vec<Vec<i32>>> = refiners.iter().map(R::root_grids).collect();
+    let start = clock.now();
+    let mut out = Vec::with_capacity(count);
+    for (c, (r, roots)) in refiners.iter().zip(&roots).enumerate() {
+        let coding = ChannelCoding {
+            roots,
+            steps: r.level_steps(),
+            model: r.coding_model(),
+        };
+        let mut values = Vec::new();
+        values
+            .try_reserve_exact(len)
+            .map_err(|_| format!("{len} values do not fit in memory"))?;
+        // The diamond whose blob was asked for last is the one an error is about.
+        let last = std::cell::Cell::new((0, 0));
+        decode_levels(
+            &geom,
+            coding,
+            |l, i| {
+                last.set((l, i));
+                parts[l][i].get(c).copied().flatten()
+            },
+            &mut values,
+        )
+        .map_err(|e| {
+            let (l, i) = last.get();
+            format!(
+                "diamond {}, channel {c}: {e}",
+                key_text(R::key_of(R::id_at(&geom, l, i)))
+            )
+        })?;
+        out.push(values);
+    }
+    Ok((out, since(clock, start)))
 }
 
 /// The metadata and the blobs by fetch key.
@@ -60,26 +268,27 @@ fn parse(input: &[u8]) -> Result<(Metadata, HashMap<Key, &[u8]>), String> {
     Ok((meta, blobs))
 }
 
-/// `u32 channels, u32 samples`, then each channel's values.
-fn output(channels: Vec<Vec<i32>>) -> Result<Vec<u8>, String> {
+/// `u32 channels, u32 samples, f64 seconds`, then each channel's values.
+fn output(channels: Vec<Vec<i32>>, seconds: f64) -> Result<Vec<u8>, String> {
     let samples = channels.first().map_or(0, Vec::len);
     let header = |v: usize| u32::try_from(v).map_err(|_| format!("{v} does not fit a u32"));
     let len = channels
         .len()
         .checked_mul(samples)
         .and_then(|v| v.checked_mul(4))
-        .and_then(|v| v.checked_add(8))
+        .and_then(|v| v.checked_add(HEADER))
         .ok_or("the output does not fit in memory")?;
     let mut out = Vec::new();
     out.try_reserve_exact(len)
         .map_err(|_| format!("the output ({len} bytes) does not fit in memory"))?;
     out.extend_from_slice(&header(channels.len())?.to_le_bytes());
     out.extend_from_slice(&header(samples)?.to_le_bytes());
+    out.extend_from_slice(&seconds.to_le_bytes());
     out.resize(len, 0);
     // Each channel is freed once copied.
     for (values, dst) in channels
         .into_iter()
-        .zip(out[8..].chunks_exact_mut(4 * samples.max(1)))
+        .zip(out[HEADER..].chunks_exact_mut(4 * samples.max(1)))
     {
         for (d, v) in dst.chunks_exact_mut(4).zip(values) {
             d.copy_from_slice(&v.to_le_bytes());
@@ -150,11 +359,13 @@ trait Canvas: Sized {
 }
 
 /// Refines every diamond of the repository `meta` describes, level by level, each
-/// channel with its own refiner; `blobs` by fetch key. One raster per channel.
+/// channel with its own refiner; `blobs` by fetch key. One raster per channel, and the
+/// seconds of the decode (see [`reconstruct_call`]).
 fn reconstruct<C: Canvas>(
     meta: &Metadata,
     mut blobs: HashMap<Key, &[u8]>,
-) -> Result<Vec<Vec<i32>>, String> {
+    clock: &dyn Clock,
+) -> Result<(Vec<Vec<i32>>, f64), String> {
     type Id<C> = <<C as Canvas>::Refiner as Refiner>::Id;
     let key_of = <C::Refiner as Refiner>::key_of;
     let count = meta.channels.len();
@@ -183,6 +394,7 @@ fn reconstruct<C: Canvas>(
             "{count} x {len} values are too many to reconstruct in memory (at most {MAX_VALUES})"
         ));
     }
+    let start = clock.now();
     let mut rasters = (0..count)
         .map(|_| zeros(len))
         .collect::<Result<Vec<_>, _>>()?;
@@ -261,7 +473,7 @@ fn reconstruct<C: Canvas>(
     for raster in &mut rasters {
         canvas.clear_invalid(raster);
     }
-    Ok(rasters)
+    Ok((rasters, since(clock, start)))
 }
 
 /// The planar layout: the raster, `width x height`, row-major.

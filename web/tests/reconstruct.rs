@@ -1,7 +1,8 @@
-//! `reconstruct_call` against the codec's whole-raster decoder: small repositories built
-//! in memory (planar, planet, sparse planar and planet, colour) reconstruct exactly, and
-//! malformed input (truncated tables, corrupt blobs, stray keys, huge rasters) is an
-//! error, never a panic.
+//! `reconstruct_call`, by both of its decoders (whole-raster and refiners, which must
+//! agree), against the codec's decoder: small repositories built in memory (planar,
+//! planet, sparse planar and planet, colour) reconstruct exactly, and malformed input
+//! (truncated tables, corrupt blobs, stray keys, huge rasters) is an error from both,
+//! never a panic.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use quincunx_codec::diamond::{PlanarDomain, SphereDomain};
@@ -12,10 +13,10 @@ use quincunx_codec::encode::{
 use quincunx_codec::incremental::{PlanarRefiner, SphereRefiner};
 use quincunx_meta::channels::frame_channels;
 use quincunx_meta::{ChannelCoding, Domain, Metadata, Rate};
-use quincunx_web::reconstruct::reconstruct_call;
+use quincunx_web::reconstruct::{Decoder, HEADER, reconstruct_call};
 
 mod common;
-use common::{geometry_of, metadata, options, planet, raster};
+use common::{Wall, geometry_of, metadata, options, planet, raster};
 
 type Key = [i64; 3];
 
@@ -113,8 +114,10 @@ fn input(meta: &Metadata, blobs: &[(Key, Vec<u8>)]) -> Vec<u8> {
 fn channels(output: &[u8]) -> Vec<Vec<i32>> {
     let word = |k: usize| u32::from_le_bytes(output[k..k + 4].try_into().unwrap()) as usize;
     let (count, samples) = (word(0), word(4));
-    assert_eq!(output.len(), 8 + 4 * count * samples);
-    output[8..]
+    let seconds = f64::from_le_bytes(output[8..16].try_into().unwrap());
+    assert!(seconds.is_finite() && seconds >= 0.0, "{seconds}");
+    assert_eq!(output.len(), HEADER + 4 * count * samples);
+    output[HEADER..]
         .chunks_exact(4)
         .map(|b| i32::from_le_bytes(b.try_into().unwrap()))
         .collect::<Vec<_>>()
@@ -135,7 +138,7 @@ fn whole(e: &Encoded) -> Vec<i32> {
 /// Reconstructs `encs` through the module's call and compares with the codec.
 fn reconstructs_exactly(encs: &[&Encoded]) -> Vec<u8> {
     let bytes = input(&metadata_of(encs), &blobs(encs));
-    let out = reconstruct_call(&bytes).unwrap();
+    let out = reconstruct(&bytes).unwrap();
     let got = channels(&out);
     assert_eq!(got.len(), encs.len());
     for (c, e) in encs.iter().enumerate() {
@@ -227,12 +230,12 @@ fn every_truncation_of_the_input_is_an_error() {
     .unwrap();
     let bytes = input(&metadata_of(&[&e]), &blobs(&[&e]));
     for len in 0..bytes.len() {
-        assert!(reconstruct_call(&bytes[..len]).is_err(), "cut at {len}");
+        assert!(reconstruct(&bytes[..len]).is_err(), "cut at {len}");
     }
     let mut longer = bytes.clone();
     longer.push(0);
-    assert!(reconstruct_call(&longer).is_err());
-    reconstruct_call(&bytes).unwrap();
+    assert!(reconstruct(&longer).is_err());
+    reconstruct(&bytes).unwrap();
 }
 
 #[test]
@@ -256,7 +259,7 @@ fn corrupt_blobs_and_stray_keys_are_errors() {
     for (label, mutate) in mutations {
         let mut bad = good.clone();
         mutate(&mut bad[big].1);
-        let err = reconstruct_call(&input(&meta, &bad)).unwrap_err();
+        let err = reconstruct(&input(&meta, &bad)).unwrap_err();
         assert!(!err.is_empty(), "{label}");
     }
     // A key of no diamond, named in the error.
@@ -267,7 +270,7 @@ fn corrupt_blobs_and_stray_keys_are_errors() {
     ] {
         let mut bad = good.clone();
         bad.push((stray, vec![1, 2, 3]));
-        let err = reconstruct_call(&input(&meta, &bad)).unwrap_err();
+        let err = reconstruct(&input(&meta, &bad)).unwrap_err();
         let name = match stray {
             [x, y, 0] => format!("{x}/{y}"),
             [x, y, z] => format!("{x}/{y}/{z}"),
@@ -277,17 +280,17 @@ fn corrupt_blobs_and_stray_keys_are_errors() {
     // A key given twice.
     let mut twice = good.clone();
     twice.push(good[0].clone());
-    assert!(reconstruct_call(&input(&meta, &twice)).is_err());
+    assert!(reconstruct(&input(&meta, &twice)).is_err());
     // An empty blob is a leaf's answer: no details there.
     let mut empty = good.clone();
     empty[big].1.clear();
-    let _ = reconstruct_call(&input(&meta, &empty));
+    let _ = reconstruct(&input(&meta, &empty));
 }
 
 #[test]
 fn bad_metadata_and_huge_rasters_are_errors() {
-    assert!(reconstruct_call(&input_json(b"{", 0)).is_err());
-    assert!(reconstruct_call(&input_json(b"null", 0)).is_err());
+    assert!(reconstruct(&input_json(b"{", 0)).is_err());
+    assert!(reconstruct(&input_json(b"null", 0)).is_err());
     let e = encode(
         &raster(40, 33, 5, |_, _| false),
         options(8, RateMode::RmsM(2.0), false),
@@ -295,19 +298,37 @@ fn bad_metadata_and_huge_rasters_are_errors() {
     .unwrap();
     let mut meta = metadata_of(&[&e]);
     meta.channels.clear();
-    assert!(reconstruct_call(&input(&meta, &[])).is_err());
+    assert!(reconstruct(&input(&meta, &[])).is_err());
     // The largest raster the limits allow: refused before anything is allocated.
     let mut huge = metadata_of(&[&e]);
     huge.extent = [1 << 24, 1 << 24];
     huge.m = 24;
     huge.levels = 42;
     huge.channels[0].steps = vec![256; 42];
-    let err = reconstruct_call(&input(&huge, &[])).unwrap_err();
+    let err = reconstruct(&input(&huge, &[])).unwrap_err();
     assert!(err.contains("memory"), "{err}");
     // A planet's metadata on planar blobs.
     let mut sphere = metadata_of(&[&e]);
     sphere.domain = Domain::Sphere;
-    assert!(reconstruct_call(&input(&sphere, &blobs(&[&e]))).is_err());
+    assert!(reconstruct(&input(&sphere, &blobs(&[&e]))).is_err());
+}
+
+/// `reconstruct_call` by both decoders, which must agree (the same output, or both an
+/// error); the whole-raster decoder's answer.
+fn reconstruct(bytes: &[u8]) -> Result<Vec<u8>, String> {
+    let clock = Wall(std::time::Instant::now());
+    let whole = reconstruct_call(bytes, Decoder::Whole, &clock);
+    let refined = reconstruct_call(bytes, Decoder::Refiners, &clock);
+    match (&whole, &refined) {
+        // The same header and values; the seconds (bytes 8..16) differ.
+        (Ok(a), Ok(b)) => assert!(
+            a[..8] == b[..8] && a[HEADER..] == b[HEADER..],
+            "the two decoders' outputs differ"
+        ),
+        (Err(_), Err(_)) => {}
+        _ => panic!("the decoders disagree: whole-raster {whole:?}, refiners {refined:?}"),
+    }
+    whole
 }
 
 /// An input of raw metadata bytes and `count` (absent) blobs.

@@ -140,3 +140,12 @@ pub fn geometry_of(e: &Encoded) -> (Domain, u32, usize, [u64; 2]) {
         }
     }
 }
+
+/// The wall clock, for calls that time themselves.
+pub struct Wall(pub std::time::Instant);
+
+impl quincunx_client_core::refine::Clock for Wall {
+    fn now(&self) -> std::time::Duration {
+        self.0.elapsed()
+    }
+}
