@@ -216,6 +216,8 @@ pub struct LayerState<T> {
     wants: HashMap<Key, f64>,
     /// How the repository's packages carry small owned children, if it serves any.
     packing: Option<Packing>,
+    /// Diamonds refinement took from the store's cache (not delivered this frame).
+    cache_hits: u64,
 }
 
 impl<T> LayerState<T> {
@@ -227,7 +229,14 @@ impl<T> LayerState<T> {
             inferred_leaves: HashSet::new(),
             wants: HashMap::new(),
             packing: Packing::of(meta).map_err(|e| metadata_error(name, e))?,
+            cache_hits: 0,
         })
+    }
+
+    /// How many times refinement took a diamond's data from the store's cache, since the
+    /// start (a diamond coarsened away and refined again counts again).
+    pub fn cache_hits(&self) -> u64 {
+        self.cache_hits
     }
 
     /// How its answers carry small owned children, if it serves packages.
@@ -260,6 +269,7 @@ impl<T> LayerState<T> {
             return Some(None);
         }
         if let Some(d) = store.cached(key) {
+            self.cache_hits += 1;
             return Some(Some(d));
         }
         if parents().into_iter().any(|p| self.is_leaf(store, p)) {

@@ -530,12 +530,15 @@ impl<R: Domain> Session<R> {
         self.colour.as_ref().map(|colour| colour.fetcher.stats())
     }
 
-    /// The network threads' counters (elevation and colour added up).
+    /// The network threads' counters (elevation and colour added up); `cache_hits` also
+    /// counts the diamonds refinement took from the caches itself.
     pub fn fetch_stats(&self) -> FetchStats {
         let mut stats = self.elevation.fetcher.stats();
         if let Some(colour) = &self.colour {
             stats.add(&colour.fetcher.stats());
         }
+        stats.cache_hits +=
+            self.core.elevation().cache_hits() + self.core.colour().map_or(0, |c| c.cache_hits());
         stats
     }
 

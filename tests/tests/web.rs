@@ -68,37 +68,42 @@ fn the_browsers_client_converges_to_the_local_cut_crack_free_over_http() {
     let decoder = AnswerDecoder::new(&open).unwrap();
     let clock = SystemClock(start);
     let view = oblique_view();
-    let (mut requests, mut packages) = (0, 0);
-    for frame in 0.. {
-        assert!(frame < 2_000, "no convergence");
-        let f = client
-            .frame(&view, start.elapsed(), Duration::from_millis(8), &clock)
-            .unwrap();
-        let check = client.core().dag().check_cut();
-        assert!(check.ok(), "frame {frame}: {check:?}");
-        if f.refine.converged && f.wanted == 0 {
-            break;
-        }
-        // The page's glue: send what the planner picks, hand back the answers.
-        for (layer, key, packaged) in client.plan(start.elapsed()) {
-            let kind = if packaged { "p" } else { "d" };
-            let path = format!("/repos/{REPO}/v/{version}/{kind}/{}/{}", key[0], key[1]);
-            let r = common::get(server.addr, &path, &[]);
-            requests += 1;
-            packages += usize::from(packaged);
-            let body = bytes::Bytes::from(r.body);
-            let now = start.elapsed();
-            let decode = client
-                .answer(layer, key, Ok((r.status, body.clone())), now)
+    // Frames until the cut is at full quality for `view`; (requests, packages) sent.
+    let converge = |client: &mut Client<PlanarRefiner>, view: &View| {
+        let (mut requests, mut packages) = (0, 0);
+        for frame in 0.. {
+            assert!(frame < 2_000, "no convergence");
+            let f = client
+                .frame(view, start.elapsed(), Duration::from_millis(8), &clock)
                 .unwrap();
-            if let Some(packaged) = decode {
-                match decoder.decode(layer, key, &body, packaged) {
-                    Ok(details) => client.decoded(layer, key, &details, now).unwrap(),
-                    Err(e) => panic!("{path}: {e}"),
+            let check = client.core().dag().check_cut();
+            assert!(check.ok(), "frame {frame}: {check:?}");
+            if f.refine.converged && f.wanted == 0 {
+                break;
+            }
+            // The page's glue: send what the planner picks, hand back the answers.
+            for (layer, key, packaged) in client.plan(start.elapsed()) {
+                let kind = if packaged { "p" } else { "d" };
+                let path = format!("/repos/{REPO}/v/{version}/{kind}/{}/{}", key[0], key[1]);
+                let r = common::get(server.addr, &path, &[]);
+                requests += 1;
+                packages += usize::from(packaged);
+                let body = bytes::Bytes::from(r.body);
+                let now = start.elapsed();
+                let decode = client
+                    .answer(layer, key, Ok((r.status, body.clone())), now)
+                    .unwrap();
+                if let Some(packaged) = decode {
+                    match decoder.decode(layer, key, &body, packaged) {
+                        Ok(details) => client.decoded(layer, key, &details, now).unwrap(),
+                        Err(e) => panic!("{path}: {e}"),
+                    }
                 }
             }
         }
-    }
+        (requests, packages)
+    };
+    let (requests, packages) = converge(&mut client, &view);
     let stats = client.stats();
     assert_eq!(stats["errors"]["total"], 0, "{stats}");
     assert!(
@@ -112,6 +117,29 @@ fn the_browsers_client_converges_to_the_local_cut_crack_free_over_http() {
         cut == reference,
         "the streamed cut differs from the local one"
     );
+    let hits = |client: &mut Client<PlanarRefiner>| client.stats()["cacheHits"].as_u64().unwrap();
+    let before = hits(&mut client);
+
+    // High above: the cut coarsens. Back again: every diamond comes from the cache.
+    let above = View {
+        eye: DVec3::new(50_000.0, 40_000.0, 400_000.0),
+        target: DVec3::new(50_000.0, 40_000.0, 0.0),
+        up: DVec3::Y,
+        ..view
+    };
+    converge(&mut client, &above);
+    assert!(
+        cut_of(client.core().dag()).len() < cut.len() / 4,
+        "no coarsening"
+    );
+    let (again, _) = converge(&mut client, &view);
+    assert_eq!(
+        again, 0,
+        "requests on the way back: the cache holds the cut"
+    );
+    assert!(cut_of(client.core().dag()) == reference);
+    let back = hits(&mut client) - before;
+    assert!(back > 50, "{back} cache hits on the way back");
     server.kill();
 }
 

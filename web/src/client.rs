@@ -41,6 +41,9 @@ pub struct Layer<T> {
     failed: usize,
     /// Keys given up in all.
     failures: u64,
+    /// Wants the planner never saw: answered from the cache (leaves included), as the
+    /// native worker counts them.
+    cache_hits: u64,
     last_error: Option<String>,
 }
 
@@ -67,6 +70,7 @@ impl<T: Weigh> Layer<T> {
             decoding: HashMap::new(),
             failed: 0,
             failures: 0,
+            cache_hits: 0,
             last_error: None,
         }
     }
@@ -143,6 +147,7 @@ impl<T: Weigh> Layer<T> {
             .cache
             .get_mut()
             .answer_held(submit.wants, submit.prefetch);
+        self.cache_hits += held.len() as u64;
         self.delivered.extend(held);
         self.planner
             .submit(&wants, &prefetch, submit.package_above, now);
@@ -161,7 +166,9 @@ impl<T: Weigh> Layer<T> {
     }
 
     fn stats(&mut self) -> FetchStats {
-        self.planner.stats().clone()
+        let mut s = self.planner.stats().clone();
+        s.cache_hits = self.cache_hits;
+        s
     }
 }
 
@@ -429,6 +436,9 @@ where
             decoding += c.decoding.len();
             cache_bytes += c.cache.borrow().used_bytes();
         }
+        // And the diamonds refinement took from the caches itself, as `Session` counts.
+        fetch.cache_hits +=
+            self.core.elevation().cache_hits() + self.core.colour().map_or(0, |c| c.cache_hits());
         let e = &fetch.errors;
         let dag = self.core.dag();
         let n = self.core.refiner().n();
