@@ -39,6 +39,45 @@ pub const HEADER: usize = 16;
 /// each, half of a 32-bit module's 4 GiB memory.
 pub const MAX_VALUES: usize = 1 << 28;
 
+/// Most bytes a reconstruction holds at once: three quarters of a 32-bit module's 4 GiB.
+pub const MAX_BYTES: u64 = 3 << 30;
+
+/// Refuses, before taking any memory, a reconstruction of `count` channels of `len`
+/// samples in `N x N` diamonds that would hold more than [`MAX_VALUES`] values or about
+/// [`MAX_BYTES`]: the sample arrays and the output (8 bytes a value), and the decoder's
+/// tables: every diamond's slot (`slot_bytes` each) for the whole-raster decoder, the
+/// refined lattices of two levels per channel for the refiners (a level has at most about
+/// `len / N^2` diamonds, all levels together twice that).
+fn check_memory(
+    count: usize,
+    len: usize,
+    n: usize,
+    decoder: Decoder,
+    slot_bytes: usize,
+) -> Result<(), String> {
+    if len.saturating_mul(count) > MAX_VALUES {
+        return Err(format!(
+            "{count} x {len} values are too many to reconstruct in memory (at most {MAX_VALUES})"
+        ));
+    }
+    let (len, count, n) = (len as u64, count as u64, (n as u64).max(1));
+    let finest = len / (n * n) + 1;
+    let tables = match decoder {
+        Decoder::Whole => 2 * finest * slot_bytes as u64,
+        Decoder::Refiners => 2 * count * finest * ((n + 1) * (n + 1) + n * n) * 4,
+    };
+    let need = 8 * len * count + tables;
+    if need > MAX_BYTES {
+        return Err(format!(
+            "reconstructing {count} x {len} values in diamonds of {n} x {n} needs about {} MiB \
+             of memory, more than the {} MiB allowed",
+            need >> 20,
+            MAX_BYTES >> 20
+        ));
+    }
+    Ok(())
+}
+
 /// Which decoder reconstructs (both give the same values, bit for bit).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Decoder {
@@ -92,6 +131,8 @@ trait WholeRaster: Domain {
     type Geometry: Layout;
     /// Samples of the domain's layout (cheap: checked before the geometry is built).
     fn sample_len(&self) -> usize;
+    /// Diamond size `N`.
+    fn diamond_size(&self) -> usize;
     /// The geometry (with the repository's coverage, if any).
     fn geometry(&self) -> Result<Self::Geometry, String>;
     /// The diamond at `index` of detail level `level`.
@@ -110,6 +151,10 @@ impl WholeRaster for PlanarRefiner {
     fn sample_len(&self) -> usize {
         let (w, h) = self.raster_size();
         w.saturating_mul(h)
+    }
+
+    fn diamond_size(&self) -> usize {
+        self.n()
     }
 
     fn geometry(&self) -> Result<RasterGeometry, String> {
@@ -143,6 +188,10 @@ impl WholeRaster for SphereRefiner {
 
     fn sample_len(&self) -> usize {
         self.frame().cube_len()
+    }
+
+    fn diamond_size(&self) -> usize {
+        self.frame().n()
     }
 
     fn geometry(&self) -> Result<SphereGeometry, String> {
@@ -185,11 +234,9 @@ fn whole<R: WholeRaster>(
         .collect::<Result<Vec<_>, _>>()?;
     let r0 = refiners.first().ok_or("metadata: no channels")?;
     let len = r0.sample_len();
-    if len.saturating_mul(count) > MAX_VALUES {
-        return Err(format!(
-            "{count} x {len} values are too many to reconstruct in memory (at most {MAX_VALUES})"
-        ));
-    }
+    // A slot, and its children's indices and mask on the heap.
+    let slot_bytes = std::mem::size_of::<<R::Geometry as Layout>::Slot>() + 128;
+    check_memory(count, len, r0.diamond_size(), Decoder::Whole, slot_bytes)?;
     let geom = r0.geometry()?;
     // Each diamond's blob, split into its channels' parts, by level and index.
     let mut parts: Vec<Vec<Vec<Option<&[u8]>>>> = Vec::with_capacity(geom.slot_levels().len());
@@ -335,6 +382,8 @@ trait Canvas: Sized {
     fn new(meta: &Metadata, r: &Self::Refiner) -> Result<Self, String>;
     /// Points in the layout.
     fn len(&self) -> usize;
+    /// Diamond size `N`.
+    fn n(&self) -> usize;
     /// Writes the root grids of one channel.
     fn scatter_roots(&self, r: &Self::Refiner, raster: &mut [i32]) -> Result<(), String>;
     /// The placement of a coded diamond.
@@ -389,11 +438,7 @@ fn reconstruct<C: Canvas>(
 
     let canvas = C::new(meta, r0)?;
     let len = canvas.len();
-    if len.saturating_mul(count) > MAX_VALUES {
-        return Err(format!(
-            "{count} x {len} values are too many to reconstruct in memory (at most {MAX_VALUES})"
-        ));
-    }
+    check_memory(count, len, canvas.n(), Decoder::Refiners, 0)?;
     let start = clock.now();
     let mut rasters = (0..count)
         .map(|_| zeros(len))
@@ -518,6 +563,10 @@ impl Canvas for Plane {
         self.width.saturating_mul(self.height)
     }
 
+    fn n(&self) -> usize {
+        self.n
+    }
+
     fn scatter_roots(&self, r: &PlanarRefiner, raster: &mut [i32]) -> Result<(), String> {
         let (root, grid) = r.root();
         let s = self.slot(root)?;
@@ -609,6 +658,10 @@ impl Canvas for Cube {
 
     fn len(&self) -> usize {
         self.frame.cube_len()
+    }
+
+    fn n(&self) -> usize {
+        self.frame.n()
     }
 
     /// As the whole-planet decoder: interior vertices of each face root, and each edge

@@ -307,6 +307,21 @@ fn bad_metadata_and_huge_rasters_are_errors() {
     huge.channels[0].steps = vec![256; 42];
     let err = reconstruct(&input(&huge, &[])).unwrap_err();
     assert!(err.contains("memory"), "{err}");
+    // At the value limit, but with the tables of 8 x 8 diamonds: refused by both decoders
+    // before their memory is taken.
+    let mut big = metadata_of(&[&e]);
+    big.extent = [1 << 14, 1 << 14];
+    big.m = 14;
+    big.levels = 22;
+    big.channels[0].steps = vec![256; 22];
+    assert_eq!(big.n, 8);
+    for decoder in [Decoder::Whole, Decoder::Refiners] {
+        let clock = Wall(std::time::Instant::now());
+        let Err(err) = reconstruct_call(&input(&big, &[]), decoder, &clock) else {
+            panic!("{decoder:?}: a 2^28-sample raster of 8 x 8 diamonds was decoded");
+        };
+        assert!(err.contains("MiB of memory"), "{decoder:?}: {err}");
+    }
     // A planet's metadata on planar blobs.
     let mut sphere = metadata_of(&[&e]);
     sphere.domain = Domain::Sphere;
