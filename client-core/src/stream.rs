@@ -505,6 +505,12 @@ impl<R: Domain> StreamCore<R> {
         self.colour.as_ref().map(|(_, state)| state)
     }
 
+    /// How many times refinement took a diamond's data from a store's cache, both layers
+    /// together (see [`LayerState::cache_hits`]).
+    pub fn cache_hits(&self) -> u64 {
+        self.elevation.cache_hits() + self.colour.as_ref().map_or(0, |c| c.1.cache_hits())
+    }
+
     /// The settings.
     pub fn config(&self) -> &StreamConfig {
         &self.config

@@ -537,8 +537,7 @@ impl<R: Domain> Session<R> {
         if let Some(colour) = &self.colour {
             stats.add(&colour.fetcher.stats());
         }
-        stats.cache_hits +=
-            self.core.elevation().cache_hits() + self.core.colour().map_or(0, |c| c.cache_hits());
+        stats.cache_hits += self.core.cache_hits();
         stats
     }
 

@@ -437,8 +437,7 @@ where
             cache_bytes += c.cache.borrow().used_bytes();
         }
         // And the diamonds refinement took from the caches itself, as `Session` counts.
-        fetch.cache_hits +=
-            self.core.elevation().cache_hits() + self.core.colour().map_or(0, |c| c.cache_hits());
+        fetch.cache_hits += self.core.cache_hits();
         let e = &fetch.errors;
         let dag = self.core.dag();
         let n = self.core.refiner().n();

@@ -20,7 +20,6 @@ use quincunx_client_core::open::SessionError;
 use quincunx_client_core::refine::Clock;
 use quincunx_decoder::coverage::Coverage;
 use quincunx_decoder::diamond::{PlanarDomain, PlanarId, SphereId};
-use quincunx_decoder::entropy::CodecModel;
 use quincunx_decoder::incremental::{PlanarRefiner, RefineError, Refined, Refiner, SphereRefiner};
 use quincunx_decoder::lattice::write_lattice;
 use quincunx_decoder::layout::{ChannelCoding, Layout, decode_levels};
@@ -137,12 +136,8 @@ trait WholeRaster: Domain {
     fn geometry(&self) -> Result<Self::Geometry, String>;
     /// The diamond at `index` of detail level `level`.
     fn id_at(g: &Self::Geometry, level: usize, index: usize) -> Self::Id;
-    /// Every root vertex grid, in root order.
-    fn root_grids(&self) -> Vec<Vec<i32>>;
-    /// Quantiser steps per level.
-    fn level_steps(&self) -> &[u32];
-    /// The entropy model.
-    fn coding_model(&self) -> &CodecModel;
+    /// The channel's coding (roots, steps, model).
+    fn channel_coding(&self) -> ChannelCoding<'_>;
 }
 
 impl WholeRaster for PlanarRefiner {
@@ -170,16 +165,8 @@ impl WholeRaster for PlanarRefiner {
         g.level(level)[index].id
     }
 
-    fn root_grids(&self) -> Vec<Vec<i32>> {
-        vec![self.root().1.to_vec()]
-    }
-
-    fn level_steps(&self) -> &[u32] {
-        self.steps()
-    }
-
-    fn coding_model(&self) -> &CodecModel {
-        self.model()
+    fn channel_coding(&self) -> ChannelCoding<'_> {
+        self.coding()
     }
 }
 
@@ -207,16 +194,8 @@ impl WholeRaster for SphereRefiner {
         g.level(level)[index].id
     }
 
-    fn root_grids(&self) -> Vec<Vec<i32>> {
-        self.roots().into_iter().map(|(_, g)| g.to_vec()).collect()
-    }
-
-    fn level_steps(&self) -> &[u32] {
-        self.steps()
-    }
-
-    fn coding_model(&self) -> &CodecModel {
-        self.model()
+    fn channel_coding(&self) -> ChannelCoding<'_> {
+        self.coding()
     }
 }
 
@@ -259,15 +238,9 @@ fn whole<R: WholeRaster>(
             key_text(k)
         ));
     }
-    let roots: Vec<Vec<Vec<i32>>> = refiners.iter().map(R::root_grids).collect();
     let start = clock.now();
     let mut out = Vec::with_capacity(count);
-    for (c, (r, roots)) in refiners.iter().zip(&roots).enumerate() {
-        let coding = ChannelCoding {
-            roots,
-            steps: r.level_steps(),
-            model: r.coding_model(),
-        };
+    for (c, r) in refiners.iter().enumerate() {
         let mut values = Vec::new();
         values
             .try_reserve_exact(len)
@@ -276,7 +249,7 @@ fn whole<R: WholeRaster>(
         let last = std::cell::Cell::new((0, 0));
         decode_levels(
             &geom,
-            coding,
+            r.channel_coding(),
             |l, i| {
                 last.set((l, i));
                 parts[l][i].get(c).copied().flatten()

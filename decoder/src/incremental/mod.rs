@@ -28,6 +28,7 @@ use crate::coverage::Coverage;
 use crate::dequantize;
 use crate::diamond::{IdError, PlanarDomain, PlanarId};
 use crate::entropy::CodecModel;
+use crate::layout::ChannelCoding;
 use crate::lifting::{self, DiamondMask};
 use crate::raster::{RasterError, RasterFrame};
 
@@ -419,7 +420,8 @@ pub struct PlanarRefiner {
     geometry: RasterFrame,
     steps: Vec<u32>,
     model: CodecModel,
-    root: Vec<i32>,
+    /// The root grid, alone (the layout [`ChannelCoding`] takes).
+    roots: Vec<Vec<i32>>,
     /// Levels below the coded ones, refined with made-up details.
     extension: Extension,
 }
@@ -449,7 +451,7 @@ impl PlanarRefiner {
             geometry,
             steps,
             model,
-            root,
+            roots: vec![root],
             extension: Extension::default(),
         })
     }
@@ -510,14 +512,14 @@ impl PlanarRefiner {
         &self.geometry
     }
 
-    /// Quantiser step per coded detail level, in 1/256 integer units.
-    pub fn steps(&self) -> &[u32] {
-        &self.steps
-    }
-
-    /// The entropy model the blobs were coded with.
-    pub fn model(&self) -> &CodecModel {
-        &self.model
+    /// What the whole-raster decoder decodes this channel with: the root grid, the
+    /// quantiser steps and the entropy model.
+    pub fn coding(&self) -> ChannelCoding<'_> {
+        ChannelCoding {
+            roots: &self.roots,
+            steps: &self.steps,
+            model: &self.model,
+        }
     }
 
     /// Diamond size `N`.
@@ -542,7 +544,7 @@ impl PlanarRefiner {
 
     /// The root diamond and its vertex grid (from the repository metadata).
     pub fn root(&self) -> (PlanarId, &[i32]) {
-        (self.geometry.domain().root(), &self.root)
+        (self.geometry.domain().root(), &self.roots[0])
     }
 
     /// What a client needs to know about a refinable diamond; `None` for diamonds

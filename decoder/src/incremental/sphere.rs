@@ -14,6 +14,7 @@ use crate::coverage::Coverage;
 use crate::diamond::sphere::unfold;
 use crate::diamond::{SphereDomain, SphereId};
 use crate::entropy::CodecModel;
+use crate::layout::ChannelCoding;
 use crate::lifting;
 use crate::sphere_raster::{SphereFrame, SphereSlot};
 
@@ -97,14 +98,14 @@ impl SphereRefiner {
         &self.geometry
     }
 
-    /// Quantiser step per coded detail level, in 1/256 integer units.
-    pub fn steps(&self) -> &[u32] {
-        &self.steps
-    }
-
-    /// The entropy model the blobs were coded with.
-    pub fn model(&self) -> &CodecModel {
-        &self.model
+    /// What the whole-raster decoder decodes this channel with: the six face roots'
+    /// grids, the quantiser steps and the entropy model.
+    pub fn coding(&self) -> ChannelCoding<'_> {
+        ChannelCoding {
+            roots: &self.roots,
+            steps: &self.steps,
+            model: &self.model,
+        }
     }
 
     fn slot_of(&self, id: SphereId) -> Result<(usize, SphereSlot), RefineError> {
