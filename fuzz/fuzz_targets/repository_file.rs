@@ -1,9 +1,10 @@
 //! A repository file of arbitrary bytes (`quincunx_store::Repository`) never panics, hangs
 //! or allocates from an unchecked length: `open` fails cleanly or gives a repository whose
-//! full walk yields at most one error per page and whose `get`s return blobs the walk saw.
+//! full walk yields at most one error per blob or leaf directory and whose `get`s return
+//! blobs the walk saw.
 //!
 //! Input: the bytes of `repository.pack`. Seeds worth adding: a real repository file (e.g.
-//! `store/tests/golden/format6.pack`).
+//! `store/tests/golden/format7.pack`).
 
 #![no_main]
 

@@ -19,6 +19,7 @@ pub mod answer;
 pub mod channels;
 pub mod crypto;
 pub mod limits;
+pub mod pack;
 
 pub use limits::MetadataError;
 

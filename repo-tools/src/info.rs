@@ -19,6 +19,29 @@ struct Info<'a> {
     bits_per_sample: f64,
     repository_bytes: u64,
     storage_overhead: f64,
+    layout: Layout,
+}
+
+/// How the repository file is laid out for readers (`docs/repository-format.md`).
+#[derive(Serialize)]
+struct Layout {
+    /// Bytes before the first blob a reader needs: header, root directory and metadata
+    /// (what a range reader fetches to open the file).
+    open_bytes: u64,
+    /// The root directory's bytes (deflated).
+    root_bytes: u64,
+    /// The metadata record's bytes (deflated).
+    metadata_bytes: u64,
+    /// Blobs listed in the root directory.
+    root_entries: usize,
+    /// Tiles with a leaf directory.
+    tiles: usize,
+    /// All leaf directories' bytes.
+    leaf_bytes: u64,
+    /// Levels below this one are in the root; deeper ones in tiles (when there are any).
+    split_level: u32,
+    /// Tiles are squares of side `2^tile_shift` id units.
+    tile_shift: u32,
 }
 
 /// Input samples a repository covers (planar: width x height; sphere: distinct cube points).
@@ -65,6 +88,20 @@ pub fn run(path: &Path, json: bool) -> Result<()> {
         bits_per_sample: 8.0 * (blob_bytes + side) as f64 / samples.max(1) as f64,
         repository_bytes,
         storage_overhead: repository_bytes as f64 / (blob_bytes + side).max(1) as f64,
+        layout: {
+            let h = repo.header();
+            let (root_entries, tiles) = repo.directory_sizes();
+            Layout {
+                open_bytes: h.open_len(),
+                root_bytes: h.root.len,
+                metadata_bytes: h.metadata.len,
+                root_entries,
+                tiles,
+                leaf_bytes: h.leaves.len,
+                split_level: h.split_level,
+                tile_shift: h.tile_shift,
+            }
+        },
     };
     if json {
         outln!("{}", serde_json::to_string(&info)?);
@@ -128,6 +165,17 @@ pub fn run(path: &Path, json: bool) -> Result<()> {
         samples,
         repository_bytes,
         info.storage_overhead
+    );
+    let l = &info.layout;
+    outln!(
+        "layout         {} bytes to open (root directory {} bytes, metadata {} bytes); {} \
+         blobs in the root, {} tiles ({} bytes of leaf directories)",
+        l.open_bytes,
+        l.root_bytes,
+        l.metadata_bytes,
+        l.root_entries,
+        l.tiles,
+        l.leaf_bytes
     );
     Ok(())
 }

@@ -1101,7 +1101,8 @@ fn a_corrupted_repository_fails_verification_without_panicking() {
     );
     let db = repo.join("repository.pack");
     let clean = std::fs::read(&db).unwrap();
-    // Flip bytes at several places of the repository file (pages, index, metadata, footer):
+    // Flip bytes at several places of the repository file (header, directories, metadata,
+    // blobs):
     // every part is under a checksum, so every flip must be a clean failure (exit 1 with a
     // message naming the repository).
     let mut failures = 0;

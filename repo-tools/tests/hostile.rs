@@ -319,40 +319,13 @@ fn hostile_variants(good: &serde_json::Value) -> Vec<(&'static str, serde_json::
 }
 
 /// Writes a repository whose metadata record is `meta`: the real repository's file with
-/// the record replaced (index and pages kept, footer rewritten).
+/// the record replaced (directories and blobs kept).
 fn with_metadata(real: &Path, out: &Path, meta: &serde_json::Value) {
-    use quincunx_store::pack::{FOOTER_BYTES, Footer};
     let file = std::fs::read(real.join("repository.pack")).unwrap();
-    let n = file.len();
-    let footer = Footer::parse(&file[n - FOOTER_BYTES as usize..], n as u64).unwrap();
-    let body_end = (footer.index_offset + footer.index_len) as usize;
     let record = serde_json::to_vec(meta).unwrap();
-    let mut bytes = file[..body_end].to_vec();
-    bytes.extend_from_slice(&record);
-    let new = Footer {
-        metadata_len: record.len() as u64,
-        metadata_crc: crc32(&record),
-        ..footer
-    };
-    bytes.extend_from_slice(&new.to_bytes());
+    let bytes = quincunx_store::pack::replace_metadata(&file, &record).unwrap();
     std::fs::create_dir_all(out).unwrap();
     std::fs::write(out.join("repository.pack"), bytes).unwrap();
-}
-
-/// CRC-32 (IEEE), bitwise: the test needs no crate for it.
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut crc = !0u32;
-    for &b in bytes {
-        crc ^= u32::from(b);
-        for _ in 0..8 {
-            crc = if crc & 1 != 0 {
-                (crc >> 1) ^ 0xEDB8_8320
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    !crc
 }
 
 /// A fake server answering every request with `body` (200, JSON), on a thread.

@@ -186,8 +186,8 @@ fn every_kind_of_damage_is_a_clear_error_from_every_tool_within_10_s() {
     let paths = blob_paths(&good);
     let clean = std::fs::read(good.join(PACK)).unwrap();
     let n = clean.len();
-    let footer = n - 48;
-    let index = u64::from_le_bytes(clean[footer..footer + 8].try_into().unwrap()) as usize;
+    let header = quincunx_store::pack::Header::parse(&clean).unwrap();
+    let at = |offset: u64| offset as usize;
     let invert = |at: usize| {
         let mut b = clean.clone();
         for x in &mut b[at..at + 16] {
@@ -195,21 +195,25 @@ fn every_kind_of_damage_is_a_clear_error_from_every_tool_within_10_s() {
         }
         Some(b)
     };
-    // (kind, file bytes (None: no file), damage that `open` finds (false: only page reads))
+    // (kind, file bytes (None: no file), damage that `open` finds (false: only blob reads))
     let kinds: Vec<(&str, Option<Vec<u8>>, bool)> = vec![
         (
-            "16 bytes inverted at offset 500 (a page)",
-            invert(500),
+            "16 bytes inverted amid the blobs",
+            invert(at(header.blobs.offset + header.blobs.len / 2)),
             false,
         ),
-        ("index inverted", invert(index), true),
         (
-            "metadata inverted",
-            invert(index + (footer - index) / 2),
+            "root directory inverted",
+            invert(at(header.root.offset)),
             true,
         ),
-        ("footer inverted", invert(footer + 8), true),
-        ("head inverted", invert(0), true),
+        (
+            "metadata inverted",
+            invert(at(header.metadata.offset + header.metadata.len / 2)),
+            true,
+        ),
+        ("header inverted", invert(40), true),
+        ("magic inverted", invert(0), true),
         ("truncated to half", Some(clean[..n / 2].to_vec()), true),
         ("empty file", Some(Vec::new()), true),
         ("no repository file", None, true),
@@ -254,7 +258,7 @@ fn every_kind_of_damage_is_a_clear_error_from_every_tool_within_10_s() {
                 .unwrap_or_else(|| panic!("{tool} on {kind}: still running after 10 s"));
             let stderr = String::from_utf8_lossy(&out.stderr);
             if tool == "info" && !at_open {
-                // info reads the head, index and metadata, not the pages.
+                // info reads the header, root directory and metadata, not the blobs.
                 assert!(out.status.success(), "info on {kind}: {stderr}");
                 continue;
             }
@@ -281,10 +285,10 @@ fn every_kind_of_damage_is_a_clear_error_from_every_tool_within_10_s() {
             }
             Ok(server) => {
                 assert!(!at_open, "serve started on {kind}");
-                // The blobs of the damaged page answer 500, every other one 200.
+                // The damaged blobs answer 500, every other one 200.
                 let statuses: Vec<u16> = paths.iter().map(|p| server.status(p)).collect();
                 let failed = statuses.iter().filter(|&&s| s == 500).count();
-                assert!(failed > 0, "no blob of the damaged page failed");
+                assert!(failed > 0, "no damaged blob failed");
                 assert_eq!(
                     failed + statuses.iter().filter(|&&s| s == 200).count(),
                     statuses.len(),
@@ -433,7 +437,7 @@ fn a_build_killed_at_any_step_of_publishing_leaves_a_readable_repository() {
     assert_eq!(old["content_hash"].as_str(), Some(old_hash.as_str()));
     let new_args = ["--overwrite", "--max-error-m", "2"];
     let mut new_hash = None;
-    for (step, published) in [("pages", false), ("synced", false), ("swapped", true)] {
+    for (step, published) in [("blobs", false), ("synced", false), ("swapped", true)] {
         let out = run_within(
             bin()
                 .env("QUINCUNX_PUBLISH_ABORT_AT", step)

@@ -2,10 +2,11 @@
 //! a metadata record and one opaque blob per non-empty diamond, keyed by the codec's
 //! locality key (spec: `docs/repository-format.md`).
 //!
-//! Layout (format 6): blobs are packed in key order into pages of a few KiB (see [`page`]),
-//! the pages written back to back, followed by a page index (first key, length, blob count
-//! and CRC-32 of each page), the metadata record and a footer ([`pack`]). Readers open the
-//! file read-only, load the index and metadata, and read pages with positioned reads.
+//! Layout (format 7, [`pack`]): a header, the root directory and the metadata record at
+//! the start of the file (one small read opens it, locally or over HTTP ranges), the
+//! tiles' leaf directories, then the blobs, each followed by its CRC-32. Directories give
+//! every blob's exact byte range. Readers open the file read-only, keep the header and
+//! root directory in memory, and read leaf directories and blobs with positioned reads.
 //!
 //! Invariants:
 //! - Keys and blobs are bytes here: this crate never decodes a blob (the server depends on
@@ -19,8 +20,8 @@
 //!   `<path>/repository.pack` when replacing a repository (`overwrite`). At every instant
 //!   `<path>` holds the old complete repository or the new one; processes that opened the
 //!   old one keep reading it (its inode) until they close it.
-//! - Every damage to the file is an error naming the repository: head, footer, index and
-//!   metadata are checked at open, each page's CRC when it is read.
+//! - Every damage to the file is an error naming the repository: header, root directory
+//!   and metadata are checked at open, a leaf directory's and a blob's CRC when read.
 
 use std::collections::BTreeMap;
 use std::fs::File;
@@ -37,32 +38,15 @@ pub use quincunx_meta::{
     NodataPolicy, Rate, Registration,
 };
 pub mod pack;
-pub mod page;
 
-/// Version of the repository layout (the pack file) and of the blobs in it: 6 is the pack
-/// file with version-4 blobs; 5 held the same blobs in a sled database, 4 version-3 blobs.
-pub const FORMAT_VERSION: u32 = 6;
+/// Version of the repository layout (the pack file) and of the blobs in it: 7 is the
+/// range-readable file (directories with exact blob ranges, [`pack`]) with version-4
+/// blobs; 6 packed the same blobs into pages indexed at the end of the file; 5 held them
+/// in a sled database, 4 version-3 blobs.
+pub const FORMAT_VERSION: u32 = pack::LAYOUT_VERSION;
 
 /// The file in a repository directory that holds the repository.
 pub const PACK_FILE: &str = "repository.pack";
-
-/// Smallest target page size.
-const MIN_PAGE_BYTES: usize = 4 << 10;
-
-/// Largest target page size chosen automatically.
-const MAX_PAGE_BYTES: usize = 64 << 10;
-
-/// Pages aimed for at most: the index is held in memory by every reader (about 20 bytes a
-/// page), so large repositories get larger pages.
-const TARGET_PAGES: u64 = 1 << 16;
-
-/// Target page size for `total_bytes` of blobs: 4 KiB (one filesystem block: a `get` reads
-/// one), larger when that keeps the index under [`TARGET_PAGES`] entries.
-fn default_page_bytes(total_bytes: u64) -> usize {
-    usize::try_from(total_bytes / TARGET_PAGES)
-        .unwrap_or(MAX_PAGE_BYTES)
-        .clamp(MIN_PAGE_BYTES, MAX_PAGE_BYTES)
-}
 
 /// Why a repository could not be opened, read or written.
 #[derive(Debug, thiserror::Error)]
@@ -102,20 +86,23 @@ pub enum StoreError {
         reason: String,
     },
     /// The repository was written by an incompatible version.
-    #[error("{path} has repository format {found}; this build reads format {FORMAT_VERSION}")]
+    #[error(
+        "{path} has repository format {found}; this build reads format {FORMAT_VERSION}: \
+         rebuild it with `quincunx build`"
+    )]
     Version {
         /// Repository path.
         path: PathBuf,
         /// Version found.
         found: u32,
     },
-    /// A stored page is damaged.
-    #[error("{path}: page at key {key:02x?} (offset {offset}): {reason}")]
-    Page {
+    /// A stored blob or leaf directory is damaged.
+    #[error("{path}: {what} at offset {offset}: {reason}")]
+    Damaged {
         /// The repository file.
         path: PathBuf,
-        /// The page's first key.
-        key: Vec<u8>,
+        /// What was read: the blob of a key, or a leaf directory.
+        what: String,
         /// Its offset in the file.
         offset: u64,
         /// What is wrong.
@@ -220,15 +207,14 @@ pub fn open_regular_file(path: &Path) -> std::io::Result<File> {
 pub struct Repository {
     path: PathBuf,
     file_path: PathBuf,
-    file: File,
-    /// The page index, in key order.
-    pages: Vec<pack::PageRef>,
+    pack: pack::PackFile,
     metadata: Metadata,
 }
 
 impl Repository {
-    /// Opens a published repository (the directory `path`). Reads the head, footer, index
-    /// and metadata and checks them; pages are checked when read.
+    /// Opens a published repository (the directory `path`). Reads the header, the root
+    /// directory and the metadata and checks them; leaf directories and blobs are checked
+    /// when read.
     pub fn open(path: impl AsRef<Path>) -> Result<Repository> {
         let path = path.as_ref();
         let file_path = path.join(PACK_FILE);
@@ -263,10 +249,6 @@ impl Repository {
                 });
             }
         };
-        let pack_err = |reason| StoreError::Pack {
-            path: file_path.clone(),
-            reason,
-        };
         let meta = file.metadata().map_err(io_err("reading", &file_path))?;
         if meta.is_dir() {
             return Err(StoreError::NotARepository(path.to_path_buf()));
@@ -278,61 +260,30 @@ impl Repository {
                 .map_err(io_err("reading", &file_path))?;
             Ok(buf)
         };
-        let head = read(0, pack::HEAD_BYTES.min(file_len))?;
-        if head.len() < pack::HEAD_BYTES as usize
-            && pack::HEAD_MAGIC.starts_with(&head[..head.len().min(pack::HEAD_MAGIC.len())])
-        {
-            return Err(StoreError::Incomplete(path.to_path_buf()));
-        }
-        let head_version = pack::parse_head(&head).map_err(pack_err)?;
-        if head_version != FORMAT_VERSION {
-            return Err(StoreError::Version {
+        let pack_err = |reason| match reason {
+            pack::PackError::Incomplete(_) => StoreError::Incomplete(path.to_path_buf()),
+            pack::PackError::Version(found) => StoreError::Version {
                 path: path.to_path_buf(),
-                found: head_version,
-            });
-        }
-        if file_len < pack::HEAD_BYTES + pack::FOOTER_BYTES {
-            return Err(StoreError::Incomplete(path.to_path_buf()));
-        }
-        let footer_bytes = read(file_len - pack::FOOTER_BYTES, pack::FOOTER_BYTES)?;
-        let footer = match pack::Footer::parse(&footer_bytes, file_len) {
-            Err(pack::PackError::Incomplete(_)) => {
-                let tail_len = file_len.min(pack::TRAILING_SEARCH_BYTES);
-                let tail = read(file_len - tail_len, tail_len)?;
-                return Err(match pack::trailing_bytes(&tail, file_len) {
-                    Some(extra) => pack_err(pack::PackError::Damaged(format!(
-                        "{extra} trailing byte(s) after the footer (something was appended \
-                         to the file)"
-                    ))),
-                    None => StoreError::Incomplete(path.to_path_buf()),
-                });
-            }
-            other => other.map_err(pack_err)?,
+                found,
+            },
+            reason => StoreError::Pack {
+                path: file_path.clone(),
+                reason,
+            },
         };
-        if footer.format_version != head_version {
-            return Err(pack_err(pack::PackError::Damaged(format!(
-                "head says format {head_version}, footer {}",
-                footer.format_version
-            ))));
-        }
-        let index = read(footer.index_offset, footer.index_len)?;
-        if crc32fast::hash(&index) != footer.index_crc {
-            return Err(pack_err(pack::PackError::Damaged(
-                "page index checksum mismatch".into(),
-            )));
-        }
-        let raw = read(footer.index_offset + footer.index_len, footer.metadata_len)?;
-        if crc32fast::hash(&raw) != footer.metadata_crc {
-            return Err(pack_err(pack::PackError::Damaged(
-                "metadata checksum mismatch".into(),
-            )));
-        }
-        let pages = pack::decode_index(&index, footer.index_offset).map_err(pack_err)?;
+        let head = read(0, pack::HEADER_BYTES.min(file_len))?;
+        let header = pack::Header::parse(&head).map_err(pack_err)?;
+        header.check_len(file_len).map_err(pack_err)?;
+        let front = read(pack::HEADER_BYTES, header.open_len() - pack::HEADER_BYTES)?;
+        let (root, raw) = front.split_at(header.root.len as usize);
+        let root = pack::RootDir::parse(&header, root).map_err(pack_err)?;
+        let raw = header.metadata_json(raw).map_err(pack_err)?;
+        let bad_metadata = |reason: String| StoreError::BadMetadata {
+            path: path.to_path_buf(),
+            reason,
+        };
         let metadata: Metadata =
-            serde_json::from_slice(&raw).map_err(|e| StoreError::BadMetadata {
-                path: path.to_path_buf(),
-                reason: e.to_string(),
-            })?;
+            serde_json::from_slice(&raw).map_err(|e| bad_metadata(e.to_string()))?;
         if metadata.format_version != FORMAT_VERSION {
             return Err(StoreError::Version {
                 path: path.to_path_buf(),
@@ -344,15 +295,13 @@ impl Repository {
         }
         metadata
             .check_limits()
-            .map_err(|e| StoreError::BadMetadata {
-                path: path.to_path_buf(),
-                reason: e.to_string(),
-            })?;
+            .map_err(|e| bad_metadata(e.to_string()))?;
+        let space = answer::IdSpace::of(&metadata).map_err(bad_metadata)?;
+        let tiling = pack::Tiling::new(&space, header.split_level, header.tile_shift);
         Ok(Repository {
             path: path.to_path_buf(),
             file_path,
-            file,
-            pages,
+            pack: pack::PackFile::new(file, header, root, tiling),
             metadata,
         })
     }
@@ -367,90 +316,83 @@ impl Repository {
         &self.path
     }
 
-    fn page_err(&self, page: &pack::PageRef, reason: String) -> StoreError {
-        StoreError::Page {
-            path: self.file_path.clone(),
-            key: page.first_key.to_vec(),
-            offset: page.offset,
-            reason,
+    /// The file's header (where its sections are).
+    pub fn header(&self) -> &pack::Header {
+        &self.pack.header
+    }
+
+    /// Entries in the root directory and tiles it lists.
+    pub fn directory_sizes(&self) -> (usize, usize) {
+        self.pack.root.sizes()
+    }
+
+    fn read_err(
+        &self,
+        what: impl FnOnce() -> String,
+        offset: u64,
+        e: pack::ReadError,
+    ) -> StoreError {
+        match e {
+            pack::ReadError::Io(cause) => StoreError::Io {
+                context: "reading",
+                path: self.file_path.clone(),
+                cause,
+            },
+            pack::ReadError::Damaged(reason) => StoreError::Damaged {
+                path: self.file_path.clone(),
+                what: what(),
+                offset,
+                reason: match reason {
+                    pack::PackError::Damaged(r) | pack::PackError::Incomplete(r) => r,
+                    other => other.to_string(),
+                },
+            },
         }
     }
 
-    /// Reads a page and checks its CRC.
-    fn read_page(&self, page: &pack::PageRef) -> Result<Bytes> {
-        let mut buf = vec![0; page.len as usize];
-        self.file
-            .read_exact_at(&mut buf, page.offset)
-            .map_err(io_err("reading", &self.file_path))?;
-        if crc32fast::hash(&buf) != page.crc {
-            return Err(self.page_err(page, "checksum mismatch".into()));
-        }
-        Ok(Bytes::from(buf))
-    }
-
-    /// The blob stored under `key`, `None` when the diamond has no blob (a leaf). The bytes
-    /// are copied out of the page read, so whoever keeps them (the server's hot cache)
-    /// holds the blob, not its page: as views, 24,000 cached blobs of about 100 bytes
-    /// held over 100 MB of 4 KiB pages under an 8 MiB cache budget.
+    /// The blob stored under `key`, `None` when the diamond has no blob (a leaf): a
+    /// directory lookup (the root's, or a tile's leaf directory, cached), then one read of
+    /// the blob and its CRC-32.
     pub fn get(&self, key: &[u8]) -> Result<Option<Bytes>> {
-        // The page whose first key is the greatest one <= key.
-        let after = self.pages.partition_point(|p| &*p.first_key <= key);
-        let Some(page_ref) = after.checked_sub(1).and_then(|i| self.pages.get(i)) else {
-            return Ok(None);
+        let at = match self.pack.locate(key) {
+            Ok(Some(at)) => at,
+            Ok(None) => return Ok(None),
+            Err(e) => {
+                let offset = match self.pack.root.lookup(&self.pack.tiling, key) {
+                    pack::Lookup::Tile(i) => self.pack.root.tiles[i].dir.offset,
+                    _ => 0,
+                };
+                return Err(self.read_err(|| "leaf directory".into(), offset, e));
+            }
         };
-        let page = self.read_page(page_ref)?;
-        let found = page::find(&page_ref.first_key, &page, key)
-            .map_err(|e| self.page_err(page_ref, e.to_string()))?;
-        Ok(found.map(|range| Bytes::copy_from_slice(&page[range])))
+        self.pack
+            .blob(at)
+            .map(Some)
+            .map_err(|e| self.read_err(|| format!("blob of key {key:02x?}"), at.offset, e))
     }
 
-    /// Every `(key, blob)` in key order (level-major, then space-filling curve). Each page
-    /// is checked fully (checksum, lengths, key order, blob count); a damaged page is one
-    /// error, and the walk goes on with the next page.
+    /// Every `(key, blob)` in file order: the root directory's blobs in key order
+    /// (level-major, then space-filling curve), then tile by tile, each in key order.
+    /// Each blob's CRC is checked; a damaged blob (or leaf directory) is one error, and
+    /// the walk goes on with the next one.
     pub fn blobs(&self) -> impl Iterator<Item = Result<(Vec<u8>, Bytes)>> + '_ {
-        self.pages.iter().enumerate().flat_map(move |(i, p)| {
-            let next = self.pages.get(i + 1).map(|n| &*n.first_key);
-            match self.page_entries(p, next) {
-                Ok(entries) => entries.into_iter().map(Ok).collect::<Vec<_>>(),
-                Err(e) => vec![Err(e)],
-            }
+        self.pack.walk().map(move |item| {
+            item.map_err(|(key, offset, e)| {
+                let what = || {
+                    if key.is_empty() {
+                        "leaf directory".to_string()
+                    } else {
+                        format!("blob of key {key:02x?}")
+                    }
+                };
+                self.read_err(what, offset, e)
+            })
         })
     }
 
-    /// The pairs of one page, whose keys must stay below the next page's first key.
-    fn page_entries(
-        &self,
-        page_ref: &pack::PageRef,
-        next: Option<&[u8]>,
-    ) -> Result<Vec<(Vec<u8>, Bytes)>> {
-        let page = self.read_page(page_ref)?;
-        let bad = |e: page::PageError| self.page_err(page_ref, e.to_string());
-        let mut reader = page::PageReader::new(&page_ref.first_key, &page).map_err(bad)?;
-        if reader.remaining() != page_ref.blobs as usize {
-            return Err(self.page_err(
-                page_ref,
-                format!(
-                    "holds {} blobs, the index says {}",
-                    reader.remaining(),
-                    page_ref.blobs
-                ),
-            ));
-        }
-        let mut out = Vec::with_capacity(reader.remaining());
-        while let Some((key, value)) = reader.next_entry().map_err(bad)? {
-            out.push((key.to_vec(), page.slice(value)));
-        }
-        if let (Some((last, _)), Some(next)) = (out.last(), next)
-            && last.as_slice() >= next
-        {
-            return Err(self.page_err(page_ref, "keys run past the next page's first key".into()));
-        }
-        Ok(out)
-    }
-
-    /// Number of blobs (from the index: no page is read).
+    /// Number of blobs (from the header: nothing else is read).
     pub fn blob_count(&self) -> usize {
-        self.pages.iter().map(|p| p.blobs as usize).sum()
+        usize::try_from(self.pack.header.blob_count).unwrap_or(usize::MAX)
     }
 
     /// Bytes the repository occupies on disk (all files in its directory).
@@ -458,7 +400,7 @@ impl Repository {
         dir_size(&self.path)
     }
 
-    /// Recomputes the content hash from the stored blobs and metadata.
+    /// Recomputes the content hash from the stored blobs (in file order) and metadata.
     pub fn compute_content_hash(&self) -> Result<String> {
         let mut h = Sha256::new();
         for kv in self.blobs() {
@@ -511,8 +453,8 @@ pub fn dir_size(path: &Path) -> Result<u64> {
 /// Writes a new repository into `<path>.partial` and publishes it atomically.
 ///
 /// Blobs are held in memory until [`RepositoryBuilder::publish`] (they are the compressed
-/// output, a fraction of the input) and written there in one pass, in key order, packed into
-/// pages; the partial repository file is created and locked at once, so a concurrent build
+/// output, a fraction of the input) and written there in one pass, in the file's order
+/// ([`pack::Plan`]); the partial repository file is created and locked at once, so a concurrent build
 /// into the same path fails early instead of deleting the running build's files.
 pub struct RepositoryBuilder {
     final_path: PathBuf,
@@ -522,7 +464,7 @@ pub struct RepositoryBuilder {
     blobs: BTreeMap<Vec<u8>, Vec<u8>>,
     spill: Option<Spill>,
     stats: Vec<LevelStats>,
-    page_bytes: Option<usize>,
+    limits: pack::Limits,
 }
 
 /// Blobs held on disk instead of in memory until publication (out-of-core builds): an
@@ -649,7 +591,7 @@ impl RepositoryBuilder {
             blobs: BTreeMap::new(),
             spill: None,
             stats: Vec::new(),
-            page_bytes: None,
+            limits: pack::Limits::default(),
         })
     }
 
@@ -676,11 +618,11 @@ impl RepositoryBuilder {
         Ok(self)
     }
 
-    /// Sets the target page size in bytes (a page closes once it reaches it; a larger blob
-    /// gets a page of its own). The default is 4 KiB, more for repositories of over 256 MB
-    /// (see [`TARGET_PAGES`]). For measurements; any value reads back the same.
-    pub fn with_page_bytes(mut self, page_bytes: usize) -> RepositoryBuilder {
-        self.page_bytes = Some(page_bytes.max(1));
+    /// Sets the thresholds of the layout: when deep levels go to tiles, and how many
+    /// blobs a tile holds. The defaults ([`pack::Limits::default`]) suit every
+    /// repository; tests use small ones to give small repositories tiles.
+    pub fn with_layout_limits(mut self, limits: pack::Limits) -> RepositoryBuilder {
+        self.limits = limits;
         self
     }
 
@@ -730,7 +672,7 @@ impl RepositoryBuilder {
         Ok(())
     }
 
-    /// Writes the pages, the index and the metadata record, then the footer, syncs, and
+    /// Chooses the layout, writes the header, directories, metadata and blobs, syncs, and
     /// publishes with one rename. With `overwrite`, an existing repository at the path is
     /// replaced: the new file is renamed onto the old one, so the path holds a complete
     /// repository at every instant. Returns the published metadata.
@@ -738,43 +680,39 @@ impl RepositoryBuilder {
         RepositoryBuilder::check_destination(&self.final_path, overwrite)?;
         metadata.format_version = FORMAT_VERSION;
         metadata.level_stats = self.stats.clone();
+        let bad_metadata = |reason: String| StoreError::BadMetadata {
+            path: self.partial.clone(),
+            reason,
+        };
+        let space = answer::IdSpace::of(&metadata).map_err(bad_metadata)?;
+        let order = self.file_order(&space);
         let mut h = Sha256::new();
-        for kv in self.pending() {
+        for kv in self.in_order(&order.1) {
             let (k, v) = kv?;
-            hash_pair(&mut h, &k, &v);
+            hash_pair(&mut h, k, &v);
         }
         metadata.content_hash = finish_hash(h, &metadata, &self.partial)?;
         metadata.complete = true;
-        let json = serde_json::to_vec(&metadata).map_err(|e| StoreError::BadMetadata {
-            path: self.partial.clone(),
-            reason: e.to_string(),
-        })?;
-        let total: u64 = self.stats.iter().map(|s| s.bytes).sum();
-        let page_bytes = self.page_bytes.unwrap_or_else(|| default_page_bytes(total));
+        let json = serde_json::to_vec(&metadata).map_err(|e| bad_metadata(e.to_string()))?;
+        let (plan, keys) = order;
+        let mut dirs = pack::DirWriter::new(plan.clone());
+        for kv in self.lengths(&keys) {
+            let (k, len) = kv;
+            dirs.push(k, len).map_err(|e| StoreError::Pack {
+                path: self.partial.clone(),
+                reason: pack::PackError::Damaged(e),
+            })?;
+        }
+        let dirs = dirs.finish();
         let file_path = self.partial.join(PACK_FILE);
         let write_err = io_err("writing", &file_path);
-        let out = std::io::BufWriter::with_capacity(1 << 20, &self.file);
-        let mut pack = pack::PackWriter::new(out, FORMAT_VERSION).map_err(write_err)?;
-        let mut writer = page::PageWriter::default();
-        let write_page =
-            |writer: &mut page::PageWriter, pack: &mut pack::PackWriter<_>| -> Result<()> {
-                let count = writer.count();
-                if let Some((first_key, page)) = writer.finish() {
-                    pack.page(&first_key, &page, count)
-                        .map_err(io_err("writing", &file_path))?;
-                }
-                Ok(())
-            };
-        for kv in self.pending() {
-            let (key, blob) = kv?;
-            writer.push(&key, &blob);
-            if writer.len() >= page_bytes {
-                write_page(&mut writer, &mut pack)?;
-            }
+        let mut out = std::io::BufWriter::with_capacity(1 << 20, &self.file);
+        pack::write_head(&mut out, &dirs, &plan.tiling, &json).map_err(write_err)?;
+        for kv in self.in_order(&keys) {
+            let (_, blob) = kv?;
+            pack::write_blob(&mut out, &blob).map_err(io_err("writing", &file_path))?;
         }
-        write_page(&mut writer, &mut pack)?;
-        abort_point("pages");
-        let out = pack.finish(&json).map_err(io_err("writing", &file_path))?;
+        abort_point("blobs");
         out.into_inner()
             .map_err(|e| io_err("writing", &file_path)(e.into_error()))?
             .sync_all()
@@ -785,7 +723,7 @@ impl RepositoryBuilder {
             return Err(StoreError::Pack {
                 path: file_path.clone(),
                 reason: pack::PackError::Damaged(
-                    "the written index does not count every blob".into(),
+                    "the written directories do not count every blob".into(),
                 ),
             });
         }
@@ -832,23 +770,51 @@ impl RepositoryBuilder {
     }
 }
 
-/// A key and its blob.
-type KeyBlob = (Vec<u8>, Vec<u8>);
-
 impl RepositoryBuilder {
-    /// Every blob put so far, in key order.
-    fn pending(&self) -> Box<dyn Iterator<Item = Result<KeyBlob>> + '_> {
-        match &self.spill {
-            None => Box::new(self.blobs.iter().map(|(k, v)| Ok((k.clone(), v.clone())))),
-            Some(spill) => Box::new(spill.index.iter().map(|(k, &(at, len))| {
+    /// The layout for the blobs put so far, and their keys in the file's order.
+    fn file_order(&self, space: &answer::IdSpace) -> (pack::Plan, Vec<Vec<u8>>) {
+        let keys: Vec<&Vec<u8>> = match &self.spill {
+            None => self.blobs.keys().collect(),
+            Some(spill) => spill.index.keys().collect(),
+        };
+        let plan = pack::Plan::choose(space, keys.iter().map(|k| k.as_slice()), self.limits);
+        // Keys come in key order; a stable sort by tile keeps it within each tile.
+        let mut keys: Vec<Vec<u8>> = keys.into_iter().cloned().collect();
+        keys.sort_by_cached_key(|k| plan.order_key(k));
+        (plan, keys)
+    }
+
+    /// The length of each blob of `keys`.
+    fn lengths<'a>(&'a self, keys: &'a [Vec<u8>]) -> impl Iterator<Item = (&'a [u8], u64)> + 'a {
+        keys.iter().map(move |k| {
+            let len = match &self.spill {
+                None => self.blobs.get(k).map_or(0, Vec::len),
+                Some(spill) => spill.index.get(k).map_or(0, |&(_, len)| len),
+            };
+            (k.as_slice(), len as u64)
+        })
+    }
+
+    /// The blobs of `keys`, in that order.
+    fn in_order<'a>(
+        &'a self,
+        keys: &'a [Vec<u8>],
+    ) -> impl Iterator<Item = Result<(&'a [u8], std::borrow::Cow<'a, [u8]>)>> + 'a {
+        keys.iter().map(move |k| match &self.spill {
+            None => Ok((
+                k.as_slice(),
+                std::borrow::Cow::Borrowed(self.blobs.get(k).map_or(&[][..], Vec::as_slice)),
+            )),
+            Some(spill) => {
+                let &(at, len) = spill.index.get(k).unwrap_or(&(0, 0));
                 let mut v = vec![0; len];
                 spill
                     .file
                     .read_exact_at(&mut v, at)
                     .map_err(io_err("reading", &spill.path))?;
-                Ok((k.clone(), v))
-            })),
-        }
+                Ok((k.as_slice(), std::borrow::Cow::Owned(v)))
+            }
+        })
     }
 }
 
@@ -1013,11 +979,11 @@ mod tests {
     fn build(
         path: &Path,
         pairs: &BTreeMap<Vec<u8>, Vec<u8>>,
-        page_bytes: Option<usize>,
+        limits: Option<pack::Limits>,
     ) -> (Metadata, Repository) {
         let mut b = RepositoryBuilder::create(path).unwrap();
-        if let Some(n) = page_bytes {
-            b = b.with_page_bytes(n);
+        if let Some(limits) = limits {
+            b = b.with_layout_limits(limits);
         }
         for (k, v) in pairs {
             b.put(u32::from(k.first().copied().unwrap_or(0) % 4), k, v)
@@ -1031,47 +997,112 @@ mod tests {
         for (k, v) in model {
             assert_eq!(repo.get(k).unwrap().as_deref(), Some(v.as_slice()), "{k:?}");
         }
-        let all: Vec<(Vec<u8>, Vec<u8>)> = repo
+        let walk: Vec<(Vec<u8>, Vec<u8>)> = repo
             .blobs()
             .map(|kv| {
                 let (k, v) = kv.unwrap();
                 (k.to_vec(), v.to_vec())
             })
             .collect();
-        let want: Vec<(Vec<u8>, Vec<u8>)> =
-            model.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
-        assert_eq!(all, want);
+        let all: BTreeMap<Vec<u8>, Vec<u8>> = walk.iter().cloned().collect();
+        assert_eq!(walk.len(), all.len(), "each blob once");
+        assert_eq!(&all, model);
         assert_eq!(repo.blob_count(), model.len());
         assert_eq!(repo.compute_content_hash().unwrap(), meta.content_hash);
     }
 
+    /// Every centre of levels `0 .. levels` of the planar domain of [`metadata`] (m = 6),
+    /// in key order.
+    fn diamond_keys(levels: u32) -> Vec<Vec<u8>> {
+        let d = quincunx_diamond::PlanarDomain::new(6).unwrap();
+        let mut out: Vec<Vec<u8>> = (0..=64)
+            .flat_map(|x| (0..=64).map(move |y| quincunx_diamond::PlanarId::new(x, y)))
+            .filter(|&id| d.level(id).is_ok_and(|l| l < levels))
+            .map(|id| d.key(id).unwrap())
+            .collect();
+        out.sort();
+        out
+    }
+
+    /// Limits that give a few hundred blobs tiles.
+    const SMALL_TILES: pack::Limits = pack::Limits {
+        root_all_max: 0,
+        root_split_max: 8,
+        leaf_max: 40,
+    };
+
     #[test]
-    fn every_key_is_found_across_pages_and_gaps_are_none() {
+    fn every_key_is_found_in_the_root_and_in_tiles_and_gaps_are_none() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("repo");
-        // Even keys only, so every odd key is a gap: before, between and after pages.
-        let model: BTreeMap<Vec<u8>, Vec<u8>> = (0u32..400)
-            .map(|i| {
-                let key = [&[1u8][..], &(2 * i + 2).to_be_bytes()].concat();
-                (key, vec![i as u8; (i % 50) as usize + 1])
-            })
+        // Every other diamond has a blob, so the others are gaps everywhere.
+        let keys = diamond_keys(10);
+        let model: BTreeMap<Vec<u8>, Vec<u8>> = keys
+            .iter()
+            .step_by(2)
+            .enumerate()
+            .map(|(i, k)| (k.clone(), vec![i as u8; i % 50 + 1]))
             .collect();
-        let (meta, repo) = build(&path, &model, Some(100));
-        assert!(repo.pages.len() > 3, "spans several pages");
+        let (meta, repo) = build(&path, &model, Some(SMALL_TILES));
+        let (root, tiles) = repo.directory_sizes();
+        assert!(root <= 8 && tiles > 3, "{root} root entries, {tiles} tiles");
         check_against_model(&repo, &meta, &model);
-        for i in 0u32..402 {
-            let key = [&[1u8][..], &(2 * i + 1).to_be_bytes()].concat();
-            assert!(repo.get(&key).unwrap().is_none(), "{key:?}");
+        for k in keys.iter().skip(1).step_by(2) {
+            assert!(repo.get(k).unwrap().is_none(), "{k:?}");
         }
         for missing in [
             &b""[..],
             b"\x00",
             b"\x01",
             b"\x01\x00",
-            b"\x02",
+            b"\x09",
             b"\xff\xff\xff",
         ] {
             assert!(repo.get(missing).unwrap().is_none(), "{missing:?}");
+        }
+        // The same blobs with the default limits: one directory, the same blobs.
+        let (_, flat) = build(&dir.path().join("flat"), &model, None);
+        assert_eq!(flat.directory_sizes(), (model.len(), 0));
+    }
+
+    #[test]
+    fn a_damaged_blob_or_leaf_directory_is_one_error_and_the_walk_goes_on() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("repo");
+        let model: BTreeMap<Vec<u8>, Vec<u8>> = diamond_keys(10)
+            .into_iter()
+            .map(|k| (k, vec![7; 30]))
+            .collect();
+        let (_, repo) = build(&path, &model, Some(SMALL_TILES));
+        let header = *repo.header();
+        let (_, tiles) = repo.directory_sizes();
+        drop(repo);
+        let file = path.join(PACK_FILE);
+        let good = std::fs::read(&file).unwrap();
+        // A byte of the last blob, then a byte of the first leaf directory.
+        for (at, errors, missing) in [
+            (header.file_len - 10, 1, 1),
+            (header.leaves.offset + 2, 1, 0),
+        ] {
+            let mut bytes = good.clone();
+            bytes[at as usize] ^= 0x40;
+            std::fs::write(&file, &bytes).unwrap();
+            let repo = Repository::open(&path).unwrap();
+            let walk: Vec<_> = repo.blobs().collect();
+            let failed: Vec<String> = walk
+                .iter()
+                .filter_map(|r| r.as_ref().err().map(ToString::to_string))
+                .collect();
+            assert_eq!(failed.len(), errors, "{failed:?}");
+            assert!(failed[0].contains("checksum mismatch"), "{failed:?}");
+            let read = walk.iter().filter(|r| r.is_ok()).count();
+            if missing == 1 {
+                assert_eq!(read, model.len() - 1);
+            } else {
+                // The first tile's blobs are lost, every other one is read.
+                assert!(read < model.len() && read > model.len() / 2, "{read}");
+                assert!(tiles > 1);
+            }
         }
     }
 
@@ -1104,7 +1135,7 @@ mod tests {
             )
         })
         .collect();
-        let (meta, repo) = build(&dir.path().join("repo"), &model, Some(4096));
+        let (meta, repo) = build(&dir.path().join("repo"), &model, None);
         check_against_model(&repo, &meta, &model);
         assert!(repo.get(b"\x00\x01\x02").unwrap().is_none());
     }
@@ -1151,53 +1182,11 @@ mod tests {
             .unwrap();
         let file = path.join(PACK_FILE);
         let mut bytes = std::fs::read(&file).unwrap();
-        bytes[8..12].copy_from_slice(&7u32.to_le_bytes());
+        bytes[8..12].copy_from_slice(&6u32.to_le_bytes());
         std::fs::write(&file, &bytes).unwrap();
-        assert!(matches!(
-            Repository::open(&path),
-            Err(StoreError::Version { found: 7, .. })
-        ));
-    }
-
-    #[test]
-    fn a_page_whose_keys_run_into_the_next_page_is_an_error() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("crafted");
-        std::fs::create_dir(&path).unwrap();
-        let page = |pairs: &[(&[u8], &[u8])]| {
-            let mut w = page::PageWriter::default();
-            for (k, v) in pairs {
-                w.push(k, v);
-            }
-            w.finish().unwrap()
-        };
-        let (k1, p1) = page(&[(b"a", b"1"), (b"c", b"3")]);
-        let (k2, p2) = page(&[(b"b", b"2")]);
-        let mut m = metadata();
-        m.format_version = FORMAT_VERSION;
-        m.complete = true;
-        m.content_hash = "0".repeat(64);
-        let mut w = pack::PackWriter::new(Vec::new(), FORMAT_VERSION).unwrap();
-        w.page(&k1, &p1, 2).unwrap();
-        w.page(&k2, &p2, 1).unwrap();
-        let bytes = w.finish(&serde_json::to_vec(&m).unwrap()).unwrap();
-        std::fs::write(path.join(PACK_FILE), bytes).unwrap();
-        let repo = Repository::open(&path).unwrap();
-        let walk: Vec<_> = repo.blobs().collect();
-        assert_eq!(
-            walk.len(),
-            2,
-            "one error for the first page, one blob from the second"
-        );
-        assert!(
-            walk[0]
-                .as_ref()
-                .err()
-                .unwrap()
-                .to_string()
-                .contains("next page")
-        );
-        assert_eq!(&walk[1].as_ref().unwrap().1[..], b"2");
+        let err = Repository::open(&path).err().unwrap();
+        assert!(matches!(err, StoreError::Version { found: 6, .. }), "{err}");
+        assert!(err.to_string().contains("rebuild"), "{err}");
     }
 
     proptest::proptest! {
@@ -1210,10 +1199,9 @@ mod tests {
                 0..120,
             ),
             probes in proptest::collection::vec(proptest::collection::vec(0u8..4, 0..6), 0..40),
-            page_bytes in 1usize..2000,
         ) {
             let dir = tempfile::tempdir().unwrap();
-            let (meta, repo) = build(&dir.path().join("repo"), &model, Some(page_bytes));
+            let (meta, repo) = build(&dir.path().join("repo"), &model, None);
             check_against_model(&repo, &meta, &model);
             for p in &probes {
                 let got = repo.get(p).unwrap();

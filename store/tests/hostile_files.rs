@@ -1,5 +1,5 @@
 //! Hostile repository files at open: what is not a regular file is refused without
-//! blocking, bytes appended after the footer are named as such, and metadata outside its
+//! blocking, bytes appended after the file's end are named as such, and metadata outside its
 //! limits is refused naming the field (so `serve`, which opens through the store, refuses
 //! it too).
 
@@ -11,7 +11,7 @@ use std::path::Path;
 use std::sync::mpsc;
 use std::time::Duration;
 
-use quincunx_store::pack::PackWriter;
+use quincunx_store::pack::encode_untiled;
 use quincunx_store::{
     FORMAT_VERSION, Metadata, PACK_FILE, Repository, RepositoryBuilder, StoreError,
 };
@@ -82,7 +82,7 @@ fn a_fifo_a_device_or_a_socket_as_the_repository_file_is_refused_at_once() {
 }
 
 #[test]
-fn a_byte_appended_after_the_footer_is_called_trailing_bytes() {
+fn a_byte_appended_after_the_end_is_called_trailing_bytes() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("repo");
     let mut b = RepositoryBuilder::create(&path).unwrap();
@@ -98,7 +98,7 @@ fn a_byte_appended_after_the_footer_is_called_trailing_bytes() {
         std::fs::write(&file, &grown).unwrap();
         let text = Repository::open(&path).err().unwrap().to_string();
         assert!(
-            text.contains(&format!("{extra} trailing byte(s) after the footer")),
+            text.contains(&format!("{extra} trailing byte(s) after its end")),
             "{text}"
         );
         assert!(!text.contains("truncated"), "{text}");
@@ -113,8 +113,7 @@ fn a_byte_appended_after_the_footer_is_called_trailing_bytes() {
 /// Writes a repository file whose metadata record is `meta`, bypassing the builder.
 fn craft(dir: &Path, meta: &serde_json::Value) {
     std::fs::create_dir_all(dir).unwrap();
-    let w = PackWriter::new(Vec::new(), FORMAT_VERSION).unwrap();
-    let bytes = w.finish(&serde_json::to_vec(meta).unwrap()).unwrap();
+    let bytes = encode_untiled(&serde_json::to_vec(meta).unwrap(), &[]).unwrap();
     std::fs::write(dir.join(PACK_FILE), bytes).unwrap();
 }
 

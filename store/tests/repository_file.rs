@@ -10,23 +10,40 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use common::metadata;
+use quincunx_diamond::{PlanarDomain, PlanarId};
+use quincunx_store::pack::{Header, Limits};
 use quincunx_store::{Metadata, PACK_FILE, Repository, RepositoryBuilder, StoreError};
 
-/// 600 blobs of 1-120 bytes over three levels: a few dozen 1 KiB pages.
+/// Blobs of 1-120 bytes for every diamond of levels 0-8 of the record's domain (m = 6).
 fn pairs() -> BTreeMap<Vec<u8>, Vec<u8>> {
-    (0u32..600)
-        .map(|i| {
-            let key = [&[(i % 3) as u8][..], &(i * 7919 % 6007).to_be_bytes()].concat();
+    let d = PlanarDomain::new(6).unwrap();
+    let mut keys: Vec<Vec<u8>> = (0..=64)
+        .flat_map(|x| (0..=64).map(move |y| PlanarId::new(x, y)))
+        .filter(|&id| d.level(id).is_ok_and(|l| l < 9))
+        .map(|id| d.key(id).unwrap())
+        .collect();
+    keys.sort();
+    keys.into_iter()
+        .enumerate()
+        .map(|(i, key)| {
+            let i = i as u32;
             let blob = (0..(i % 120) + 1).map(|j| (i * 31 + j) as u8).collect();
             (key, blob)
         })
         .collect()
 }
 
+/// Small limits, so the golden file has root entries and a few dozen tiles.
+const LIMITS: Limits = Limits {
+    root_all_max: 0,
+    root_split_max: 16,
+    leaf_max: 64,
+};
+
 fn build(path: &Path, overwrite: bool) -> Metadata {
     let mut b = RepositoryBuilder::create(path)
         .unwrap()
-        .with_page_bytes(1024);
+        .with_layout_limits(LIMITS);
     for (k, v) in &pairs() {
         b.put(u32::from(k[0]), k, v).unwrap();
     }
@@ -34,7 +51,7 @@ fn build(path: &Path, overwrite: bool) -> Metadata {
 }
 
 fn golden() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/format6.pack")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/format7.pack")
 }
 
 #[test]
@@ -56,6 +73,11 @@ fn the_repository_file_is_byte_for_byte_the_golden_one_and_reads_back() {
     std::fs::create_dir(&copy).unwrap();
     std::fs::copy(golden(), copy.join(PACK_FILE)).unwrap();
     let repo = Repository::open(&copy).unwrap();
+    let (root, tiles) = repo.directory_sizes();
+    assert!(
+        root > 0 && root <= 16 && tiles > 5,
+        "{root} root entries, {tiles} tiles"
+    );
     let got: BTreeMap<Vec<u8>, Vec<u8>> = repo
         .blobs()
         .map(|kv| {
@@ -75,7 +97,7 @@ fn the_repository_file_is_byte_for_byte_the_golden_one_and_reads_back() {
 enum Seen {
     /// `open` fails.
     OpenFails,
-    /// `open` works; this many blobs read and this many page errors in a full walk.
+    /// `open` works; this many blobs read and this many errors in a full walk.
     Walk { ok: usize, errors: usize },
 }
 
@@ -124,13 +146,11 @@ fn every_kind_of_damage_is_one_clear_error() {
     build(&good, false);
     let file = std::fs::read(good.join(PACK_FILE)).unwrap();
     let len = file.len();
-    let footer_at = len - 48;
-    let index_at = u64::from_le_bytes(file[footer_at..footer_at + 8].try_into().unwrap()) as usize;
-    let metadata_at = index_at
-        + u64::from_le_bytes(file[footer_at + 8..footer_at + 16].try_into().unwrap()) as usize;
+    let header = Header::parse(&file).unwrap();
+    let at = |offset: u64| offset as usize;
     let flip = |at: usize| -> Vec<u8> {
         let mut b = file.clone();
-        for x in &mut b[at..at + 16] {
+        for x in &mut b[at..(at + 16).min(len)] {
             *x = !*x;
         }
         b
@@ -144,8 +164,14 @@ fn every_kind_of_damage_is_one_clear_error() {
             "not a complete",
         ),
         (
-            "head only",
-            Some(file[..16].to_vec()),
+            "magic only",
+            Some(file[..8].to_vec()),
+            |s| *s == Seen::OpenFails,
+            "not a complete",
+        ),
+        (
+            "header only",
+            Some(file[..128].to_vec()),
             |s| *s == Seen::OpenFails,
             "not a complete",
         ),
@@ -165,37 +191,43 @@ fn every_kind_of_damage_is_one_clear_error() {
             "one byte appended",
             Some([&file[..], b"x"].concat()),
             |s| *s == Seen::OpenFails,
-            "1 trailing byte(s) after the footer",
+            "1 trailing byte(s) after its end",
         ),
         (
-            "head flipped",
+            "magic flipped",
             Some(flip(0)),
             |s| *s == Seen::OpenFails,
             "not a quincunx repository",
         ),
         (
-            "a page flipped (offset 500)",
-            Some(flip(500)),
-            |s| matches!(s, Seen::Walk { ok, errors: 1 } if *ok < 600),
-            "checksum",
+            "header flipped",
+            Some(flip(40)),
+            |s| *s == Seen::OpenFails,
+            "header checksum",
         ),
         (
-            "index flipped",
-            Some(flip(index_at)),
+            "root directory flipped",
+            Some(flip(at(header.root.offset))),
             |s| *s == Seen::OpenFails,
-            "index checksum",
+            "root directory checksum",
         ),
         (
             "metadata flipped",
-            Some(flip(metadata_at)),
+            Some(flip(at(header.metadata.offset))),
             |s| *s == Seen::OpenFails,
             "metadata checksum",
         ),
         (
-            "footer flipped",
-            Some(flip(footer_at)),
-            |s| *s == Seen::OpenFails,
-            "footer",
+            "a leaf directory flipped",
+            Some(flip(at(header.leaves.offset + header.leaves.len / 2))),
+            |s| matches!(s, Seen::Walk { ok, errors: 1 } if *ok < pairs().len()),
+            "leaf directory at offset",
+        ),
+        (
+            "a blob flipped",
+            Some(flip(at(header.blobs.offset + header.blobs.len / 2))),
+            |s| matches!(s, Seen::Walk { ok, errors } if *errors >= 1 && *ok + *errors == pairs().len()),
+            "checksum mismatch",
         ),
         (
             "zeros of the same length",
@@ -259,8 +291,8 @@ fn every_truncation_is_refused() {
     let cut = dir.path().join("cut");
     std::fs::create_dir(&cut).unwrap();
     let n = file.len();
-    // Every cut in the head and the footer, every 61st in between.
-    let cuts = (0..64).chain((64..n - 64).step_by(61)).chain(n - 64..n);
+    // Every cut in the header and the last blobs, every 61st in between.
+    let cuts = (0..200).chain((200..n - 64).step_by(61)).chain(n - 64..n);
     for at in cuts {
         std::fs::write(cut.join(PACK_FILE), &file[..at]).unwrap();
         assert!(Repository::open(&cut).is_err(), "cut at {at}");

@@ -2,7 +2,7 @@
 
 use quincunx_store::{Attribute, Metadata, NodataPolicy};
 
-/// A planar record: m = 6, N = 32, three levels, no channels, not yet published.
+/// A planar record: m = 6, N = 32, nine levels, no channels, not yet published.
 pub fn metadata() -> Metadata {
     Metadata {
         format_version: 0,
@@ -11,7 +11,7 @@ pub fn metadata() -> Metadata {
         domain: quincunx_store::Domain::Planar,
         m: 6,
         n: 32,
-        levels: 3,
+        levels: 9,
         attribute: Attribute {
             kind: quincunx_store::AttributeKind::Elevation,
             units: "m".into(),
