@@ -503,6 +503,10 @@ pub struct FlightReport {
     pub bytes_fetched: u64,
     /// Of them, the colour layer's (0 without one).
     pub colour_bytes_fetched: u64,
+    /// Of them, what was not a blob or package (both layers): opening repository files
+    /// and reading their directories, gaps and checksums between coalesced blobs (range
+    /// reads; 0 from a server).
+    pub overhead_bytes: u64,
     /// Body bytes of the distinct blobs of the final cuts: the cut at the last frame of
     /// each leg ([`Session::cut_blobs`]), united over the legs.
     pub bytes_in_final_cuts: u64,
@@ -743,6 +747,7 @@ pub fn fly_with<R: Domain>(
     report.check_ms_max = check_ms.last().copied().unwrap_or(0.0);
     report.bytes_fetched = fetch.bytes_fetched;
     report.colour_bytes_fetched = session.colour_fetch_stats().map_or(0, |c| c.bytes_fetched);
+    report.overhead_bytes = fetch.overhead_bytes;
     report.bytes_in_final_cuts = session.blob_bytes(&report.final_blobs);
     report.bytes_used_any_cut = session.bytes_used();
     report.fetch_waste = if report.bytes_in_final_cuts > 0 {

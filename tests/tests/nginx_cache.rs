@@ -11,13 +11,13 @@
 
 mod common;
 
-use std::net::{SocketAddr, TcpListener};
-use std::os::unix::fs::MetadataExt as _;
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::net::SocketAddr;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::Duration;
 
-use common::{Response, get, metric, try_get, workspace_root};
+use common::nginx::{Nginx, find_nginx, free_port};
+use common::{get, metric, workspace_root};
 use quincunx_client::flight::{self, Flight, FlyOptions};
 use quincunx_client::session::Session;
 use quincunx_codec::incremental::PlanarRefiner;
@@ -53,7 +53,7 @@ fn nginx_caches_blobs_across_two_replicas_and_survives_losing_one() {
     let mut a = Replica::start(&runtime, &built, &version);
     let mut b = Replica::start(&runtime, &built, &version);
 
-    let proxy = Nginx::start(&nginx, &root.join("nginx"), [a.addr, b.addr]);
+    let proxy = start_cache(&nginx, &root.join("nginx"), [a.addr, b.addr]);
     let via = proxy.addr;
 
     // The health check script of the image: healthy replicas pass.
@@ -270,30 +270,6 @@ fn quincunx_fly_streams_a_static_export_from_plain_nginx() {
     drop(server);
 }
 
-/// `/usr/sbin/nginx`, else `nginx` on `PATH`.
-/// nginx (Debian's `/usr/sbin/nginx`, else on `PATH`), or `None` after printing
-/// `SKIP <test>`; a failure instead with `REQUIRE_NGINX=1`, which CI sets.
-fn find_nginx(test: &str) -> Option<PathBuf> {
-    let debian = PathBuf::from("/usr/sbin/nginx");
-    let found = if debian.is_file() {
-        Some(debian)
-    } else {
-        std::env::var_os("PATH").and_then(|path| {
-            std::env::split_paths(&path)
-                .map(|dir| dir.join("nginx"))
-                .find(|candidate| candidate.is_file())
-        })
-    };
-    if found.is_none() {
-        skip(
-            test,
-            "REQUIRE_NGINX",
-            "nginx not installed (apt-get install nginx)",
-        );
-    }
-    found
-}
-
 /// Copies a directory tree (files and directories only: what a repository holds).
 /// The URL version (`hash16`) of a repository and `count` of its blobs spread over the
 /// key space: (URL path, bytes).
@@ -373,129 +349,26 @@ impl Replica {
     }
 }
 
-/// nginx running the shipped configuration, stopped when dropped.
-struct Nginx {
-    binary: PathBuf,
-    dir: PathBuf,
-    child: Child,
-    addr: SocketAddr,
-}
-
-impl Nginx {
-    /// nginx running the shipped `docker/nginx-cache.conf` in front of `replicas`.
-    fn start(binary: &Path, dir: &Path, replicas: [SocketAddr; 2]) -> Nginx {
-        let shipped =
-            std::fs::read_to_string(workspace_root().join("docker/nginx-cache.conf")).unwrap();
-        let addr = free_port();
-        let d = dir.display();
-        let mut snippet = shipped;
-        for (from, to) in [
-            ("listen 80;", format!("listen {addr};")),
-            ("server-a:8080", replicas[0].to_string()),
-            ("server-b:8080", replicas[1].to_string()),
-            ("/var/cache/nginx/quincunx", format!("{d}/cache")),
-            ("/var/log/nginx/access.log", format!("{d}/access.log")),
-        ] {
-            assert_eq!(
-                snippet.matches(from).count(),
-                1,
-                "docker/nginx-cache.conf must contain {from:?} once (the test replaces it)"
-            );
-            snippet = snippet.replace(from, &to);
-        }
-        Nginx::run(binary, dir, addr, &snippet, "/healthz")
-    }
-
-    /// Writes `dir/nginx.conf` (`snippet` inside a main context whose paths are all under
-    /// `dir`) and starts nginx in the foreground, waiting until `ready` answers 200.
-    fn run(binary: &Path, dir: &Path, addr: SocketAddr, snippet: &str, ready: &str) -> Nginx {
-        let d = dir.display();
-        // Workers of a root master run as `nobody` unless told otherwise, and could not
-        // enter the 0700 temporary directory.
-        let running_as_root = std::fs::metadata("/proc/self").is_ok_and(|m| m.uid() == 0);
-        let user = if running_as_root { "user root;" } else { "" };
-        std::fs::create_dir_all(dir.join("tmp")).unwrap();
-        let conf = format!(
-            "daemon off;\nmaster_process on;\nworker_processes 1;\n{user}\n\
-             pid {d}/nginx.pid;\nerror_log {d}/error.log info;\n\
-             events {{ worker_connections 256; }}\n\
-             http {{\n\
-             client_body_temp_path {d}/tmp/body;\nproxy_temp_path {d}/tmp/proxy;\n\
-             fastcgi_temp_path {d}/tmp/fastcgi;\nuwsgi_temp_path {d}/tmp/uwsgi;\n\
-             scgi_temp_path {d}/tmp/scgi;\n\
-             {snippet}\n}}\n"
+/// nginx running the shipped `docker/nginx-cache.conf` in front of `replicas`.
+fn start_cache(binary: &Path, dir: &Path, replicas: [SocketAddr; 2]) -> Nginx {
+    let shipped =
+        std::fs::read_to_string(workspace_root().join("docker/nginx-cache.conf")).unwrap();
+    let addr = free_port();
+    let d = dir.display();
+    let mut snippet = shipped;
+    for (from, to) in [
+        ("listen 80;", format!("listen {addr};")),
+        ("server-a:8080", replicas[0].to_string()),
+        ("server-b:8080", replicas[1].to_string()),
+        ("/var/cache/nginx/quincunx", format!("{d}/cache")),
+        ("/var/log/nginx/access.log", format!("{d}/access.log")),
+    ] {
+        assert_eq!(
+            snippet.matches(from).count(),
+            1,
+            "docker/nginx-cache.conf must contain {from:?} once (the test replaces it)"
         );
-        std::fs::write(dir.join("nginx.conf"), conf).unwrap();
-        let child = Command::new(binary)
-            .args(Self::location_args(dir))
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap();
-        let mut nginx = Nginx {
-            binary: binary.to_path_buf(),
-            dir: dir.to_path_buf(),
-            child,
-            addr,
-        };
-        let deadline = Instant::now() + Duration::from_secs(30);
-        loop {
-            if let Some(status) = nginx.child.try_wait().unwrap() {
-                panic!("nginx exited with {status}:\n{}", nginx.error_log());
-            }
-            if let Ok(Response { status: 200, .. }) = try_get(addr, ready, &[]) {
-                return nginx;
-            }
-            assert!(
-                Instant::now() < deadline,
-                "nginx did not answer on {addr} within 30 s:\n{}",
-                nginx.error_log()
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
+        snippet = snippet.replace(from, &to);
     }
-
-    fn location_args(dir: &Path) -> Vec<PathBuf> {
-        vec![
-            "-p".into(),
-            dir.to_path_buf(),
-            "-c".into(),
-            dir.join("nginx.conf"),
-            "-e".into(),
-            dir.join("error.log"),
-        ]
-    }
-
-    fn error_log(&self) -> String {
-        std::fs::read_to_string(self.dir.join("error.log")).unwrap_or_default()
-    }
-}
-
-impl Drop for Nginx {
-    fn drop(&mut self) {
-        // SIGTERM through the pid file: the master stops its workers (SIGKILL to the master
-        // alone would leave the worker serving).
-        let _ = Command::new(&self.binary)
-            .args(Self::location_args(&self.dir))
-            .args(["-s", "stop"])
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .status();
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while Instant::now() < deadline {
-            if let Ok(Some(_)) = self.child.try_wait() {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-/// A loopback address nothing listens on right now.
-fn free_port() -> SocketAddr {
-    let probe = TcpListener::bind("127.0.0.1:0").unwrap();
-    probe.local_addr().unwrap()
+    Nginx::run(binary, dir, addr, &snippet, "/healthz")
 }

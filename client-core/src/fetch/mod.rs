@@ -5,6 +5,7 @@
 pub mod bandwidth;
 pub mod cache;
 pub mod planner;
+pub mod ranges;
 pub mod schedule;
 
 use std::time::Duration;
@@ -52,6 +53,10 @@ pub enum FetchError {
     /// The network thread could not start or has stopped.
     #[error("fetch thread: {0}")]
     Thread(String),
+    /// The repository file read with range requests is not the one opened (another
+    /// `ETag` or length, a 412 or 416): permanent, never a mix of two builds.
+    #[error("{0}")]
+    Changed(String),
 }
 
 /// Coarse classes of [`FetchError`], for counting.
@@ -83,6 +88,7 @@ impl FetchError {
                 ErrorKind::ClientStatus
             }
             FetchError::Status(_) => ErrorKind::ServerStatus,
+            FetchError::Changed(_) => ErrorKind::ClientStatus,
             FetchError::Connection(_) => ErrorKind::Connection,
             FetchError::Protocol(_) => ErrorKind::Protocol,
             FetchError::Timeout(_) | FetchError::Deadline(_) => ErrorKind::Timeout,
@@ -198,8 +204,12 @@ pub struct FetchStats {
     pub requests: u64,
     /// Answers received with status 200 (leaves included).
     pub responses: u64,
-    /// Body bytes of 200 answers.
+    /// Body bytes of 200 answers (and 206 answers of range reads).
     pub bytes_fetched: u64,
+    /// Of them, what was not a blob or package: opening a repository file and reading
+    /// its directories, the gaps and checksums between coalesced blobs (range reads;
+    /// 0 from a server).
+    pub overhead_bytes: u64,
     /// Keys answered with an empty body.
     pub leaves: u64,
     /// Keys whose values came inside another key's answer.
@@ -239,6 +249,7 @@ impl FetchStats {
         self.requests += o.requests;
         self.responses = responses;
         self.bytes_fetched += o.bytes_fetched;
+        self.overhead_bytes += o.overhead_bytes;
         self.leaves += o.leaves;
         self.carried += o.carried;
         self.cache_hits += o.cache_hits;

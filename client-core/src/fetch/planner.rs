@@ -188,6 +188,39 @@ impl Planner {
         self.stats.requests += 1;
     }
 
+    /// A planned key was handed to a transport that counts its own requests (a range
+    /// reader: one request carries many keys, a leaf none): in flight, not counted, and
+    /// answered with a bare blob (a range reader brings a package's children as
+    /// separate blobs, [`Planner::carried`]).
+    pub fn sent_uncounted(&mut self, request: Planned, now: Duration) {
+        self.sched.issued(request.key, now);
+    }
+
+    /// Requests and body bytes a transport spent besides keys' bodies (a range reader's:
+    /// directories, gaps between blobs, checksums; opening the file).
+    pub fn spent(&mut self, requests: u64, bytes: u64) {
+        self.stats.requests += requests;
+        self.stats.bytes_fetched += bytes;
+        self.stats.overhead_bytes += bytes;
+    }
+
+    /// `key` (in flight) turned out to have no blob without any answer from the network
+    /// (a range reader's directory does not list it): a leaf, no latency measured.
+    pub fn leaf_known(&mut self, key: Key, now: Duration) -> Answer {
+        self.packaged.remove(&key);
+        let Some((_, issued_as)) = self.sched.finished(key, now) else {
+            return Answer::Stale;
+        };
+        if let (Some(cap), Some(charged)) = (&mut self.cap, self.charged.remove(&key)) {
+            cap.correct(charged, 0.0);
+        }
+        let report = issued_as == Class::Want || self.sched.class(key) == Some(Class::Want);
+        self.sched.succeeded(key);
+        self.sched.unwant(key);
+        self.stats.leaves += 1;
+        Answer::Leaf { report }
+    }
+
     /// A planned request was not sent (the transport refused it): its charge is returned.
     pub fn unsent(&mut self, key: Key) {
         if let (Some(cap), Some(charged)) = (&mut self.cap, self.charged.remove(&key)) {

@@ -68,6 +68,9 @@ pub enum Http1Error {
     /// `Content-Length` is not a decimal number, or two of them disagree.
     #[error("invalid Content-Length")]
     BadContentLength,
+    /// `Content-Range` is not `bytes <first>-<last>/<total>` or `bytes */<total>`.
+    #[error("invalid Content-Range")]
+    BadContentRange,
     /// `Transfer-Encoding` is set (chunked bodies are not supported).
     #[error("Transfer-Encoding is not supported")]
     TransferEncoding,
@@ -202,11 +205,18 @@ pub(crate) fn io_error(e: std::io::Error, endpoint: &Endpoint) -> Http1Error {
 
 /// Appends `GET <path> HTTP/1.1` with a `Host` header to `out`.
 pub fn write_get(out: &mut Vec<u8>, host: &str, path: &[u8]) {
+    write_get_with(out, host, path, b"");
+}
+
+/// [`write_get`] with more header lines (`extra`: each ending in CR LF, e.g. a `Range`).
+pub fn write_get_with(out: &mut Vec<u8>, host: &str, path: &[u8], extra: &[u8]) {
     out.extend_from_slice(b"GET ");
     out.extend_from_slice(path);
     out.extend_from_slice(b" HTTP/1.1\r\nHost: ");
     out.extend_from_slice(host.as_bytes());
-    out.extend_from_slice(b"\r\n\r\n");
+    out.extend_from_slice(b"\r\n");
+    out.extend_from_slice(extra);
+    out.extend_from_slice(b"\r\n");
 }
 
 /// Pre-rendered request bytes for GETs of paths sharing a prefix: rendering one request is
@@ -243,6 +253,11 @@ pub struct Response<'a> {
     pub body: &'a [u8],
     /// The server announced `Connection: close`: nothing more will arrive.
     pub close: bool,
+    /// `Content-Range: bytes <first>-<last>/<total>`, when given (`total` = `u64::MAX`
+    /// for `*`; `first` = `u64::MAX` for `bytes */<total>`, a 416's).
+    pub content_range: Option<[u64; 3]>,
+    /// The `ETag` header's value, when given.
+    pub etag: Option<&'a [u8]>,
 }
 
 /// Where a decoded response lies in the buffer.
@@ -252,6 +267,9 @@ struct Frame {
     body_start: usize,
     end: usize,
     close: bool,
+    content_range: Option<[u64; 3]>,
+    /// The ETag value's place in the buffer.
+    etag: Option<(usize, usize)>,
 }
 
 /// Splits a byte stream into responses. Reuses one buffer, which grows only as far as the
@@ -351,6 +369,8 @@ impl ResponseDecoder {
             status: f.status,
             body: &self.buf[f.body_start..f.end],
             close: f.close,
+            content_range: f.content_range,
+            etag: f.etag.map(|(a, b)| &self.buf[a..b]),
         }
     }
 
@@ -403,6 +423,9 @@ impl ResponseDecoder {
         }
         let mut length: Option<u64> = None;
         let mut close = false;
+        let mut content_range = None;
+        let mut etag = None;
+        let base = data.as_ptr() as usize;
         for h in resp.headers.iter() {
             if h.name.eq_ignore_ascii_case("content-length") {
                 let v = parse_length(h.value).ok_or(Http1Error::BadContentLength)?;
@@ -412,6 +435,12 @@ impl ResponseDecoder {
                 length = Some(v);
             } else if h.name.eq_ignore_ascii_case("transfer-encoding") {
                 return Err(Http1Error::TransferEncoding);
+            } else if h.name.eq_ignore_ascii_case("content-range") {
+                content_range =
+                    Some(parse_content_range(h.value).ok_or(Http1Error::BadContentRange)?);
+            } else if h.name.eq_ignore_ascii_case("etag") {
+                let at = self.start + (h.value.as_ptr() as usize - base);
+                etag = Some((at, at + h.value.len()));
             } else if h.name.eq_ignore_ascii_case("connection") {
                 close = h
                     .value
@@ -436,6 +465,8 @@ impl ResponseDecoder {
             body_start: self.start + head_len,
             end: self.start + total,
             close,
+            content_range,
+            etag,
         };
         self.pending = total;
         Ok(Head::Frame(frame))
@@ -450,6 +481,26 @@ enum Head {
     Interim(usize),
     /// A whole final response.
     Frame(Frame),
+}
+
+/// `bytes <first>-<last>/<total>` (total `*`: `u64::MAX`), with `first <= last < total`,
+/// or `bytes */<total>` (`[u64::MAX, 0, total]`).
+pub(crate) fn parse_content_range(v: &[u8]) -> Option<[u64; 3]> {
+    let rest = v.trim_ascii().strip_prefix(b"bytes ")?;
+    let slash = rest.iter().position(|&b| b == b'/')?;
+    let (span, total) = (&rest[..slash], &rest[slash + 1..]);
+    if span == b"*" {
+        return Some([u64::MAX, 0, parse_length(total)?]);
+    }
+    let dash = span.iter().position(|&b| b == b'-')?;
+    let first = parse_length(&span[..dash])?;
+    let last = parse_length(&span[dash + 1..])?;
+    let total = if total == b"*" {
+        u64::MAX
+    } else {
+        parse_length(total)?
+    };
+    (first <= last && last < total).then_some([first, last, total])
 }
 
 /// A decimal `Content-Length` value: digits only, fitting a `u64`.
@@ -545,6 +596,30 @@ pub fn get_blocking(
     path: &str,
     timeout: std::time::Duration,
 ) -> Result<(u16, Vec<u8>), Http1Error> {
+    get_blocking_with(endpoint, path, b"", timeout).map(|a| (a.status, a.body))
+}
+
+/// A whole answer of [`get_blocking_with`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Answer {
+    /// Status code.
+    pub status: u16,
+    /// The body.
+    pub body: Vec<u8>,
+    /// `Content-Range`, as [`Response::content_range`].
+    pub content_range: Option<[u64; 3]>,
+    /// The `ETag` header's value.
+    pub etag: Option<String>,
+}
+
+/// [`get_blocking`] with more header lines (`extra`, each ending in CR LF), giving the
+/// `Content-Range` and `ETag` headers too.
+pub fn get_blocking_with(
+    endpoint: &Endpoint,
+    path: &str,
+    extra: &[u8],
+    timeout: std::time::Duration,
+) -> Result<Answer, Http1Error> {
     use std::io::{ErrorKind, Read, Write};
     let deadline = std::time::Instant::now() + timeout;
     // A socket timeout surfaces as `WouldBlock` ("Resource temporarily unavailable") or
@@ -577,13 +652,18 @@ pub fn get_blocking(
         other => other,
     };
     let mut req = Vec::new();
-    write_get(&mut req, &endpoint.host, path.as_bytes());
+    write_get_with(&mut req, &endpoint.host, path.as_bytes(), extra);
     stream.write_all(&req).map_err(failed)?;
     stream.flush().map_err(failed)?;
     let mut decoder = ResponseDecoder::new(Limits::default());
     loop {
         if let Some(resp) = decoder.decode()? {
-            return Ok((resp.status, resp.body.to_vec()));
+            return Ok(Answer {
+                status: resp.status,
+                body: resp.body.to_vec(),
+                content_range: resp.content_range,
+                etag: resp.etag.map(|e| String::from_utf8_lossy(e).into_owned()),
+            });
         }
         let spare = decoder.spare()?;
         // The whole exchange within `timeout`, however slowly the bytes trickle in.

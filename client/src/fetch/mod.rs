@@ -44,9 +44,10 @@ use bytes::Bytes;
 
 #[doc(inline)]
 pub use quincunx_client_core::fetch::{
-    ErrorCounts, ErrorKind, FetchError, FetchStats, Key, Weigh, bandwidth, cache, planner, schedule,
+    ErrorCounts, ErrorKind, FetchError, FetchStats, Key, Weigh, bandwidth, cache, planner, ranges,
+    schedule,
 };
-pub use remote::Remote;
+pub use remote::{PackFile, Remote};
 pub use worker::Fetcher;
 
 /// Turns a blob's bytes into the value handed to the frame loop; runs on the network
@@ -168,6 +169,9 @@ pub struct FetchConfig {
     pub cache_bytes: usize,
     /// Response size limits (pipelined transport).
     pub limits: http1::Limits,
+    /// How blob ranges are merged into requests when reading a repository file
+    /// ([`Remote::pack`]).
+    pub ranges: ranges::RangeConfig,
 }
 
 impl FetchConfig {
@@ -194,6 +198,7 @@ impl FetchConfig {
             max_backoff: planned.max_backoff,
             cache_bytes: 64 << 20,
             limits: http1::Limits::default(),
+            ranges: ranges::RangeConfig::default(),
         }
     }
 

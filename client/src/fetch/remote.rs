@@ -1,7 +1,10 @@
-//! Where a repository's blobs are: base URL, name, version, and the URL of a key.
+//! Where a repository's blobs are: base URL, name, version, and the URL of a key; or a
+//! repository file read with range requests.
 
+use std::sync::Arc;
 use std::time::Duration;
 
+use quincunx_client_core::fetch::ranges::{self, PackIndex};
 use quincunx_meta::Metadata;
 
 use super::http1::{self, Endpoint};
@@ -28,6 +31,99 @@ pub struct Remote {
     /// A folder of static files (`quincunx export`, the metadata's `static_export`): a
     /// 404 on a blob or package URL is a leaf, not an error.
     pub static_export: bool,
+    /// A repository file (`<name>` ends in `.pack`) read with range requests, instead of
+    /// a server's blob URLs.
+    pub pack: Option<Arc<PackFile>>,
+}
+
+/// A repository file on an HTTP(S) server that honours `Range` (nginx, S3, R2, GCS,
+/// Azure, a CDN), as opened.
+#[derive(Debug)]
+pub struct PackFile {
+    /// Its path (with the endpoint's prefix).
+    pub path: String,
+    /// Header, root directory and tiling.
+    pub index: Arc<PackIndex>,
+    /// Its `ETag` when opened: sent as `If-Match` with every request and compared with
+    /// every answer's, so a replaced file is an error, never a mix of two builds.
+    pub etag: Option<String>,
+    /// Requests opening it took (1, or 2 when header, root and metadata exceed the
+    /// first read).
+    pub open_requests: u64,
+    /// Bytes opening it read.
+    pub open_bytes: u64,
+}
+
+impl PartialEq for PackFile {
+    fn eq(&self, o: &Self) -> bool {
+        self.path == o.path && self.etag == o.etag && self.index.header == o.index.header
+    }
+}
+
+impl Eq for PackFile {}
+
+impl PackFile {
+    /// The extra header lines of a request for `range`: `Range`, and `If-Match` with
+    /// the pinned `ETag`.
+    pub fn headers(&self, range: &ranges::RangeRequest) -> String {
+        match &self.etag {
+            Some(etag) => format!("Range: {}\r\nIf-Match: {etag}\r\n", range.header_value()),
+            None => format!("Range: {}\r\n", range.header_value()),
+        }
+    }
+
+    /// Checks a range answer against what was asked (`range`) and the file opened, and
+    /// gives its body: `206` with exactly that `Content-Range` and the file's length and
+    /// `ETag`; anything else is an error that names what is wrong.
+    pub fn check_answer(
+        &self,
+        range: quincunx_meta::pack::Section,
+        status: u16,
+        body: bytes::Bytes,
+        content_range: Option<[u64; 3]>,
+        etag: Option<&str>,
+    ) -> Result<bytes::Bytes, FetchError> {
+        let total = self.index.header.file_len;
+        let want = [range.offset, range.end() - 1, total];
+        match status {
+            206 => {}
+            200 if range.offset == 0 && range.len == total && body.len() as u64 == total => {
+                return Ok(body);
+            }
+            200 => {
+                return Err(FetchError::Protocol(format!(
+                    "{}: the server ignored the Range header (200 with {} bytes)",
+                    self.path,
+                    body.len()
+                )));
+            }
+            412 => return Err(self.changed("412 Precondition Failed: its ETag no longer matches")),
+            416 => return Err(self.changed("416 Range Not Satisfiable: it is shorter now")),
+            s => return Err(FetchError::Status(s)),
+        }
+        if let (Some(pinned), Some(now)) = (&self.etag, etag)
+            && pinned != now
+        {
+            return Err(self.changed(&format!("its ETag was {pinned}, now {now}")));
+        }
+        match content_range {
+            Some([.., t]) if t != total && t != u64::MAX => {
+                Err(self.changed(&format!("it had {total} bytes, now {t}")))
+            }
+            Some([a, b, _]) if [a, b] == [want[0], want[1]] => Ok(body),
+            other => Err(FetchError::Protocol(format!(
+                "{}: asked for bytes {}-{}, the answer says {:?}",
+                self.path, want[0], want[1], other
+            ))),
+        }
+    }
+
+    fn changed(&self, why: &str) -> FetchError {
+        FetchError::Changed(format!(
+            "{} changed since it was opened ({why}); open it again",
+            self.path
+        ))
+    }
 }
 
 impl Remote {
@@ -51,6 +147,9 @@ impl Remote {
     ) -> Result<(Remote, Metadata), FetchError> {
         check_name(name)?;
         let endpoint = endpoint(base_url, options)?;
+        if name.ends_with(".pack") {
+            return Remote::open_pack(endpoint, base_url, name, timeout);
+        }
         let path = format!("{}/repos/{name}/metadata.json", endpoint.prefix);
         let url = endpoint.url(&path);
         let (status, body) =
@@ -68,6 +167,98 @@ impl Remote {
         let meta: Metadata = serde_json::from_slice(&body)
             .map_err(|e| FetchError::Metadata(format!("{path}: {e}")))?;
         let remote = Remote::with_endpoint(endpoint, base_url, name, &meta)?;
+        Ok((remote, meta))
+    }
+
+    /// Opens the repository file `{base_url}/{name}` with range requests: the first
+    /// [`ranges::FIRST_READ`] bytes, and the rest of header, root directory and metadata
+    /// if they are longer (at most two round trips).
+    fn open_pack(
+        endpoint: Endpoint,
+        base_url: &str,
+        name: &str,
+        timeout: Duration,
+    ) -> Result<(Remote, Metadata), FetchError> {
+        let path = format!("{}/{name}", endpoint.prefix);
+        let url = endpoint.url(&path);
+        let get = |from: u64, to: u64, etag: Option<&str>| {
+            let mut extra = format!("Range: bytes={from}-{}\r\n", to - 1);
+            if let Some(e) = etag {
+                extra.push_str(&format!("If-Match: {e}\r\n"));
+            }
+            http1::get_blocking_with(&endpoint, &path, extra.as_bytes(), timeout).map_err(|e| {
+                match e {
+                    http1::Http1Error::TimedOut(t) => FetchError::Metadata(format!(
+                        "timed out after {} s reading {url}",
+                        t.as_secs_f64()
+                    )),
+                    http1::Http1Error::Tls(msg) => FetchError::Tls(format!("GET {url}: {msg}")),
+                    http1::Http1Error::BodyTooLarge(n) => FetchError::Metadata(format!(
+                        "GET {url}: answered {n} bytes to a range request: the server does \
+                         not honour Range (range requests are needed to read a repository \
+                         file)"
+                    )),
+                    e => FetchError::Metadata(format!("GET {url}: {e}")),
+                }
+            })
+        };
+        let first = get(0, ranges::FIRST_READ, None)?;
+        let total = match (first.status, first.content_range) {
+            (206, Some([0, _, total])) if total != u64::MAX => total,
+            (200, _) if (first.body.len() as u64) < ranges::FIRST_READ => first.body.len() as u64,
+            (200, _) => {
+                return Err(FetchError::Metadata(format!(
+                    "GET {url}: the server ignored the Range header (200 with {} bytes): \
+                     range requests are needed to read a repository file",
+                    first.body.len()
+                )));
+            }
+            (206, other) => {
+                return Err(FetchError::Metadata(format!(
+                    "GET {url}: a 206 answer with Content-Range {other:?}"
+                )));
+            }
+            (status, _) => {
+                return Err(FetchError::Metadata(format!("GET {url}: status {status}")));
+            }
+        };
+        let bad = |e: quincunx_meta::pack::PackError| FetchError::Metadata(format!("{url}: {e}"));
+        let mut front = first.body;
+        let need = ranges::open_len(&front).map_err(bad)?.min(total);
+        let mut requests = 1;
+        if need > front.len() as u64 {
+            let rest = get(front.len() as u64, need, first.etag.as_deref())?;
+            requests += 1;
+            match (rest.status, rest.content_range) {
+                (206, Some([a, b, t]))
+                    if a == front.len() as u64 && b + 1 == need && t == total =>
+                {
+                    front.extend_from_slice(&rest.body);
+                }
+                (412, _) => {
+                    return Err(FetchError::Changed(format!(
+                        "{url} changed while it was being opened (412)"
+                    )));
+                }
+                (status, range) => {
+                    return Err(FetchError::Metadata(format!(
+                        "GET {url} (bytes {}-{}): status {status}, Content-Range {range:?}",
+                        front.len(),
+                        need - 1
+                    )));
+                }
+            }
+        }
+        let open_bytes = front.len() as u64;
+        let (index, meta) = PackIndex::open(&front, total).map_err(bad)?;
+        let mut remote = Remote::with_endpoint(endpoint, base_url, name, &meta)?;
+        remote.pack = Some(Arc::new(PackFile {
+            path,
+            index: Arc::new(index),
+            etag: first.etag,
+            open_requests: requests,
+            open_bytes,
+        }));
         Ok((remote, meta))
     }
 
@@ -103,6 +294,7 @@ impl Remote {
             version: meta.content_hash[..16].to_string(),
             sphere,
             static_export: meta.static_export,
+            pack: None,
         })
     }
 
@@ -173,6 +365,7 @@ mod tests {
             version: "0123456789abcdef".into(),
             sphere,
             static_export: false,
+            pack: None,
         }
     }
 

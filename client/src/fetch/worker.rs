@@ -8,8 +8,11 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use tokio::sync::mpsc::{UnboundedReceiver, UnboundedSender, unbounded_channel};
 
+use std::collections::VecDeque;
+
 use quincunx_client_core::fetch::cache::DecodedCache;
 use quincunx_client_core::fetch::planner::{Answer, Planner};
+use quincunx_client_core::fetch::ranges::{RangeReader, RangeRequest, Step};
 
 use super::transport::{Completion, Driver, Request};
 use super::{
@@ -105,8 +108,18 @@ impl<T: Weigh + Send + Sync + 'static> Fetcher<T> {
         });
         let (commands, commands_rx) = unbounded_channel();
         let (results_tx, results) = std_mpsc::channel();
-        let planner = Planner::new(config.planner(), Duration::ZERO);
+        let mut planner = Planner::new(config.planner(), Duration::ZERO);
+        let ranges = config.remote.pack.as_ref().map(|pack| {
+            // Opening the file is part of what the session fetched.
+            planner.spent(pack.open_requests, pack.open_bytes);
+            Ranges {
+                reader: RangeReader::new(Arc::clone(&pack.index), config.ranges),
+                pack: Arc::clone(pack),
+                queued: VecDeque::new(),
+            }
+        });
         let worker = Worker {
+            ranges,
             config,
             decode,
             shared: Arc::clone(&shared),
@@ -214,8 +227,18 @@ impl<T> Drop for Fetcher<T> {
     }
 }
 
+/// Range reads of a repository file: the core's [`RangeReader`] and the requests the
+/// transport had no room for yet.
+struct Ranges {
+    reader: RangeReader,
+    pack: Arc<super::remote::PackFile>,
+    queued: VecDeque<RangeRequest>,
+}
+
 /// The network thread: the transports and the clock around the core's [`Planner`].
 struct Worker<T> {
+    /// Reading a repository file with range requests (else blob URLs).
+    ranges: Option<Ranges>,
     config: FetchConfig,
     decode: Unpack<T>,
     shared: Arc<Shared<T>>,
@@ -299,6 +322,10 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
 
     /// Requests the most urgent keys the window, the cap and the transport allow.
     fn issue(&mut self, now: Instant) {
+        if self.ranges.is_some() {
+            self.issue_ranges(now);
+            return;
+        }
         let now = self.since(now);
         let planned = {
             let cache = lock(&self.shared.cache);
@@ -313,10 +340,7 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
             } else {
                 self.config.remote.blob_path(request.key)
             };
-            if !self.driver.send(Request {
-                key: request.key,
-                path,
-            }) {
+            if !self.driver.send(Request::get(request.key, path)) {
                 self.planner.unsent(request.key);
                 for rest in planned {
                     self.planner.unsent(rest.key);
@@ -332,12 +356,120 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
         let _ = self.results.send((key, result));
     }
 
+    /// Range reads: plans keys while nothing waits for the transport, turns them into
+    /// range requests (leaves need none), and sends what the transport takes.
+    fn issue_ranges(&mut self, now: Instant) {
+        let now = self.since(now);
+        let Some(ranges) = &self.ranges else {
+            return;
+        };
+        if ranges.queued.is_empty() {
+            // A request carries many keys: plan beyond the transport's free slots.
+            let room = self.driver.free_slots().saturating_mul(64);
+            let planned = {
+                let cache = lock(&self.shared.cache);
+                self.planner
+                    .plan(now, room, |k| cache.is_leaf(k) || cache.contains(k))
+            };
+            if !planned.is_empty() {
+                // Asked for as packages or not, keys are bare blobs here (see
+                // `ranges`: coalescing replaces packages).
+                let keys: Vec<Key> = planned.iter().map(|p| p.key).collect();
+                for p in planned {
+                    self.planner.sent_uncounted(p, now);
+                }
+                let step = match &mut self.ranges {
+                    Some(r) => r.reader.plan(&keys),
+                    None => return,
+                };
+                self.apply(step, now);
+            }
+        }
+        self.send_ranges();
+    }
+
+    /// Sends queued range requests while the transport has room.
+    fn send_ranges(&mut self) {
+        let Some(ranges) = &mut self.ranges else {
+            return;
+        };
+        while let Some(r) = ranges.queued.front() {
+            let request = Request {
+                key: [0; 3],
+                tag: r.tag,
+                path: ranges.pack.path.clone(),
+                headers: ranges.pack.headers(r),
+            };
+            if !self.driver.send(request) {
+                break;
+            }
+            tracing::trace!(tag = r.tag, range = ?r.range, "range request");
+            ranges.queued.pop_front();
+            self.planner.spent(1, 0);
+        }
+    }
+
+    /// What a range reader's step asks for: leaves and blobs (or failures) to hand on,
+    /// requests to queue, bytes spent besides blobs.
+    fn apply(&mut self, step: Step, now: Duration) {
+        let Step {
+            leaves,
+            blobs,
+            requests,
+            overhead_bytes,
+        } = step;
+        self.planner.spent(0, overhead_bytes);
+        if let Some(r) = &mut self.ranges {
+            r.queued.extend(requests);
+        }
+        for key in leaves {
+            if let Answer::Leaf { report } = self.planner.leaf_known(key, now) {
+                lock(&self.shared.cache).mark_leaf(key);
+                if report {
+                    self.deliver(key, Fetched::Leaf);
+                }
+            }
+        }
+        for (key, blob) in blobs {
+            self.answer(key, blob.map(|b| (200, b)), now);
+        }
+    }
+
     /// Handles the end of one request.
     fn complete(&mut self, done: Completion) {
         let now = self.since(Instant::now());
         self.driver.finished(done.slot);
-        let key = done.key;
-        match self.planner.complete(key, done.result, now) {
+        if done.tag != 0 {
+            let Some(ranges) = &mut self.ranges else {
+                return;
+            };
+            let Some(range) = ranges.reader.range_of(done.tag) else {
+                return;
+            };
+            let meta = done.range.unwrap_or_default();
+            let body = done.result.and_then(|(status, body)| {
+                ranges.pack.check_answer(
+                    range,
+                    status,
+                    body,
+                    meta.content_range,
+                    meta.etag.as_deref(),
+                )
+            });
+            if let Err(e) = &body {
+                tracing::debug!(tag = done.tag, %e, "range request failed");
+            }
+            let step = ranges.reader.answered(done.tag, body);
+            self.apply(step, now);
+            self.send_ranges();
+            return;
+        }
+        self.answer(done.key, done.result, now);
+    }
+
+    /// The answer to `key`: a status and body, or why there is none.
+    fn answer(&mut self, key: Key, result: Result<(u16, Bytes), FetchError>, now: Duration) {
+        match self.planner.complete(key, result, now) {
             Answer::Stale | Answer::Failed(None) => {}
             Answer::Failed(Some(error)) => self.deliver(key, Fetched::Failed(error)),
             Answer::Leaf { report } => {

@@ -288,6 +288,7 @@ impl FakeServer {
             version: "0123456789abcdef".into(),
             sphere: false,
             static_export: false,
+            pack: None,
         }
     }
 }

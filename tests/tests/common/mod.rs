@@ -7,6 +7,7 @@ use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
+pub mod nginx;
 pub mod stream;
 
 /// The workspace root (the parent of this package).

@@ -9,18 +9,48 @@ use tokio::sync::mpsc::UnboundedSender;
 
 use super::{FetchConfig, FetchError, Key, Transport};
 
+/// What a range answer says about itself.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub(crate) struct RangeMeta {
+    /// `Content-Range`: first, last, total (see [`super::http1::Response::content_range`]).
+    pub content_range: Option<[u64; 3]>,
+    /// `ETag`.
+    pub etag: Option<String>,
+}
+
 /// One GET to make.
 #[derive(Clone, Debug)]
 pub(crate) struct Request {
     pub key: Key,
+    /// Names a range request (0 for a blob or package URL).
+    pub tag: u64,
     /// Absolute path (with the endpoint's prefix).
     pub path: String,
+    /// More header lines, each ending in CR LF (a `Range` and an `If-Match`), or empty.
+    pub headers: String,
+}
+
+impl Request {
+    /// A GET of a blob or package URL.
+    pub fn get(key: Key, path: String) -> Request {
+        Request {
+            key,
+            tag: 0,
+            path,
+            headers: String::new(),
+        }
+    }
 }
 
 /// How a request ended.
 #[derive(Debug)]
 pub(crate) struct Completion {
     pub key: Key,
+    /// The request's tag.
+    pub tag: u64,
+    /// `Content-Range` (first, last, total) and `ETag`, read for requests with extra
+    /// headers only.
+    pub range: Option<RangeMeta>,
     /// The slot (pipelined: connection index) that carried it; freed by
     /// [`Driver::finished`].
     pub slot: usize,

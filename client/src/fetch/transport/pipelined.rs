@@ -17,8 +17,8 @@ use tokio::net::TcpStream;
 use tokio::sync::mpsc::{UnboundedReceiver, UnboundedSender, unbounded_channel};
 use tokio::time::Instant;
 
-use super::{Completion, Request};
-use crate::fetch::http1::{Limits, ResponseDecoder, write_get};
+use super::{Completion, RangeMeta, Request};
+use crate::fetch::http1::{Limits, ResponseDecoder, write_get_with};
 use crate::fetch::tls::{TlsClient, tls_cause};
 use crate::fetch::{FetchConfig, FetchError};
 
@@ -126,6 +126,19 @@ async fn run_connection(
         }
         let error = match session(slot, &settings, &mut rx, &done, &mut pending, &mut out).await {
             Ok(()) => return,
+            // The server answered and closed (announced, as nginx after `keepalive_requests`,
+            // 1,000 by default, or at a response boundary, as nginx after an error answer):
+            // what it did not answer goes out again on a new connection, not counted as
+            // failures (RFC 9112 9.3.1: GETs are idempotent). It answered at least one on
+            // this connection, so this makes progress.
+            Err(e) if e == announced_close() => {
+                tracing::debug!(
+                    slot,
+                    outstanding = pending.len(),
+                    "server closed; reconnecting"
+                );
+                continue;
+            }
             Err(e) => e,
         };
         if !pending.is_empty() {
@@ -134,6 +147,8 @@ async fn run_connection(
         for r in pending.drain(..) {
             let _ = done.send(Completion {
                 key: r.key,
+                tag: r.tag,
+                range: None,
                 slot,
                 result: Err(error.clone()),
             });
@@ -145,6 +160,11 @@ enum Event {
     Request(Option<Request>),
     Read(Result<usize, FetchError>),
     Timeout,
+}
+
+/// The error of a connection the server closed after announcing it (`Connection: close`).
+fn announced_close() -> FetchError {
+    FetchError::Connection("the server closed the connection".into())
 }
 
 fn conn_err(e: std::io::Error) -> FetchError {
@@ -230,7 +250,7 @@ async fn exchange<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
     let mut decoder = ResponseDecoder::new(s.limits);
     out.clear();
     for r in pending.iter() {
-        write_get(out, &s.host, r.path.as_bytes());
+        write_get_with(out, &s.host, r.path.as_bytes(), r.headers.as_bytes());
     }
     write_all(&mut wr, out, s.timeout).await?;
     // When each outstanding request was written: the oldest must be answered within the
@@ -238,6 +258,7 @@ async fn exchange<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
     let mut written: VecDeque<Instant> = pending.iter().map(|_| Instant::now()).collect();
     // A connection with requests outstanding must make progress within the timeout.
     let mut deadline = Instant::now() + s.timeout;
+    let mut answered = 0u64;
     loop {
         let oldest_due = written.front().map(|&t| t + s.deadline);
         let wake = oldest_due.map_or(deadline, |due| due.min(deadline));
@@ -253,10 +274,15 @@ async fn exchange<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
                     deadline = Instant::now() + s.timeout;
                 }
                 out.clear();
-                write_get(out, &s.host, first.path.as_bytes());
+                write_get_with(
+                    out,
+                    &s.host,
+                    first.path.as_bytes(),
+                    first.headers.as_bytes(),
+                );
                 pending.push_back(first);
                 while let Ok(r) = rx.try_recv() {
-                    write_get(out, &s.host, r.path.as_bytes());
+                    write_get_with(out, &s.host, r.path.as_bytes(), r.headers.as_bytes());
                     pending.push_back(r);
                 }
                 write_all(&mut wr, out, s.timeout).await?;
@@ -264,8 +290,16 @@ async fn exchange<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
                 written.resize(pending.len(), now);
             }
             Event::Read(n) => {
-                if n? == 0 {
-                    return Err(FetchError::Connection("closed by the server".into()));
+                // Closed (or reset: nginx resets a connection it closes after an error
+                // answer while requests are unread) between answers after answering
+                // some: as if announced.
+                let between = answered > 0 && decoder.buffered() == 0;
+                match n {
+                    Ok(0) if between => return Err(announced_close()),
+                    Ok(0) => return Err(FetchError::Connection("closed by the server".into())),
+                    Err(FetchError::Connection(_)) if between => return Err(announced_close()),
+                    Err(e) => return Err(e),
+                    Ok(_) => {}
                 }
                 deadline = Instant::now() + s.timeout;
                 while let Some(resp) = decoder
@@ -276,16 +310,21 @@ async fn exchange<R: AsyncRead + Unpin, W: AsyncWrite + Unpin>(
                         return Err(FetchError::Protocol("response to no request".into()));
                     };
                     written.pop_front();
+                    answered += 1;
                     let close = resp.close;
+                    let range = (!req.headers.is_empty()).then(|| RangeMeta {
+                        content_range: resp.content_range,
+                        etag: resp.etag.map(|e| String::from_utf8_lossy(e).into_owned()),
+                    });
                     let _ = done.send(Completion {
                         key: req.key,
+                        tag: req.tag,
+                        range,
                         slot,
                         result: Ok((resp.status, Bytes::copy_from_slice(resp.body))),
                     });
                     if close {
-                        return Err(FetchError::Connection(
-                            "the server closed the connection".into(),
-                        ));
+                        return Err(announced_close());
                     }
                 }
             }

@@ -6,7 +6,7 @@ use std::time::Duration;
 use bytes::Bytes;
 use tokio::sync::mpsc::UnboundedSender;
 
-use super::{Completion, Request};
+use super::{Completion, RangeMeta, Request};
 use crate::fetch::tls::find_tls_cause;
 use crate::fetch::{FetchConfig, FetchError, Transport};
 
@@ -108,15 +108,28 @@ impl ReqwestDriver {
         }
         self.in_flight += 1;
         let url = format!("{}{}", self.origin, request.path);
-        let get = self.client.get(url).send();
+        let mut get = self.client.get(url);
+        for line in request.headers.split_terminator("\r\n") {
+            if let Some((name, value)) = line.split_once(':') {
+                get = get.header(name.trim(), value.trim());
+            }
+        }
+        let ranged = !request.headers.is_empty();
+        let get = get.send();
         let done = self.done.clone();
         let max_body = self.max_body_bytes;
         let (timeout, deadline) = (self.timeout, self.deadline);
         let tls_host = self.tls_host.clone();
         let started = std::time::Instant::now();
         tokio::spawn(async move {
+            let mut range = None;
             let result = match get.await {
-                Ok(resp) => read_body(resp, max_body, timeout).await,
+                Ok(resp) => {
+                    if ranged {
+                        range = Some(range_meta(&resp));
+                    }
+                    read_body(resp, max_body, timeout).await
+                }
                 Err(e) => Err(
                     match tls_host.as_deref().and_then(|h| find_tls_cause(&e, h)) {
                         Some(msg) => FetchError::Tls(msg),
@@ -133,6 +146,8 @@ impl ReqwestDriver {
             };
             let _ = done.send(Completion {
                 key: request.key,
+                tag: request.tag,
+                range,
                 slot: 0,
                 result,
             });
@@ -170,6 +185,21 @@ async fn read_body(
         )));
     }
     Ok((status, body))
+}
+
+/// The `Content-Range` and `ETag` of an answer (a malformed `Content-Range` reads as
+/// none: the range check then refuses the answer).
+fn range_meta(resp: &reqwest::Response) -> RangeMeta {
+    let header = |name| {
+        resp.headers()
+            .get(name)
+            .map(|v| String::from_utf8_lossy(v.as_bytes()).into_owned())
+    };
+    RangeMeta {
+        content_range: header("content-range")
+            .and_then(|v| crate::fetch::http1::parse_content_range(v.as_bytes())),
+        etag: header("etag"),
+    }
 }
 
 /// `ip:port`, IPv6 in brackets.
