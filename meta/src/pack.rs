@@ -893,61 +893,88 @@ impl DirWriter {
     }
 }
 
-/// The bytes of a whole file with every blob in the root directory: `pairs` in key order
-/// and the metadata record `json` (written as given, unchecked). For tools and tests that
-/// craft files; builds write through the store, which also chooses tiles.
-pub fn encode_untiled(json: &[u8], pairs: &[(Vec<u8>, Vec<u8>)]) -> Result<Vec<u8>, String> {
-    let mut dirs = DirWriter::new(Plan {
-        tiling: Tiling {
-            split_level: 256,
-            tile_shift: 0,
-            sphere: false,
-            exponents: Vec::new(),
-        },
-        tiled: false,
-    });
+impl Header {
+    /// The header of a file of these directories, deflated metadata of `metadata_len`
+    /// bytes (CRC `metadata_crc`) and the blobs the directories list, laid out in order.
+    pub fn for_sections(
+        dirs: &Dirs,
+        tiling: &Tiling,
+        metadata_len: u64,
+        metadata_crc: u32,
+    ) -> Header {
+        let root = Section {
+            offset: HEADER_BYTES,
+            len: dirs.root.len() as u64,
+        };
+        let metadata = Section {
+            offset: root.end(),
+            len: metadata_len,
+        };
+        let leaves = Section {
+            offset: metadata.end(),
+            len: dirs.leaves.len() as u64,
+        };
+        let blobs = Section {
+            offset: leaves.end(),
+            len: dirs.blobs_len,
+        };
+        Header {
+            version: LAYOUT_VERSION,
+            file_len: blobs.end(),
+            root,
+            metadata,
+            leaves,
+            blobs,
+            root_crc: crc32fast::hash(&dirs.root),
+            metadata_crc,
+            split_level: tiling.split_level,
+            tile_shift: tiling.tile_shift,
+            blob_count: dirs.blob_count,
+        }
+    }
+}
+
+/// The bytes of a whole file laid out by `plan`: `pairs` in the file's order
+/// ([`Plan::order_key`], then key order) and the metadata record `json` (written as
+/// given, unchecked). For tools and tests that craft files; builds write through the
+/// store, which streams its blobs.
+pub fn encode(plan: Plan, json: &[u8], pairs: &[(Vec<u8>, Vec<u8>)]) -> Result<Vec<u8>, String> {
+    let tiling = plan.tiling.clone();
+    let mut dirs = DirWriter::new(plan);
     for (k, v) in pairs {
         dirs.push(k, v.len() as u64)?;
     }
     let dirs = dirs.finish();
     let metadata = deflate(json);
-    let mut header = Header {
-        version: LAYOUT_VERSION,
-        file_len: 0,
-        root: Section {
-            offset: HEADER_BYTES,
-            len: dirs.root.len() as u64,
-        },
-        metadata: Section::default(),
-        leaves: Section::default(),
-        blobs: Section::default(),
-        root_crc: crc32fast::hash(&dirs.root),
-        metadata_crc: crc32fast::hash(&metadata),
-        split_level: 255,
-        tile_shift: 0,
-        blob_count: dirs.blob_count,
-    };
-    header.metadata = Section {
-        offset: header.root.end(),
-        len: metadata.len() as u64,
-    };
-    header.leaves = Section {
-        offset: header.metadata.end(),
-        len: 0,
-    };
-    header.blobs = Section {
-        offset: header.leaves.end(),
-        len: dirs.blobs_len,
-    };
-    header.file_len = header.blobs.end();
+    let header = Header::for_sections(
+        &dirs,
+        &tiling,
+        metadata.len() as u64,
+        crc32fast::hash(&metadata),
+    );
     let mut out = header.to_bytes().to_vec();
     out.extend_from_slice(&dirs.root);
     out.extend_from_slice(&metadata);
+    out.extend_from_slice(&dirs.leaves);
     for (_, v) in pairs {
         out.extend_from_slice(v);
         out.extend_from_slice(&crc32fast::hash(v).to_le_bytes());
     }
     Ok(out)
+}
+
+/// [`encode`] with every blob in the root directory (`pairs` in key order).
+pub fn encode_untiled(json: &[u8], pairs: &[(Vec<u8>, Vec<u8>)]) -> Result<Vec<u8>, String> {
+    let plan = Plan {
+        tiling: Tiling {
+            split_level: 255,
+            tile_shift: 0,
+            sphere: false,
+            exponents: Vec::new(),
+        },
+        tiled: false,
+    };
+    encode(plan, json, pairs)
 }
 
 /// `file` with its metadata record replaced by `json` (written as given, unchecked): the
@@ -1006,52 +1033,18 @@ mod tests {
         let plan = Plan::choose(space, keys.iter().map(Vec::as_slice), Limits::default());
         let mut ordered: Vec<&Vec<u8>> = keys.iter().collect();
         ordered.sort_by(|a, b| (plan.order_key(a), *a).cmp(&(plan.order_key(b), *b)));
-        let mut w = DirWriter::new(plan.clone());
-        let mut blobs = Vec::new();
-        for k in &ordered {
-            let blob = vec![k[k.len() - 1]; k.len() + (k[0] as usize % 5)];
-            w.push(k, blob.len() as u64).unwrap();
-            blobs.extend_from_slice(&blob);
-            blobs.extend_from_slice(&crc32fast::hash(&blob).to_le_bytes());
-        }
-        let dirs = w.finish();
-        let meta = deflate(b"{}");
-        let mut header = Header {
-            version: LAYOUT_VERSION,
-            file_len: 0,
-            root: Section {
-                offset: HEADER_BYTES,
-                len: dirs.root.len() as u64,
-            },
-            metadata: Section::default(),
-            leaves: Section::default(),
-            blobs: Section::default(),
-            root_crc: crc32fast::hash(&dirs.root),
-            metadata_crc: crc32fast::hash(&meta),
-            split_level: plan.tiling.split_level,
-            tile_shift: plan.tiling.tile_shift,
-            blob_count: dirs.blob_count,
-        };
-        header.metadata = Section {
-            offset: header.root.end(),
-            len: meta.len() as u64,
-        };
-        header.leaves = Section {
-            offset: header.metadata.end(),
-            len: dirs.leaves.len() as u64,
-        };
-        header.blobs = Section {
-            offset: header.leaves.end(),
-            len: dirs.blobs_len,
-        };
-        header.file_len = header.blobs.end();
-        let mut out = header.to_bytes().to_vec();
-        out.extend_from_slice(&dirs.root);
-        out.extend_from_slice(&meta);
-        out.extend_from_slice(&dirs.leaves);
-        out.extend_from_slice(&blobs);
-        let parsed = Header::parse(&out).unwrap();
-        assert_eq!(parsed, header);
+        let pairs: Vec<(Vec<u8>, Vec<u8>)> = ordered
+            .into_iter()
+            .map(|k| {
+                (
+                    k.clone(),
+                    vec![k[k.len() - 1]; k.len() + (k[0] as usize % 5)],
+                )
+            })
+            .collect();
+        let out = encode(plan.clone(), b"{}", &pairs).unwrap();
+        let header = Header::parse(&out).unwrap();
+        header.check_len(out.len() as u64).unwrap();
         let root = RootDir::parse(
             &header,
             &out[header.root.offset as usize..header.root.end() as usize],

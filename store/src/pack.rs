@@ -207,35 +207,12 @@ pub(crate) fn write_head<W: Write>(
     metadata_json: &[u8],
 ) -> std::io::Result<Header> {
     let metadata = deflate(metadata_json);
-    let root = Section {
-        offset: HEADER_BYTES,
-        len: dirs.root.len() as u64,
-    };
-    let metadata_at = Section {
-        offset: root.end(),
-        len: metadata.len() as u64,
-    };
-    let leaves = Section {
-        offset: metadata_at.end(),
-        len: dirs.leaves.len() as u64,
-    };
-    let blobs = Section {
-        offset: leaves.end(),
-        len: dirs.blobs_len,
-    };
-    let header = Header {
-        version: LAYOUT_VERSION,
-        file_len: blobs.end(),
-        root,
-        metadata: metadata_at,
-        leaves,
-        blobs,
-        root_crc: crc32fast::hash(&dirs.root),
-        metadata_crc: crc32fast::hash(&metadata),
-        split_level: tiling.split_level,
-        tile_shift: tiling.tile_shift,
-        blob_count: dirs.blob_count,
-    };
+    let header = Header::for_sections(
+        dirs,
+        tiling,
+        metadata.len() as u64,
+        crc32fast::hash(&metadata),
+    );
     out.write_all(&header.to_bytes())?;
     out.write_all(&dirs.root)?;
     out.write_all(&metadata)?;

@@ -410,18 +410,12 @@ mod tests {
         let plan = pack::Plan::choose(&space, ids.iter().map(|(k, _)| k.as_slice()), limits);
         let mut ordered = ids.clone();
         ordered.sort_by_cached_key(|(k, _)| (plan.order_key(k), k.clone()));
-        let mut dirs = pack::DirWriter::new(plan.clone());
-        let mut blobs = Vec::new();
-        for (k, _) in &ordered {
-            let blob = vec![k[k.len() - 1]; 20];
-            dirs.push(k, 20).unwrap();
-            blobs.extend_from_slice(&blob);
-            blobs.extend_from_slice(&crc(&blob));
-        }
-        let dirs = dirs.finish();
+        let pairs: Vec<(Vec<u8>, Vec<u8>)> = ordered
+            .iter()
+            .map(|(k, _)| (k.clone(), vec![k[k.len() - 1]; 20]))
+            .collect();
         let json = serde_json::to_vec(&metadata()).unwrap();
-        let mut out = Vec::new();
-        write(&mut out, &dirs, &plan.tiling, &json, &blobs);
+        let out = pack::encode(plan, &json, &pairs).unwrap();
         let (index, _) = PackIndex::open(&out, out.len() as u64).unwrap();
         (
             out,
@@ -449,59 +443,6 @@ mod tests {
             "level_stats": [],
         }))
         .unwrap()
-    }
-
-    fn crc(b: &[u8]) -> [u8; 4] {
-        let mut h = 0xFFFF_FFFFu32;
-        for &x in b {
-            h ^= u32::from(x);
-            for _ in 0..8 {
-                h = if h & 1 != 0 {
-                    (h >> 1) ^ 0xEDB8_8320
-                } else {
-                    h >> 1
-                };
-            }
-        }
-        (!h).to_le_bytes()
-    }
-
-    fn write(out: &mut Vec<u8>, dirs: &pack::Dirs, tiling: &Tiling, json: &[u8], blobs: &[u8]) {
-        let metadata = pack::deflate(json);
-        let root = Section {
-            offset: pack::HEADER_BYTES,
-            len: dirs.root.len() as u64,
-        };
-        let m = Section {
-            offset: root.end(),
-            len: metadata.len() as u64,
-        };
-        let leaves = Section {
-            offset: m.end(),
-            len: dirs.leaves.len() as u64,
-        };
-        let b = Section {
-            offset: leaves.end(),
-            len: blobs.len() as u64,
-        };
-        let header = Header {
-            version: pack::LAYOUT_VERSION,
-            file_len: b.end(),
-            root,
-            metadata: m,
-            leaves,
-            blobs: b,
-            root_crc: u32::from_le_bytes(crc(&dirs.root)),
-            metadata_crc: u32::from_le_bytes(crc(&metadata)),
-            split_level: tiling.split_level,
-            tile_shift: tiling.tile_shift,
-            blob_count: dirs.blob_count,
-        };
-        out.extend_from_slice(&header.to_bytes());
-        out.extend_from_slice(&dirs.root);
-        out.extend_from_slice(&metadata);
-        out.extend_from_slice(&dirs.leaves);
-        out.extend_from_slice(blobs);
     }
 
     /// Serves every request from `file` until nothing is left; returns blobs, leaves,
