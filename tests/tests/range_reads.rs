@@ -2,6 +2,7 @@
 //! quincunx process serving them (`docs/hosting.md`):
 //! - sessions (planar, and a planet with its colour) stream `repository.pack` files from
 //!   nginx, crack-free at every frame, and every blob read that way is the stored one;
+//!   `quincunx loadtest --mode fly` reads them too;
 //! - a file replaced mid-session is an error (nginx's 412 on `If-Match`), never a mix of
 //!   two builds;
 //! - servers that break the range rules (ignore `Range`, 403, 404, 416, 500, truncated
@@ -213,6 +214,41 @@ fn sessions_stream_repository_files_from_nginx_crack_free_and_blobs_read_back_ex
             r.requests, r.bytes_fetched, r.overhead_bytes
         );
     }
+
+    // `quincunx loadtest --mode fly`: simulated clients read the file with ranges too.
+    #[derive(clap::Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: quincunx_repo_tools::loadtest::LoadtestArgs,
+    }
+    let log = root.join("nginx/access.log");
+    let ranged = || {
+        std::fs::read_to_string(&log)
+            .unwrap()
+            .lines()
+            .filter(|l| l.contains("/korea.pack") && l.contains("\" 206 "))
+            .count()
+    };
+    let before = ranged();
+    let argv = [
+        "loadtest",
+        "--url",
+        &url,
+        "--repo",
+        "korea.pack",
+        "--mode",
+        "fly",
+        "--legs",
+        "1",
+        "--connections",
+        "2",
+        "--duration-s",
+        "3",
+        "--json",
+        "--quiet",
+    ];
+    quincunx_repo_tools::loadtest::run(&<Cli as clap::Parser>::parse_from(argv).args).unwrap();
+    assert!(ranged() > before, "loadtest read no ranges");
 
     // Every blob read with ranges is the stored one, and every other diamond a leaf.
     let want = stored(&built.join("korea"));
