@@ -2,8 +2,9 @@
 # Serverless hosting against `quincunx serve`, side by side in one run: the same flights
 # (`quincunx fly --path jump --link 4000,100`, defaults otherwise) read repository files
 # from plain nginx with range requests, and blobs from `quincunx serve`, alternating,
-# RUNS times each. korea (korea_srtm3_4097, rms 9 m) and the ETOPO5 planet (rms 9 m) with
-# the 5400x2700 Blue Marble colour (rms 4). Prints one JSON object per flight (the
+# RUNS times each. korea (korea_srtm3_4097, rms 9 m; and lossless, whose 14,966 blobs
+# make a file with tiles) and the ETOPO5 planet (rms 9 m) with the 5400x2700 Blue Marble
+# colour (rms 4). Prints one JSON object per flight (the
 # `quincunx fly --json` summary plus "source", "run" and the repositories' open figures).
 #   benches/hosting/hosting.sh [shared-data-dir] > benches/hosting/hosting.jsonl
 set -euo pipefail
@@ -34,6 +35,7 @@ build() { # name, input, flags...
     cp "$work/$name/repository.pack" "$work/www/$name.pack"
 }
 build korea "$data/korea_srtm3_4097.json" --rms-m 9
+build korea_lossless "$data/korea_srtm3_4097.json" --lossless
 build earth "$data/etopo5_global.json" --planet --rms-m 9
 build bmng "$data/bmng_global_5400x2700.jpg" --planet --colour --rms-m 4
 user=""
@@ -52,6 +54,7 @@ CONF
 "$nginx" -p "$work/nginx" -c "$work/nginx/nginx.conf" -e "$work/nginx/error.log" &
 nginx_pid=$!
 "$bin/quincunx" serve --addr 127.0.0.1:18292 --repo "korea=$work/korea" \
+    --repo "korea_lossless=$work/korea_lossless" \
     --repo "earth=$work/earth" --repo "bmng=$work/bmng" --log warn >&2 &
 server_pid=$!
 trap 'kill $server_pid 2>/dev/null; "$nginx" -p "$work/nginx" -c "$work/nginx/nginx.conf" -s stop 2>/dev/null; wait 2>/dev/null' EXIT
@@ -71,4 +74,6 @@ for run in $(seq "$runs"); do
     fly ranges "$run" http://127.0.0.1:18291 korea.pack
     fly serve "$run" http://127.0.0.1:18292 earth --color bmng
     fly ranges "$run" http://127.0.0.1:18291 earth.pack --color bmng.pack
+    fly serve "$run" http://127.0.0.1:18292 korea_lossless
+    fly ranges "$run" http://127.0.0.1:18291 korea_lossless.pack
 done
