@@ -66,7 +66,7 @@ impl PackFile {
     /// The extra header lines of a request for `range`: `Range`, and `If-Match` with
     /// the pinned `ETag`.
     pub fn headers(&self, range: &ranges::RangeRequest) -> String {
-        match &self.etag {
+        match self.etag.as_deref().filter(|e| is_strong(e)) {
             Some(etag) => format!("Range: {}\r\nIf-Match: {etag}\r\n", range.header_value()),
             None => format!("Range: {}\r\n", range.header_value()),
         }
@@ -227,7 +227,8 @@ impl Remote {
         let need = ranges::open_len(&front).map_err(bad)?.min(total);
         let mut requests = 1;
         if need > front.len() as u64 {
-            let rest = get(front.len() as u64, need, first.etag.as_deref())?;
+            let strong = first.etag.as_deref().filter(|e| is_strong(e));
+            let rest = get(front.len() as u64, need, strong)?;
             requests += 1;
             match (rest.status, rest.content_range) {
                 (206, Some([a, b, t]))
@@ -329,6 +330,12 @@ impl Remote {
     pub fn blob_url(&self, key: Key) -> String {
         self.endpoint.url(&self.blob_path(key))
     }
+}
+
+/// Whether an `ETag` is strong: `If-Match` compares strongly, so a weak one (`W/"..."`,
+/// as some CDNs give) would never match; it is still compared with every answer's.
+fn is_strong(etag: &str) -> bool {
+    !etag.starts_with("W/")
 }
 
 fn endpoint(base_url: &str, options: &ConnectOptions) -> Result<Endpoint, FetchError> {
