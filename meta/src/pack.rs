@@ -87,6 +87,16 @@ pub enum PackError {
     Damaged(String),
 }
 
+impl PackError {
+    /// What is wrong, without the kind's prefix (for messages that name the part read).
+    pub fn reason(self) -> String {
+        match self {
+            PackError::Damaged(r) | PackError::Incomplete(r) => r,
+            e => e.to_string(),
+        }
+    }
+}
+
 fn damaged(what: impl Into<String>) -> PackError {
     PackError::Damaged(what.into())
 }

@@ -342,10 +342,7 @@ impl Repository {
                 path: self.file_path.clone(),
                 what: what(),
                 offset,
-                reason: match reason {
-                    pack::PackError::Damaged(r) | pack::PackError::Incomplete(r) => r,
-                    other => other.to_string(),
-                },
+                reason: reason.reason(),
             },
         }
     }
@@ -357,13 +354,7 @@ impl Repository {
         let at = match self.pack.locate(key) {
             Ok(Some(at)) => at,
             Ok(None) => return Ok(None),
-            Err(e) => {
-                let offset = match self.pack.root.lookup(&self.pack.tiling, key) {
-                    pack::Lookup::Tile(i) => self.pack.root.tiles[i].dir.offset,
-                    _ => 0,
-                };
-                return Err(self.read_err(|| "leaf directory".into(), offset, e));
-            }
+            Err((offset, e)) => return Err(self.read_err(|| "leaf directory".into(), offset, e)),
         };
         self.pack
             .blob(at)

@@ -76,12 +76,18 @@ impl PackFile {
         Ok(entries)
     }
 
-    /// Where `key`'s blob is, if it has one.
-    pub fn locate(&self, key: &[u8]) -> Result<Option<BlobRef>, ReadError> {
+    /// Where `key`'s blob is, if it has one; a failure names the offset of the leaf
+    /// directory that could not be read.
+    pub fn locate(&self, key: &[u8]) -> Result<Option<BlobRef>, (u64, ReadError)> {
         Ok(match self.root.lookup(&self.tiling, key) {
             Lookup::Blob(b) => Some(b),
             Lookup::Absent => None,
-            Lookup::Tile(i) => find(&self.leaf(i)?, key),
+            Lookup::Tile(i) => {
+                let entries = self
+                    .leaf(i)
+                    .map_err(|e| (self.root.tiles[i].dir.offset, e))?;
+                find(&entries, key)
+            }
         })
     }
 

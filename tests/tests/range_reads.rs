@@ -146,12 +146,7 @@ fn sessions_stream_repository_files_from_nginx_crack_free_and_blobs_read_back_ex
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
     let built = root.join("built");
-    build(&built.join("korea"), "korea_srtm3_1025.json", |a| {
-        BuildArgs {
-            rms_m: Some(2.0),
-            ..a
-        }
-    });
+    common::build_bundled_korea(&built.join("korea"));
     build(&built.join("earth"), "etopo20_global.json", |a| BuildArgs {
         planet: true,
         rms_m: Some(10.0),
@@ -292,10 +287,7 @@ fn a_file_replaced_mid_session_is_an_error_never_a_mix_of_two_builds() {
     let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
     let (old, new) = (root.join("old"), root.join("new"));
-    build(&old, "korea_srtm3_1025.json", |a| BuildArgs {
-        rms_m: Some(2.0),
-        ..a
-    });
+    common::build_bundled_korea(&old);
     build(&new, "korea_srtm3_1025.json", |a| BuildArgs {
         rms_m: Some(8.0),
         ..a
@@ -471,10 +463,7 @@ fn status(code: u16) -> Vec<u8> {
 fn servers_that_break_the_range_rules_give_clear_errors_never_wrong_blobs() {
     let dir = tempfile::tempdir().unwrap();
     let repo = dir.path().join("korea");
-    build(&repo, "korea_srtm3_1025.json", |a| BuildArgs {
-        rms_m: Some(2.0),
-        ..a
-    });
+    common::build_bundled_korea(&repo);
     let want = stored(&repo);
     let file = std::fs::read(repo.join("repository.pack")).unwrap();
     let server = FakeFiles::start(file);

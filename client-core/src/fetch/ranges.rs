@@ -179,11 +179,6 @@ impl RangeReader {
         }
     }
 
-    /// The opened file.
-    pub fn index(&self) -> &PackIndex {
-        &self.index
-    }
-
     /// Leaf directories loaded.
     pub fn loaded_tiles(&self) -> usize {
         self.leaves.len()
@@ -302,7 +297,7 @@ impl RangeReader {
                         Err(e) => Err(FetchError::Protocol(format!(
                             "blob at {} of the repository file: {}",
                             b.offset,
-                            reason(e)
+                            e.reason()
                         ))),
                     };
                     step.blobs.push((key, blob));
@@ -317,7 +312,7 @@ impl RangeReader {
                         FetchError::Protocol(format!(
                             "leaf directory at {} of the repository file: {}",
                             tile.dir.offset,
-                            reason(e)
+                            e.reason()
                         ))
                     })
                 });
@@ -346,24 +341,12 @@ impl RangeReader {
             Pending::Dir(i) => Some(self.index.root.tiles[*i].dir),
         }
     }
-
-    /// Requests in flight.
-    pub fn in_flight(&self) -> usize {
-        self.pending.len()
-    }
 }
 
 enum Located {
     Blob(BlobRef),
     Absent,
     Tile(usize),
-}
-
-fn reason(e: PackError) -> String {
-    match e {
-        PackError::Damaged(r) | PackError::Incomplete(r) => r,
-        e => e.to_string(),
-    }
 }
 
 /// The answer's bytes if they are exactly `range`'s length.
