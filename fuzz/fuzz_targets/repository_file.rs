@@ -4,7 +4,7 @@
 //! blobs the walk saw.
 //!
 //! Input: the bytes of `repository.pack`. Seeds worth adding: a real repository file (e.g.
-//! `store/tests/golden/format7.pack`).
+//! `store/tests/golden/format8.pack`).
 
 #![no_main]
 

@@ -75,6 +75,15 @@ impl IdSpace {
         r.map_err(|e| e.to_string())
     }
 
+    /// The centre of a storage key (the inverse of [`IdSpace::key_level`]).
+    pub fn centre(&self, key: &[u8]) -> std::result::Result<[i64; 3], String> {
+        let r = match self {
+            IdSpace::Planar(d) => d.id_from_key(key).map(|id| [id.x, id.y, 0]),
+            IdSpace::Sphere(d) => d.id_from_key(key).map(|id| id.c),
+        };
+        r.map_err(|e| e.to_string())
+    }
+
     /// The level of a centre.
     pub fn level(&self, c: [i64; 3]) -> std::result::Result<u32, String> {
         let r = match self {

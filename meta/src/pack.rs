@@ -1,7 +1,8 @@
-//! The repository file's layout (format 7), without I/O: the header, the directories that
-//! map diamond keys to the exact byte range of each blob, and the blob framing. The store
-//! writes and reads files with it; the client reads the same file over HTTP range requests
-//! (spec: `docs/repository-format.md`).
+//! The repository file's layout (format 8), without I/O: the header, the directories that
+//! map diamond keys to the exact byte range of each blob, the blob framing, and the order
+//! of blobs that makes a package one range. The store writes and reads files with it; the
+//! client reads the same file over HTTP range requests (spec:
+//! `docs/repository-format.md`).
 //!
 //! ```text
 //! file   := header root metadata leaves blobs
@@ -9,7 +10,7 @@
 //! root   := deflate(entries tiles)               the root directory
 //! leaves := (deflate(entries) crc:u32)*          one leaf directory per tile, tile order
 //! blobs  := (blob crc:u32)*                      the root's blobs, then each tile's
-//! entries := count:varint (shared:varint suffix_len:varint suffix len:varint){count}
+//! entries := count:varint (shared:varint suffix_len:varint suffix len:varint carried:varint){count}
 //! tiles   := count:varint (tile_delta:varint128 dir_len:varint blobs_len:varint count:varint){count}
 //! ```
 //!
@@ -17,17 +18,26 @@
 //!   JSON) come first; a client reads [`OPEN_BYTES`] and has all three when they fit, and
 //!   at most one more range when they do not.
 //! - **Directories give exact ranges**: an entry is a key (prefix-compressed against the
-//!   previous one) and its blob's length; offsets are implied, since blobs follow each
+//!   previous entry's) and its blob's length; offsets are implied, since blobs follow each
 //!   other in directory order, each followed by the CRC-32 of its bytes.
+//! - **A package is one range.** A served package ([`crate::answer`]) is a diamond's blob
+//!   with the packages of its small owned children (at most the metadata's
+//!   `inline_max_bytes` each). Here every package whose members share a directory is
+//!   contiguous: the diamond, then each carried child's package in child order; `carried`
+//!   is how many entries after a blob its package holds (0: none). A client asks for the
+//!   range `offset .. package end` and has the same package the server would answer,
+//!   with one request and one round trip. Packages nobody carries follow each other in
+//!   key order (level-major, Z-order within a level), so the packages a view needs lie in
+//!   few ranges.
 //! - **Small repositories have one directory** (up to [`ROOT_ALL_MAX`] blobs): every blob
-//!   is in the root, in key order (level-major, Z-order within a level).
+//!   is in the root.
 //! - **Large ones are split**: the levels below `split_level` (the ones every view reads)
 //!   stay in the root; deeper blobs are grouped by **tile**, a square of side
 //!   `2^tile_shift` id units (on a planet, of one cube face) holding every diamond centre
 //!   inside it, of every deeper level. Each tile has a leaf directory and one contiguous
-//!   run of blobs in key order, so a view reads a tile's directory once and its blobs as
-//!   a few ranges, coarse levels first. The root lists the tiles that hold blobs (a
-//!   missing tile holds none).
+//!   run of blobs, so a view reads a tile's directory once and its blobs as a few ranges,
+//!   coarse levels first. The root lists the tiles that hold blobs (a missing tile holds
+//!   none). A package never spans two directories: a child in another one is not carried.
 //! - A diamond that no directory lists has no blob: it is a leaf.
 //!
 //! Everything here parses bytes that may be damaged or hostile: every length is checked
@@ -42,7 +52,7 @@ use crate::answer::IdSpace;
 pub const MAGIC: &[u8; 8] = b"QXREPO\r\n";
 
 /// The layout version this module reads and writes.
-pub const LAYOUT_VERSION: u32 = 7;
+pub const LAYOUT_VERSION: u32 = 8;
 
 /// Bytes of the header.
 pub const HEADER_BYTES: u64 = 128;
@@ -308,13 +318,17 @@ pub fn inflate(bytes: &[u8], limit: usize) -> Result<Vec<u8>, String> {
     })
 }
 
-/// Where a blob is: its bytes at `offset .. offset + len`, then its CRC-32.
+/// Where a blob is: its bytes at `offset .. offset + len`, then its CRC-32; its package
+/// ends at `package_end`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub struct BlobRef {
     /// First byte of the blob.
     pub offset: u64,
     /// Length of the blob (without its CRC).
     pub len: u64,
+    /// End of its package: the blob and the carried blobs after it, each with its CRC
+    /// (the blob's own framed end when it carries none).
+    pub package_end: u64,
 }
 
 impl BlobRef {
@@ -323,6 +337,15 @@ impl BlobRef {
         Section {
             offset: self.offset,
             len: self.len + CRC_BYTES,
+        }
+    }
+
+    /// The blob and the blobs it carries, each with its CRC: what a reader fetches for
+    /// a package.
+    pub fn package(&self) -> Section {
+        Section {
+            offset: self.offset,
+            len: self.package_end - self.offset,
         }
     }
 
@@ -357,8 +380,48 @@ pub struct TileRef {
     pub count: u64,
 }
 
-/// A decoded directory's entries: keys in increasing order and where their blobs are.
-pub type Entries = Vec<(Vec<u8>, BlobRef)>;
+/// A decoded directory's entries: keys and where their blobs are, in file order, with
+/// an index by key.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct Entries {
+    /// Keys and blobs, in file order.
+    pub list: Vec<(Vec<u8>, BlobRef)>,
+    /// Positions in `list`, in key order.
+    by_key: Vec<u32>,
+}
+
+impl Entries {
+    /// Entries from a list in file order; duplicate keys are damage.
+    fn new(list: Vec<(Vec<u8>, BlobRef)>) -> Result<Entries, PackError> {
+        let mut by_key: Vec<u32> = (0..list.len() as u32).collect();
+        by_key.sort_unstable_by(|&a, &b| list[a as usize].0.cmp(&list[b as usize].0));
+        if by_key
+            .windows(2)
+            .any(|w| list[w[0] as usize].0 == list[w[1] as usize].0)
+        {
+            return Err(damaged("a key listed twice"));
+        }
+        Ok(Entries { list, by_key })
+    }
+
+    /// Number of entries.
+    pub fn len(&self) -> usize {
+        self.list.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.list.is_empty()
+    }
+
+    /// The blob of `key`, if listed.
+    pub fn find(&self, key: &[u8]) -> Option<BlobRef> {
+        self.by_key
+            .binary_search_by(|&i| self.list[i as usize].0.as_slice().cmp(key))
+            .ok()
+            .map(|i| self.list[self.by_key[i] as usize].1)
+    }
+}
 
 /// The root directory.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
@@ -393,6 +456,7 @@ impl RootDir {
         let entries = read_entries(&mut r, header.blobs.offset, header.blobs.end())
             .map_err(|e| damaged(format!("root directory: {e}")))?;
         let mut blob_end = entries
+            .list
             .last()
             .map_or(header.blobs.offset, |(_, b)| b.framed().end());
         let count = r.count(1 + 1 + 1 + 1)?;
@@ -499,6 +563,7 @@ pub fn parse_leaf(tile: &TileRef, bytes: &[u8]) -> Result<Entries, PackError> {
         return Err(bad("bytes after its entries"));
     }
     let end = entries
+        .list
         .last()
         .map_or(tile.blobs.offset, |(_, b)| b.framed().end());
     if entries.len() as u64 != tile.count || end != tile.blobs.end() {
@@ -507,19 +572,17 @@ pub fn parse_leaf(tile: &TileRef, bytes: &[u8]) -> Result<Entries, PackError> {
     Ok(entries)
 }
 
-/// The blob of `key` in sorted `entries`.
-pub fn find(entries: &[(Vec<u8>, BlobRef)], key: &[u8]) -> Option<BlobRef> {
-    entries
-        .binary_search_by(|(k, _)| k.as_slice().cmp(key))
-        .ok()
-        .map(|i| entries[i].1)
+/// The blob of `key` in `entries`.
+pub fn find(entries: &Entries, key: &[u8]) -> Option<BlobRef> {
+    entries.find(key)
 }
 
 fn read_entries(r: &mut Reader<'_>, start: u64, limit: u64) -> Result<Entries, PackError> {
-    let count = r.count(1 + 1 + 1)?;
-    let mut out: Entries = Vec::with_capacity(count);
+    let count = r.count(1 + 1 + 1 + 1)?;
+    let mut out: Vec<(Vec<u8>, BlobRef)> = Vec::with_capacity(count);
+    let mut carried = Vec::with_capacity(count);
     let mut at = start;
-    for _ in 0..count {
+    for i in 0..count {
         let shared = usize::try_from(r.varint()?).map_err(|_| damaged("key too long"))?;
         let suffix_len = usize::try_from(r.varint()?).map_err(|_| damaged("key too long"))?;
         let suffix = r.take(suffix_len)?;
@@ -530,31 +593,46 @@ fn read_entries(r: &mut Reader<'_>, start: u64, limit: u64) -> Result<Entries, P
             ));
         }
         let key = [&prev[..shared], suffix].concat();
-        if !out.is_empty() && key.as_slice() <= prev {
-            return Err(damaged("keys out of order"));
-        }
         let len = r.varint()?;
-        let blob = BlobRef { offset: at, len };
-        at = len
+        let n = r.varint()?;
+        if n >= (count - i) as u64 {
+            return Err(damaged("a package runs past its directory"));
+        }
+        carried.push(n as usize);
+        let end = len
             .checked_add(CRC_BYTES)
             .and_then(|l| at.checked_add(l))
             .filter(|&e| e <= limit)
             .ok_or_else(|| damaged("a blob runs past its section"))?;
-        out.push((key, blob));
+        out.push((
+            key,
+            BlobRef {
+                offset: at,
+                len,
+                package_end: end,
+            },
+        ));
+        at = end;
     }
-    Ok(out)
+    for (i, n) in carried.into_iter().enumerate() {
+        out[i].1.package_end = out[i + n].1.framed().end();
+    }
+    Entries::new(out)
 }
 
-/// Encodes directory entries: keys in increasing order and their blobs' lengths.
-fn write_entries<'a>(out: &mut Vec<u8>, entries: impl ExactSizeIterator<Item = (&'a [u8], u64)>) {
+/// Encodes directory entries: keys, their blobs' lengths and the entries each package
+/// carries, in file order.
+fn write_entries(out: &mut Vec<u8>, entries: &[Placed]) {
     put_varint(out, entries.len() as u128);
     let mut prev: &[u8] = &[];
-    for (key, len) in entries {
+    for p in entries {
+        let key = p.key.as_slice();
         let shared = prev.iter().zip(key).take_while(|(a, b)| a == b).count();
         put_varint(out, shared as u128);
         put_varint(out, (key.len() - shared) as u128);
         out.extend_from_slice(&key[shared..]);
-        put_varint(out, u128::from(len));
+        put_varint(out, u128::from(p.len));
+        put_varint(out, u128::from(p.carried));
         prev = key;
     }
 }
@@ -696,6 +774,20 @@ pub struct Plan {
     pub tiling: Tiling,
     /// Whether deep levels go to tiles (`false`: every blob is in the root).
     pub tiled: bool,
+    /// The id space (`None`: no packages are laid out).
+    pub space: Option<IdSpace>,
+}
+
+/// A blob's place in a file: its key, length, and how many entries after it its package
+/// holds.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Placed {
+    /// Storage key.
+    pub key: Vec<u8>,
+    /// Blob length (without its CRC).
+    pub len: u64,
+    /// Entries after it in its package.
+    pub carried: u64,
 }
 
 /// The thresholds a [`Plan`] follows ([`Limits::default`]: [`ROOT_ALL_MAX`],
@@ -740,6 +832,7 @@ impl Plan {
             return Plan {
                 tiling: Tiling::new(space, max_level + 1, 0),
                 tiled: false,
+                space: Some(*space),
             };
         }
         let last = max_level as usize + 1;
@@ -784,17 +877,120 @@ impl Plan {
         Plan {
             tiling: Tiling::new(space, split, lo),
             tiled: true,
+            space: Some(*space),
         }
     }
 
-    /// The position of a key in the file's order: root keys first (key order), then by
-    /// tile, key order within a tile.
+    /// The section of a key, as it orders in the file: `(0, 0)` for the root, then
+    /// `(tile, 1)` by tile.
     pub fn order_key(&self, key: &[u8]) -> (u128, u8) {
         match self.tiled.then(|| self.tiling.tile(key)).flatten() {
             None => (0, 0),
             Some(t) => (t, 1),
         }
     }
+
+    /// The file's order of `blobs` (keys and lengths, any order, each key once): the
+    /// root's, then each tile's; within one, packages (see the module docs) for a
+    /// repository whose answers carry children up to `inline_max_bytes` each, in key
+    /// order of the diamonds nobody carries. Without a limit, or an id space, key order.
+    /// A key that is no diamond of the id space is an error.
+    pub fn arrange(
+        &self,
+        mut blobs: Vec<(Vec<u8>, u64)>,
+        inline_max_bytes: Option<u32>,
+    ) -> Result<Vec<Placed>, String> {
+        blobs.sort_unstable();
+        blobs.sort_by_cached_key(|(k, _)| self.order_key(k));
+        let mut out = Vec::with_capacity(blobs.len());
+        let mut start = 0;
+        while start < blobs.len() {
+            let section = self.order_key(&blobs[start].0);
+            let end = start + blobs[start..].partition_point(|(k, _)| self.order_key(k) == section);
+            let part = &blobs[start..end];
+            match (self.space.as_ref(), inline_max_bytes) {
+                (Some(space), Some(limit)) => arrange_packages(space, part, limit, &mut out)?,
+                _ => out.extend(part.iter().map(|(key, len)| Placed {
+                    key: key.clone(),
+                    len: *len,
+                    carried: 0,
+                })),
+            }
+            start = end;
+        }
+        Ok(out)
+    }
+}
+
+/// Lays out one directory's blobs (`part`, in key order) as packages: a diamond's package
+/// is its blob, then the packages of its owned children in `part` whose package (framed
+/// as a server answers it) is at most `limit` bytes, in child order.
+fn arrange_packages(
+    space: &IdSpace,
+    part: &[(Vec<u8>, u64)],
+    limit: u32,
+    out: &mut Vec<Placed>,
+) -> Result<(), String> {
+    use crate::answer::varint_len;
+    let index: HashMap<&[u8], usize> = part
+        .iter()
+        .enumerate()
+        .map(|(i, (k, _))| (k.as_slice(), i))
+        .collect();
+    // Each blob's owned children that are in this directory, in child order.
+    let mut kids: Vec<Vec<usize>> = Vec::with_capacity(part.len());
+    for (key, _) in part {
+        let centre = space.centre(key)?;
+        let mut mine = Vec::new();
+        for c in space.owned_children(centre)? {
+            let (k, _) = space.key_level(c)?;
+            if let Some(&j) = index.get(k.as_slice()) {
+                mine.push(j);
+            }
+        }
+        kids.push(mine);
+    }
+    // Package sizes, deepest first (key order is level-major; children are one level
+    // deeper than their owner).
+    let mut size = vec![0usize; part.len()];
+    let mut carried = vec![false; part.len()];
+    for i in (0..part.len()).rev() {
+        let len = usize::try_from(part[i].1).map_err(|_| "blob too large")?;
+        let mut s = 1 + varint_len(len) + len;
+        for &j in &kids[i] {
+            if size[j] <= limit as usize {
+                s += varint_len(size[j]) + size[j];
+                carried[j] = true;
+            }
+        }
+        size[i] = s;
+    }
+    fn emit(
+        i: usize,
+        part: &[(Vec<u8>, u64)],
+        kids: &[Vec<usize>],
+        carried: &[bool],
+        out: &mut Vec<Placed>,
+    ) {
+        let at = out.len();
+        out.push(Placed {
+            key: part[i].0.clone(),
+            len: part[i].1,
+            carried: 0,
+        });
+        for &j in &kids[i] {
+            if carried[j] {
+                emit(j, part, kids, carried, out);
+            }
+        }
+        out[at].carried = (out.len() - at - 1) as u64;
+    }
+    for i in 0..part.len() {
+        if !carried[i] {
+            emit(i, part, &kids, &carried, out);
+        }
+    }
+    Ok(())
 }
 
 /// Bits of the widest full-resolution coordinate: one tile covers a domain (or a face).
@@ -805,17 +1001,14 @@ fn space_bits(space: &IdSpace) -> u32 {
     }
 }
 
-/// Writes directories for blobs given in file order ([`Plan::order_key`]): collects the
+/// Writes directories for blobs given in file order ([`Plan::arrange`]): collects the
 /// root's entries and each tile's, then gives the root's and the leaves' bytes.
 #[derive(Debug)]
 pub struct DirWriter {
     plan: Plan,
-    root: KeyLens,
-    tiles: Vec<(u128, KeyLens)>,
+    root: Vec<Placed>,
+    tiles: Vec<(u128, Vec<Placed>)>,
 }
-
-/// Keys and their blobs' lengths.
-type KeyLens = Vec<(Vec<u8>, u64)>;
 
 /// The directories of a file, ready to write.
 #[derive(Debug, Clone)]
@@ -840,10 +1033,10 @@ impl DirWriter {
         }
     }
 
-    /// Adds the next blob, in file order (a key out of that order is a caller's bug,
-    /// reported as an error).
-    pub fn push(&mut self, key: &[u8], len: u64) -> Result<(), String> {
-        let (tile, tiled) = self.plan.order_key(key);
+    /// Adds the next blob, in file order (a section out of that order, or a package
+    /// running past its section, is a caller's bug, reported as an error).
+    pub fn push(&mut self, placed: Placed) -> Result<(), String> {
+        let (tile, tiled) = self.plan.order_key(&placed.key);
         let list = if tiled == 0 {
             if !self.tiles.is_empty() {
                 return Err("a root key after the tiles".into());
@@ -854,24 +1047,26 @@ impl DirWriter {
                 Some((t, list)) if *t == tile => list,
                 Some((t, _)) if *t > tile => return Err("tiles out of order".into()),
                 _ => {
+                    if let Some((_, list)) = self.tiles.last() {
+                        open_package(list)?;
+                    } else {
+                        open_package(&self.root)?;
+                    }
                     self.tiles.push((tile, Vec::new()));
                     &mut self.tiles.last_mut().ok_or("no tile")?.1
                 }
             }
         };
-        if list.last().is_some_and(|(k, _)| k.as_slice() >= key) {
-            return Err("keys out of order".into());
-        }
-        list.push((key.to_vec(), len));
+        list.push(placed);
         Ok(())
     }
 
     /// The sections.
-    pub fn finish(self) -> Dirs {
-        let framed =
-            |list: &[(Vec<u8>, u64)]| -> u64 { list.iter().map(|(_, l)| l + CRC_BYTES).sum() };
+    pub fn finish(self) -> Result<Dirs, String> {
+        open_package(self.tiles.last().map_or(&self.root, |(_, l)| l))?;
+        let framed = |list: &[Placed]| -> u64 { list.iter().map(|p| p.len + CRC_BYTES).sum() };
         let mut raw = Vec::new();
-        write_entries(&mut raw, self.root.iter().map(|(k, l)| (k.as_slice(), *l)));
+        write_entries(&mut raw, &self.root);
         let mut leaves = Vec::new();
         let mut table = Vec::new();
         put_varint(&mut table, self.tiles.len() as u128);
@@ -880,7 +1075,7 @@ impl DirWriter {
         let mut prev = None;
         for (tile, list) in &self.tiles {
             let mut entries = Vec::new();
-            write_entries(&mut entries, list.iter().map(|(k, l)| (k.as_slice(), *l)));
+            write_entries(&mut entries, list);
             let body = deflate(&entries);
             let start = leaves.len();
             leaves.extend_from_slice(&body);
@@ -894,12 +1089,24 @@ impl DirWriter {
             prev = Some(*tile);
         }
         raw.extend_from_slice(&table);
-        Dirs {
+        Ok(Dirs {
             root: deflate(&raw),
             leaves,
             blobs_len,
             blob_count,
-        }
+        })
+    }
+}
+
+/// An error if a package of `list` (one directory's entries) runs past its end.
+fn open_package(list: &[Placed]) -> Result<(), String> {
+    match list
+        .iter()
+        .enumerate()
+        .any(|(i, p)| i as u64 + p.carried >= list.len() as u64)
+    {
+        true => Err("a package runs past its directory".into()),
+        false => Ok(()),
     }
 }
 
@@ -944,17 +1151,33 @@ impl Header {
     }
 }
 
-/// The bytes of a whole file laid out by `plan`: `pairs` in the file's order
-/// ([`Plan::order_key`], then key order) and the metadata record `json` (written as
-/// given, unchecked). For tools and tests that craft files; builds write through the
-/// store, which streams its blobs.
-pub fn encode(plan: Plan, json: &[u8], pairs: &[(Vec<u8>, Vec<u8>)]) -> Result<Vec<u8>, String> {
+/// The bytes of a whole file laid out by `plan` ([`Plan::arrange`], packages as
+/// `inline_max_bytes` says): `pairs` (any order, each key once) and the metadata record
+/// `json` (written as given, unchecked). For tools and tests that craft files; builds
+/// write through the store, which streams its blobs.
+pub fn encode(
+    plan: Plan,
+    json: &[u8],
+    pairs: &[(Vec<u8>, Vec<u8>)],
+    inline_max_bytes: Option<u32>,
+) -> Result<Vec<u8>, String> {
     let tiling = plan.tiling.clone();
+    let blobs: HashMap<&[u8], &[u8]> = pairs
+        .iter()
+        .map(|(k, v)| (k.as_slice(), v.as_slice()))
+        .collect();
+    let order = plan.arrange(
+        pairs
+            .iter()
+            .map(|(k, v)| (k.clone(), v.len() as u64))
+            .collect(),
+        inline_max_bytes,
+    )?;
     let mut dirs = DirWriter::new(plan);
-    for (k, v) in pairs {
-        dirs.push(k, v.len() as u64)?;
+    for p in &order {
+        dirs.push(p.clone())?;
     }
-    let dirs = dirs.finish();
+    let dirs = dirs.finish()?;
     let metadata = deflate(json);
     let header = Header::for_sections(
         &dirs,
@@ -966,14 +1189,15 @@ pub fn encode(plan: Plan, json: &[u8], pairs: &[(Vec<u8>, Vec<u8>)]) -> Result<V
     out.extend_from_slice(&dirs.root);
     out.extend_from_slice(&metadata);
     out.extend_from_slice(&dirs.leaves);
-    for (_, v) in pairs {
+    for p in &order {
+        let v = blobs.get(p.key.as_slice()).copied().unwrap_or_default();
         out.extend_from_slice(v);
         out.extend_from_slice(&crc32fast::hash(v).to_le_bytes());
     }
     Ok(out)
 }
 
-/// [`encode`] with every blob in the root directory (`pairs` in key order).
+/// [`encode`] with every blob in the root directory, in key order, no packages.
 pub fn encode_untiled(json: &[u8], pairs: &[(Vec<u8>, Vec<u8>)]) -> Result<Vec<u8>, String> {
     let plan = Plan {
         tiling: Tiling {
@@ -983,8 +1207,81 @@ pub fn encode_untiled(json: &[u8], pairs: &[(Vec<u8>, Vec<u8>)]) -> Result<Vec<u
             exponents: Vec::new(),
         },
         tiled: false,
+        space: None,
     };
-    encode(plan, json, pairs)
+    encode(plan, json, pairs, None)
+}
+
+/// The package of blob `b` (key `key`, in a directory that `find` searches) out of
+/// `bytes`, the file's bytes of [`BlobRef::package`]: its blob and each carried child's
+/// package, every blob checked against its CRC, framed as a server answers it
+/// ([`crate::answer::write`]). Bytes that do not hold the package the directory
+/// describes are an error.
+pub fn package_from(
+    space: &IdSpace,
+    key: &[u8],
+    b: BlobRef,
+    bytes: &[u8],
+    find: &dyn Fn(&[u8]) -> Option<BlobRef>,
+) -> Result<Vec<u8>, PackError> {
+    if bytes.len() as u64 != b.package_end.saturating_sub(b.offset) {
+        return Err(damaged(format!(
+            "read as {} bytes, its package is {}",
+            bytes.len(),
+            b.package_end.saturating_sub(b.offset)
+        )));
+    }
+    package_within(space, key, b, b.offset, bytes, find, 0)
+}
+
+fn package_within(
+    space: &IdSpace,
+    key: &[u8],
+    b: BlobRef,
+    base: u64,
+    bytes: &[u8],
+    find: &dyn Fn(&[u8]) -> Option<BlobRef>,
+    depth: u32,
+) -> Result<Vec<u8>, PackError> {
+    let slice = |s: Section| {
+        s.offset
+            .checked_sub(base)
+            .and_then(|at| bytes.get(at as usize..(at + s.len) as usize))
+            .ok_or_else(|| damaged("a carried blob lies outside its package"))
+    };
+    let blob = b.check(slice(b.framed())?)?;
+    let mut children = Vec::new();
+    let mut pos = b.framed().end();
+    if pos < b.package_end {
+        if depth > 64 {
+            return Err(damaged("packages nest too deep"));
+        }
+        let centre = space.centre(key).map_err(damaged)?;
+        let owned = space.owned_children(centre).map_err(damaged)?;
+        for (i, c) in owned.into_iter().enumerate() {
+            if pos == b.package_end {
+                break;
+            }
+            let (k, _) = space.key_level(c).map_err(damaged)?;
+            let Some(cb) = find(&k).filter(|cb| cb.offset == pos) else {
+                continue;
+            };
+            if cb.package_end > b.package_end {
+                return Err(damaged("a carried package runs past its owner's"));
+            }
+            children.push((
+                i,
+                package_within(space, &k, cb, base, bytes, find, depth + 1)?,
+            ));
+            pos = cb.package_end;
+        }
+        if pos != b.package_end {
+            return Err(damaged(
+                "a package holds blobs that are not its owned children's",
+            ));
+        }
+    }
+    Ok(crate::answer::write(blob, &children, true))
 }
 
 /// `file` with its metadata record replaced by `json` (written as given, unchecked): the
@@ -1041,10 +1338,8 @@ mod tests {
 
     fn file(space: &IdSpace, keys: &[Vec<u8>]) -> (Header, RootDir, Vec<u8>, Plan) {
         let plan = Plan::choose(space, keys.iter().map(Vec::as_slice), Limits::default());
-        let mut ordered: Vec<&Vec<u8>> = keys.iter().collect();
-        ordered.sort_by(|a, b| (plan.order_key(a), *a).cmp(&(plan.order_key(b), *b)));
-        let pairs: Vec<(Vec<u8>, Vec<u8>)> = ordered
-            .into_iter()
+        let pairs: Vec<(Vec<u8>, Vec<u8>)> = keys
+            .iter()
             .map(|k| {
                 (
                     k.clone(),
@@ -1052,7 +1347,7 @@ mod tests {
                 )
             })
             .collect();
-        let out = encode(plan.clone(), b"{}", &pairs).unwrap();
+        let out = encode(plan.clone(), b"{}", &pairs, Some(40)).unwrap();
         let header = Header::parse(&out).unwrap();
         header.check_len(out.len() as u64).unwrap();
         let root = RootDir::parse(
@@ -1063,8 +1358,10 @@ mod tests {
         (header, root, out, plan)
     }
 
+    /// The blob of `key` in `file`, whose leaf directories are `leaves`.
     fn read<'a>(
         root: &RootDir,
+        leaves: &[Entries],
         plan: &Plan,
         file: &'a [u8],
         key: &[u8],
@@ -1073,15 +1370,19 @@ mod tests {
         let b = match root.lookup(&plan.tiling, key) {
             Lookup::Blob(b) => b,
             Lookup::Absent => return Ok(None),
-            Lookup::Tile(i) => {
-                let t = &root.tiles[i];
-                match find(&parse_leaf(t, at(t.dir))?, key) {
-                    Some(b) => b,
-                    None => return Ok(None),
-                }
-            }
+            Lookup::Tile(i) => match find(&leaves[i], key) {
+                Some(b) => b,
+                None => return Ok(None),
+            },
         };
         b.check(at(b.framed())).map(Some)
+    }
+
+    fn leaves(root: &RootDir, file: &[u8]) -> Vec<Entries> {
+        root.tiles
+            .iter()
+            .map(|t| parse_leaf(t, &file[t.dir.offset as usize..t.dir.end() as usize]).unwrap())
+            .collect()
     }
 
     #[test]
@@ -1091,13 +1392,14 @@ mod tests {
             let all = keys(&d, levels);
             let space = IdSpace::Planar(d);
             let (_, root, out, plan) = file(&space, &all);
+            let leaves = leaves(&root, &out);
             assert_eq!(plan.tiled, all.len() > ROOT_ALL_MAX, "{m}");
             if plan.tiled {
                 assert!(root.entries.len() <= ROOT_SPLIT_MAX && !root.tiles.is_empty());
                 assert!(root.tiles.iter().all(|t| t.count as usize <= LEAF_MAX));
             }
             for k in &all {
-                let blob = read(&root, &plan, &out, k).unwrap().unwrap();
+                let blob = read(&root, &leaves, &plan, &out, k).unwrap().unwrap();
                 assert_eq!(blob.len(), k.len() + (k[0] as usize % 5));
             }
             // Keys without blobs: a deeper level, and a missing one.
@@ -1105,33 +1407,88 @@ mod tests {
                 .into_iter()
                 .find(|k| u32::from(k[0]) == levels)
                 .unwrap();
-            assert_eq!(read(&root, &plan, &out, &deeper), Ok(None));
+            assert_eq!(read(&root, &leaves, &plan, &out, &deeper), Ok(None));
             // Damage in a blob is found by its CRC.
-            let (k, b) = all
-                .iter()
-                .map(|k| {
-                    let b = match root.lookup(&plan.tiling, k) {
-                        Lookup::Blob(b) => b,
-                        Lookup::Tile(i) => {
-                            let t = &root.tiles[i];
-                            find(
-                                &parse_leaf(t, &out[t.dir.offset as usize..t.dir.end() as usize])
-                                    .unwrap(),
-                                k,
-                            )
-                            .unwrap()
-                        }
-                        Lookup::Absent => unreachable!(),
-                    };
-                    (k, b)
-                })
-                .nth(all.len() / 2)
-                .unwrap();
-            let last = k;
+            let k = &all[all.len() / 2];
+            let b = match root.lookup(&plan.tiling, k) {
+                Lookup::Blob(b) => b,
+                Lookup::Tile(i) => find(&leaves[i], k).unwrap(),
+                Lookup::Absent => unreachable!(),
+            };
             let mut bad = out.clone();
             bad[b.offset as usize] ^= 1;
-            let err = read(&root, &plan, &bad, last).unwrap_err();
+            let err = read(&root, &leaves, &plan, &bad, k).unwrap_err();
             assert!(err.to_string().contains("checksum mismatch"), "{err}");
+        }
+    }
+
+    /// A served package by the server's rule (`quincunx_store::Repository::package`),
+    /// children limited to those `same` accepts.
+    fn served(
+        space: &IdSpace,
+        blobs: &HashMap<Vec<u8>, Vec<u8>>,
+        key: &[u8],
+        limit: usize,
+        same: &dyn Fn(&[u8]) -> bool,
+    ) -> Vec<u8> {
+        let owned = space.owned_children(space.centre(key).unwrap()).unwrap();
+        let mut children = Vec::new();
+        for (i, c) in owned.into_iter().enumerate() {
+            let (k, _) = space.key_level(c).unwrap();
+            if blobs.contains_key(&k) && same(&k) {
+                let p = served(space, blobs, &k, limit, same);
+                if p.len() <= limit {
+                    children.push((i, p));
+                }
+            }
+        }
+        crate::answer::write(&blobs[key], &children, true)
+    }
+
+    #[test]
+    fn every_package_is_one_range_holding_what_a_server_answers() {
+        for (m, levels) in [(4, 8), (8, 15)] {
+            let d = PlanarDomain::new(m).unwrap();
+            let all = keys(&d, levels);
+            let space = IdSpace::Planar(d);
+            let (_, root, out, plan) = file(&space, &all);
+            let blobs: HashMap<Vec<u8>, Vec<u8>> = all
+                .iter()
+                .map(|k| {
+                    (
+                        k.clone(),
+                        vec![k[k.len() - 1]; k.len() + (k[0] as usize % 5)],
+                    )
+                })
+                .collect();
+            let at = |s: Section| &out[s.offset as usize..s.end() as usize];
+            let leaves = leaves(&root, &out);
+            let (mut carrying, mut carried) = (0, 0);
+            for k in &all {
+                let (b, dir) = match root.lookup(&plan.tiling, k) {
+                    Lookup::Blob(b) => (b, &root.entries),
+                    Lookup::Tile(i) => (find(&leaves[i], k).unwrap(), &leaves[i]),
+                    Lookup::Absent => unreachable!(),
+                };
+                let tile = plan.order_key(k);
+                let same = |c: &[u8]| plan.order_key(c) == tile;
+                let want = served(&space, &blobs, k, 40, &same);
+                let got = package_from(&space, k, b, at(b.package()), &|c| dir.find(c)).unwrap();
+                assert_eq!(got, want, "{k:?}");
+                if b.package_end > b.framed().end() {
+                    carrying += 1;
+                    carried += crate::answer::parse(&got, true).unwrap().children.len();
+                }
+                // A byte changed anywhere in the package is an error.
+                let mut bad = at(b.package()).to_vec();
+                let i = bad.len() / 2;
+                bad[i] ^= 4;
+                assert!(package_from(&space, k, b, &bad, &|c| dir.find(c)).is_err());
+            }
+            assert!(
+                carrying > all.len() / 8 && carried > carrying,
+                "{carrying} {carried}"
+            );
         }
     }
 
@@ -1154,9 +1511,9 @@ mod tests {
             bad[i] ^= 0x10;
             assert!(Header::parse(&bad).is_err(), "byte {i}");
         }
-        let mut v6 = out.clone();
-        v6[8] = 6;
-        assert_eq!(Header::parse(&v6), Err(PackError::Version(6)));
+        let mut v7 = out.clone();
+        v7[8] = 7;
+        assert_eq!(Header::parse(&v7), Err(PackError::Version(7)));
         assert!(matches!(
             header.check_len(out.len() as u64 - 1),
             Err(PackError::Incomplete(_))

@@ -2,7 +2,7 @@
 //! a metadata record and one opaque blob per non-empty diamond, keyed by the codec's
 //! locality key (spec: `docs/repository-format.md`).
 //!
-//! Layout (format 7, [`pack`]): a header, the root directory and the metadata record at
+//! Layout (format 8, [`pack`]): a header, the root directory and the metadata record at
 //! the start of the file (one small read opens it, locally or over HTTP ranges), the
 //! tiles' leaf directories, then the blobs, each followed by its CRC-32. Directories give
 //! every blob's exact byte range. Readers open the file read-only, keep the header and
@@ -676,25 +676,27 @@ impl RepositoryBuilder {
             reason,
         };
         let space = answer::IdSpace::of(&metadata).map_err(bad_metadata)?;
-        let order = self.file_order(&space);
+        let layout_err = |e: String| StoreError::Pack {
+            path: self.partial.clone(),
+            reason: pack::PackError::Damaged(e),
+        };
+        let (plan, placed) = self
+            .file_order(&space, metadata.inline_max_bytes)
+            .map_err(layout_err)?;
+        let keys: Vec<Vec<u8>> = placed.iter().map(|p| p.key.clone()).collect();
         let mut h = Sha256::new();
-        for kv in self.in_order(&order.1) {
+        for kv in self.in_order(&keys) {
             let (k, v) = kv?;
             hash_pair(&mut h, k, &v);
         }
         metadata.content_hash = finish_hash(h, &metadata, &self.partial)?;
         metadata.complete = true;
         let json = serde_json::to_vec(&metadata).map_err(|e| bad_metadata(e.to_string()))?;
-        let (plan, keys) = order;
         let mut dirs = pack::DirWriter::new(plan.clone());
-        for kv in self.lengths(&keys) {
-            let (k, len) = kv;
-            dirs.push(k, len).map_err(|e| StoreError::Pack {
-                path: self.partial.clone(),
-                reason: pack::PackError::Damaged(e),
-            })?;
+        for p in placed {
+            dirs.push(p).map_err(layout_err)?;
         }
-        let dirs = dirs.finish();
+        let dirs = dirs.finish().map_err(layout_err)?;
         let file_path = self.partial.join(PACK_FILE);
         let write_err = io_err("writing", &file_path);
         let mut out = std::io::BufWriter::with_capacity(1 << 20, &self.file);
@@ -762,28 +764,28 @@ impl RepositoryBuilder {
 }
 
 impl RepositoryBuilder {
-    /// The layout for the blobs put so far, and their keys in the file's order.
-    fn file_order(&self, space: &answer::IdSpace) -> (pack::Plan, Vec<Vec<u8>>) {
-        let keys: Vec<&Vec<u8>> = match &self.spill {
-            None => self.blobs.keys().collect(),
-            Some(spill) => spill.index.keys().collect(),
+    /// The layout for the blobs put so far, and their keys in the file's order
+    /// ([`pack::Plan::arrange`]: packages up to `inline_max_bytes`).
+    fn file_order(
+        &self,
+        space: &answer::IdSpace,
+        inline_max_bytes: Option<u32>,
+    ) -> std::result::Result<(pack::Plan, Vec<pack::Placed>), String> {
+        let lens: Vec<(Vec<u8>, u64)> = match &self.spill {
+            None => self
+                .blobs
+                .iter()
+                .map(|(k, v)| (k.clone(), v.len() as u64))
+                .collect(),
+            Some(spill) => spill
+                .index
+                .iter()
+                .map(|(k, &(_, len))| (k.clone(), len as u64))
+                .collect(),
         };
-        let plan = pack::Plan::choose(space, keys.iter().map(|k| k.as_slice()), self.limits);
-        // Keys come in key order; a stable sort by tile keeps it within each tile.
-        let mut keys: Vec<Vec<u8>> = keys.into_iter().cloned().collect();
-        keys.sort_by_cached_key(|k| plan.order_key(k));
-        (plan, keys)
-    }
-
-    /// The length of each blob of `keys`.
-    fn lengths<'a>(&'a self, keys: &'a [Vec<u8>]) -> impl Iterator<Item = (&'a [u8], u64)> + 'a {
-        keys.iter().map(move |k| {
-            let len = match &self.spill {
-                None => self.blobs.get(k).map_or(0, Vec::len),
-                Some(spill) => spill.index.get(k).map_or(0, |&(_, len)| len),
-            };
-            (k.as_slice(), len as u64)
-        })
+        let plan = pack::Plan::choose(space, lens.iter().map(|(k, _)| k.as_slice()), self.limits);
+        let placed = plan.arrange(lens, inline_max_bytes)?;
+        Ok((plan, placed))
     }
 
     /// The blobs of `keys`, in that order.

@@ -1,4 +1,4 @@
-//! The repository file on disk: the layout of [`quincunx_meta::pack`] (format 7), read
+//! The repository file on disk: the layout of [`quincunx_meta::pack`] (format 8), read
 //! with positioned reads and written in one pass.
 //!
 //! Reading keeps the header, the root directory and the tiling in memory, and the leaf
@@ -169,7 +169,7 @@ impl Iterator for Walk<'_> {
             if let Some(item) = self.ready.pop_front() {
                 return Some(item);
             }
-            let root = &self.pack.root.entries;
+            let root = &self.pack.root.entries.list;
             if self.root_at < root.len() {
                 let n = batch(&root[self.root_at..]);
                 self.pack
@@ -179,10 +179,12 @@ impl Iterator for Walk<'_> {
             }
             if let Some(entries) = &self.tile_entries {
                 if self.tile_at < entries.len() {
-                    let n = batch(&entries[self.tile_at..]);
+                    let n = batch(&entries.list[self.tile_at..]);
                     let entries = Arc::clone(entries);
-                    self.pack
-                        .read_run(&entries[self.tile_at..self.tile_at + n], &mut self.ready);
+                    self.pack.read_run(
+                        &entries.list[self.tile_at..self.tile_at + n],
+                        &mut self.ready,
+                    );
                     self.tile_at += n;
                     continue;
                 }

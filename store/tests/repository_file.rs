@@ -47,11 +47,16 @@ fn build(path: &Path, overwrite: bool) -> Metadata {
     for (k, v) in &pairs() {
         b.put(u32::from(k[0]), k, v).unwrap();
     }
-    b.publish(metadata(), overwrite).unwrap()
+    // Packages of children up to 100 bytes: the golden file lays them out.
+    let meta = Metadata {
+        inline_max_bytes: Some(100),
+        ..metadata()
+    };
+    b.publish(meta, overwrite).unwrap()
 }
 
 fn golden() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/format7.pack")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/format8.pack")
 }
 
 #[test]

@@ -262,9 +262,10 @@ fn sessions_stream_repository_files_from_nginx_crack_free_and_blobs_read_back_ex
     }
     let stats = fetcher.stats();
     // Batches are what the bandwidth window releases at a time; neighbours in one are
-    // coalesced.
+    // coalesced (bare blobs: siblings lie apart, each followed by its package's
+    // children, so fewer join than in key order).
     assert!(
-        stats.requests < keys.len() as u64 * 3 / 4,
+        stats.requests < keys.len() as u64 * 9 / 10,
         "{} requests for {} blobs: coalesced",
         stats.requests,
         keys.len()

@@ -190,9 +190,11 @@ impl Planner {
 
     /// A planned key was handed to a transport that counts its own requests (a range
     /// reader: one request carries many keys, a leaf none): in flight, not counted, and
-    /// answered with a bare blob (a range reader brings a package's children as
-    /// separate blobs, [`Planner::carried`]).
+    /// answered as [`Planned::packaged`] says, like [`Planner::sent`].
     pub fn sent_uncounted(&mut self, request: Planned, now: Duration) {
+        if request.packaged {
+            self.packaged.insert(request.key);
+        }
         self.sched.issued(request.key, now);
     }
 

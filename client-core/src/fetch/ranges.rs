@@ -1,4 +1,4 @@
-//! Reading a repository file (`repository.pack`, format 7) with HTTP range requests,
+//! Reading a repository file (`repository.pack`, format 8) with HTTP range requests,
 //! without I/O: what to request for a set of wanted keys, and what an answer means.
 //!
 //! The caller (the native network thread, or the browser) opens the file with
@@ -9,18 +9,16 @@
 //! - Keys the directories do not list are leaves at once: no request.
 //! - Keys of a tile whose leaf directory is not loaded wait for it; the directory is
 //!   requested once, however many keys wait.
-//! - Blob ranges are **coalesced**: sorted by offset, two neighbours go in one request
-//!   when the gap between them is at most [`RangeConfig::max_gap`] bytes (an answer head
+//! - **Packages are one range.** A key asked for as a package is read from its blob to
+//!   the end of its package (the file lays a package out contiguously, see
+//!   [`quincunx_meta::pack`]), and answered with the package a server would send: the
+//!   same round trip brings the small owned children.
+//! - Ranges are **coalesced**: sorted by offset, two neighbours go in one request when
+//!   the gap between them is at most [`RangeConfig::max_gap`] bytes (an answer head
 //!   costs more than that) and the request stays within [`RangeConfig::max_run`] bytes.
 //! - Every blob is checked against its CRC-32 before it is handed on, so a wrong answer
 //!   (a server that ignores the range, a changed file, a bad cache) is an error, never a
 //!   wrong blob.
-//! - **Coalescing replaces packages.** A server's package saves answer heads and a round
-//!   trip by carrying a diamond's small owned children; here the children's blobs are
-//!   in another level's part of the file, so carrying them costs requests of their own,
-//!   outside the bandwidth window. Measured on korea (`docs/hosting.md`), that was
-//!   slower than asking for bare blobs and coalescing them, which needs 1,700 requests
-//!   for a flight the server answers with 2,400 packages, or 5,600 bare blobs.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -132,11 +130,32 @@ impl RangeRequest {
     }
 }
 
+/// A key to read: where its blob is, and whether it is read as a package.
+#[derive(Clone, Copy, Debug)]
+struct Wanted {
+    key: Key,
+    blob: BlobRef,
+    packaged: bool,
+    /// The directory listing it: the root (`None`) or a tile's.
+    dir: Option<usize>,
+}
+
+impl Wanted {
+    /// The bytes it needs.
+    fn span(&self) -> Section {
+        if self.packaged {
+            self.blob.package()
+        } else {
+            self.blob.framed()
+        }
+    }
+}
+
 /// What a request is for.
 #[derive(Debug)]
 enum Pending {
-    /// Blobs of these keys, at these places, inside the request's range.
-    Blobs(Section, Vec<(Key, BlobRef)>),
+    /// These keys, inside the request's range.
+    Blobs(Section, Vec<Wanted>),
     /// The leaf directory of tile `i`.
     Dir(usize),
 }
@@ -146,11 +165,13 @@ enum Pending {
 pub struct Step {
     /// Keys that have no blob: leaves.
     pub leaves: Vec<Key>,
-    /// Keys' blobs, checked, or why a key failed.
+    /// Keys' answers, checked, or why a key failed: the bare blob, or for a key asked
+    /// for as a package, the package ([`quincunx_meta::answer`] framing).
     pub blobs: Vec<(Key, Result<Bytes, FetchError>)>,
     /// Requests to send.
     pub requests: Vec<RangeRequest>,
-    /// Bytes of the answer that were no blob: directories, gaps, checksums.
+    /// Bytes read that no answer in `blobs` holds: directories, gaps, checksums (less
+    /// the packages' framing).
     pub overhead_bytes: u64,
 }
 
@@ -161,7 +182,7 @@ pub struct RangeReader {
     config: RangeConfig,
     leaves: HashMap<usize, Arc<Entries>>,
     /// Tiles whose directory is being read, with the keys waiting for it.
-    waiting: HashMap<usize, Vec<Key>>,
+    waiting: HashMap<usize, Vec<(Key, bool)>>,
     pending: HashMap<u64, Pending>,
     next_tag: u64,
 }
@@ -191,19 +212,25 @@ impl RangeReader {
         tag
     }
 
-    /// What fetching `keys` takes: leaves known at once, and requests (coalesced blob
-    /// ranges, leaf directories not yet loaded or requested).
-    pub fn plan(&mut self, keys: &[Key]) -> Step {
+    /// What fetching `keys` takes (each with whether to read it as a package): leaves
+    /// known at once, and requests (coalesced ranges, leaf directories not yet loaded
+    /// or requested).
+    pub fn plan(&mut self, keys: &[(Key, bool)]) -> Step {
         let mut step = Step::default();
         let mut found = Vec::new();
-        for &key in keys {
+        for &(key, packaged) in keys {
             match self.locate(key) {
                 Err(e) => step.blobs.push((key, Err(e))),
                 Ok(Located::Absent) => step.leaves.push(key),
-                Ok(Located::Blob(b)) => found.push((key, b)),
+                Ok(Located::Blob(blob, dir)) => found.push(Wanted {
+                    key,
+                    blob,
+                    packaged,
+                    dir,
+                }),
                 Ok(Located::Tile(i)) => {
                     let waiting = self.waiting.entry(i).or_default();
-                    waiting.push(key);
+                    waiting.push((key, packaged));
                     if waiting.len() == 1 {
                         let dir = self.index.root.tiles[i].dir;
                         let tag = self.tag(Pending::Dir(i));
@@ -223,45 +250,72 @@ impl RangeReader {
             .key_level(key)
             .map_err(|e| FetchError::Protocol(format!("key {key:?}: {e}")))?;
         Ok(match self.index.root.lookup(&self.index.tiling, &k) {
-            Lookup::Blob(b) => Located::Blob(b),
+            Lookup::Blob(b) => Located::Blob(b, None),
             Lookup::Absent => Located::Absent,
             Lookup::Tile(i) => match self.leaves.get(&i) {
-                Some(entries) => pack::find(entries, &k).map_or(Located::Absent, Located::Blob),
+                Some(entries) => entries
+                    .find(&k)
+                    .map_or(Located::Absent, |b| Located::Blob(b, Some(i))),
                 None => Located::Tile(i),
             },
         })
     }
 
-    /// Groups blob ranges into requests (see the module docs).
-    fn coalesce(&mut self, mut found: Vec<(Key, BlobRef)>, step: &mut Step) {
-        found.sort_by_key(|(_, b)| b.offset);
-        found.dedup_by_key(|(_, b)| b.offset);
+    /// Groups ranges into requests (see the module docs).
+    fn coalesce(&mut self, mut found: Vec<Wanted>, step: &mut Step) {
+        found.sort_by_key(|w| (w.blob.offset, std::cmp::Reverse(w.span().end())));
+        found.dedup_by_key(|w| w.blob.offset);
 
-        let mut run: Vec<(Key, BlobRef)> = Vec::new();
-        let mut flush = |run: &mut Vec<(Key, BlobRef)>, reader: &mut RangeReader| {
-            if let (Some((_, first)), Some((_, last))) = (run.first(), run.last()) {
+        let mut run: Vec<Wanted> = Vec::new();
+        let mut end = 0;
+        let mut flush = |run: &mut Vec<Wanted>, end: u64, reader: &mut RangeReader| {
+            if let Some(first) = run.first() {
                 let range = Section {
-                    offset: first.offset,
-                    len: last.framed().end() - first.offset,
+                    offset: first.blob.offset,
+                    len: end - first.blob.offset,
                 };
                 let tag = reader.tag(Pending::Blobs(range, std::mem::take(run)));
                 step.requests.push(RangeRequest { tag, range });
             }
         };
-        for (key, b) in found {
-            if let (Some((_, first)), Some((_, last))) = (run.first(), run.last()) {
-                let gap = b.offset.saturating_sub(last.framed().end());
-                let len = b.framed().end() - first.offset;
-                if b.offset < last.framed().end()
-                    || gap > self.config.max_gap
-                    || len > self.config.max_run
-                {
-                    flush(&mut run, self);
+        for w in found {
+            let span = w.span();
+            if let Some(first) = run.first() {
+                let gap = span.offset.saturating_sub(end);
+                let len = span.end().max(end) - first.blob.offset;
+                if gap > self.config.max_gap || len > self.config.max_run {
+                    flush(&mut run, end, self);
                 }
             }
-            run.push((key, b));
+            end = if run.is_empty() {
+                span.end()
+            } else {
+                end.max(span.end())
+            };
+            run.push(w);
         }
-        flush(&mut run, self);
+        flush(&mut run, end, self);
+    }
+
+    /// The answer of `w` out of `body`, the bytes of `range`.
+    fn read(&self, w: &Wanted, range: Section, body: &Bytes) -> Result<Bytes, String> {
+        let span = w.span();
+        let at = (span.offset - range.offset) as usize;
+        let bytes = body.slice(at..at + span.len as usize);
+        if !w.packaged {
+            return match w.blob.check(&bytes) {
+                Ok(_) => Ok(bytes.slice(..w.blob.len as usize)),
+                Err(e) => Err(e.reason()),
+            };
+        }
+        let (k, _) = self.index.space.key_level(w.key)?;
+        let find = |c: &[u8]| match w.dir {
+            None => self.index.root.entries.find(c),
+            Some(i) => self.leaves.get(&i).and_then(|e| e.find(c)),
+        };
+        pack::package_from(&self.index.space, &k, w.blob, &bytes, &find)
+            .map(Bytes::from)
+            .map_err(PackError::reason)
     }
 
     /// The answer to request `tag`: the bytes of exactly its range (the caller has checked
@@ -274,35 +328,32 @@ impl RangeReader {
             return step;
         };
         match pending {
-            Pending::Blobs(range, blobs) => {
+            Pending::Blobs(range, wanted) => {
                 let body = match answer.and_then(|b| exact(b, range)) {
                     Ok(b) => b,
                     Err(e) => {
-                        step.blobs = blobs
+                        step.blobs = wanted
                             .into_iter()
-                            .map(|(k, _)| (k, Err(e.clone())))
+                            .map(|w| (w.key, Err(e.clone())))
                             .collect();
                         return step;
                     }
                 };
                 let mut used = 0;
-                for (key, b) in blobs {
-                    let at = (b.offset - range.offset) as usize;
-                    let framed = body.slice(at..at + b.framed().len as usize);
-                    let blob = match b.check(&framed) {
-                        Ok(_) => {
-                            used += b.len;
-                            Ok(framed.slice(..b.len as usize))
+                for w in wanted {
+                    let answer = match self.read(&w, range, &body) {
+                        Ok(b) => {
+                            used += b.len() as u64;
+                            Ok(b)
                         }
                         Err(e) => Err(FetchError::Protocol(format!(
-                            "blob at {} of the repository file: {}",
-                            b.offset,
-                            e.reason()
+                            "blob at {} of the repository file: {e}",
+                            w.blob.offset
                         ))),
                     };
-                    step.blobs.push((key, blob));
+                    step.blobs.push((w.key, answer));
                 }
-                step.overhead_bytes = body.len() as u64 - used;
+                step.overhead_bytes = (body.len() as u64).saturating_sub(used);
             }
             Pending::Dir(i) => {
                 let keys = self.waiting.remove(&i).unwrap_or_default();
@@ -318,7 +369,7 @@ impl RangeReader {
                 });
                 match parsed {
                     Err(e) => {
-                        step.blobs = keys.into_iter().map(|k| (k, Err(e.clone()))).collect();
+                        step.blobs = keys.into_iter().map(|(k, _)| (k, Err(e.clone()))).collect();
                     }
                     Ok(entries) => {
                         step.overhead_bytes = tile.dir.len;
@@ -344,7 +395,8 @@ impl RangeReader {
 }
 
 enum Located {
-    Blob(BlobRef),
+    /// Its blob, in the root's directory (`None`) or a tile's.
+    Blob(BlobRef, Option<usize>),
     Absent,
     Tile(usize),
 }
@@ -370,9 +422,17 @@ mod tests {
     use super::*;
     use quincunx_diamond::{PlanarDomain, PlanarId};
 
+    /// Packages carry children of at most this many bytes.
+    const INLINE: u32 = 60;
+
     /// A file of every diamond of levels 0-9 of a 64-square (blob = 20 bytes of the key's
     /// last byte), tiled with small limits; returns it, its index and the keys as centres.
     fn file(tiled: bool) -> (Vec<u8>, Arc<PackIndex>, Vec<Key>) {
+        file_with(tiled, Some(INLINE))
+    }
+
+    /// [`file`] with packages of children up to `inline` bytes (`None`: key order).
+    fn file_with(tiled: bool, inline: Option<u32>) -> (Vec<u8>, Arc<PackIndex>, Vec<Key>) {
         let d = PlanarDomain::new(6).unwrap();
         let mut ids: Vec<(Vec<u8>, Key)> = (0..=64)
             .flat_map(|x| (0..=64).map(move |y| PlanarId::new(x, y)))
@@ -391,14 +451,12 @@ mod tests {
             pack::Limits::default()
         };
         let plan = pack::Plan::choose(&space, ids.iter().map(|(k, _)| k.as_slice()), limits);
-        let mut ordered = ids.clone();
-        ordered.sort_by_cached_key(|(k, _)| (plan.order_key(k), k.clone()));
-        let pairs: Vec<(Vec<u8>, Vec<u8>)> = ordered
+        let pairs: Vec<(Vec<u8>, Vec<u8>)> = ids
             .iter()
             .map(|(k, _)| (k.clone(), vec![k[k.len() - 1]; 20]))
             .collect();
         let json = serde_json::to_vec(&metadata()).unwrap();
-        let out = pack::encode(plan, &json, &pairs).unwrap();
+        let out = pack::encode(plan, &json, &pairs, inline).unwrap();
         let (index, _) = PackIndex::open(&out, out.len() as u64).unwrap();
         (
             out,
@@ -435,7 +493,18 @@ mod tests {
         file: &[u8],
         keys: &[Key],
     ) -> (HashMap<Key, Bytes>, Vec<Key>, usize, u64) {
-        let mut step = reader.plan(keys);
+        drive_as(reader, file, keys, false)
+    }
+
+    /// [`drive`], asking for packages when `packaged`.
+    fn drive_as(
+        reader: &mut RangeReader,
+        file: &[u8],
+        keys: &[Key],
+        packaged: bool,
+    ) -> (HashMap<Key, Bytes>, Vec<Key>, usize, u64) {
+        let keys: Vec<(Key, bool)> = keys.iter().map(|&k| (k, packaged)).collect();
+        let mut step = reader.plan(&keys);
         let (mut blobs, mut leaves, mut requests, mut overhead) =
             (HashMap::new(), Vec::new(), 0, 0);
         loop {
@@ -482,16 +551,56 @@ mod tests {
     }
 
     #[test]
+    fn packages_read_as_one_range_carry_the_small_owned_children() {
+        use quincunx_meta::answer;
+        for tiled in [false, true] {
+            let (file, index, keys) = file(tiled);
+            // Shallow keys one at a time, as a viewer refining asks for them.
+            let mut reader = RangeReader::new(Arc::clone(&index), RangeConfig::default());
+            let (mut requests, mut carried) = (0, 0);
+            for &key in keys.iter().filter(|&&k| index.space.level(k).unwrap() < 7) {
+                let (blobs, _, r, _) = drive_as(&mut reader, &file, &[key], true);
+                requests += r;
+                let (k, _) = index.space.key_level(key).unwrap();
+                let parsed = answer::parse(&blobs[&key], true).unwrap();
+                assert_eq!(parsed.blob, &[k[k.len() - 1]; 20][..]);
+                let owned = index.space.owned_children(key).unwrap();
+                for (i, child) in parsed.children {
+                    let (ck, _) = index.space.key_level(owned[i]).unwrap();
+                    let inner = answer::parse(child, true).unwrap();
+                    assert_eq!(inner.blob, &[ck[ck.len() - 1]; 20][..]);
+                    assert!(child.len() <= INLINE as usize);
+                    carried += 1;
+                }
+            }
+            assert!(carried > 30, "{tiled}: {carried} carried");
+            // One request per package (and per leaf directory).
+            let shallow = keys.iter().filter(|&&k| index.space.level(k).unwrap() < 7);
+            assert!(requests <= shallow.count() + index.root.tiles.len());
+            // A package answer with a byte changed fails that key only.
+            let mut reader = RangeReader::new(Arc::clone(&index), RangeConfig::default());
+            let step = reader.plan(&[(keys[0], true), (keys[keys.len() - 1], false)]);
+            for r in step.requests {
+                let mut body = file[r.range.offset as usize..r.range.end() as usize].to_vec();
+                body[0] ^= 1;
+                let s = reader.answered(r.tag, Ok(Bytes::from(body)));
+                assert!(s.blobs.iter().all(|(_, b)| b.is_err()), "{:?}", s.blobs);
+            }
+        }
+    }
+
+    #[test]
     fn gaps_over_the_limit_split_requests_and_wrong_answers_are_errors() {
-        let (file, index, keys) = file(false);
+        let (file, index, keys) = file_with(false, None);
         let mut reader = RangeReader::new(Arc::clone(&index), RangeConfig::default());
         // Every 20th key: 24-byte blobs 456 bytes apart, so no two share a request.
         let sparse: Vec<Key> = keys.iter().step_by(20).copied().collect();
+        let sparse: Vec<(Key, bool)> = sparse.into_iter().map(|k| (k, false)).collect();
         let sparse_step = reader.plan(&sparse);
         assert_eq!(sparse_step.requests.len(), sparse.len());
         // Every 5th: gaps of 96 bytes, joined.
         let mut reader = RangeReader::new(Arc::clone(&index), RangeConfig::default());
-        let dense: Vec<Key> = keys.iter().step_by(5).copied().collect();
+        let dense: Vec<(Key, bool)> = keys.iter().step_by(5).map(|&k| (k, false)).collect();
         let step = reader.plan(&dense);
         assert!(
             step.requests.len() < dense.len() / 10,
@@ -525,10 +634,10 @@ mod tests {
     fn keys_of_one_tile_share_one_directory_request() {
         let (file, index, keys) = file(true);
         let mut reader = RangeReader::new(Arc::clone(&index), RangeConfig::default());
-        let deep: Vec<Key> = keys
+        let deep: Vec<(Key, bool)> = keys
             .iter()
             .filter(|&&c| index.space.level(c).unwrap() >= index.tiling.split_level)
-            .copied()
+            .map(|&k| (k, false))
             .collect();
         let step = reader.plan(&deep);
         assert!(step.blobs.is_empty() && step.leaves.is_empty());
@@ -536,7 +645,7 @@ mod tests {
         // A failed directory read fails its keys; planning them again asks again.
         let r = step.requests[0];
         let s = reader.answered(r.tag, Err(FetchError::Status(503)));
-        let failed: Vec<Key> = s.blobs.iter().map(|(k, _)| *k).collect();
+        let failed: Vec<(Key, bool)> = s.blobs.iter().map(|(k, _)| (*k, false)).collect();
         assert!(!failed.is_empty());
         let again = reader.plan(&failed);
         assert_eq!(again.requests.len(), 1);

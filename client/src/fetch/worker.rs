@@ -372,9 +372,7 @@ impl<T: Weigh + Send + Sync + 'static> Worker<T> {
                     .plan(now, room, |k| cache.is_leaf(k) || cache.contains(k))
             };
             if !planned.is_empty() {
-                // Asked for as packages or not, keys are bare blobs here (see
-                // `ranges`: coalescing replaces packages).
-                let keys: Vec<Key> = planned.iter().map(|p| p.key).collect();
+                let keys: Vec<(Key, bool)> = planned.iter().map(|p| (p.key, p.packaged)).collect();
                 for p in planned {
                     self.planner.sent_uncounted(p, now);
                 }
