@@ -215,3 +215,30 @@ pub extern "C" fn qx_reconstruct(len: u32, decoder: u32) -> i32 {
         Ok((0, m.reconstruct(i, decoder, &PageClock)?))
     }))
 }
+
+/// [`Module::pack_first`].
+#[unsafe(no_mangle)]
+pub extern "C" fn qx_pack_first(len: u32) -> i32 {
+    status(call(len, |m, i| Ok((0, m.pack_first(i)?))))
+}
+
+/// A repository file's reader ([`Module::pack_new`]); its handle.
+#[unsafe(no_mangle)]
+pub extern "C" fn qx_pack_new(len: u32) -> i32 {
+    status(call(len, |m, i| {
+        let (h, out) = m.pack_new(i)?;
+        Ok((h as i32, out))
+    }))
+}
+
+/// [`Module::pack_plan`].
+#[unsafe(no_mangle)]
+pub extern "C" fn qx_pack_plan(h: u32, len: u32) -> i32 {
+    status(call(len, |m, i| Ok((0, m.pack_plan(h, i)?))))
+}
+
+/// [`Module::pack_answered`].
+#[unsafe(no_mangle)]
+pub extern "C" fn qx_pack_answered(h: u32, len: u32) -> i32 {
+    status(call(len, |m, i| Ok((0, m.pack_answered(h, i)?))))
+}

@@ -7,6 +7,7 @@ use std::collections::HashMap;
 use bytes::Bytes;
 use glam::DVec3;
 
+use quincunx_client_core::fetch::ranges::Step;
 use quincunx_client_core::fetch::{FetchError, Key};
 use quincunx_client_core::refine::Clock;
 use quincunx_decoder::incremental::{PlanarRefiner, SphereRefiner};
@@ -15,6 +16,7 @@ use quincunx_meta::Domain as MetaDomain;
 use crate::client::{Camera, Client, WebError, ms, view_of};
 use crate::decode::AnswerDecoder;
 use crate::open::Open;
+use crate::pack::{FirstRead, PackReader, RangeAnswer};
 use crate::wire::{Reader, Writer};
 
 /// A client in its domain.
@@ -38,6 +40,7 @@ macro_rules! with_client {
 enum Object {
     Decoder(AnswerDecoder),
     Client(AnyClient),
+    Pack(Box<PackReader>),
 }
 
 /// Every object the page holds, by handle.
@@ -71,6 +74,8 @@ fn result_of(
         2 => Err(FetchError::Timeout(ms(r
             .f64()
             .map_err(|e| e.to_string())?)?)),
+        3 => Err(FetchError::Changed(text())),
+        4 => Err(FetchError::Protocol(text())),
         k => return Err(format!("answer kind {k}")),
     })
 }
@@ -122,8 +127,9 @@ impl Module {
     }
 
     /// An answer: input `u8 layer, u8 kind, key`, then for kind 0 (HTTP) `u32 status,
-    /// body`, 1 (connection failure) a message, 2 (timeout) `f64 ms`. Returns 0, or 1 /
-    /// 2 when the body is to be decoded bare / as a package.
+    /// body`, 1 (connection failure) a message, 2 (timeout) `f64 ms`, 3 (the repository
+    /// file changed) and 4 (a malformed answer) a message. Returns 0, or 1 / 2 when the
+    /// body is to be decoded bare / as a package.
     pub fn client_answer(&mut self, h: u32, input: &[u8], now_ms: f64) -> Result<i32, WebError> {
         let now = ms(now_ms)?;
         let mut r = Reader::new(input);
@@ -270,6 +276,179 @@ impl Module {
         w.f64(lo);
         w.f64(hi);
         Ok(w.out)
+    }
+}
+
+/// A string the page passes (`""`: none).
+fn opt_str(v: &[u8]) -> Result<Option<&str>, WebError> {
+    let s = std::str::from_utf8(v).map_err(|e| e.to_string())?;
+    Ok((!s.is_empty()).then_some(s))
+}
+
+/// An answer as the page saw it: `u32 status, bytes content_range, bytes etag`, then the
+/// body (the rest).
+fn range_answer<'a>(r: &mut Reader<'a>, input: &'a [u8]) -> Result<RangeAnswer<'a>, WebError> {
+    let e = |e: crate::wire::WireError| e.to_string();
+    let status = u16::try_from(r.u32().map_err(e)?).map_err(|_| "status out of range")?;
+    let content_range = opt_str(r.bytes().map_err(e)?)?;
+    let etag = opt_str(r.bytes().map_err(e)?)?;
+    let body = &input[r.position()..];
+    Ok(RangeAnswer {
+        status,
+        content_range,
+        etag,
+        body,
+    })
+}
+
+/// A range reader's step for the page: `u32 n, key*` (leaves); `u32 n, (key, u8 kind,
+/// bytes payload)*` (answers to hand to [`Module::client_answer`] as they are: kind 0
+/// `u32 200, blob` or another status, or a failure's kind and message); `u32 n, (f64
+/// tag, f64 offset, f64 len)*` (range requests to send); `f64` bytes besides blobs.
+fn write_step(step: Step) -> Vec<u8> {
+    let mut w = Writer::default();
+    w.count(step.leaves.len());
+    for k in step.leaves {
+        w.key(k);
+    }
+    w.count(step.blobs.len());
+    for (k, result) in step.blobs {
+        w.key(k);
+        let mut payload = Writer::default();
+        let kind = match result {
+            Ok(blob) => {
+                payload.u32(200);
+                payload.out.extend_from_slice(&blob);
+                0
+            }
+            Err(FetchError::Status(s)) => {
+                payload.u32(u32::from(s));
+                0
+            }
+            Err(FetchError::Connection(m)) => {
+                payload.out.extend_from_slice(m.as_bytes());
+                1
+            }
+            Err(FetchError::Timeout(t) | FetchError::Deadline(t)) => {
+                payload.f64(t.as_secs_f64() * 1000.0);
+                2
+            }
+            Err(FetchError::Changed(m)) => {
+                payload.out.extend_from_slice(m.as_bytes());
+                3
+            }
+            Err(e) => {
+                payload.out.extend_from_slice(e.to_string().as_bytes());
+                4
+            }
+        };
+        w.u8(kind);
+        w.bytes(&payload.out);
+    }
+    w.count(step.requests.len());
+    for r in step.requests {
+        w.f64(r.tag as f64);
+        w.f64(r.range.offset as f64);
+        w.f64(r.range.len as f64);
+    }
+    w.f64(step.overhead_bytes as f64);
+    w.out
+}
+
+impl Module {
+    fn pack(&mut self, h: u32) -> Result<&mut PackReader, WebError> {
+        match self.objects.get_mut(&h) {
+            Some(Object::Pack(p)) => Ok(p),
+            _ => Err(format!("no repository file {h}")),
+        }
+    }
+
+    /// The first read of a repository file: input `bytes url`, then the answer
+    /// (`u32 status, bytes content_range, bytes etag, body`). Output `f64 file_len, f64
+    /// open_len` ([`PackReader::first`]).
+    pub fn pack_first(&mut self, input: &[u8]) -> Result<Vec<u8>, WebError> {
+        let mut r = Reader::new(input);
+        let url = std::str::from_utf8(r.bytes().map_err(|e| e.to_string())?)
+            .map_err(|e| e.to_string())?;
+        let answer = range_answer(&mut r, input)?;
+        let first = PackReader::first(url, &answer)?;
+        let mut w = Writer::default();
+        w.f64(first.file_len as f64);
+        w.f64(first.open_len as f64);
+        Ok(w.out)
+    }
+
+    /// Opens a repository file: input `bytes url, f64 file_len, f64 open_len, bytes etag,
+    /// bytes first_body, u8 has_rest`, then (if it has) the rest's answer. Returns its
+    /// handle; output the JSON `{"meta": <metadata>, "etag": <the pinned ETag> | null,
+    /// "fileLen"}`.
+    pub fn pack_new(&mut self, input: &[u8]) -> Result<(u32, Vec<u8>), WebError> {
+        let e = |e: crate::wire::WireError| e.to_string();
+        let mut r = Reader::new(input);
+        let url = std::str::from_utf8(r.bytes().map_err(e)?).map_err(|e| e.to_string())?;
+        let [file_len, open_len] = [r.f64().map_err(e)?, r.f64().map_err(e)?].map(|v| {
+            if v.is_finite() && v >= 0.0 {
+                v as u64
+            } else {
+                u64::MAX
+            }
+        });
+        let etag = opt_str(r.bytes().map_err(e)?)?;
+        let first_body = r.bytes().map_err(e)?;
+        let rest = match r.u8().map_err(e)? {
+            0 => None,
+            _ => Some(range_answer(&mut r, input)?),
+        };
+        let first = FirstRead { file_len, open_len };
+        let (pack, meta) = PackReader::open(url, first, first_body, etag, rest.as_ref())?;
+        let out = serde_json::json!({
+            "meta": meta,
+            "etag": pack.etag(),
+            "fileLen": file_len,
+        });
+        let h = self.insert(Object::Pack(Box::new(pack)));
+        Ok((h, out.to_string().into_bytes()))
+    }
+
+    /// What fetching keys takes: input `u32 n, (u8 packaged, key)*` (as
+    /// [`Module::client_plan`] gives them, without the layer). Output: a step
+    /// ([`write_step`]).
+    pub fn pack_plan(&mut self, h: u32, input: &[u8]) -> Result<Vec<u8>, WebError> {
+        let e = |e: crate::wire::WireError| e.to_string();
+        let mut r = Reader::new(input);
+        let n = r.count(25).map_err(e)?;
+        let mut keys = Vec::with_capacity(n);
+        for _ in 0..n {
+            let packaged = r.u8().map_err(e)? != 0;
+            keys.push((r.key().map_err(e)?, packaged));
+        }
+        r.finish().map_err(e)?;
+        Ok(write_step(self.pack(h)?.plan(&keys)))
+    }
+
+    /// The answer to range request `tag`: input `f64 tag, u8 kind`, then for kind 0 the
+    /// answer (`u32 status, bytes content_range, bytes etag, body`), 1 a failure's message
+    /// (a network or CORS failure), 2 `f64 ms` (a timeout). Output: a step.
+    pub fn pack_answered(&mut self, h: u32, input: &[u8]) -> Result<Vec<u8>, WebError> {
+        let e = |e: crate::wire::WireError| e.to_string();
+        let mut r = Reader::new(input);
+        let tag = r.f64().map_err(e)?;
+        if !(tag.is_finite() && tag >= 0.0) {
+            return Err(format!("tag {tag}"));
+        }
+        let answer;
+        let result = match r.u8().map_err(e)? {
+            0 => {
+                answer = range_answer(&mut r, input)?;
+                Ok(&answer)
+            }
+            1 => Err(FetchError::Connection(
+                String::from_utf8_lossy(&input[r.position()..]).into_owned(),
+            )),
+            2 => Err(FetchError::Timeout(ms(r.f64().map_err(e)?)?)),
+            k => return Err(format!("answer kind {k}")),
+        };
+        Ok(write_step(self.pack(h)?.answered(tag as u64, result)))
     }
 }
 

@@ -8,6 +8,8 @@
 //! - [`decode`]: a decoding worker's side (one answer's bytes to details).
 //! - [`reconstruct`]: a whole repository at full resolution, by the whole-raster decoder
 //!   `quincunx verify` runs or by the refiners (the reconstruction hash `verify` prints).
+//! - [`pack`]: a repository file read with range requests (the client core's range
+//!   reader; the page runs `fetch`, this code checks every answer).
 //! - [`wire`]: the byte layouts between workers, client and page; [`api`]: the calls on
 //!   byte buffers; the exports themselves (`abi.rs`) exist on `wasm32` only.
 //!
@@ -17,6 +19,7 @@ pub mod api;
 pub mod client;
 pub mod decode;
 pub mod open;
+pub mod pack;
 pub mod reconstruct;
 pub mod wire;
 

@@ -100,6 +100,11 @@ impl<'a> Reader<'a> {
             .collect())
     }
 
+    /// Bytes read so far.
+    pub fn position(&self) -> usize {
+        self.at
+    }
+
     /// Whether everything was read.
     pub fn finish(&self) -> Result<(), WireError> {
         if self.at == self.bytes.len() {
@@ -144,6 +149,12 @@ impl Writer {
     /// An `i64`.
     pub fn i64(&mut self, v: i64) {
         self.out.extend_from_slice(&v.to_le_bytes());
+    }
+
+    /// A length-prefixed byte string ([`Reader::bytes`]).
+    pub fn bytes(&mut self, v: &[u8]) {
+        self.count(v.len());
+        self.out.extend_from_slice(v);
     }
 
     /// A fetch key.

@@ -5,6 +5,7 @@
 pub mod bandwidth;
 pub mod cache;
 pub mod planner;
+pub mod range_answer;
 pub mod ranges;
 pub mod schedule;
 

@@ -486,21 +486,7 @@ enum Head {
 /// `bytes <first>-<last>/<total>` (total `*`: `u64::MAX`), with `first <= last < total`,
 /// or `bytes */<total>` (`[u64::MAX, 0, total]`).
 pub(crate) fn parse_content_range(v: &[u8]) -> Option<[u64; 3]> {
-    let rest = v.trim_ascii().strip_prefix(b"bytes ")?;
-    let slash = rest.iter().position(|&b| b == b'/')?;
-    let (span, total) = (&rest[..slash], &rest[slash + 1..]);
-    if span == b"*" {
-        return Some([u64::MAX, 0, parse_length(total)?]);
-    }
-    let dash = span.iter().position(|&b| b == b'-')?;
-    let first = parse_length(&span[..dash])?;
-    let last = parse_length(&span[dash + 1..])?;
-    let total = if total == b"*" {
-        u64::MAX
-    } else {
-        parse_length(total)?
-    };
-    (first <= last && last < total).then_some([first, last, total])
+    quincunx_client_core::fetch::range_answer::parse_content_range(v)
 }
 
 /// A decimal `Content-Length` value: digits only, fitting a `u64`.

@@ -4,6 +4,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use quincunx_client_core::fetch::range_answer::{self, PackIdentity, is_strong};
 use quincunx_client_core::fetch::ranges::{self, PackIndex};
 use quincunx_meta::Metadata;
 
@@ -73,8 +74,7 @@ impl PackFile {
     }
 
     /// Checks a range answer against what was asked (`range`) and the file opened, and
-    /// gives its body: `206` with exactly that `Content-Range` and the file's length and
-    /// `ETag`; anything else is an error that names what is wrong.
+    /// gives its body ([`PackIdentity::check_answer`], shared with the browser).
     pub fn check_answer(
         &self,
         range: quincunx_meta::pack::Section,
@@ -83,46 +83,17 @@ impl PackFile {
         content_range: Option<[u64; 3]>,
         etag: Option<&str>,
     ) -> Result<bytes::Bytes, FetchError> {
-        let total = self.index.header.file_len;
-        let want = [range.offset, range.end() - 1, total];
-        match status {
-            206 => {}
-            200 if range.offset == 0 && range.len == total && body.len() as u64 == total => {
-                return Ok(body);
-            }
-            200 => {
-                return Err(FetchError::Protocol(format!(
-                    "{}: the server ignored the Range header (200 with {} bytes)",
-                    self.path,
-                    body.len()
-                )));
-            }
-            412 => return Err(self.changed("412 Precondition Failed: its ETag no longer matches")),
-            416 => return Err(self.changed("416 Range Not Satisfiable: it is shorter now")),
-            s => return Err(FetchError::Status(s)),
-        }
-        if let (Some(pinned), Some(now)) = (&self.etag, etag)
-            && pinned != now
-        {
-            return Err(self.changed(&format!("its ETag was {pinned}, now {now}")));
-        }
-        match content_range {
-            Some([.., t]) if t != total && t != u64::MAX => {
-                Err(self.changed(&format!("it had {total} bytes, now {t}")))
-            }
-            Some([a, b, _]) if [a, b] == [want[0], want[1]] => Ok(body),
-            other => Err(FetchError::Protocol(format!(
-                "{}: asked for bytes {}-{}, the answer says {:?}",
-                self.path, want[0], want[1], other
-            ))),
-        }
+        self.identity()
+            .check_answer(range, status, body, content_range, etag)
     }
 
-    fn changed(&self, why: &str) -> FetchError {
-        FetchError::Changed(format!(
-            "{} changed since it was opened ({why}); open it again",
-            self.path
-        ))
+    /// What every answer must match.
+    pub fn identity(&self) -> PackIdentity {
+        PackIdentity {
+            path: self.path.clone(),
+            file_len: self.index.header.file_len,
+            etag: self.etag.clone(),
+        }
     }
 }
 
@@ -203,25 +174,14 @@ impl Remote {
             })
         };
         let first = get(0, ranges::FIRST_READ, None)?;
-        let total = match (first.status, first.content_range) {
-            (206, Some([0, _, total])) if total != u64::MAX => total,
-            (200, _) if (first.body.len() as u64) < ranges::FIRST_READ => first.body.len() as u64,
-            (200, _) => {
-                return Err(FetchError::Metadata(format!(
-                    "GET {url}: the server ignored the Range header (200 with {} bytes): \
-                     range requests are needed to read a repository file",
-                    first.body.len()
-                )));
-            }
-            (206, other) => {
-                return Err(FetchError::Metadata(format!(
-                    "GET {url}: a 206 answer with Content-Range {other:?}"
-                )));
-            }
-            (status, _) => {
-                return Err(FetchError::Metadata(format!("GET {url}: status {status}")));
-            }
-        };
+        let total = range_answer::opened_len(
+            &url,
+            first.status,
+            first.content_range,
+            first.body.len() as u64,
+            ranges::FIRST_READ,
+        )
+        .map_err(FetchError::Metadata)?;
         let bad = |e: quincunx_meta::pack::PackError| FetchError::Metadata(format!("{url}: {e}"));
         let mut front = first.body;
         let need = ranges::open_len(&front).map_err(bad)?.min(total);
@@ -330,12 +290,6 @@ impl Remote {
     pub fn blob_url(&self, key: Key) -> String {
         self.endpoint.url(&self.blob_path(key))
     }
-}
-
-/// Whether an `ETag` is strong: `If-Match` compares strongly, so a weak one (`W/"..."`,
-/// as some CDNs give) would never match; it is still compared with every answer's.
-fn is_strong(etag: &str) -> bool {
-    !etag.starts_with("W/")
 }
 
 fn endpoint(base_url: &str, options: &ConnectOptions) -> Result<Endpoint, FetchError> {
