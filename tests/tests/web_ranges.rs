@@ -137,10 +137,9 @@ fn the_browsers_client_streams_a_repository_file_from_nginx_to_the_local_cut() {
 
     let mut m = Module::default();
     let (pack, meta) = open(&mut m, addr, "/korea.pack").unwrap();
-    // A format 7 file holds bare blobs: the page asks for no packages.
+    // Default configuration: the planner asks for packages, read as one range each.
     let open_json = serde_json::to_vec(&serde_json::json!({
         "elevation": {"name": "korea.pack", "meta": meta},
-        "config": {"packageFactor": 0},
     }))
     .unwrap();
     let opened: Open = serde_json::from_slice(&open_json).unwrap();

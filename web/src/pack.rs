@@ -150,10 +150,9 @@ impl PackReader {
     }
 
     /// What fetching `keys` takes; each key with whether the planner asked for its
-    /// package (format 7 files hold bare blobs only: every blob is answered bare).
+    /// package (then its answer is the package, as a server's `/p/` URL answers it).
     pub fn plan(&mut self, keys: &[(Key, bool)]) -> Step {
-        let keys: Vec<Key> = keys.iter().map(|&(k, _)| k).collect();
-        self.reader.plan(&keys)
+        self.reader.plan(keys)
     }
 
     /// The answer to request `tag`: checked against the file opened, then read.
