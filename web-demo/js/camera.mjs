@@ -436,7 +436,8 @@ export function frameUniforms(world, camera, lighting) {
 // ---- the URL -----------------------------------------------------------------------
 
 /**
- * The view a URL's query names: `{repo, colour, shot, hasPlace}` (unknown or malformed
+ * The view a URL's query names: `{repo, colour, pack, colourPack, shot, hasPlace}`
+ * (`pack`, `colour_pack`: URLs of repository files read by ranges; unknown or malformed
  * numbers throw an Error naming the parameter).
  */
 export function parseViewQuery(search) {
@@ -483,6 +484,8 @@ export function parseViewQuery(search) {
   return {
     repo: q.get("repo"),
     colour: q.get("colour") || q.get("color") || null,
+    pack: q.get("pack") || null,
+    colourPack: q.get("colour_pack") || q.get("color_pack") || null,
     shot,
     hasPlace: Boolean(uv || latLon),
     hasHeight: q.has("height_m"),
@@ -496,9 +499,15 @@ function fmt(x, digits) {
 }
 
 /** The query string of a view (the inverse of `parseViewQuery`, rounded sensibly). */
-export function formatViewQuery(repo, colour, shot) {
-  const parts = [`repo=${encodeURIComponent(repo)}`];
-  if (colour) parts.push(`colour=${encodeURIComponent(colour)}`);
+export function formatViewQuery(repo, colour, shot, packs = null) {
+  const parts = [];
+  if (packs?.pack) {
+    parts.push(`pack=${encodeURIComponent(packs.pack)}`);
+    if (packs.colourPack) parts.push(`colour_pack=${encodeURIComponent(packs.colourPack)}`);
+  } else {
+    parts.push(`repo=${encodeURIComponent(repo)}`);
+    if (colour) parts.push(`colour=${encodeURIComponent(colour)}`);
+  }
   if (shot.place.uv) parts.push(`uv=${shot.place.uv.map((x) => fmt(x, 7)).join(",")}`);
   else parts.push(`lat_lon=${shot.place.latLon.map((x) => fmt(x, 7)).join(",")}`);
   const hDigits = shot.heightM >= 100 ? 1 : 3;

@@ -13,6 +13,13 @@
 //     timeoutMs = 10 s (metadata), requestTimeoutMs = 10 s});
 //     baseUrl: "http://host[:port][/prefix]", or "" for the page's origin. Rejects with
 //     SessionError (bad name, metadata, a colour layer that does not match).
+//   const session = await Session.openPack(fileUrl, {colourPack: colourFileUrl | null,
+//     ...the options above});
+//     A repository file (`repository.pack`) on any HTTP host that answers Range requests
+//     (a bucket, a CDN, nginx), read by ranges (web/src/pack.rs; docs/hosting.md,
+//     "Browsers"). Rejects with SessionError (the host ignored Range, 403, 404, not a
+//     repository file, a CORS failure). A file changed since it was opened, and a
+//     failing fetch, are reported to `onError(message)` (option) and counted as errors.
 //   listRepositories(baseUrl) -> `GET /repos`'s list.
 //   session.meta, session.colourMeta   metadata.json objects (colour: null without)
 //   session.domain          "planar" | "sphere"
@@ -116,6 +123,67 @@ async function openRemote(baseUrl, name, fetchFn, timeoutMs) {
     throw new SessionError(`${url}: content_hash ${JSON.stringify(meta.content_hash)} is not hex`);
   }
   return { name, base, meta, version: hash.slice(0, 16), sphere: meta.domain === "sphere" };
+}
+
+/** Bytes of a repository file's first read (meta/src/pack.rs `OPEN_BYTES`). */
+const FIRST_READ = 16384;
+
+/** A failed fetch of a cross-origin file: most likely the host's CORS rule. */
+function fetchFailure(url, e) {
+  const what = e?.message ?? String(e);
+  if (e?.name === "TypeError") {
+    return `GET ${url}: ${what} (a CORS failure or an unreachable host: a host on another origin needs the CORS rule of docs/hosting.md, "Browsers")`;
+  }
+  return `GET ${url}: ${what}`;
+}
+
+/** One range read of `url`: {status, contentRange, etag, body}. Never sends If-Match. */
+async function rangeRead(fetchFn, url, offset, len, signal) {
+  const resp = await fetchFn(url, { headers: { Range: `bytes=${offset}-${offset + len - 1}` }, signal });
+  const body = new Uint8Array(await resp.arrayBuffer());
+  return { status: resp.status, contentRange: resp.headers.get("content-range"), etag: resp.headers.get("etag"), body };
+}
+
+/** Opens repository file `url` by ranges: a layer of the session with its PackFile. */
+async function openPackFile(wasm, url, fetchFn, timeoutMs) {
+  let abs;
+  try {
+    abs = new URL(url, globalThis.location?.href).href;
+  } catch {
+    throw new SessionError(`pack=${url}: not a URL`);
+  }
+  const controller = new AbortController();
+  const timer = setTimeout(() => controller.abort(), timeoutMs);
+  const read = async (offset, len) => {
+    try {
+      return await rangeRead(fetchFn, abs, offset, len, controller.signal);
+    } catch (e) {
+      if (controller.signal.aborted) throw new SessionError(`timed out after ${timeoutMs / 1000} s opening ${abs}`);
+      throw new SessionError(fetchFailure(abs, e));
+    }
+  };
+  let file;
+  try {
+    const first = await read(0, FIRST_READ);
+    let figures;
+    try {
+      figures = wasm.packFirst(abs, first);
+    } catch (e) {
+      throw new SessionError(e.message);
+    }
+    const have = first.body.length;
+    const rest = figures.openLen > have ? await read(have, figures.openLen - have) : null;
+    try {
+      file = wasm.packOpen(abs, figures, first.etag, first.body, rest);
+    } catch (e) {
+      throw new SessionError(e.message);
+    }
+  } finally {
+    clearTimeout(timer);
+  }
+  const meta = file.meta;
+  const name = decodeURIComponent(new URL(abs).pathname.split("/").pop() || "repository.pack");
+  return { name, base: null, url: abs, meta, version: "", sphere: meta.domain === "sphere", pack: file };
 }
 
 function defaultWorkers() {
@@ -232,6 +300,23 @@ export class Session {
     return new Session(wasm, elevation, colour, { ...options, fetch: fetchFn });
   }
 
+  /** Opens repository file `url` (and `options.colourPack`) by range requests. */
+  static async openPack(url, options = {}) {
+    const fetchFn = options.fetch ?? globalThis.fetch.bind(globalThis);
+    const timeoutMs = options.timeoutMs ?? 10_000;
+    const wasm = await loadWasm();
+    const elevation = await openPackFile(wasm, url, fetchFn, timeoutMs);
+    let colour = null;
+    try {
+      colour = options.colourPack ? await openPackFile(wasm, options.colourPack, fetchFn, timeoutMs) : null;
+      return new Session(wasm, elevation, colour, { ...options, fetch: fetchFn });
+    } catch (e) {
+      elevation.pack.free();
+      colour?.pack.free();
+      throw e;
+    }
+  }
+
   constructor(wasm, elevation, colour, options = {}) {
     const config = {
       maxInFlight: options.maxInFlight,
@@ -281,6 +366,9 @@ export class Session {
       : null;
     this._fetch = options.fetch ?? globalThis.fetch.bind(globalThis);
     this._requestTimeoutMs = options.requestTimeoutMs ?? 10_000;
+    this._onError = options.onError ?? null;
+    /** Range reads of repository files: how many, by status. */
+    this._ranges = { requests: 0, byStatus: {} };
     this._decoder = new DecoderPool(wasm, open, options.workers ?? defaultWorkers());
     this._flights = new Set();
     this._decoding = 0;
@@ -411,6 +499,8 @@ export class Session {
       timeToFullQualityMs: this._timeToFullQualityMs,
       decoding: this._decoding,
       workers: this._decoder.workers,
+      rangeRequests: this._ranges.requests,
+      rangeStatus: { ...this._ranges.byStatus },
     };
   }
 
@@ -453,6 +543,7 @@ export class Session {
     }
     this._decoder.close();
     this._client.free();
+    for (const l of this._layers) l.pack?.free();
   }
 
   // ---- the network glue ---------------------------------------------------------------
@@ -461,7 +552,18 @@ export class Session {
   _pump() {
     if (this._closed) return;
     const now = performance.now();
-    for (const r of this._client.plan(now)) this._send(r);
+    // Rounds: a repository file's reader answers some keys at once (leaves, blobs it
+    // holds), which lets the planner pick more.
+    for (let round = 0; round < 8; round++) {
+      const planned = this._client.plan(now);
+      if (planned.length === 0) break;
+      for (const r of planned) if (!this._layers[r.layer].pack) this._send(r);
+      this._layers.forEach((l, layer) => {
+        if (!l.pack) return;
+        const keys = planned.filter((r) => r.layer === layer);
+        if (keys.length > 0) this._step(layer, l.pack.plan(keys));
+      });
+    }
     clearTimeout(this._wake);
     const wake = this._client.wakeIn(now);
     this._wake = wake >= 0 ? setTimeout(() => this._pump(), Math.max(1, wake)) : null;
@@ -506,8 +608,70 @@ export class Session {
       );
   }
 
+  /** A range reader's step: answers to the client, range requests to `fetch`. */
+  _step(layer, step) {
+    const now = performance.now();
+    // Not pumping per answer: the caller pumps once after the step.
+    for (const key of step.leaves) this._answered(layer, key, 200, new Uint8Array(0), false);
+    for (const { key, kind, payload } of step.answers) {
+      if (kind === 0) {
+        const status = new DataView(payload.buffer, payload.byteOffset).getUint32(0, true);
+        this._answered(layer, key, status, payload.subarray(4), false);
+      } else {
+        if (kind !== 2) this._failure(new TextDecoder().decode(payload));
+        this._client.answerRaw(layer, kind, key, payload, now);
+      }
+    }
+    for (const r of step.requests) this._sendRange(layer, r);
+  }
+
+  /** A failure the page should show (once per message). */
+  _failure(message) {
+    this._reported ??= new Set();
+    if (this._onError && !this._reported.has(message)) {
+      this._reported.add(message);
+      this._onError(message);
+    }
+  }
+
+  _sendRange(layer, { tag, offset, len }) {
+    const l = this._layers[layer];
+    const controller = new AbortController();
+    const flight = { controller, timer: null, timedOut: false };
+    flight.timer = setTimeout(() => {
+      flight.timedOut = true;
+      controller.abort();
+    }, this._requestTimeoutMs);
+    this._flights.add(flight);
+    this._peakInFlight = Math.max(this._peakInFlight, this._flights.size);
+    this._ranges.requests += 1;
+    const done = () => {
+      clearTimeout(flight.timer);
+      this._flights.delete(flight);
+    };
+    Promise.resolve()
+      .then(() => rangeRead(this._fetch, l.url, offset, len, controller.signal))
+      .then(
+        (answer) => {
+          done();
+          if (this._closed) return;
+          const by = this._ranges.byStatus;
+          by[answer.status] = (by[answer.status] ?? 0) + 1;
+          this._step(layer, l.pack.answered(tag, answer));
+          this._pump();
+        },
+        (e) => {
+          done();
+          if (this._closed) return;
+          const failure = flight.timedOut ? { timeoutMs: this._requestTimeoutMs } : { error: fetchFailure(l.url, e) };
+          this._step(layer, l.pack.answered(tag, failure));
+          this._pump();
+        },
+      );
+  }
+
   /** An HTTP answer: the planner says what it means; a body to decode goes to a worker. */
-  _answered(layer, key, status, body) {
+  _answered(layer, key, status, body, pump = true) {
     const now = performance.now();
     if (status === 200) this._arrivals.push([now, body.length]);
     const decode = this._client.answer(layer, key, status, body, now);
@@ -528,6 +692,6 @@ export class Session {
           this._pump();
         });
     }
-    this._pump();
+    if (pump) this._pump();
   }
 }

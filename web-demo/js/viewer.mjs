@@ -5,7 +5,9 @@
 // The URL names a view the way `quincunx render` does (render/src/scene.rs `Shot`):
 // `/view?repo=korea&uv=0.5,0.5&height_m=2000&pitch_deg=-60` (planar; `lat_lon=LAT,LON` on
 // planets), plus `heading_deg`, `fov_deg`, `tolerance_px`, `colour=<repo>` and
-// `size=WxH` (a canvas of exactly that many device pixels, for tests). A loaded view is
+// `size=WxH` (a canvas of exactly that many device pixels, for tests). `pack=<URL>` (and
+// `colour_pack=<URL>`) opens a repository file on any HTTP host that answers Range
+// requests instead of a repository of the page's server (client.mjs `Session.openPack`). A loaded view is
 // streamed like `quincunx render` streams it (scene.rs `stream_to`): the camera stands
 // `height_m` above the surface of the cut under it, re-read as the cut refines, until the
 // cut is at full quality and the ground stays put twice in a row; then
@@ -156,25 +158,49 @@ class Viewer {
     this.loop = this.loop.bind(this);
   }
 
-  /** Opens `repo` (with `colour`) at `shot`. */
-  async open(repo, colour, shot, { fromUrl }) {
+  /**
+   * Opens `repo` (with `colour`) at `shot`; or, with `packs` ({pack, colourPack}: URLs),
+   * those repository files by ranges (`shot` null: a default view of them).
+   */
+  async open(repo, colour, shot, { fromUrl, packs = null }) {
     const token = ++this.openToken;
     this.close();
     const status = $("status");
     status.className = "";
-    status.textContent = `opening ${repo}...`;
+    status.textContent = `opening ${packs ? packs.pack : repo}...`;
     document.body.dataset.state = "loading";
     const { Session } = await import("./client.mjs");
-    const meta = await metadata(repo);
-    const colourMeta = colour ? await metadata(colour) : null;
-    if (colourMeta && !coloursMatch(meta, colourMeta)) {
-      throw new Error(`${colour} does not cover the same ground as ${repo}`);
+    let session;
+    let meta;
+    let colourMeta = null;
+    if (packs) {
+      session = await Session.openPack(packs.pack, { colourPack: packs.colourPack, onError: (m) => report(new Error(m)) });
+      meta = session.meta;
+      colourMeta = session.colourMeta;
+      repo = packs.pack;
+      colour = packs.colourPack;
+      if (!shot) {
+        // The URL's size and tolerance, if it gave them, with a default place.
+        const given = packs.given;
+        shot = defaultShotFor({ domain: meta.domain }, meta);
+        if (given) {
+          shot.size = given.size;
+          shot.tolerancePx = given.tolerancePx;
+        }
+      }
+    } else {
+      meta = await metadata(repo);
+      colourMeta = colour ? await metadata(colour) : null;
+      if (colourMeta && !coloursMatch(meta, colourMeta)) {
+        throw new Error(`${colour} does not cover the same ground as ${repo}`);
+      }
+      session = await Session.open(location.origin, repo, { colour: colour || null });
     }
-    const session = await Session.open(location.origin, repo, { colour: colour || null });
     if (token !== this.openToken) {
       session.close?.();
       return;
     }
+    this.packs = packs;
     this.repo = repo;
     this.colour = colour || null;
     this.meta = session.meta || meta;
@@ -487,7 +513,7 @@ class Viewer {
     if (!this.urlDirty || now - this.lastUrl < 250) return;
     this.urlDirty = false;
     this.lastUrl = now;
-    const q = formatViewQuery(this.repo, this.colour, this.shot);
+    const q = formatViewQuery(this.repo, this.colour, this.shot, this.packs);
     history.replaceState(null, "", `/view?${q}`);
   }
 
@@ -505,7 +531,7 @@ class Viewer {
     });
     c.addEventListener("webglcontextrestored", () => {
       if (this.repo && this.shot) {
-        this.open(this.repo, this.colour, { ...this.shot }, { fromUrl: true }).catch(report);
+        this.open(this.repo, this.colour, { ...this.shot }, { fromUrl: true, packs: this.packs }).catch(report);
       }
     });
     c.addEventListener("contextmenu", (e) => e.preventDefault());
@@ -797,9 +823,37 @@ async function main() {
   const viewer = new Viewer($("canvas"));
   api.fullQuality = () => viewer.full;
   api.stats = () => ({ ...(viewer.figures || {}) });
-  api.view = () => (viewer.shot ? { repo: viewer.repo, colour: viewer.colour, shot: { ...viewer.shot }, query: formatViewQuery(viewer.repo, viewer.colour, viewer.shot) } : null);
+  api.view = () => (viewer.shot ? { repo: viewer.repo, colour: viewer.colour, shot: { ...viewer.shot }, query: formatViewQuery(viewer.repo, viewer.colour, viewer.shot, viewer.packs) } : null);
   api.readPixels = () => readPixels(viewer);
   api.clientStats = () => (viewer.session ? viewer.session.stats() : null);
+  api.checkCut = () => (viewer.session ? viewer.session.checkCut() : null);
+
+  if (query.pack) {
+    // A repository file by ranges: no server listing, one terrain.
+    for (const id of ["repo", "colour"]) $(id).disabled = true;
+    const packs = { pack: query.pack, colourPack: query.colourPack, given: query.shot };
+    $("repo").append(new Option(query.pack.split("/").pop() || query.pack, ""));
+    const tolerance = $("tolerance");
+    const hasShot = query.hasPlace || query.hasHeight;
+    tolerance.value = String(Math.log2(query.shot.tolerancePx));
+    $("tolerance-value").textContent = `${query.shot.tolerancePx} px`;
+    tolerance.addEventListener("input", () => {
+      const px = 2 ** Number(tolerance.value);
+      $("tolerance-value").textContent = `${px < 1 ? px.toFixed(2) : px.toFixed(1)} px`;
+      if (viewer.shot) {
+        viewer.shot.tolerancePx = px;
+        viewer.urlDirty = true;
+        viewer.restart();
+      }
+    });
+    try {
+      await viewer.open(null, null, hasShot ? query.shot : null, { fromUrl: hasShot, packs });
+    } catch (e) {
+      report(e);
+      resolveReady({ ok: false, error: api.errors.at(-1) });
+    }
+    return;
+  }
 
   const { repositories } = await getJson("/repos");
   const elevation = repositories.filter((r) => r.attribute !== "colour");

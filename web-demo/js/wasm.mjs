@@ -8,6 +8,8 @@
 //   decoder.decode(layer, key, bytes, packaged) -> Uint8Array (the details, web/src/wire.rs)
 //   const client = wasm.client(open, nowMs);  // see client.mjs
 //   wasm.reconstruct(meta, blobs, which)      // a whole repository (tools/decode-repo.mjs)
+//   wasm.packFirst(url, answer) -> {fileLen, openLen}; wasm.packOpen(...) -> PackFile
+//                                             // a repository file read by ranges (client.mjs)
 //
 // Failures inside the module are WasmError with the Rust message; bad input never traps.
 
@@ -96,6 +98,35 @@ export class Wasm {
     return new AnswerDecoder(this, h);
   }
 
+  /**
+   * The first read of repository file `url` (web/src/pack.rs `PackReader::first`):
+   * `answer` = {status, contentRange, etag, body}. Returns {fileLen, openLen}.
+   */
+  packFirst(url, answer) {
+    const buf = concat([lengthPrefixed(encoder.encode(url)), rangeAnswer(answer)]);
+    this.check(this.x.qx_pack_first(this.input(buf)));
+    const v = new DataView(this.output().buffer);
+    return { fileLen: v.getFloat64(0, true), openLen: v.getFloat64(8, true) };
+  }
+
+  /**
+   * Opens repository file `url` from its first read (`first`: packFirst's figures,
+   * `etag` and `body` of the first answer) and, when opening needs more, `rest` (the
+   * answer to reading from the first body's end to `openLen`). A PackFile.
+   */
+  packOpen(url, first, etag, body, rest) {
+    const head = new Uint8Array(16);
+    const v = new DataView(head.buffer);
+    v.setFloat64(0, first.fileLen, true);
+    v.setFloat64(8, first.openLen, true);
+    const parts = [lengthPrefixed(encoder.encode(url)), head, lengthPrefixed(encoder.encode(etag ?? "")), lengthPrefixed(body)];
+    parts.push(Uint8Array.of(rest ? 1 : 0));
+    if (rest) parts.push(rangeAnswer(rest));
+    const h = this.check(this.x.qx_pack_new(this.input(concat(parts))));
+    const info = JSON.parse(this.text());
+    return new PackFile(this, h, info);
+  }
+
   /** A client of a session at `nowMs`. */
   client(open, nowMs) {
     const h = this.check(this.x.qx_client_new(this.json(open), nowMs));
@@ -180,6 +211,126 @@ export class AnswerDecoder {
   }
 }
 
+/** Bytes joined. */
+function concat(parts) {
+  const out = new Uint8Array(parts.reduce((n, p) => n + p.length, 0));
+  let at = 0;
+  for (const p of parts) {
+    out.set(p, at);
+    at += p.length;
+  }
+  return out;
+}
+
+/** `u32 length, bytes` (web/src/wire.rs `bytes`). */
+function lengthPrefixed(bytes) {
+  const out = new Uint8Array(4 + bytes.length);
+  new DataView(out.buffer).setUint32(0, bytes.length, true);
+  out.set(bytes, 4);
+  return out;
+}
+
+/** An HTTP answer to a range read: `u32 status, bytes content_range, bytes etag, body`. */
+function rangeAnswer({ status, contentRange, etag, body }) {
+  const s = new Uint8Array(4);
+  new DataView(s.buffer).setUint32(0, status, true);
+  return concat([s, lengthPrefixed(encoder.encode(contentRange ?? "")), lengthPrefixed(encoder.encode(etag ?? "")), body]);
+}
+
+/**
+ * A repository file read by HTTP range requests (web/src/pack.rs `PackReader`): the keys
+ * the planner picks become range requests; their answers become the blobs and packages
+ * a server would have answered. Steps: {leaves: [key], answers: [{key, kind, payload}]
+ * (kind and payload as `WasmClient.answerRaw` takes them), requests: [{tag, offset,
+ * len}]}.
+ */
+export class PackFile {
+  constructor(wasm, handle, info) {
+    this.wasm = wasm;
+    this.h = handle;
+    this.meta = info.meta;
+    this.etag = info.etag;
+    this.fileLen = info.fileLen;
+  }
+
+  /** What fetching `requests` ([{key, packaged}], as WasmClient.plan gives them) takes. */
+  plan(requests) {
+    const buf = new Uint8Array(4 + 25 * requests.length);
+    const view = new DataView(buf.buffer);
+    view.setUint32(0, requests.length, true);
+    requests.forEach(({ key, packaged }, i) => {
+      const at = 4 + 25 * i;
+      buf[at] = packaged ? 1 : 0;
+      for (let k = 0; k < 3; k++) view.setBigInt64(at + 1 + 8 * k, BigInt(key[k] ?? 0), true);
+    });
+    const w = this.wasm;
+    w.check(w.x.qx_pack_plan(this.h, w.input(buf)));
+    return parseStep(w.output());
+  }
+
+  /**
+   * The answer to range request `tag`: {status, contentRange, etag, body}, or {error}
+   * (a failed fetch), or {timeoutMs}.
+   */
+  answered(tag, answer) {
+    const head = new Uint8Array(9);
+    new DataView(head.buffer).setFloat64(0, tag, true);
+    let rest;
+    if (answer.error !== undefined) {
+      head[8] = 1;
+      rest = encoder.encode(answer.error);
+    } else if (answer.timeoutMs !== undefined) {
+      head[8] = 2;
+      rest = new Uint8Array(8);
+      new DataView(rest.buffer).setFloat64(0, answer.timeoutMs, true);
+    } else {
+      head[8] = 0;
+      rest = rangeAnswer(answer);
+    }
+    const w = this.wasm;
+    w.check(w.x.qx_pack_answered(this.h, w.input(concat([head, rest]))));
+    return parseStep(w.output());
+  }
+
+  free() {
+    this.wasm.x.qx_free(this.h);
+  }
+}
+
+/** A range reader's step (web/src/api.rs `write_step`). */
+function parseStep(out) {
+  const view = new DataView(out.buffer, out.byteOffset, out.byteLength);
+  let at = 0;
+  const u32 = () => {
+    const v = view.getUint32(at, true);
+    at += 4;
+    return v;
+  };
+  const f64 = () => {
+    const v = view.getFloat64(at, true);
+    at += 8;
+    return v;
+  };
+  const key = () => {
+    const k = [0, 1, 2].map((i) => Number(view.getBigInt64(at + 8 * i, true)));
+    at += 24;
+    return k;
+  };
+  const leaves = [];
+  for (let n = u32(); n > 0; n--) leaves.push(key());
+  const answers = [];
+  for (let n = u32(); n > 0; n--) {
+    const k = key();
+    const kind = out[at++];
+    const len = u32();
+    answers.push({ key: k, kind, payload: out.slice(at, at + len) });
+    at += len;
+  }
+  const requests = [];
+  for (let n = u32(); n > 0; n--) requests.push({ tag: f64(), offset: f64(), len: f64() });
+  return { leaves, answers, requests, overheadBytes: f64() };
+}
+
 /** Answer kinds (web/src/api.rs `client_answer`). */
 const HTTP = 0;
 const CONNECTION = 1;
@@ -197,6 +348,17 @@ export class WasmClient {
     const buf = header(layer, HTTP, key, 4 + body.length);
     new DataView(buf.buffer).setUint32(26, status, true);
     buf.set(body, 30);
+    const w = this.wasm;
+    return w.check(w.x.qx_client_answer(this.h, w.input(buf), nowMs));
+  }
+
+  /**
+   * An answer as a range reader's step gives it: `kind` (0 HTTP, 1 connection failure, 2
+   * timeout, 3 the file changed, 4 malformed) and its payload. Returns as `answer`.
+   */
+  answerRaw(layer, kind, key, payload, nowMs) {
+    const buf = header(layer, kind, key, payload.length);
+    buf.set(payload, 26);
     const w = this.wasm;
     return w.check(w.x.qx_client_answer(this.h, w.input(buf), nowMs));
   }
