@@ -107,7 +107,14 @@ fn parse_step(out: &[u8]) -> Parsed {
 
 /// One key's answer from a step handed to the client as the page would (kind 0: `u32
 /// status, body`), its body decoded if the client says so.
-fn hand_on(client: &mut Client<PlanarRefiner>, decoder: &AnswerDecoder, key: Key, payload: &[u8]) {
+/// Hands an answer to the client; a body to decode goes to `decoding` (the page's
+/// workers decode it while frames go on).
+fn hand_on(
+    client: &mut Client<PlanarRefiner>,
+    decoding: &mut Vec<(Key, Bytes, bool)>,
+    key: Key,
+    payload: &[u8],
+) {
     let mut r = Reader::new(payload);
     let status = r.u32().unwrap() as u16;
     let body = Bytes::copy_from_slice(&payload[4..]);
@@ -115,8 +122,7 @@ fn hand_on(client: &mut Client<PlanarRefiner>, decoder: &AnswerDecoder, key: Key
         .answer(0, key, Ok((status, body.clone())), Duration::ZERO)
         .unwrap();
     if let Some(packaged) = decode {
-        let details = decoder.decode(0, key, &body, packaged).unwrap();
-        client.decoded(0, key, &details, Duration::ZERO).unwrap();
+        decoding.push((key, body, packaged));
     }
 }
 
@@ -157,6 +163,7 @@ fn the_browsers_client_streams_a_repository_file_from_nginx_to_the_local_cut() {
     let (mut requests, mut keys_planned) = (0u64, 0u64);
     let mut queue: VecDeque<(f64, u64, u64)> = VecDeque::new();
     let mut converged = false;
+    let mut decoding: Vec<(Key, Bytes, bool)> = Vec::new();
     for frame in 0..2_000 {
         let f = client
             .frame(&view, Duration::ZERO, Duration::from_millis(8), &clock)
@@ -168,25 +175,31 @@ fn the_browsers_client_streams_a_repository_file_from_nginx_to_the_local_cut() {
             break;
         }
         // The page's glue: the planner's keys to the range reader (byte API), its
-        // requests to `fetch`, every answer back through the reader to the client.
+        // requests to `fetch`, every answer back through the reader to the client, its
+        // bodies decoded a frame later (by the workers).
         let mut keys = Writer::default();
         let planned = client.plan(Duration::ZERO);
         keys.count(planned.len());
         for (layer, key, packaged) in planned {
             assert_eq!(layer, 0);
+            assert!(
+                !decoding.iter().any(|(k, _, _)| *k == key),
+                "frame {frame}: {key:?} asked for again while its answer is decoded"
+            );
             keys.u8(u8::from(packaged));
             keys.key(key);
             keys_planned += 1;
         }
+        let mut answered = Vec::new();
         let mut steps = vec![m.pack_plan(pack, &keys.out).unwrap()];
         while let Some(step) = steps.pop() {
             let (leaves, blobs, reqs) = parse_step(&step);
             for key in leaves {
-                hand_on(&mut client, &decoder, key, &200u32.to_le_bytes());
+                hand_on(&mut client, &mut answered, key, &200u32.to_le_bytes());
             }
             for (key, kind, payload) in blobs {
                 assert_eq!(kind, 0, "{key:?}: {}", String::from_utf8_lossy(&payload));
-                hand_on(&mut client, &decoder, key, &payload);
+                hand_on(&mut client, &mut answered, key, &payload);
             }
             queue.extend(reqs);
             if let Some((tag, offset, len)) = queue.pop_front() {
@@ -198,6 +211,11 @@ fn the_browsers_client_streams_a_repository_file_from_nginx_to_the_local_cut() {
                 answer_bytes(&mut w, &a);
                 steps.push(m.pack_answered(pack, &w.out).unwrap());
             }
+        }
+        // The workers finish what was answered a frame ago.
+        for (key, body, packaged) in std::mem::replace(&mut decoding, answered) {
+            let details = decoder.decode(0, key, &body, packaged).unwrap();
+            client.decoded(0, key, &details, Duration::ZERO).unwrap();
         }
     }
     assert!(converged, "no convergence");

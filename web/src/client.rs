@@ -153,11 +153,15 @@ impl<T: Weigh> Layer<T> {
             .submit(&wants, &prefetch, submit.package_above, now);
     }
 
+    /// The keys to request now; keys answered and out for decoding (in a worker, while
+    /// the frame loop may want them again) are held, not requested twice.
     fn plan(&mut self, now: Duration, out: &mut Vec<(u8, Key, bool)>, layer: u8) {
         let planned = {
             let cache = self.cache.borrow();
-            self.planner
-                .plan(now, usize::MAX, |k| cache.is_leaf(k) || cache.contains(k))
+            let decoding = &self.decoding;
+            self.planner.plan(now, usize::MAX, |k| {
+                cache.is_leaf(k) || cache.contains(k) || decoding.contains_key(&k)
+            })
         };
         for p in planned {
             self.planner.sent(p, now);
