@@ -24,8 +24,8 @@ if [ ! -x "$nginx" ]; then
     echo "SKIP hosting bench: nginx not installed" >&2
     exit 0
 fi
-cargo build --release -q -p quincunx-repo-tools --features object-store \
-    -p quincunx-e2e --bin quincunx-s3-server
+cargo build --release -q -p quincunx-repo-tools --features object-store
+cargo build --release -q -p quincunx-e2e --bin quincunx-s3-server
 bin="${CARGO_TARGET_DIR:-target}/release"
 work="$(realpath -m "${WORK:-${CARGO_TARGET_DIR:-target}/hosting-bench}")"
 mkdir -p "$work/www" "$work/nginx/tmp"
