@@ -2,7 +2,8 @@
 """Medians of benches/hosting/hosting.jsonl: per repository and source, the median over
 runs of each flight's median and largest time to full quality after a jump, requests per
 jump, bytes fetched, and fetched / needed bytes (needed: the blobs' bytes; the rest is
-opening, directories, gaps and checksums). Ratios of range reads to the server's.
+opening, directories, gaps and checksums). Ratios of range reads (nginx: "ranges"; a
+private bucket with signed requests: "s3") to the server's.
    benches/hosting/summary.py benches/hosting/hosting.jsonl"""
 import json
 import statistics
@@ -39,13 +40,14 @@ for (repo, source), rs in sorted(by.items()):
     out[(repo, source)] = f
     print(json.dumps({"repo": repo, "source": source, **f}))
 for (repo, source), f in out.items():
-    if source != "ranges":
+    if source not in ("ranges", "s3"):
         continue
     base = repo[: -len(".pack")] if repo.endswith(".pack") else repo
     s = out.get((base, "serve"))
     if s:
         print(json.dumps({
             "repo": base,
+            "source": source,
             "ranges_over_serve_ttfq_p50": f["ttfq_p50_s"] / s["ttfq_p50_s"],
             "ranges_over_serve_ttfq_max": f["ttfq_max_s"] / s["ttfq_max_s"],
             "ranges_over_serve_bytes": f["bytes_fetched"] / s["bytes_fetched"],

@@ -325,7 +325,22 @@ pub fn load_flight<R: BuiltinFlights>(
 /// An emulated link in front of the server named by `url`, and the URL to use instead:
 /// the proxy's for `http://`; for `https://` the same URL (the certificate names its host),
 /// reached through the proxy by [`ConnectOptions::connect_to`] (see [`link_options`]).
+///
+/// A bucket URL (`s3://...`) keeps its URL; the proxy stands in front of its `http://`
+/// endpoint (`AWS_ENDPOINT_URL` or `AWS_ENDPOINT`, an S3-protocol server on this network).
 pub fn start_link(url: &str, link: (f64, f64)) -> Result<(LinkProxy, String)> {
+    if url.starts_with("s3://") || url.starts_with("s3a://") {
+        let endpoint = ["AWS_ENDPOINT_URL", "AWS_ENDPOINT"]
+            .iter()
+            .find_map(|k| std::env::var(k).ok())
+            .filter(|e| e.starts_with("http://"))
+            .context("--link with an s3:// URL needs an http:// endpoint in AWS_ENDPOINT_URL")?;
+        let endpoint =
+            Endpoint::from_url(&endpoint).with_context(|| format!("endpoint {endpoint:?}"))?;
+        let proxy = LinkProxy::start(endpoint.addr, link.0, Duration::from_secs_f64(link.1 / 1e3))
+            .context("starting the emulated link")?;
+        return Ok((proxy, url.to_string()));
+    }
     let endpoint = Endpoint::from_url(url).with_context(|| format!("server URL {url:?}"))?;
     let proxy = LinkProxy::start(endpoint.addr, link.0, Duration::from_secs_f64(link.1 / 1e3))
         .context("starting the emulated link")?;
@@ -341,6 +356,7 @@ pub fn link_options(ca_cert: Option<&CaCert>, link: Option<&LinkProxy>) -> Conne
     ConnectOptions {
         ca_cert_pem: ca_cert.map(|c| c.pem.clone()),
         connect_to: link.map(LinkProxy::local_addr),
+        ..ConnectOptions::default()
     }
 }
 

@@ -1,2 +1,4 @@
-//! End-to-end tests of the quincunx workspace; everything lives in `tests/`. This library
-//! is empty: it only gives the package a target so the integration tests have a home.
+//! End-to-end tests of the quincunx workspace; the tests live in `tests/`. The library
+//! holds what a test and a bench both run: an S3-protocol server ([`s3`]).
+
+pub mod s3;

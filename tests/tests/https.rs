@@ -126,7 +126,7 @@ fn build_korea(dir: &Path) -> PathBuf {
 fn connect(ca: &Pki) -> ConnectOptions {
     ConnectOptions {
         ca_cert_pem: Some(ca.ca_pem.clone().into_bytes()),
-        connect_to: None,
+        ..ConnectOptions::default()
     }
 }
 

@@ -15,32 +15,17 @@
 
 mod common;
 
-use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener, TcpStream};
 use std::path::Path;
 use std::sync::atomic::{AtomicU8, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use bytes::Bytes;
 use common::nginx::{Nginx, find_nginx, free_port};
-use common::workspace_root;
-use quincunx_client::fetch::{FetchConfig, FetchError, Fetched, Fetcher, Key, Remote};
-use quincunx_client::flight::{self, FlightReport};
-use quincunx_client::session::AnySession;
-use quincunx_repo_tools::build::{self, BuildArgs};
-use quincunx_repo_tools::fly::{self, FlyArgs};
-use quincunx_store::Repository;
-use quincunx_store::answer::IdSpace;
-
-fn build(out: &Path, input: &str, args: impl FnOnce(BuildArgs) -> BuildArgs) {
-    build::run(&args(BuildArgs {
-        overwrite: true,
-        ..BuildArgs::new(workspace_root().join("data").join(input), out)
-    }))
-    .unwrap();
-}
+use common::pack_reads::{assert_clean, build, fetch_all, fly_checked, raw_fetcher, stored};
+use quincunx_client::fetch::{FetchError, Fetched, Key, Remote};
+use quincunx_repo_tools::build::BuildArgs;
 
 /// nginx serving `www` as plain files on a free port, ready once `ready` answers.
 fn static_nginx(binary: &Path, dir: &Path, www: &Path, ready: &str) -> Nginx {
@@ -51,91 +36,6 @@ fn static_nginx(binary: &Path, dir: &Path, www: &Path, ready: &str) -> Nginx {
         www.display()
     );
     Nginx::run(binary, dir, addr, &snippet, ready)
-}
-
-/// Flies the built-in jump path with every frame checked for cracks.
-fn fly_checked(url: &str, repo: &str, colour: Option<&str>) -> FlightReport {
-    let args = FlyArgs {
-        color: colour.map(Into::into),
-        tolerance_px: 2.0,
-        ..FlyArgs::new(url, repo, "jump")
-    };
-    let session =
-        AnySession::open_with_colour(url, repo, colour, fly::session_config(&args)).unwrap();
-    let opts = fly::fly_options(&args);
-    match session {
-        AnySession::Planar(mut s) => {
-            let f = fly::load_flight(&args.path, &mut s, args.seed).unwrap();
-            flight::fly(&mut s, &f, &opts, |_| {}).unwrap()
-        }
-        AnySession::Planet(mut s) => {
-            let f = fly::load_flight(&args.path, &mut s, args.seed).unwrap();
-            flight::fly(&mut s, &f, &opts, |_| {}).unwrap()
-        }
-    }
-}
-
-fn assert_clean(name: &str, r: &FlightReport) {
-    assert_eq!((r.cracks, r.coverage_errors), (0, 0), "{name}: {r:?}");
-    assert_eq!((r.fetch_errors, r.failures), (0, 0), "{name}: {r:?}");
-    assert_eq!(r.jumps_unfinished, 0, "{name}: {r:?}");
-    assert!(r.frames_checked > 0, "{name}");
-}
-
-/// Every stored blob of `repo`, by centre.
-fn stored(repo: &Path) -> BTreeMap<Key, Bytes> {
-    let repo = Repository::open(repo).unwrap();
-    let space = IdSpace::of(repo.metadata()).unwrap();
-    repo.blobs()
-        .map(|kv| {
-            let (k, v) = kv.unwrap();
-            let c = match &space {
-                IdSpace::Planar(d) => {
-                    let id = d.id_from_key(&k).unwrap();
-                    [id.x, id.y, 0]
-                }
-                IdSpace::Sphere(d) => d.id_from_key(&k).unwrap().c,
-            };
-            (c, v)
-        })
-        .collect()
-}
-
-/// A fetcher of raw blobs (no decoding) from `remote`, with short timeouts and few
-/// attempts.
-fn raw_fetcher(remote: Remote) -> Fetcher<Vec<u8>> {
-    let config = FetchConfig {
-        request_timeout: Duration::from_secs(2),
-        max_attempts: 2,
-        retry_backoff: Duration::from_millis(10),
-        max_backoff: Duration::from_millis(50),
-        ..FetchConfig::new(remote)
-    };
-    Fetcher::spawn(config, Arc::new(|_key, bytes: Bytes| Ok(bytes.to_vec()))).unwrap()
-}
-
-/// Submits `keys` until each has an answer (or `limit` passes): the data, leaves and
-/// failures.
-fn fetch_all(
-    fetcher: &Fetcher<Vec<u8>>,
-    keys: &[Key],
-    limit: Duration,
-) -> BTreeMap<Key, Fetched<Vec<u8>>> {
-    let mut out = BTreeMap::new();
-    let started = Instant::now();
-    while out.len() < keys.len() && started.elapsed() < limit {
-        let wants: Vec<(Key, f32)> = keys
-            .iter()
-            .filter(|k| !out.contains_key(*k))
-            .map(|&k| (k, 1.0))
-            .collect();
-        fetcher.submit(wants);
-        std::thread::sleep(Duration::from_millis(5));
-        for (k, r) in fetcher.poll() {
-            out.entry(k).or_insert(r);
-        }
-    }
-    out
 }
 
 #[test]

@@ -53,6 +53,10 @@ pub struct PackFile {
     pub open_requests: u64,
     /// Bytes opening it read.
     pub open_bytes: u64,
+    /// A file in a bucket (`s3://`, `gs://`, `az://`), read through `object_store`
+    /// rather than from an HTTP endpoint; `path` is then its URL.
+    #[cfg(feature = "object-store")]
+    pub(crate) object: Option<super::transport::object_store::ObjectSource>,
 }
 
 impl PartialEq for PackFile {
@@ -117,9 +121,29 @@ impl Remote {
         options: &ConnectOptions,
     ) -> Result<(Remote, Metadata), FetchError> {
         check_name(name)?;
+        if is_object_url(base_url) {
+            if !name.ends_with(".pack") {
+                return Err(FetchError::BadUrl(format!(
+                    "{base_url}: a bucket holds repository files; name one ending in .pack, \
+                     not {name:?}"
+                )));
+            }
+            return Remote::open_object(base_url, name, timeout, options);
+        }
+        // A query string (a presigned URL's signature) goes with every request.
+        let (base_url, query) = match base_url.split_once('?') {
+            Some((base, query)) => (base, Some(query)),
+            None => (base_url, None),
+        };
         let endpoint = endpoint(base_url, options)?;
         if name.ends_with(".pack") {
-            return Remote::open_pack(endpoint, base_url, name, timeout);
+            return Remote::open_pack(endpoint, base_url, query, name, timeout);
+        }
+        if query.is_some() {
+            return Err(FetchError::BadUrl(format!(
+                "{base_url}: a query string is kept only for a repository file (a name \
+                 ending in .pack), not for a server's repository {name:?}"
+            )));
         }
         let path = format!("{}/repos/{name}/metadata.json", endpoint.prefix);
         let url = endpoint.url(&path);
@@ -141,16 +165,64 @@ impl Remote {
         Ok((remote, meta))
     }
 
-    /// Opens the repository file `{base_url}/{name}` with range requests: the first
-    /// [`ranges::FIRST_READ`] bytes, and the rest of header, root directory and metadata
-    /// if they are longer (at most two round trips).
-    fn open_pack(
-        endpoint: Endpoint,
+    /// Opens the file `name` in the bucket folder `base_url` through `object_store`.
+    #[cfg(feature = "object-store")]
+    fn open_object(
         base_url: &str,
         name: &str,
         timeout: Duration,
+        options: &ConnectOptions,
     ) -> Result<(Remote, Metadata), FetchError> {
-        let path = format!("{}/{name}", endpoint.prefix);
+        let opened = super::transport::object_store::open(base_url, name, timeout, options)?;
+        // Unused: the object's client reaches the bucket.
+        let endpoint = Endpoint {
+            addr: std::net::SocketAddr::from(([0, 0, 0, 0], 0)),
+            host: String::new(),
+            prefix: String::new(),
+            tls: None,
+        };
+        let mut remote = Remote::with_endpoint(endpoint, base_url, name, &opened.meta)?;
+        remote.pack = Some(Arc::new(PackFile {
+            path: opened.source.url().to_string(),
+            index: Arc::new(opened.index),
+            etag: opened.etag,
+            open_requests: opened.requests,
+            open_bytes: opened.bytes,
+            object: Some(opened.source),
+        }));
+        Ok((remote, opened.meta))
+    }
+
+    #[cfg(not(feature = "object-store"))]
+    fn open_object(
+        base_url: &str,
+        _name: &str,
+        _timeout: Duration,
+        _options: &ConnectOptions,
+    ) -> Result<(Remote, Metadata), FetchError> {
+        Err(FetchError::BadUrl(format!(
+            "{base_url}: bucket URLs need quincunx built with the `object-store` feature"
+        )))
+    }
+
+    /// Opens the repository file `{base_url}/{name}` (or `base_url` itself if it ends in
+    /// `/{name}`, as a presigned URL does) with range requests, `?{query}` on every one:
+    /// the first [`ranges::FIRST_READ`] bytes, and the rest of header, root directory and
+    /// metadata if they are longer (at most two round trips).
+    fn open_pack(
+        endpoint: Endpoint,
+        base_url: &str,
+        query: Option<&str>,
+        name: &str,
+        timeout: Duration,
+    ) -> Result<(Remote, Metadata), FetchError> {
+        let mut path = match endpoint.prefix.strip_suffix(name) {
+            Some(folder) if folder.ends_with('/') => endpoint.prefix.clone(),
+            _ => format!("{}/{name}", endpoint.prefix),
+        };
+        if let Some(q) = query {
+            path = format!("{path}?{q}");
+        }
         let url = endpoint.url(&path);
         let get = |from: u64, to: u64, etag: Option<&str>| {
             let mut extra = format!("Range: bytes={from}-{}\r\n", to - 1);
@@ -219,6 +291,8 @@ impl Remote {
             etag: first.etag,
             open_requests: requests,
             open_bytes,
+            #[cfg(feature = "object-store")]
+            object: None,
         }));
         Ok((remote, meta))
     }
@@ -292,6 +366,15 @@ impl Remote {
     }
 }
 
+/// Whether `url` names a bucket (read through `object_store`, feature `object-store`)
+/// rather than an HTTP server.
+fn is_object_url(url: &str) -> bool {
+    const SCHEMES: [&str; 8] = [
+        "s3://", "s3a://", "gs://", "az://", "adl://", "azure://", "abfs://", "abfss://",
+    ];
+    SCHEMES.iter().any(|s| url.starts_with(s))
+}
+
 fn endpoint(base_url: &str, options: &ConnectOptions) -> Result<Endpoint, FetchError> {
     Endpoint::from_url_with(base_url, options).map_err(|e| match e {
         http1::Http1Error::Tls(msg) => FetchError::Tls(msg),
@@ -346,6 +429,15 @@ mod tests {
             s.blob_path([1, -2, 8]),
             "/repos/r/v/0123456789abcdef/d/1/-2/8"
         );
+    }
+
+    #[test]
+    fn bucket_schemes_are_told_from_http() {
+        assert!(is_object_url("s3://b/k"));
+        assert!(is_object_url("gs://b/k"));
+        assert!(is_object_url("az://c/k"));
+        assert!(!is_object_url("https://b.s3.amazonaws.com/k"));
+        assert!(!is_object_url("http://127.0.0.1:9/s3://"));
     }
 
     #[test]

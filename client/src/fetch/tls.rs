@@ -29,6 +29,22 @@ pub struct ConnectOptions {
     /// front of the server); the `Host` header and the name the certificate must carry
     /// still come from the URL.
     pub connect_to: Option<SocketAddr>,
+    /// Settings of a bucket URL (`s3://`, `gs://`, `az://`; feature `object-store`).
+    pub bucket: BucketOptions,
+}
+
+/// `object_store` settings of a bucket (`aws_access_key_id`, `aws_endpoint`,
+/// `google_service_account`, ...), applied over the environment's `AWS_*`, `GOOGLE_*` and
+/// `AZURE_*` variables. Shown without values (they hold secrets).
+#[derive(Clone, Default, PartialEq, Eq)]
+pub struct BucketOptions(pub Vec<(String, String)>);
+
+impl std::fmt::Debug for BucketOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_list()
+            .entries(self.0.iter().map(|(k, _)| k))
+            .finish()
+    }
 }
 
 /// The crypto provider of every TLS connection (client and server).

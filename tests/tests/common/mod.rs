@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 pub mod nginx;
+pub mod pack_reads;
 pub mod stream;
 
 /// The workspace root (the parent of this package).

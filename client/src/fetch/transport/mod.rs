@@ -1,6 +1,8 @@
 //! The transports behind one interface: requests go in with a key and a path, completions
 //! come back on a channel with the slot they used.
 
+#[cfg(feature = "object-store")]
+pub(crate) mod object_store;
 mod pipelined;
 mod reqwest_client;
 
@@ -62,6 +64,9 @@ pub(crate) struct Completion {
 pub(crate) enum Driver {
     Pipelined(pipelined::Pipelined),
     Reqwest(reqwest_client::ReqwestDriver),
+    /// A repository file in a bucket, whatever [`Transport`] says.
+    #[cfg(feature = "object-store")]
+    ObjectStore(self::object_store::ObjectStoreDriver),
 }
 
 impl Driver {
@@ -70,6 +75,11 @@ impl Driver {
         config: &FetchConfig,
         done: UnboundedSender<Completion>,
     ) -> Result<Driver, FetchError> {
+        #[cfg(feature = "object-store")]
+        if let Some(source) = config.remote.pack.as_ref().and_then(|p| p.object.as_ref()) {
+            let driver = self::object_store::ObjectStoreDriver::new(config, source, done)?;
+            return Ok(Driver::ObjectStore(driver));
+        }
         Ok(match config.transport {
             Transport::Pipelined => Driver::Pipelined(pipelined::Pipelined::new(config, done)),
             Transport::Plain | Transport::H2 => {
@@ -83,6 +93,8 @@ impl Driver {
         match self {
             Driver::Pipelined(p) => p.free_slots(),
             Driver::Reqwest(r) => r.free_slots(),
+            #[cfg(feature = "object-store")]
+            Driver::ObjectStore(o) => o.free_slots(),
         }
     }
 
@@ -91,6 +103,8 @@ impl Driver {
         match self {
             Driver::Pipelined(p) => p.send(request),
             Driver::Reqwest(r) => r.send(request),
+            #[cfg(feature = "object-store")]
+            Driver::ObjectStore(o) => o.send(request),
         }
     }
 
@@ -99,6 +113,8 @@ impl Driver {
         match self {
             Driver::Pipelined(p) => p.finished(slot),
             Driver::Reqwest(r) => r.finished(),
+            #[cfg(feature = "object-store")]
+            Driver::ObjectStore(o) => o.finished(),
         }
     }
 }
