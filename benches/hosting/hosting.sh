@@ -8,10 +8,14 @@
 # colour (rms 4). Prints one JSON object per flight (the
 # `quincunx fly --json` summary plus "source", "run" and the repositories' open figures).
 #   benches/hosting/hosting.sh [shared-data-dir] > benches/hosting/hosting.jsonl
+# REPOS="korea earth" (default: all three) and SOURCES="serve s3" (default: all three)
+# fly a subset.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 data="${1:-../shared/data}"
 runs="${RUNS:-5}"
+repos=" ${REPOS:-korea earth korea_lossless} "
+sources=" ${SOURCES:-serve ranges s3} "
 for f in korea_srtm3_4097.json etopo5_global.json bmng_global_5400x2700.jpg; do
     if [ ! -f "$data/$f" ]; then
         echo "SKIP hosting bench: $data/$f absent" >&2
@@ -81,6 +85,7 @@ for _ in $(seq 600); do
 done
 fly() { # source, run, url, repo, extra flags...
     local source="$1" run="$2" url="$3" repo="$4"; shift 4
+    [[ "$sources" == *" $source "* && "$repos" == *" ${repo%.pack} "* ]] || return 0
     "$bin/quincunx" fly --url "$url" --repo "$repo" --path jump --link 4000,100 --json "$@" \
         | python3 -c "import json,sys; d=json.load(sys.stdin); d['source']='$source'; d['run']=$run; print(json.dumps(d))"
 }
