@@ -46,8 +46,9 @@ pub fn parse_content_range(v: &[u8]) -> Option<[u64; 3]> {
     (first <= last && last < total).then_some([first, last, total])
 }
 
-/// Decimal digits only, fitting a `u64`.
-fn parse_length(v: &[u8]) -> Option<u64> {
+/// A decimal length (`Content-Length`, a `Content-Range` part): digits only, fitting a
+/// `u64`.
+pub fn parse_length(v: &[u8]) -> Option<u64> {
     let v = v.trim_ascii();
     if v.is_empty() {
         return None;

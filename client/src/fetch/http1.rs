@@ -489,20 +489,7 @@ pub(crate) fn parse_content_range(v: &[u8]) -> Option<[u64; 3]> {
     quincunx_client_core::fetch::range_answer::parse_content_range(v)
 }
 
-/// A decimal `Content-Length` value: digits only, fitting a `u64`.
-fn parse_length(v: &[u8]) -> Option<u64> {
-    let v = v.trim_ascii();
-    if v.is_empty() {
-        return None;
-    }
-    v.iter().try_fold(0u64, |acc, &d| {
-        if d.is_ascii_digit() {
-            acc.checked_mul(10)?.checked_add(u64::from(d - b'0'))
-        } else {
-            None
-        }
-    })
-}
+use quincunx_client_core::fetch::range_answer::parse_length;
 
 /// One persistent HTTP/1.1 connection (`TCP_NODELAY`, TLS for `https://`), for
 /// pipelined GETs.
