@@ -11,22 +11,15 @@
 
 mod common;
 
-use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::Path;
-use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use bytes::Bytes;
 use common::nginx::{Nginx, find_nginx, free_port};
-use common::{get, workspace_root};
-use quincunx_client::fetch::{FetchConfig, FetchError, Fetched, Fetcher, Key, Remote};
-use quincunx_client::flight::{self, FlightReport};
-use quincunx_client::session::AnySession;
-use quincunx_repo_tools::build::{self, BuildArgs};
-use quincunx_repo_tools::fly::{self, FlyArgs};
-use quincunx_store::Repository;
-use quincunx_store::answer::IdSpace;
+use common::pack_reads::{assert_clean, build, fetch_all, fly_checked, raw_fetcher, stored};
+use common::{get, put_file};
+use quincunx_client::fetch::{FetchError, Fetched, Key, Remote};
+use quincunx_repo_tools::build::BuildArgs;
 
 /// The proxy's slice: small next to the bundled korea file (60 KB), so a flight spans
 /// all of them and most requests more than one.
@@ -84,81 +77,6 @@ fn log_lines(dir: &Path) -> Vec<String> {
         .collect()
 }
 
-/// Flies the built-in jump path with every frame checked for cracks.
-fn fly_checked(url: &str, repo: &str) -> FlightReport {
-    let args = FlyArgs {
-        tolerance_px: 2.0,
-        ..FlyArgs::new(url, repo, "jump")
-    };
-    let session =
-        AnySession::open_with_colour(url, repo, None, fly::session_config(&args)).unwrap();
-    let opts = fly::fly_options(&args);
-    let AnySession::Planar(mut s) = session else {
-        panic!("korea is planar")
-    };
-    let f = fly::load_flight(&args.path, &mut s, args.seed).unwrap();
-    flight::fly(&mut s, &f, &opts, |_| {}).unwrap()
-}
-
-fn assert_clean(name: &str, r: &FlightReport) {
-    assert_eq!((r.cracks, r.coverage_errors), (0, 0), "{name}: {r:?}");
-    assert_eq!((r.fetch_errors, r.failures), (0, 0), "{name}: {r:?}");
-    assert_eq!(r.jumps_unfinished, 0, "{name}: {r:?}");
-    assert!(r.frames_checked > 0, "{name}");
-}
-
-fn build_korea(out: &Path, input: &str, rms_m: f64) {
-    build::run(&BuildArgs {
-        overwrite: true,
-        rms_m: Some(rms_m),
-        ..BuildArgs::new(workspace_root().join("data").join(input), out)
-    })
-    .unwrap();
-}
-
-/// Every stored blob of `repo`, by centre.
-fn stored(repo: &Path) -> BTreeMap<Key, Bytes> {
-    let repo = Repository::open(repo).unwrap();
-    let IdSpace::Planar(d) = IdSpace::of(repo.metadata()).unwrap() else {
-        panic!("korea is planar")
-    };
-    repo.blobs()
-        .map(|kv| {
-            let (k, v) = kv.unwrap();
-            let id = d.id_from_key(&k).unwrap();
-            ([id.x, id.y, 0], v)
-        })
-        .collect()
-}
-
-/// Submits `keys` until each has an answer (or `limit` passes).
-fn fetch_all(remote: Remote, keys: &[Key], limit: Duration) -> BTreeMap<Key, Fetched<Vec<u8>>> {
-    let config = FetchConfig {
-        request_timeout: Duration::from_secs(2),
-        max_attempts: 2,
-        retry_backoff: Duration::from_millis(10),
-        max_backoff: Duration::from_millis(50),
-        ..FetchConfig::new(remote)
-    };
-    let fetcher: Fetcher<Vec<u8>> =
-        Fetcher::spawn(config, Arc::new(|_key, bytes: Bytes| Ok(bytes.to_vec()))).unwrap();
-    let mut out = BTreeMap::new();
-    let started = Instant::now();
-    while out.len() < keys.len() && started.elapsed() < limit {
-        let wants: Vec<(Key, f32)> = keys
-            .iter()
-            .filter(|k| !out.contains_key(*k))
-            .map(|&k| (k, 1.0))
-            .collect();
-        fetcher.submit(wants);
-        std::thread::sleep(Duration::from_millis(5));
-        for (k, r) in fetcher.poll() {
-            out.entry(k).or_insert(r);
-        }
-    }
-    out
-}
-
 #[test]
 fn flights_through_a_slice_caching_proxy_are_crack_free_and_the_second_is_all_hits() {
     let Some(nginx) = find_nginx("range_proxy") else {
@@ -169,8 +87,7 @@ fn flights_through_a_slice_caching_proxy_are_crack_free_and_the_second_is_all_hi
     let built = root.join("korea");
     common::build_bundled_korea(&built);
     let www = root.join("www");
-    std::fs::create_dir_all(&www).unwrap();
-    std::fs::copy(built.join("repository.pack"), www.join("korea.pack")).unwrap();
+    put_file(&built, &www, "korea.pack");
     let file_len = std::fs::metadata(www.join("korea.pack")).unwrap().len();
     let (origin_dir, proxy_dir) = (root.join("origin"), root.join("proxy"));
     let origin = origin(&nginx, &origin_dir, &www);
@@ -178,7 +95,7 @@ fn flights_through_a_slice_caching_proxy_are_crack_free_and_the_second_is_all_hi
     let url = format!("http://{}", proxy.addr);
 
     let before = log_lines(&origin_dir).len();
-    let first = fly_checked(&url, "korea.pack");
+    let first = fly_checked(&url, "korea.pack", None);
     assert_clean("first flight", &first);
     let origin_after_first = log_lines(&origin_dir);
     let proxied = log_lines(&proxy_dir);
@@ -198,7 +115,7 @@ fn flights_through_a_slice_caching_proxy_are_crack_free_and_the_second_is_all_hi
         slices.len()
     );
 
-    let second = fly_checked(&url, "korea.pack");
+    let second = fly_checked(&url, "korea.pack", None);
     assert_clean("second flight", &second);
     let origin_after_second = log_lines(&origin_dir);
     assert_eq!(
@@ -236,10 +153,12 @@ fn etags_pass_through_the_proxy_and_a_replaced_file_is_an_error_never_a_mix() {
     let root = dir.path();
     let (old, new) = (root.join("old"), root.join("new"));
     common::build_bundled_korea(&old);
-    build_korea(&new, "korea_srtm3_1025.json", 8.0);
+    build(&new, "korea_srtm3_1025.json", |a| BuildArgs {
+        rms_m: Some(8.0),
+        ..a
+    });
     let www = root.join("www");
-    std::fs::create_dir_all(&www).unwrap();
-    std::fs::copy(old.join("repository.pack"), www.join("korea.pack")).unwrap();
+    put_file(&old, &www, "korea.pack");
     let (origin_dir, proxy_dir) = (root.join("origin"), root.join("proxy"));
     let origin = origin(&nginx, &origin_dir, &www);
     let proxy = slice_proxy(&nginx, &proxy_dir, origin.addr);
@@ -277,7 +196,7 @@ fn etags_pass_through_the_proxy_and_a_replaced_file_is_an_error_never_a_mix() {
     std::fs::rename(&staged, www.join("korea.pack")).unwrap();
     let want = stored(&old);
     let keys: Vec<Key> = want.keys().copied().collect();
-    let got = fetch_all(remote, &keys, Duration::from_secs(60));
+    let got = fetch_all(&raw_fetcher(remote), &keys, Duration::from_secs(60));
     assert_eq!(got.len(), keys.len());
     let (mut old_blobs, mut changed, mut failed) = (0, 0, 0);
     for (k, r) in &got {

@@ -23,7 +23,10 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use common::nginx::{Nginx, find_nginx, free_port};
-use common::pack_reads::{assert_clean, build, fetch_all, fly_checked, raw_fetcher, stored};
+use common::pack_reads::{
+    assert_clean, assert_reads_stored, build, fetch_all, fly_checked, raw_fetcher, stored,
+};
+use common::put_file;
 use quincunx_client::fetch::{FetchError, Fetched, Key, Remote};
 use quincunx_repo_tools::build::BuildArgs;
 
@@ -150,26 +153,7 @@ fn sessions_stream_repository_files_from_nginx_crack_free_and_blobs_read_back_ex
     let (remote, _) = Remote::open(&url, "korea.pack", Duration::from_secs(5)).unwrap();
     let pack = remote.pack.clone().unwrap();
     assert_eq!(pack.open_requests, 1, "korea opens in one read");
-    let fetcher = raw_fetcher(remote);
-    let keys: Vec<Key> = want.keys().copied().collect();
-    let got = fetch_all(&fetcher, &keys, Duration::from_secs(60));
-    assert_eq!(got.len(), keys.len());
-    for (k, r) in &got {
-        match r {
-            Fetched::Data(v) => assert_eq!(&v[..], &want[k][..], "{k:?}"),
-            other => panic!("{k:?}: {other:?}"),
-        }
-    }
-    let stats = fetcher.stats();
-    // Batches are what the bandwidth window releases at a time, which depends on
-    // timing; neighbours in one are coalesced (how many join is the reader's unit tests'
-    // business: here, 450-470 requests for 540 blobs on a busy machine).
-    assert!(
-        stats.requests < keys.len() as u64,
-        "{} requests for {} blobs: coalesced",
-        stats.requests,
-        keys.len()
-    );
+    assert_reads_stored(remote, &want);
     // The planet's colour metadata exceeds the first read: two round trips to open.
     let (remote, _) = Remote::open(&planets, "earth_colour.pack", Duration::from_secs(5)).unwrap();
     let pack = remote.pack.unwrap();
@@ -194,8 +178,7 @@ fn a_file_replaced_mid_session_is_an_error_never_a_mix_of_two_builds() {
         ..a
     });
     let www = root.join("www");
-    std::fs::create_dir_all(&www).unwrap();
-    std::fs::copy(old.join("repository.pack"), www.join("korea.pack")).unwrap();
+    put_file(&old, &www, "korea.pack");
     let server = static_nginx(&nginx, &root.join("nginx"), &www, "/korea.pack");
     let url = format!("http://{}", server.addr);
     let (remote, _) = Remote::open(&url, "korea.pack", Duration::from_secs(5)).unwrap();

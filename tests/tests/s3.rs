@@ -14,7 +14,9 @@ mod common;
 use std::path::Path;
 use std::time::Duration;
 
-use common::pack_reads::{assert_clean, build, fetch_all, fly_checked_with, raw_fetcher, stored};
+use common::pack_reads::{
+    assert_clean, assert_reads_stored, build, fetch_all, fly_checked_with, raw_fetcher, stored,
+};
 use quincunx_client::fetch::tls::{BucketOptions, ConnectOptions};
 use quincunx_client::fetch::{FetchError, Fetched, Key, Remote};
 use quincunx_e2e::s3::{Keys, S3Server};
@@ -89,24 +91,7 @@ fn a_private_bucket_streams_crack_free_with_signed_requests_and_blobs_read_back_
     assert_eq!(pack.open_requests, 1, "korea opens in one read");
     assert_eq!(pack.path, "s3://terrain/maps/korea.pack");
     assert!(pack.etag.is_some(), "S3 gives an ETag");
-    let fetcher = raw_fetcher(remote);
-    let keys_wanted: Vec<Key> = want.keys().copied().collect();
-    let got = fetch_all(&fetcher, &keys_wanted, Duration::from_secs(60));
-    assert_eq!(got.len(), keys_wanted.len());
-    for (k, r) in &got {
-        match r {
-            Fetched::Data(v) => assert_eq!(&v[..], &want[k][..], "{k:?}"),
-            other => panic!("{k:?}: {other:?}"),
-        }
-    }
-    let stats = fetcher.stats();
-    // How many coalesce depends on what the window releases at once (timing); some do.
-    assert!(
-        stats.requests < keys_wanted.len() as u64,
-        "{} requests for {} blobs: coalesced",
-        stats.requests,
-        keys_wanted.len()
-    );
+    let stats = assert_reads_stored(remote, &want);
     assert_eq!(stats.errors.total(), 0, "{stats:?}");
 
     // The bucket is private: an unsigned request is refused.
@@ -217,17 +202,7 @@ fn a_presigned_url_reads_the_file_with_the_plain_transport() {
     let folder = folder.strip_suffix("/korea.pack").unwrap();
     for base in [url.clone(), format!("{folder}?{query}")] {
         let (remote, _) = Remote::open(&base, "korea.pack", Duration::from_secs(10)).unwrap();
-        let want = stored(&korea);
-        let fetcher = raw_fetcher(remote);
-        let keys_wanted: Vec<Key> = want.keys().copied().collect();
-        let got = fetch_all(&fetcher, &keys_wanted, Duration::from_secs(60));
-        assert_eq!(got.len(), keys_wanted.len());
-        for (k, r) in &got {
-            match r {
-                Fetched::Data(v) => assert_eq!(&v[..], &want[k][..], "{k:?}"),
-                other => panic!("{k:?}: {other:?}"),
-            }
-        }
+        assert_reads_stored(remote, &stored(&korea));
     }
 
     // Without the query, or with a forged signature, the server refuses.

@@ -28,6 +28,7 @@ use quincunx_web::open::Open;
 use quincunx_web::wire::{Reader, Writer};
 
 use common::nginx::{Nginx, find_nginx, free_port};
+use common::put_file;
 use common::stream::{cut_of, reference_cut};
 
 const FIRST_READ: u64 = quincunx_web::pack::PackReader::FIRST_READ;
@@ -136,8 +137,7 @@ fn the_browsers_client_streams_a_repository_file_from_nginx_to_the_local_cut() {
     let built = root.join("korea");
     common::build_bundled_korea(&built);
     let www = root.join("www");
-    std::fs::create_dir_all(&www).unwrap();
-    std::fs::copy(built.join("repository.pack"), www.join("korea.pack")).unwrap();
+    put_file(&built, &www, "korea.pack");
     let server = static_nginx(&nginx, &root.join("nginx"), &www);
     let addr = server.addr;
 

@@ -15,15 +15,12 @@
 
 import { after, before, test } from "node:test";
 import assert from "node:assert/strict";
-import { spawn, execFileSync } from "node:child_process";
-import { copyFileSync, existsSync, mkdtempSync, mkdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
-import { createServer } from "node:net";
+import { copyFileSync, existsSync, mkdtempSync, mkdirSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { fileURLToPath } from "node:url";
+import { CHROMIUM, corsRule, freePort, prerequisites, startNginx } from "./nginx-chromium.mjs";
 
-const NGINX = ["/usr/sbin/nginx", "/usr/bin/nginx"].find((p) => existsSync(p));
-const CHROMIUM = process.env.CHROMIUM ?? "/usr/bin/chromium";
 const DEMO = fileURLToPath(new URL("..", import.meta.url));
 const PACK =
   process.env.QUINCUNX_PACK_FILE ?? (process.env.QUINCUNX_DEMO_DIR ? join(process.env.QUINCUNX_DEMO_DIR, "korea", "repository.pack") : null);
@@ -31,83 +28,27 @@ const SIZE = [480, 270];
 const TIMEOUT_MS = Number(process.env.TIMEOUT_S ?? 180) * 1000;
 
 let absent = null;
-let dir = null;
 let nginx = null;
 let browser = null;
 let ports = null;
 
-function freePort() {
-  return new Promise((resolve, reject) => {
-    const s = createServer();
-    s.once("error", reject);
-    s.listen(0, "127.0.0.1", () => {
-      const { port } = s.address();
-      s.close(() => resolve(port));
-    });
-  });
-}
-
-async function waitFor(url) {
-  const deadline = Date.now() + 20_000;
-  for (;;) {
-    try {
-      const r = await fetch(url);
-      if (r.ok) return;
-    } catch {
-      // not yet listening
-    }
-    if (Date.now() > deadline) throw new Error(`nginx did not answer ${url}`);
-    await new Promise((r) => setTimeout(r, 50));
-  }
-}
-
 before(async () => {
-  let playwright = null;
-  try {
-    playwright = await import("playwright-core");
-  } catch {
-    // reported below
-  }
   if (!PACK || !existsSync(PACK)) {
     absent = `no repository file (${PACK ?? "set QUINCUNX_PACK_FILE or QUINCUNX_DEMO_DIR"})`;
     if (process.env.QUINCUNX_DEMO_DIR || process.env.QUINCUNX_PACK_FILE) throw new Error(absent);
     return;
   }
-  if (!NGINX) {
-    absent = "nginx not installed (apt-get install nginx)";
-    if (process.env.REQUIRE_NGINX) throw new Error(absent);
-    return;
-  }
-  if (!existsSync(CHROMIUM) || !playwright) {
-    absent = !playwright ? "no playwright-core (npm ci in web-demo/)" : `no ${CHROMIUM}`;
-    if (process.env.REQUIRE_BROWSER) throw new Error(absent);
-    return;
-  }
-  dir = mkdtempSync(join(tmpdir(), "qx-pack-view-"));
+  const found = await prerequisites();
+  absent = found.absent;
+  if (absent) return;
+  const dir = mkdtempSync(join(tmpdir(), "qx-pack-view-"));
   const www = join(dir, "www");
   mkdirSync(www);
   copyFileSync(PACK, join(www, "korea.pack"));
   copyFileSync(PACK, join(www, "changing.pack"));
   ports = { page: await freePort(), files: await freePort() };
-  const cors = `
-      add_header Access-Control-Allow-Origin * always;
-      add_header Access-Control-Expose-Headers "Content-Range, ETag, Content-Length" always;
-      if ($request_method = OPTIONS) {
-        add_header Access-Control-Allow-Origin *;
-        add_header Access-Control-Allow-Methods "GET, HEAD";
-        add_header Access-Control-Allow-Headers "Range, If-Match";
-        add_header Access-Control-Max-Age 3600;
-        return 204;
-      }`;
-  const user = process.getuid?.() === 0 ? "user root;" : "";
-  const conf = `daemon off; master_process on; worker_processes 1; ${user}
-pid ${dir}/nginx.pid; error_log ${dir}/error.log info;
-events { worker_connections 256; }
-http {
-  client_body_temp_path ${dir}/body; proxy_temp_path ${dir}/proxy;
-  fastcgi_temp_path ${dir}/fastcgi; uwsgi_temp_path ${dir}/uwsgi; scgi_temp_path ${dir}/scgi;
-  types { text/html html; text/javascript mjs js; application/wasm wasm; }
-  log_format ranges '$request_method $uri "$http_range" "$http_if_match" $status';
+  const cors = corsRule();
+  const http = `  types { text/html html; text/javascript mjs js; application/wasm wasm; }
   server {
     listen 127.0.0.1:${ports.page};
     access_log off;
@@ -120,17 +61,13 @@ http {
     location /cors/ { alias ${www}/; ${cors} }
     location /norange/ { alias ${www}/; max_ranges 0; ${cors} }
     location /nocors/ { alias ${www}/; }
-  }
-}
-`;
-  writeFileSync(join(dir, "nginx.conf"), conf);
-  nginx = spawn(NGINX, ["-p", dir, "-c", join(dir, "nginx.conf"), "-e", join(dir, "error.log")], {
-    stdio: ["ignore", "ignore", "inherit"],
-  });
-  await waitFor(`http://127.0.0.1:${ports.page}/demo/index.html`);
-  await waitFor(`http://127.0.0.1:${ports.files}/nocors/korea.pack`);
+  }`;
+  nginx = await startNginx(dir, http, [
+    `http://127.0.0.1:${ports.page}/demo/index.html`,
+    `http://127.0.0.1:${ports.files}/nocors/korea.pack`,
+  ]);
   // WebGL2 without a GPU: ANGLE on SwiftShader, as tools/browser-views.mjs runs it.
-  browser = await playwright.chromium.launch({
+  browser = await found.playwright.chromium.launch({
     executablePath: CHROMIUM,
     headless: true,
     args: ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"],
@@ -139,20 +76,10 @@ http {
 
 after(async () => {
   await browser?.close();
-  if (nginx) {
-    try {
-      execFileSync(NGINX, ["-p", dir, "-c", join(dir, "nginx.conf"), "-e", join(dir, "error.log"), "-s", "stop"]);
-    } catch {
-      nginx.kill();
-    }
-  }
-  if (dir) rmSync(dir, { recursive: true, force: true });
+  nginx?.stop();
 });
 
-const logLines = () =>
-  existsSync(join(dir, "access.log"))
-    ? readFileSync(join(dir, "access.log"), "utf8").split("\n").filter((l) => l.length > 0)
-    : [];
+const logLines = () => nginx.logLines();
 
 const fileUrl = (path) => `http://127.0.0.1:${ports.files}${path}`;
 

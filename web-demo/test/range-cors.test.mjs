@@ -17,68 +17,26 @@
 
 import { after, before, test } from "node:test";
 import assert from "node:assert/strict";
-import { spawn, execFileSync } from "node:child_process";
-import { existsSync, mkdtempSync, mkdirSync, readFileSync, rmSync, writeFileSync } from "node:fs";
-import { createServer } from "node:net";
+import { mkdtempSync, mkdirSync, writeFileSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join } from "node:path";
 import { randomBytes } from "node:crypto";
+import { CHROMIUM, corsRule, freePort, prerequisites, startNginx } from "./nginx-chromium.mjs";
 
-const NGINX = ["/usr/sbin/nginx", "/usr/bin/nginx"].find((p) => existsSync(p));
-const CHROMIUM = process.env.CHROMIUM ?? "/usr/bin/chromium";
 const FILE_LEN = 300_000;
 
 let absent = null;
-let dir = null;
 let nginx = null;
 let browser = null;
 let page = null;
 let ports = null;
 let file = null;
 
-function freePort() {
-  return new Promise((resolve, reject) => {
-    const s = createServer();
-    s.once("error", reject);
-    s.listen(0, "127.0.0.1", () => {
-      const { port } = s.address();
-      s.close(() => resolve(port));
-    });
-  });
-}
-
-async function waitFor(url) {
-  const deadline = Date.now() + 20_000;
-  for (;;) {
-    try {
-      const r = await fetch(url);
-      if (r.ok) return;
-    } catch {
-      // not yet listening
-    }
-    if (Date.now() > deadline) throw new Error(`nginx did not answer ${url}`);
-    await new Promise((r) => setTimeout(r, 50));
-  }
-}
-
 before(async () => {
-  let playwright = null;
-  try {
-    playwright = await import("playwright-core");
-  } catch {
-    // reported below
-  }
-  if (!NGINX) {
-    absent = "nginx not installed (apt-get install nginx)";
-    if (process.env.REQUIRE_NGINX) throw new Error(absent);
-    return;
-  }
-  if (!existsSync(CHROMIUM) || !playwright) {
-    absent = !playwright ? "no playwright-core (npm ci in web-demo/)" : `no ${CHROMIUM}`;
-    if (process.env.REQUIRE_BROWSER) throw new Error(absent);
-    return;
-  }
-  dir = mkdtempSync(join(tmpdir(), "qx-range-cors-"));
+  const found = await prerequisites();
+  absent = found.absent;
+  if (absent) return;
+  const dir = mkdtempSync(join(tmpdir(), "qx-range-cors-"));
   const www = join(dir, "www");
   mkdirSync(join(www, "page"), { recursive: true });
   mkdirSync(join(www, "files"), { recursive: true });
@@ -86,56 +44,28 @@ before(async () => {
   file = randomBytes(FILE_LEN);
   writeFileSync(join(www, "files", "r.pack"), file);
   ports = { page: await freePort(), files: await freePort() };
-  const cors = `
-      add_header Access-Control-Allow-Origin * always;
-      add_header Access-Control-Expose-Headers "Content-Range, ETag, Content-Length" always;
-      add_header Cache-Control "public, max-age=3600" always;
-      if ($request_method = OPTIONS) {
-        add_header Access-Control-Allow-Origin *;
-        add_header Access-Control-Allow-Methods "GET, HEAD";
-        add_header Access-Control-Allow-Headers "Range, If-Match";
-        add_header Access-Control-Max-Age 3600;
-        return 204;
-      }`;
-  const user = process.getuid?.() === 0 ? "user root;" : "";
-  const conf = `daemon off; master_process on; worker_processes 1; ${user}
-pid ${dir}/nginx.pid; error_log ${dir}/error.log info;
-events { worker_connections 64; }
-http {
-  client_body_temp_path ${dir}/body; proxy_temp_path ${dir}/proxy;
-  fastcgi_temp_path ${dir}/fastcgi; uwsgi_temp_path ${dir}/uwsgi; scgi_temp_path ${dir}/scgi;
-  log_format ranges '$request_method $uri "$http_range" "$http_if_match" $status';
-  server { listen 127.0.0.1:${ports.page}; root ${www}/page; access_log off; }
+  const cors = corsRule(`
+      add_header Cache-Control "public, max-age=3600" always;`);
+  const http = `  server { listen 127.0.0.1:${ports.page}; root ${www}/page; access_log off; }
   server {
     listen 127.0.0.1:${ports.files};
     access_log ${dir}/access.log ranges;
     location /cors/ { alias ${www}/files/; ${cors} }
     location /noexpose/ { alias ${www}/files/; add_header Access-Control-Allow-Origin * always; }
     location /nocors/ { alias ${www}/files/; }
-  }
-}
-`;
-  writeFileSync(join(dir, "nginx.conf"), conf);
-  nginx = spawn(NGINX, ["-p", dir, "-c", join(dir, "nginx.conf"), "-e", join(dir, "error.log")], {
-    stdio: ["ignore", "ignore", "inherit"],
-  });
-  await waitFor(`http://127.0.0.1:${ports.page}/index.html`);
-  await waitFor(`http://127.0.0.1:${ports.files}/nocors/r.pack`);
-  browser = await playwright.chromium.launch({ executablePath: CHROMIUM, headless: true, args: ["--no-sandbox"] });
+  }`;
+  nginx = await startNginx(dir, http, [
+    `http://127.0.0.1:${ports.page}/index.html`,
+    `http://127.0.0.1:${ports.files}/nocors/r.pack`,
+  ]);
+  browser = await found.playwright.chromium.launch({ executablePath: CHROMIUM, headless: true, args: ["--no-sandbox"] });
   page = await browser.newPage();
   await page.goto(`http://127.0.0.1:${ports.page}/index.html`);
 });
 
 after(async () => {
   await browser?.close();
-  if (nginx) {
-    try {
-      execFileSync(NGINX, ["-p", dir, "-c", join(dir, "nginx.conf"), "-e", join(dir, "error.log"), "-s", "stop"]);
-    } catch {
-      nginx.kill();
-    }
-  }
-  if (dir) rmSync(dir, { recursive: true, force: true });
+  nginx?.stop();
 });
 
 /** Fetches `url` in the page with `headers`: status, the headers the page can read, body
@@ -161,10 +91,7 @@ function pageFetch(url, headers) {
   );
 }
 
-const logLines = () =>
-  existsSync(join(dir, "access.log"))
-    ? readFileSync(join(dir, "access.log"), "utf8").split("\n").filter((l) => l.length > 0)
-    : [];
+const logLines = () => nginx.logLines();
 
 test("a cross-origin page reads ranges of a repository file with the documented CORS rule", async (t) => {
   if (absent) return t.skip(`SKIP range_cors: ${absent}`) ?? console.log(`SKIP range_cors: ${absent}`);

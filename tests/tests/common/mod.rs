@@ -135,3 +135,10 @@ pub fn build_bundled_korea(output: &Path) {
     })
     .unwrap();
 }
+
+/// Copies the repository file of `repo` to `www/name`, creating `www`: a file for a static
+/// host to serve.
+pub fn put_file(repo: &Path, www: &Path, name: &str) {
+    std::fs::create_dir_all(www).unwrap();
+    std::fs::copy(repo.join("repository.pack"), www.join(name)).unwrap();
+}

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use quincunx_client::fetch::tls::ConnectOptions;
-use quincunx_client::fetch::{FetchConfig, Fetched, Fetcher, Key, Remote};
+use quincunx_client::fetch::{FetchConfig, FetchStats, Fetched, Fetcher, Key, Remote};
 use quincunx_client::flight::{self, FlightReport};
 use quincunx_client::session::AnySession;
 use quincunx_repo_tools::build::{self, BuildArgs};
@@ -121,4 +121,29 @@ pub fn fetch_all(
         }
     }
     out
+}
+
+/// Reads every blob of `want` through `remote` and checks each against the stored one;
+/// neighbours are coalesced, so there are fewer requests than blobs (how many join depends
+/// on what the bandwidth window releases at once, which is timing; the reader's unit tests
+/// pin the rule). Returns the fetcher's figures.
+pub fn assert_reads_stored(remote: Remote, want: &BTreeMap<Key, Bytes>) -> FetchStats {
+    let fetcher = raw_fetcher(remote);
+    let keys: Vec<Key> = want.keys().copied().collect();
+    let got = fetch_all(&fetcher, &keys, Duration::from_secs(60));
+    assert_eq!(got.len(), keys.len());
+    for (k, r) in &got {
+        match r {
+            Fetched::Data(v) => assert_eq!(&v[..], &want[k][..], "{k:?}"),
+            other => panic!("{k:?}: {other:?}"),
+        }
+    }
+    let stats = fetcher.stats();
+    assert!(
+        stats.requests < keys.len() as u64,
+        "{} requests for {} blobs: coalesced",
+        stats.requests,
+        keys.len()
+    );
+    stats
 }
