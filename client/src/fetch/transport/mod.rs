@@ -20,6 +20,41 @@ pub(crate) struct RangeMeta {
     pub etag: Option<String>,
 }
 
+/// Requests in flight against a fixed number of slots (one driver's window).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Slots {
+    max: usize,
+    used: usize,
+}
+
+impl Slots {
+    /// `max` slots (at least one).
+    pub fn new(max: usize) -> Slots {
+        Slots {
+            max: max.max(1),
+            used: 0,
+        }
+    }
+
+    pub fn free(&self) -> usize {
+        self.max.saturating_sub(self.used)
+    }
+
+    /// Takes a slot; false when all are taken.
+    pub fn take(&mut self) -> bool {
+        if self.used >= self.max {
+            return false;
+        }
+        self.used += 1;
+        true
+    }
+
+    /// Gives back a slot a request took.
+    pub fn release(&mut self) {
+        self.used = self.used.saturating_sub(1);
+    }
+}
+
 /// One GET to make.
 #[derive(Clone, Debug)]
 pub(crate) struct Request {

@@ -19,7 +19,7 @@ use tokio::sync::mpsc::UnboundedSender;
 use quincunx_client_core::fetch::ranges::{self, PackIndex};
 use quincunx_meta::Metadata;
 
-use super::{Completion, RangeMeta, Request};
+use super::{Completion, RangeMeta, Request, Slots};
 use crate::fetch::tls::ConnectOptions;
 use crate::fetch::{FetchConfig, FetchError};
 
@@ -312,8 +312,7 @@ fn range_and_etag(headers: &str) -> Option<(std::ops::Range<u64>, Option<String>
 pub(crate) struct ObjectStoreDriver {
     store: Arc<dyn ObjectStore>,
     path: Path,
-    slots: usize,
-    in_flight: usize,
+    slots: Slots,
     max_body_bytes: usize,
     deadline: Duration,
     done: UnboundedSender<Completion>,
@@ -329,8 +328,7 @@ impl ObjectStoreDriver {
         Ok(ObjectStoreDriver {
             store,
             path,
-            slots: config.max_in_flight.max(1),
-            in_flight: 0,
+            slots: Slots::new(config.max_in_flight),
             max_body_bytes: config.limits.max_body_bytes,
             deadline: config.request_deadline,
             done,
@@ -338,14 +336,13 @@ impl ObjectStoreDriver {
     }
 
     pub fn free_slots(&self) -> usize {
-        self.slots.saturating_sub(self.in_flight)
+        self.slots.free()
     }
 
     pub fn send(&mut self, request: Request) -> bool {
-        if self.in_flight >= self.slots {
+        if !self.slots.take() {
             return false;
         }
-        self.in_flight += 1;
         let (store, path, done) = (
             Arc::clone(&self.store),
             self.path.clone(),
@@ -381,7 +378,7 @@ impl ObjectStoreDriver {
     }
 
     pub fn finished(&mut self) {
-        self.in_flight = self.in_flight.saturating_sub(1);
+        self.slots.release();
     }
 }
 

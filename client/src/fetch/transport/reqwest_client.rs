@@ -6,7 +6,7 @@ use std::time::Duration;
 use bytes::Bytes;
 use tokio::sync::mpsc::UnboundedSender;
 
-use super::{Completion, RangeMeta, Request};
+use super::{Completion, RangeMeta, Request, Slots};
 use crate::fetch::tls::find_tls_cause;
 use crate::fetch::{FetchConfig, FetchError, Transport};
 
@@ -17,8 +17,7 @@ pub(crate) struct ReqwestDriver {
     origin: String,
     /// The URL's host, for messages about TLS failures.
     tls_host: Option<String>,
-    slots: usize,
-    in_flight: usize,
+    slots: Slots,
     max_body_bytes: usize,
     timeout: Duration,
     deadline: Duration,
@@ -89,8 +88,7 @@ impl ReqwestDriver {
             client,
             origin: format!("{}://{authority}", endpoint.scheme()),
             tls_host: tls.map(|t| t.host()),
-            slots,
-            in_flight: 0,
+            slots: Slots::new(slots),
             max_body_bytes: config.limits.max_body_bytes,
             timeout: config.request_timeout,
             deadline: config.request_deadline,
@@ -99,14 +97,13 @@ impl ReqwestDriver {
     }
 
     pub fn free_slots(&self) -> usize {
-        self.slots.saturating_sub(self.in_flight)
+        self.slots.free()
     }
 
     pub fn send(&mut self, request: Request) -> bool {
-        if self.in_flight >= self.slots {
+        if !self.slots.take() {
             return false;
         }
-        self.in_flight += 1;
         let url = format!("{}{}", self.origin, request.path);
         let mut get = self.client.get(url);
         for line in request.headers.split_terminator("\r\n") {
@@ -156,7 +153,7 @@ impl ReqwestDriver {
     }
 
     pub fn finished(&mut self) {
-        self.in_flight = self.in_flight.saturating_sub(1);
+        self.slots.release();
     }
 }
 
