@@ -577,6 +577,24 @@ export class Session {
 
   _send({ layer, key, packaged }) {
     const url = this._url(layer, key, packaged);
+    this._inFlight(
+      async (signal) => {
+        const resp = await this._fetch(url, { signal });
+        return [resp.status, new Uint8Array(await resp.arrayBuffer())];
+      },
+      ([status, body]) => this._answered(layer, key, status, body),
+      (timedOut, e) => {
+        const now = performance.now();
+        if (timedOut) this._client.failed(layer, key, "", this._requestTimeoutMs, now);
+        else this._client.failed(layer, key, `${url}: ${e?.message ?? e}`, null, now);
+        this._pump();
+      },
+    );
+  }
+
+  /** One request under the request timeout: `start(signal)` makes it, and `answered(value)`
+   * or `failed(timedOut, error)` takes its outcome, unless the client has closed. */
+  _inFlight(start, answered, failed) {
     const controller = new AbortController();
     const flight = { controller, timer: null, timedOut: false };
     flight.timer = setTimeout(() => {
@@ -588,23 +606,13 @@ export class Session {
     const done = () => {
       clearTimeout(flight.timer);
       this._flights.delete(flight);
+      return !this._closed;
     };
     Promise.resolve()
-      .then(() => this._fetch(url, { signal: controller.signal }))
-      .then(async (resp) => [resp.status, new Uint8Array(await resp.arrayBuffer())])
+      .then(() => start(controller.signal))
       .then(
-        ([status, body]) => {
-          done();
-          if (!this._closed) this._answered(layer, key, status, body);
-        },
-        (e) => {
-          done();
-          if (this._closed) return;
-          const now = performance.now();
-          if (flight.timedOut) this._client.failed(layer, key, "", this._requestTimeoutMs, now);
-          else this._client.failed(layer, key, `${url}: ${e?.message ?? e}`, null, now);
-          this._pump();
-        },
+        (value) => done() && answered(value),
+        (e) => done() && failed(flight.timedOut, e),
       );
   }
 
@@ -636,38 +644,21 @@ export class Session {
 
   _sendRange(layer, { tag, offset, len }) {
     const l = this._layers[layer];
-    const controller = new AbortController();
-    const flight = { controller, timer: null, timedOut: false };
-    flight.timer = setTimeout(() => {
-      flight.timedOut = true;
-      controller.abort();
-    }, this._requestTimeoutMs);
-    this._flights.add(flight);
-    this._peakInFlight = Math.max(this._peakInFlight, this._flights.size);
     this._ranges.requests += 1;
-    const done = () => {
-      clearTimeout(flight.timer);
-      this._flights.delete(flight);
-    };
-    Promise.resolve()
-      .then(() => rangeRead(this._fetch, l.url, offset, len, controller.signal))
-      .then(
-        (answer) => {
-          done();
-          if (this._closed) return;
-          const by = this._ranges.byStatus;
-          by[answer.status] = (by[answer.status] ?? 0) + 1;
-          this._step(layer, l.pack.answered(tag, answer));
-          this._pump();
-        },
-        (e) => {
-          done();
-          if (this._closed) return;
-          const failure = flight.timedOut ? { timeoutMs: this._requestTimeoutMs } : { error: fetchFailure(l.url, e) };
-          this._step(layer, l.pack.answered(tag, failure));
-          this._pump();
-        },
-      );
+    this._inFlight(
+      (signal) => rangeRead(this._fetch, l.url, offset, len, signal),
+      (answer) => {
+        const by = this._ranges.byStatus;
+        by[answer.status] = (by[answer.status] ?? 0) + 1;
+        this._step(layer, l.pack.answered(tag, answer));
+        this._pump();
+      },
+      (timedOut, e) => {
+        const failure = timedOut ? { timeoutMs: this._requestTimeoutMs } : { error: fetchFailure(l.url, e) };
+        this._step(layer, l.pack.answered(tag, failure));
+        this._pump();
+      },
+    );
   }
 
   /** An HTTP answer: the planner says what it means; a body to decode goes to a worker. */
