@@ -27,9 +27,9 @@ pub use limits::MetadataError;
 /// record. Codec-specific parts (model, steps, root grids) are opaque numbers here.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Metadata {
-    /// [`FORMAT_VERSION`] of the writer.
+    /// `quincunx_store::FORMAT_VERSION` of the writer.
     pub format_version: u32,
-    /// `true` only in the record written by [`RepositoryBuilder::publish`].
+    /// `true` only in the record written by `quincunx_store::RepositoryBuilder::publish`.
     pub complete: bool,
     /// SHA-256 (hex) over every key and blob in key order and the metadata with this
     /// field empty: changes whenever any content changes (used to version URLs).

@@ -412,7 +412,7 @@ impl Module {
 
     /// What fetching keys takes: input `u32 n, (u8 packaged, key)*` (as
     /// [`Module::client_plan`] gives them, without the layer). Output: a step
-    /// ([`write_step`]).
+    /// (`write_step`).
     pub fn pack_plan(&mut self, h: u32, input: &[u8]) -> Result<Vec<u8>, WebError> {
         let e = |e: crate::wire::WireError| e.to_string();
         let mut r = Reader::new(input);

@@ -1,12 +1,12 @@
 //! Readers that turn height and imagery files into the grids `quincunx build` encodes.
 //!
 //! Heights ([`read_heights`]), chosen by extension (case-insensitive):
-//! - `.json`, `.i16`, `.f32`: the raw grid + JSON sidecar of the shared data folder ([`raw`]);
-//! - `.hgt`: an SRTM tile, 1201² or 3601² big-endian `int16` ([`hgt`]);
-//! - `.png`: 8- or 16-bit greyscale, scaled by an optional sidecar ([`png16`]);
-//! - `.tif`/`.tiff`: single-band GeoTIFF ([`geotiff`]).
+//! - `.json`, `.i16`, `.f32`: the raw grid + JSON sidecar of the shared data folder (`raw`);
+//! - `.hgt`: an SRTM tile, 1201² or 3601² big-endian `int16` (`hgt`);
+//! - `.png`: 8- or 16-bit greyscale, scaled by an optional sidecar (`png16`);
+//! - `.tif`/`.tiff`: single-band GeoTIFF (`geotiff`).
 //!
-//! Imagery ([`read_rgb`]): `.jpg`/`.jpeg` and `.png` ([`rgb`]).
+//! Imagery ([`read_rgb`]): `.jpg`/`.jpeg` and `.png` (`rgb`).
 //!
 //! Every reader treats the file as untrusted: a bad file is an [`InputError`] naming the
 //! file, never a panic, and no buffer is sized from a header before that size has been
