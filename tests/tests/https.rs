@@ -1,7 +1,9 @@
 //! HTTPS end to end: a CA and certificates made here (rcgen), a real server terminating TLS
 //! on loopback, and the client's transports, `fly`, `render` and `loadtest` over it. HTTP/2
 //! is negotiated by ALPN; a wrong host name, an unknown CA and an expired certificate each
-//! fail with an error naming the cause, never a fallback to plain HTTP.
+//! fail with an error naming the cause, never a fallback to plain HTTP. A repository file
+//! on nginx over TLS (HTTP/2 and HTTP/1.1 offered by ALPN) is read by ranges with every
+//! transport, the HTTP/2 one multiplexing them over HTTP/2.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -13,9 +15,11 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use clap::Parser;
-use quincunx_client::fetch::Transport;
+use common::nginx::{Nginx, find_nginx, free_port};
+use common::pack_reads::{assert_clean, assert_reads_stored_over, fly_checked_with, stored};
 use quincunx_client::fetch::http1::{self, Endpoint};
 use quincunx_client::fetch::tls::ConnectOptions;
+use quincunx_client::fetch::{Remote, Transport};
 use quincunx_client::session::{Session, SessionConfig};
 use quincunx_codec::incremental::PlanarRefiner;
 use quincunx_repo_tools::fly::{CaCert, FlyArgs};
@@ -482,4 +486,83 @@ fn unreadable_and_mismatched_certificate_files_are_clear_errors() {
 #[allow(dead_code)]
 fn _ca_cert_is_public(c: CaCert) -> PathBuf {
     c.path
+}
+
+/// nginx serving `www` over TLS with `pki`'s certificate, offering HTTP/2 and HTTP/1.1 by
+/// ALPN and logging each request's protocol and range; it answers `/ready` on a second,
+/// plain listener. Returns nginx and the TLS address.
+fn tls_nginx(binary: &Path, dir: &Path, www: &Path, pki: &Pki) -> (Nginx, SocketAddr) {
+    let (plain, tls) = (free_port(), free_port());
+    let d = dir.display();
+    let snippet = format!(
+        "log_format proto '$server_protocol $status \"$http_range\"';\n\
+         access_log {d}/access.log proto;\n\
+         server {{ listen {plain}; location = /ready {{ return 200; }} }}\n\
+         server {{ listen {tls} ssl http2; ssl_certificate {}; ssl_certificate_key {}; root {}; }}",
+        pki.cert.display(),
+        pki.key.display(),
+        www.display()
+    );
+    (Nginx::run(binary, dir, plain, &snippet, "/ready"), tls)
+}
+
+#[test]
+fn a_repository_file_on_an_https_host_reads_by_ranges_with_http2_where_offered() {
+    let Some(binary) = find_nginx("https_ranges") else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let repo = build_korea(dir.path());
+    let www = dir.path().join("www");
+    common::put_file(&repo, &www, "korea.pack");
+    let ca = pki(dir.path(), "good", false);
+    let (server, tls) = tls_nginx(&binary, &dir.path().join("nginx"), &www, &ca);
+    let url = format!("https://localhost:{}", tls.port());
+    let ranges_logged = || -> Vec<String> {
+        std::fs::read_to_string(dir.path().join("nginx/access.log"))
+            .unwrap_or_default()
+            .lines()
+            .filter(|l| l.contains("bytes="))
+            .map(str::to_string)
+            .collect()
+    };
+
+    // The defaults (pipelined HTTP/1.1), every frame checked for cracks.
+    let flight = fly_checked_with(&url, "korea.pack", None, connect(&ca));
+    assert_clean("https ranges", &flight);
+
+    // Every transport reads every blob back exactly; the HTTP/2 one gets HTTP/2, which
+    // nginx offers by ALPN, and multiplexes its ranges on it.
+    let want = stored(&repo);
+    for transport in Transport::ALL {
+        let (remote, _) =
+            Remote::open_with(&url, "korea.pack", Duration::from_secs(10), &connect(&ca)).unwrap();
+        // nginx logs a request just after it has sent the answer: let the opening's line
+        // (always HTTP/1.1) and the last transport's land before counting.
+        std::thread::sleep(Duration::from_millis(300));
+        let before = ranges_logged().len();
+        let stats = assert_reads_stored_over(remote, transport, &want);
+        std::thread::sleep(Duration::from_millis(300));
+        assert_eq!(stats.errors.total(), 0, "{transport:?}: {stats:?}");
+        let lines = ranges_logged();
+        let protocol = if transport == Transport::H2 {
+            "HTTP/2.0 206 "
+        } else {
+            "HTTP/1.1 206 "
+        };
+        assert!(
+            lines.len() > before,
+            "{transport:?}: no range request logged"
+        );
+        for line in &lines[before..] {
+            assert!(line.starts_with(protocol), "{transport:?}: {line}");
+        }
+        println!(
+            "https ranges, {}: {} requests for {} blobs",
+            transport.name(),
+            lines.len() - before,
+            want.len()
+        );
+    }
+    drop(server);
 }

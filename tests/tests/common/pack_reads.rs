@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use quincunx_client::fetch::tls::ConnectOptions;
-use quincunx_client::fetch::{FetchConfig, FetchStats, Fetched, Fetcher, Key, Remote};
+use quincunx_client::fetch::{FetchConfig, FetchStats, Fetched, Fetcher, Key, Remote, Transport};
 use quincunx_client::flight::{self, FlightReport};
 use quincunx_client::session::AnySession;
 use quincunx_repo_tools::build::{self, BuildArgs};
@@ -89,7 +89,13 @@ pub fn stored(repo: &Path) -> BTreeMap<Key, Bytes> {
 /// A fetcher of raw blobs (no decoding) from `remote`, with short timeouts and few
 /// attempts.
 pub fn raw_fetcher(remote: Remote) -> Fetcher<Vec<u8>> {
+    raw_fetcher_over(remote, Transport::Pipelined)
+}
+
+/// [`raw_fetcher`] over `transport`.
+pub fn raw_fetcher_over(remote: Remote, transport: Transport) -> Fetcher<Vec<u8>> {
     let config = FetchConfig {
+        transport,
         request_timeout: Duration::from_secs(2),
         max_attempts: 2,
         retry_backoff: Duration::from_millis(10),
@@ -128,7 +134,16 @@ pub fn fetch_all(
 /// on what the bandwidth window releases at once, which is timing; the reader's unit tests
 /// pin the rule). Returns the fetcher's figures.
 pub fn assert_reads_stored(remote: Remote, want: &BTreeMap<Key, Bytes>) -> FetchStats {
-    let fetcher = raw_fetcher(remote);
+    assert_reads_stored_over(remote, Transport::Pipelined, want)
+}
+
+/// [`assert_reads_stored`] over `transport`.
+pub fn assert_reads_stored_over(
+    remote: Remote,
+    transport: Transport,
+    want: &BTreeMap<Key, Bytes>,
+) -> FetchStats {
+    let fetcher = raw_fetcher_over(remote, transport);
     let keys: Vec<Key> = want.keys().copied().collect();
     let got = fetch_all(&fetcher, &keys, Duration::from_secs(60));
     assert_eq!(got.len(), keys.len());
