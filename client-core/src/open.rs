@@ -12,6 +12,7 @@ use crate::view::{PlanarWorld, SphereWorld};
 
 /// Why the DAG refused an operation.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum DagError {
     /// Not in the DAG, not complete (a parent is unrefined), already refined, or finer
     /// than the repository.
@@ -30,6 +31,7 @@ pub const EARTH_RADIUS_M: f64 = 6_371_008.8;
 
 /// Why a session could not start or continue.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum SessionError {
     /// Fetching the metadata or starting the network thread failed.
     #[error(transparent)]

@@ -41,6 +41,7 @@ use crate::view::{Aabb, View};
 
 /// Why a flight could not be made.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum FlightError {
     /// Not a built-in flight name.
     #[error("unknown flight {0:?} (approach, low-flight, jump, or a JSON file)")]

@@ -165,6 +165,7 @@ pub enum RdoMode {
 
 /// Why a grid could not be encoded.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
 pub enum EncodeError {
     /// Geometry problem.
     #[error(transparent)]

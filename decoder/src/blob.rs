@@ -26,6 +26,7 @@ pub const HEADER_BYTES: usize = 3;
 
 /// Why a blob could not be decoded.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
 pub enum DecodeError {
     /// Fewer bytes than the header.
     #[error("blob of {0} bytes is shorter than its header")]

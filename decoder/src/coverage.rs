@@ -47,6 +47,7 @@ const MAX_SIDE: u64 = 1 << 24;
 
 /// Why coverage bytes are not a valid coverage.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
 pub enum CoverageError {
     /// Fewer bytes than the header.
     #[error("coverage of {0} bytes is shorter than its header")]

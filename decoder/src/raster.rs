@@ -17,6 +17,7 @@ use crate::lifting::DiamondMask;
 
 /// Why a raster cannot be placed in a hierarchy.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
 pub enum RasterError {
     /// Zero width or height, or more samples than supported.
     #[error("raster of {0} x {1} samples is empty or too large")]

@@ -90,6 +90,7 @@ impl Orientation {
 
 /// Why an id (or a key, or a domain parameter) was rejected.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
 pub enum IdError {
     /// The point lies outside the domain.
     #[error("point {0:?} lies outside the domain")]

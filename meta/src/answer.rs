@@ -146,6 +146,7 @@ pub struct Answer<'a> {
 
 /// Why an answer could not be parsed.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
 pub enum AnswerError {
     /// A length or the mask runs past the end.
     #[error("answer truncated")]

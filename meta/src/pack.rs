@@ -82,6 +82,7 @@ pub const MAX_METADATA_BYTES: usize = 256 << 20;
 
 /// Why bytes are not a readable repository file.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
 pub enum PackError {
     /// Not a repository file at all.
     #[error("not a quincunx repository file (its first bytes are not \"QXREPO\")")]

@@ -58,20 +58,40 @@ pub use renderer::{DEPTH_FORMAT, RenderFrameStats, RendererConfig, TerrainRender
 
 /// Why rendering could not start or continue.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum RenderError {
-    /// No usable GPU adapter (or device).
+    /// No usable GPU adapter: none named as asked, or one without a capability the
+    /// renderer needs.
     #[error("no usable GPU adapter: {0}")]
     NoAdapter(String),
+    /// wgpu found no adapter.
+    #[error("no usable GPU adapter")]
+    RequestAdapter(#[source] wgpu::RequestAdapterError),
+    /// The adapter gave no device.
+    #[error("no usable GPU device")]
+    RequestDevice(#[source] wgpu::RequestDeviceError),
     /// A setting the renderer cannot honour.
     #[error("renderer configuration: {0}")]
     Config(String),
     /// A patch whose geometry the renderer cannot express (a bug).
     #[error("patch geometry: {0}")]
     Geometry(String),
-    /// The GPU reported an error.
-    #[error("GPU: {0}")]
-    Gpu(String),
-    /// Reading or writing an image.
-    #[error("image: {0}")]
-    Io(String),
+    /// The GPU reported an error while doing `what`.
+    #[error("GPU: {what}")]
+    Gpu {
+        /// What the renderer was doing.
+        what: &'static str,
+        /// wgpu's error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// Reading or writing the image file `path`.
+    #[error("image {}", path.display())]
+    Io {
+        /// The file.
+        path: std::path::PathBuf,
+        /// The I/O or PNG error.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
 }

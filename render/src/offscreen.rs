@@ -51,7 +51,7 @@ impl Gpu {
                 compatible_surface: surface,
                 ..Default::default()
             }))
-            .map_err(|e| RenderError::NoAdapter(e.to_string()))?,
+            .map_err(RenderError::RequestAdapter)?,
         };
         let downlevel = adapter.get_downlevel_capabilities();
         if !downlevel
@@ -74,7 +74,7 @@ impl Gpu {
             required_limits: adapter.limits(),
             ..Default::default()
         }))
-        .map_err(|e| RenderError::NoAdapter(e.to_string()))?;
+        .map_err(RenderError::RequestDevice)?;
         Ok(Gpu {
             adapter,
             device,
@@ -153,36 +153,40 @@ impl Image {
 
     /// Writes a PNG (RGB).
     pub fn write_png(&self, path: &Path) -> Result<(), RenderError> {
-        let io = |e: std::io::Error| RenderError::Io(format!("{}: {e}", path.display()));
+        let io = |e: std::io::Error| RenderError::Io {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        };
+        let png = |e: png::EncodingError| RenderError::Io {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        };
         let file = std::fs::File::create(path).map_err(io)?;
         let mut enc = png::Encoder::new(std::io::BufWriter::new(file), self.width, self.height);
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
-        let mut w = enc
-            .write_header()
-            .map_err(|e| RenderError::Io(format!("{}: {e}", path.display())))?;
+        let mut w = enc.write_header().map_err(png)?;
         let rgb: Vec<u8> = self
             .rgba
             .chunks_exact(4)
             .flat_map(|p| [p[0], p[1], p[2]])
             .collect();
-        w.write_image_data(&rgb)
-            .map_err(|e| RenderError::Io(format!("{}: {e}", path.display())))?;
-        w.finish()
-            .map_err(|e| RenderError::Io(format!("{}: {e}", path.display())))
+        w.write_image_data(&rgb).map_err(png)?;
+        w.finish().map_err(png)
     }
 
     /// Reads a PNG (RGB or RGBA, 8 bits).
     pub fn read_png(path: &Path) -> Result<Image, RenderError> {
-        let err = |e: String| RenderError::Io(format!("{}: {e}", path.display()));
-        let file = std::fs::File::open(path).map_err(|e| err(e.to_string()))?;
+        let err = |e: Box<dyn std::error::Error + Send + Sync>| RenderError::Io {
+            path: path.to_path_buf(),
+            source: e,
+        };
+        let file = std::fs::File::open(path).map_err(|e| err(e.into()))?;
         let mut dec = png::Decoder::new(std::io::BufReader::new(file));
         dec.set_transformations(png::Transformations::EXPAND);
-        let mut reader = dec.read_info().map_err(|e| err(e.to_string()))?;
+        let mut reader = dec.read_info().map_err(|e| err(e.into()))?;
         let mut buf = vec![0; reader.output_buffer_size()];
-        let info = reader
-            .next_frame(&mut buf)
-            .map_err(|e| err(e.to_string()))?;
+        let info = reader.next_frame(&mut buf).map_err(|e| err(e.into()))?;
         let px = (info.width * info.height) as usize;
         let rgba = match info.color_type {
             png::ColorType::Rgba => buf[..px * 4].to_vec(),
@@ -190,7 +194,7 @@ impl Image {
                 .chunks_exact(3)
                 .flat_map(|p| [p[0], p[1], p[2], 255])
                 .collect(),
-            other => return Err(err(format!("unsupported colour type {other:?}"))),
+            other => return Err(err(format!("unsupported colour type {other:?}").into())),
         };
         Ok(Image {
             width: info.width,
@@ -504,7 +508,10 @@ impl Offscreen {
             None => {
                 gpu.device
                     .poll(wgpu::PollType::wait_indefinitely())
-                    .map_err(|e| RenderError::Gpu(e.to_string()))?;
+                    .map_err(|e| RenderError::Gpu {
+                        what: "waiting for the frame",
+                        source: e.into(),
+                    })?;
                 None
             }
         };
@@ -770,16 +777,18 @@ pub fn map_read<T>(
     slice.map_async(wgpu::MapMode::Read, move |r| {
         let _ = tx.send(r);
     });
+    let fail = |e: Box<dyn std::error::Error + Send + Sync>| RenderError::Gpu {
+        what: "reading a buffer back",
+        source: e,
+    };
     gpu.device
         .poll(wgpu::PollType::wait_indefinitely())
-        .map_err(|e| RenderError::Gpu(e.to_string()))?;
+        .map_err(|e| fail(e.into()))?;
     rx.recv()
-        .map_err(|e| RenderError::Gpu(e.to_string()))?
-        .map_err(|e| RenderError::Gpu(e.to_string()))?;
+        .map_err(|e| fail(e.into()))?
+        .map_err(|e| fail(e.into()))?;
     let out = {
-        let view = slice
-            .get_mapped_range()
-            .map_err(|e| RenderError::Gpu(e.to_string()))?;
+        let view = slice.get_mapped_range().map_err(|e| fail(e.into()))?;
         f(&view)
     };
     buffer.unmap();
@@ -795,6 +804,36 @@ fn depth_copies(flags: wgpu::DownlevelFlags) -> bool {
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn image_errors_name_the_file_and_keep_their_cause() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("missing.png");
+        let e = Image::read_png(&missing).unwrap_err();
+        assert_eq!(e.to_string(), format!("image {}", missing.display()));
+        let cause = std::error::Error::source(&e).unwrap();
+        let io = cause.downcast_ref::<std::io::Error>().unwrap();
+        assert_eq!(io.kind(), std::io::ErrorKind::NotFound);
+        // Not a PNG: the decoder's error is the cause.
+        let text = dir.path().join("text.png");
+        std::fs::write(&text, b"not a png").unwrap();
+        let e = Image::read_png(&text).unwrap_err();
+        let cause = std::error::Error::source(&e).unwrap();
+        assert!(
+            cause.downcast_ref::<png::DecodingError>().is_some(),
+            "{cause:?}"
+        );
+        // Writing into a folder that does not exist.
+        let image = Image {
+            width: 1,
+            height: 1,
+            rgba: vec![0; 4],
+        };
+        let e = image
+            .write_png(&dir.path().join("no/such/dir.png"))
+            .unwrap_err();
+        assert!(matches!(e, RenderError::Io { .. }), "{e:?}");
+    }
 
     #[test]
     fn only_adapters_with_depth_copies_read_depth_by_a_copy() {

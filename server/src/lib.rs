@@ -34,6 +34,7 @@ pub use state::AppState;
 
 /// Why the server could not start.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum ServeError {
     /// The configuration is invalid.
     #[error("configuration: {0}")]

@@ -50,6 +50,7 @@ pub const PACK_FILE: &str = "repository.pack";
 
 /// Why a repository could not be opened, read or written.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum StoreError {
     /// No repository at the path.
     #[error("no repository at {0}")]

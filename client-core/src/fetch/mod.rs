@@ -19,6 +19,7 @@ pub type Key = [i64; 3];
 
 /// Why a key (or the set-up) failed.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
 pub enum FetchError {
     /// The server answered with a status other than 200.
     #[error("HTTP status {0}")]

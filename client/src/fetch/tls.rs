@@ -78,6 +78,7 @@ fn system_roots() -> &'static [CertificateDer<'static>] {
 
 /// Why TLS could not be set up or a handshake failed.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum TlsError {
     /// The extra CA file is not PEM certificates.
     #[error("CA certificate: {0}")]

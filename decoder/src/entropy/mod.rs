@@ -73,6 +73,7 @@ pub const CONTEXTS: usize = GROUPS * PER_GROUP;
 
 /// Why a coded matrix could not be decoded.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[non_exhaustive]
 pub enum EntropyError {
     /// An escape code announced more than 32 bits.
     #[error("magnitude escape longer than 32 bits")]

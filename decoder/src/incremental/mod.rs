@@ -34,6 +34,7 @@ use crate::raster::{RasterError, RasterFrame};
 
 /// Why a diamond could not be refined or assembled.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum RefineError {
     /// The id is not a diamond of this repository that carries details.
     #[error(

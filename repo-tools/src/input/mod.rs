@@ -126,6 +126,7 @@ pub struct RgbImage {
 
 /// Why an input file could not be read.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum InputError {
     /// The operating system refused to open or read a file.
     #[error("cannot read {}: {source}", path.display())]

@@ -21,6 +21,7 @@ use quincunx_store::Metadata;
 
 /// Why a stream cannot be planned.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum FlightError {
     /// The domain parameters are invalid.
     #[error("invalid domain: {0}")]
