@@ -22,19 +22,25 @@ pub mod build;
 pub mod demo;
 pub mod export;
 pub mod fly;
+#[cfg(feature = "render")]
+mod fly_render;
 pub mod info;
 pub mod input;
 pub mod layout;
 pub mod loadtest;
 pub mod mosaic;
 pub mod planet;
+#[cfg(feature = "charts")]
 pub mod plot;
 pub mod preview;
 pub mod progress;
 pub mod query;
+#[cfg(feature = "render")]
 pub mod render;
 pub mod rows;
 pub mod shard;
+#[cfg(feature = "render")]
 pub mod trade;
 pub mod verify;
+#[cfg(feature = "render")]
 pub mod view;

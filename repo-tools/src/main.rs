@@ -7,10 +7,13 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
+#[cfg(feature = "render")]
+use quincunx_repo_tools::trade;
 use quincunx_repo_tools::{
-    build, demo, export, fly, info, loadtest, outln, preview, query, render, shard, trade, verify,
-    view,
+    build, demo, export, fly, info, loadtest, outln, preview, query, shard, verify,
 };
+#[cfg(feature = "render")]
+use quincunx_repo_tools::{render, view};
 
 /// Streams compressed multiresolution terrain: repository tools.
 #[derive(Parser, Debug)]
@@ -48,13 +51,23 @@ enum Command {
     /// Fly a camera path with a headless streaming client against a server, in real
     /// time (optionally through an emulated link), and measure it.
     Fly(fly::FlyArgs),
+    #[cfg(feature = "render")]
     /// The speed/accuracy trade: for each tolerance, fly the same path and render the
     /// same views; triangles, ms, bytes, time to full quality and the image error
     /// against a full-resolution reference (docs/trade.md).
     Trade(trade::TradeArgs),
+    #[cfg(feature = "render")]
     /// Stream a served repository to full quality for one camera and write the frame as
     /// a PNG (rendered offscreen with wgpu; docs/rendering.md).
     Render(render::RenderArgs),
+    /// `render`, `view` and `trade` in a build without the renderer: a clear error.
+    #[cfg(not(feature = "render"))]
+    #[command(name = "render", aliases = ["view", "trade"], hide = true)]
+    WithoutRenderer {
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        rest: Vec<String>,
+    },
+    #[cfg(feature = "render")]
     /// A window over a served repository: orbit, pan, zoom and fly while it streams,
     /// with the live figures in the title (controls: `quincunx view --help`).
     View(view::ViewArgs),
@@ -138,9 +151,17 @@ fn main() -> ExitCode {
         Command::Query { repo, at, json } => query::run(&repo, &at, json),
         Command::Loadtest(args) => loadtest::run(&args),
         Command::Fly(args) => fly::run(&args),
+        #[cfg(feature = "render")]
         Command::Trade(args) => trade::run(&args),
+        #[cfg(feature = "render")]
         Command::Render(args) => render::run(&args),
+        #[cfg(feature = "render")]
         Command::View(args) => view::run(&args),
+        #[cfg(not(feature = "render"))]
+        Command::WithoutRenderer { .. } => Err(anyhow::anyhow!(
+            "render, view and trade need quincunx built with its default features \
+             (`render`, `charts`); this one was built with --no-default-features"
+        )),
         Command::Preview {
             repo,
             output,

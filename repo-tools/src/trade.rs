@@ -43,7 +43,8 @@ use quincunx_render::scene::{Place, Shot, stream_to};
 use quincunx_render::{Camera, RendererConfig, TerrainRenderer};
 use serde::{Deserialize, Serialize};
 
-use crate::fly::{FlyArgs, FrameDrawer, fly_options, parse_viewport, session_config, start_link};
+use crate::fly::{FlyArgs, fly_options, parse_viewport, session_config, start_link};
+use crate::fly_render::FrameDrawer;
 use crate::plot::{Chart, Series};
 
 /// The clear colour of every trade frame.

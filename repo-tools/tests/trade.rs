@@ -283,3 +283,46 @@ fn trade_on_the_bundled_planet_with_colour_at_the_extremes() {
         }
     }
 }
+
+#[test]
+fn fly_render_draws_every_frame_and_reports_the_renderers_figures() {
+    if !gpu_or_skip("fly_render_draws_every_frame") {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let korea = dir.path().join("korea");
+    build(
+        &["--max-error-m", "2"],
+        &data("korea_srtm3_1025.json"),
+        &korea,
+    );
+    let server = serve(&[("korea", &korea)]);
+    let o = bin()
+        .args([
+            "fly",
+            "--url",
+            &server.url,
+            "--repo",
+            "korea",
+            "--path",
+            "jump",
+        ])
+        .args(["--render", "--render-size", "320x180", "--json"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "fly --render failed: {stderr}");
+    let r: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(f(&r, "cracks"), 0.0, "{r}");
+    let render = &r["render"];
+    // Every frame of the flight went through the renderer, with patches and triangles.
+    assert_eq!(f(render, "frames"), f(&r, "frames"), "{r}");
+    assert!(f(render, "frames_rasterised") >= 1.0, "{render}");
+    assert!(f(render, "triangles_max") > 0.0, "{render}");
+    assert!(f(render, "pool_uploads") > 0.0, "{render}");
+    assert!(
+        f(render, "gpu_bytes_peak") <= f(render, "gpu_bytes_budget"),
+        "{render}"
+    );
+    assert_eq!(render["size"], serde_json::json!([320, 180]), "{render}");
+}

@@ -193,3 +193,29 @@ fn the_client_reads_metadata_without_the_store() {
         );
     }
 }
+
+#[test]
+fn the_small_cli_builds_and_serves_without_wgpu_winit_or_plotters() {
+    // `quincunx-repo-tools --no-default-features` (the container image's build): the
+    // server, store and encoder, and none of the renderer's or the charts' crates, which
+    // the default build has (the filter finds them there).
+    let gui = ["wgpu", "winit", "plotters", "quincunx-render"];
+    let full = cargo_tree("quincunx-repo-tools", "normal,build", &[]);
+    let missing = unnamed(&full, &gui);
+    assert!(missing.is_empty(), "the default build has no {missing:?}");
+    let small = cargo_tree(
+        "quincunx-repo-tools",
+        "normal,build",
+        &["--no-default-features"],
+    );
+    let base = [
+        "quincunx-server",
+        "quincunx-store",
+        "quincunx-codec",
+        "quincunx-client",
+    ];
+    let missing = unnamed(&small, &base);
+    assert!(missing.is_empty(), "no {missing:?} in {small}");
+    let found = named(&small, &gui);
+    assert!(found.is_empty(), "the small build depends on {found:?}");
+}

@@ -20,6 +20,7 @@ use quincunx_client::flight::{self, BuiltinFlights, Flight, FlightReport, FlyOpt
 use quincunx_client::session::{AnySession, Session, SessionConfig};
 
 use super::{LoadtestArgs, SPARE_FDS};
+#[cfg(feature = "charts")]
 use crate::plot::{self, Chart, Series};
 
 /// What a fly load test measured, over all clients (one point of a sweep).
@@ -193,6 +194,9 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
         process_cpu_s(pid).with_context(|| format!("--server-pid {pid}"))?;
     }
     if let Some(dir) = &args.plot {
+        if !cfg!(feature = "charts") {
+            bail!("--plot needs quincunx built with the `charts` feature (the default)");
+        }
         std::fs::create_dir_all(dir)
             .with_context(|| format!("--plot: creating {}", dir.display()))?;
     }
@@ -236,6 +240,7 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
             print_text(p);
         }
     }
+    #[cfg(feature = "charts")]
     if let Some(dir) = &args.plot {
         write_charts(dir, &points)?;
     }
@@ -579,10 +584,12 @@ fn print_text(report: &FlyLoadReport) {
 }
 
 /// Chart size, pixels.
+#[cfg(feature = "charts")]
 const CHART_PX: (u32, u32) = (1000, 600);
 
 /// `clients_ttfq.png`, `clients_rps.png`, `clients_cpu.png` and `clients_jumps.png` in
 /// `dir`.
+#[cfg(feature = "charts")]
 fn write_charts(dir: &Path, points: &[FlyLoadReport]) -> Result<()> {
     let series = |name: &str, f: &dyn Fn(&FlyLoadReport) -> Option<f64>| Series {
         name: name.to_string(),
