@@ -100,19 +100,24 @@ fn pooled(p: &Value, times: &str, unfinished: &str, figure: &str) {
     }
 }
 
+/// The bundled korea crop at 2 m, built in `dir` and served.
+fn served_korea(dir: &Path) -> common::Server {
+    let korea = dir.join("korea");
+    build(
+        &["--max-error-m", "2"],
+        &data("korea_srtm3_1025.json"),
+        &korea,
+    );
+    serve(&[("korea", &korea)])
+}
+
 #[test]
 fn trade_on_the_bundled_korea_crop() {
     if !gpu_or_skip("trade_on_the_bundled_korea_crop") {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let korea = dir.path().join("korea");
-    build(
-        &["--max-error-m", "2"],
-        &data("korea_srtm3_1025.json"),
-        &korea,
-    );
-    let server = serve(&[("korea", &korea)]);
+    let server = served_korea(dir.path());
     let plots = dir.path().join("plots");
     let r = trade(
         &server.url,
@@ -290,13 +295,7 @@ fn fly_render_draws_every_frame_and_reports_the_renderers_figures() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
-    let korea = dir.path().join("korea");
-    build(
-        &["--max-error-m", "2"],
-        &data("korea_srtm3_1025.json"),
-        &korea,
-    );
-    let server = serve(&[("korea", &korea)]);
+    let server = served_korea(dir.path());
     let o = bin()
         .args([
             "fly",
