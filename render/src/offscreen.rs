@@ -153,14 +153,8 @@ impl Image {
 
     /// Writes a PNG (RGB).
     pub fn write_png(&self, path: &Path) -> Result<(), RenderError> {
-        let io = |e: std::io::Error| RenderError::Io {
-            path: path.to_path_buf(),
-            source: Box::new(e),
-        };
-        let png = |e: png::EncodingError| RenderError::Io {
-            path: path.to_path_buf(),
-            source: Box::new(e),
-        };
+        let io = |e: std::io::Error| image_error(path, e);
+        let png = |e: png::EncodingError| image_error(path, e);
         let file = std::fs::File::create(path).map_err(io)?;
         let mut enc = png::Encoder::new(std::io::BufWriter::new(file), self.width, self.height);
         enc.set_color(png::ColorType::Rgb);
@@ -177,10 +171,7 @@ impl Image {
 
     /// Reads a PNG (RGB or RGBA, 8 bits).
     pub fn read_png(path: &Path) -> Result<Image, RenderError> {
-        let err = |e: Box<dyn std::error::Error + Send + Sync>| RenderError::Io {
-            path: path.to_path_buf(),
-            source: e,
-        };
+        let err = |e: Box<dyn std::error::Error + Send + Sync>| image_error(path, e);
         let file = std::fs::File::open(path).map_err(|e| err(e.into()))?;
         let mut dec = png::Decoder::new(std::io::BufReader::new(file));
         dec.set_transformations(png::Transformations::EXPAND);
@@ -201,6 +192,17 @@ impl Image {
             height: info.height,
             rgba,
         })
+    }
+}
+
+/// Reading or writing the image file `path` failed with `source`.
+fn image_error(
+    path: &Path,
+    source: impl Into<Box<dyn std::error::Error + Send + Sync>>,
+) -> RenderError {
+    RenderError::Io {
+        path: path.to_path_buf(),
+        source: source.into(),
     }
 }
 

@@ -519,12 +519,9 @@ fn a_repository_file_on_an_https_host_reads_by_ranges_with_http2_where_offered()
     let (server, tls) = tls_nginx(&binary, &dir.path().join("nginx"), &www, &ca);
     let url = format!("https://localhost:{}", tls.port());
     let ranges_logged = || -> Vec<String> {
-        std::fs::read_to_string(dir.path().join("nginx/access.log"))
-            .unwrap_or_default()
-            .lines()
-            .filter(|l| l.contains("bytes="))
-            .map(str::to_string)
-            .collect()
+        let mut lines = server.access_log();
+        lines.retain(|l| l.contains("bytes="));
+        lines
     };
 
     // The defaults (pipelined HTTP/1.1), every frame checked for cracks.

@@ -68,15 +68,6 @@ fn slice_proxy(binary: &Path, dir: &Path, origin: SocketAddr) -> Nginx {
     Nginx::run(binary, dir, addr, &snippet, "/ready")
 }
 
-/// Lines of the access log `dir/access.log` so far.
-fn log_lines(dir: &Path) -> Vec<String> {
-    std::fs::read_to_string(dir.join("access.log"))
-        .unwrap_or_default()
-        .lines()
-        .map(str::to_string)
-        .collect()
-}
-
 #[test]
 fn flights_through_a_slice_caching_proxy_are_crack_free_and_the_second_is_all_hits() {
     let Some(nginx) = find_nginx("range_proxy") else {
@@ -94,11 +85,11 @@ fn flights_through_a_slice_caching_proxy_are_crack_free_and_the_second_is_all_hi
     let proxy = slice_proxy(&nginx, &proxy_dir, origin.addr);
     let url = format!("http://{}", proxy.addr);
 
-    let before = log_lines(&origin_dir).len();
+    let before = origin.access_log().len();
     let first = fly_checked(&url, "korea.pack", None);
     assert_clean("first flight", &first);
-    let origin_after_first = log_lines(&origin_dir);
-    let proxied = log_lines(&proxy_dir);
+    let origin_after_first = origin.access_log();
+    let proxied = proxy.access_log();
     // Every request the origin saw was for one whole slice, whatever the client asked.
     let slices: Vec<&String> = origin_after_first[before..].iter().collect();
     assert!(!slices.is_empty());
@@ -117,14 +108,14 @@ fn flights_through_a_slice_caching_proxy_are_crack_free_and_the_second_is_all_hi
 
     let second = fly_checked(&url, "korea.pack", None);
     assert_clean("second flight", &second);
-    let origin_after_second = log_lines(&origin_dir);
+    let origin_after_second = origin.access_log();
     assert_eq!(
         origin_after_second.len(),
         origin_after_first.len(),
         "the second flight reached the origin: {:?}",
         &origin_after_second[origin_after_first.len()..]
     );
-    let second_log = &log_lines(&proxy_dir)[proxied.len()..];
+    let second_log = &proxy.access_log()[proxied.len()..];
     let hits = second_log.iter().filter(|l| l.ends_with(" HIT")).count();
     assert_eq!(
         hits,

@@ -44,11 +44,11 @@ impl ReqwestDriver {
                 builder
                     .http1_only()
                     .pool_max_idle_per_host(config.connections.max(1)),
-                config.connections.max(1),
+                config.connections,
             ),
             // Over TLS, HTTP/2 by ALPN where the server offers it (else HTTP/1.1).
-            _ if tls.is_some() => (builder, config.max_in_flight.max(1)),
-            _ => (builder.http2_prior_knowledge(), config.max_in_flight.max(1)),
+            _ if tls.is_some() => (builder, config.max_in_flight),
+            _ => (builder.http2_prior_knowledge(), config.max_in_flight),
         };
         let builder = match tls {
             // reqwest builds a rustls configuration even for http://, and without a
