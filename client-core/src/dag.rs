@@ -76,8 +76,14 @@ pub struct Node<I = PlanarId> {
     /// The class of its error bound for the geometric metric: [`Node::class`] once known,
     /// and until then (or where no blob carries one: children of a diamond without a
     /// blob) the smallest class of a refined parent's bound, which bounds it too (a
-    /// parent's bound is at least its children's). `None` for the roots.
+    /// parent's bound is at least its children's), or the first class of a refined
+    /// parent's [`Node::bound_profile`]. `None` for the roots.
     pub bound_class: Option<u8>,
+    /// Where no blob below it will carry its descendants' bounds (nothing below it has
+    /// one): per level below it, from its children down, a class bounding every
+    /// descendant of that level (its owner's blob's profile, or the rest of a refined
+    /// parent's; the smaller of two).
+    pub bound_profile: Option<Arc<[u8]>>,
     /// Smallest and largest grid value over its present halves.
     pub z_range: (i32, i32),
     /// Its frame corners `[E1, P1, E2, P2]` (id units; planar `z = 0`, planets: points
@@ -113,8 +119,8 @@ impl<I> Node<I> {
             .map_or(0.0, |k| class_bound(k) as f64 * world.value_scale_m().abs())
     }
 
-    /// Lowest and highest height (metres) its whole subtree can reach: its grid's range
-    /// widened by [`Node::bound_m`].
+    /// Lowest and highest height (metres) of its own surface and of the full-resolution
+    /// surface beneath it: its grid's range widened by [`Node::bound_m`].
     pub fn height_bounds_m(&self, world: &impl World) -> (f64, f64) {
         let bound = self.bound_m(world);
         let (a, b) = (
@@ -190,6 +196,7 @@ impl<R: Domain> Dag<R> {
                     refined: None,
                     class: None,
                     bound_class: None,
+                    bound_profile: None,
                     colour: colour.as_ref().and_then(|c| c.root_grids(root)),
                 };
                 (root, node)
@@ -384,7 +391,18 @@ impl<R: Domain> Dag<R> {
             _ => None,
         };
         let classes: HashMap<R::Id, u8> = refined.child_classes.iter().copied().collect();
+        let profiles: HashMap<R::Id, Arc<[u8]>> = refined
+            .child_profiles
+            .iter()
+            .filter(|(_, p)| !p.is_empty())
+            .map(|(c, p)| (*c, Arc::from(p.as_slice())))
+            .collect();
         let inherited = node.bound_class;
+        // This diamond's profile, one level on: its children's class and theirs.
+        let handed = node
+            .bound_profile
+            .as_ref()
+            .and_then(|p| Some((*p.first()?, Arc::<[u8]>::from(&p[1..]))));
         let children = self.children(id);
         // Each child gets the half that lies in this diamond, from its fresh lattices.
         for &child in children.iter() {
@@ -394,10 +412,21 @@ impl<R: Domain> Dag<R> {
                 if class.is_some() {
                     node.class = class;
                 }
-                node.bound_class = [node.bound_class, class, inherited]
+                node.bound_class = [
+                    node.bound_class,
+                    class,
+                    inherited,
+                    handed.as_ref().map(|h| h.0),
+                ]
+                .into_iter()
+                .flatten()
+                .min();
+                for p in [profiles.get(&child), handed.as_ref().map(|h| &h.1)]
                     .into_iter()
                     .flatten()
-                    .min();
+                {
+                    node.bound_profile = Some(tighter_profile(node.bound_profile.take(), p));
+                }
             }
         }
         // The lattices are not kept: a child's half never changes while this diamond
@@ -505,6 +534,7 @@ impl<R: Domain> Dag<R> {
                     refined: None,
                     class: None,
                     bound_class: None,
+                    bound_profile: None,
                     colour: colour_half
                         .and_then(|(grids, _)| layer_node(self.colour.as_deref(), child, grids)),
                 }
@@ -772,6 +802,19 @@ fn edge_vertices(
             }
         }
     }
+}
+
+/// Two bound profiles of one diamond as one: the smaller class where both say, the
+/// longer's where one does.
+fn tighter_profile(a: Option<Arc<[u8]>>, b: &Arc<[u8]>) -> Arc<[u8]> {
+    let Some(a) = a else {
+        return b.clone();
+    };
+    let (long, short) = if a.len() >= b.len() { (&a, b) } else { (b, &a) };
+    long.iter()
+        .enumerate()
+        .map(|(k, &c)| short.get(k).map_or(c, |&s| s.min(c)))
+        .collect()
 }
 
 /// A refinement without its lattice (what a refined node keeps).
@@ -1069,6 +1112,18 @@ mod tests {
         };
         let enc = encode_sphere(&cube, options(8)).unwrap();
         Arc::new(SphereRefiner::from_encoded(&enc).unwrap())
+    }
+
+    #[test]
+    fn two_parents_profiles_keep_the_smaller_class_of_each_level() {
+        let p = |v: &[u8]| Arc::<[u8]>::from(v);
+        assert_eq!(&*tighter_profile(None, &p(&[5, 3])), &[5, 3]);
+        assert_eq!(
+            &*tighter_profile(Some(p(&[5, 3])), &p(&[4, 4, 2])),
+            &[4, 3, 2]
+        );
+        assert_eq!(&*tighter_profile(Some(p(&[6, 1, 1])), &p(&[7])), &[6, 1, 1]);
+        assert_eq!(&*tighter_profile(Some(p(&[])), &p(&[2])), &[2]);
     }
 
     #[test]

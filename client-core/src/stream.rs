@@ -801,9 +801,9 @@ impl<R: Domain> StreamCore<R> {
         self.dag.restart_cut_changes();
     }
 
-    /// A conservative range of the surface's heights (metres): over the cut, each
-    /// unrefined diamond's grid range widened by the bound its parent's blob carries for
-    /// its whole subtree. Conservative once every cut diamond's bound is known, which is
+    /// A conservative range of the surface's heights (metres), the cut's and the
+    /// full-resolution one's: over the cut, each unrefined diamond's grid range widened
+    /// by the bound its parent's blob carries for it. Conservative once every cut diamond's bound is known, which is
     /// the case as soon as the roots are refined (the native `Session::warm_up`); before that it is
     /// the root grids' range only, and real peaks may rise above it.
     pub fn height_range(&self) -> (f64, f64) {

@@ -5,7 +5,8 @@
 //! byte 0      version (high 4 bits) | log2(N) (low 4 bits)
 //! bytes 1..3  CRC-16/CCITT (little-endian) over key ‖ byte 0 ‖ payload
 //! bytes 3..   range-coded payload: side-information classes of the children this
-//!             diamond owns, then the quantised detail matrix
+//!             diamond owns, then the quantised detail matrix, then (version 6) one
+//!             bound profile per owned child flagged no-data
 //! ```
 //! The payload length is the blob length minus 3: there is no length field, so no
 //! allocation is ever sized from untrusted bytes. The key in the checksum makes a blob
@@ -14,10 +15,15 @@
 use crate::entropy::{self, CodecModel, EntropyError, ModelDecoder, ModelEncoder};
 use crate::lifting::DiamondMask;
 
-/// Current blob format version. Version 5 changed only what the side-information classes
-/// mean (a true upper bound on the departure of the finest surface, monotone up the DAG:
+/// Newest blob format version. Version 6 (what a build's bound pass writes: measured
+/// bounds) adds, after the matrix, a bound profile for each owned child flagged
+/// [`entropy::NO_DATA`]: the classes bounding its descendants level by level
+/// ([`encode_profiled`]). Version 5 changed only what the side-information classes mean
+/// (a true upper bound on the departure of the finest surface, monotone up the DAG:
 /// `docs/blob-format.md`); the layout is version 4's.
-pub const VERSION: u8 = 5;
+pub const VERSION: u8 = 6;
+/// The version [`encode`] writes (no profiles).
+pub const UNPROFILED_VERSION: u8 = 5;
 /// Oldest version still decoded: version 4 blobs have the same layout, and their classes
 /// are the older, tighter estimate (largest departure of any one level, not the sum).
 pub const MIN_VERSION: u8 = 4;
@@ -145,12 +151,37 @@ pub fn crc16(parts: &[&[u8]]) -> u16 {
     crc
 }
 
-/// Encodes a blob.
+/// Encodes a blob (version 5: no bound profiles).
 pub fn encode(
     ctx: &BlobContext<'_>,
     model: &CodecModel,
     child_classes: &[u8],
     q: &[i32],
+) -> Vec<u8> {
+    encode_version(ctx, model, child_classes, q, None)
+}
+
+/// Encodes a blob of version 6: besides [`encode`]'s content, `profiles` holds one bound
+/// profile per entry of `entries` flagged [`entropy::NO_DATA`], in order. A profile's
+/// `k`-th class bounds the departure of every descendant `k + 1` levels below that child
+/// (nothing below it has a blob, so no blob will tell); it may stop early (below its
+/// end, nothing is said).
+pub fn encode_profiled(
+    ctx: &BlobContext<'_>,
+    model: &CodecModel,
+    entries: &[u8],
+    q: &[i32],
+    profiles: &[Vec<u8>],
+) -> Vec<u8> {
+    encode_version(ctx, model, entries, q, Some(profiles))
+}
+
+fn encode_version(
+    ctx: &BlobContext<'_>,
+    model: &CodecModel,
+    child_classes: &[u8],
+    q: &[i32],
+    profiles: Option<&[Vec<u8>]>,
 ) -> Vec<u8> {
     let mut e = ModelEncoder::new(model);
     entropy::write_gammas(&mut e, ctx.group, child_classes);
@@ -162,8 +193,21 @@ pub fn encode(
         ctx.mask.map(DiamondMask::cells),
         ctx.hides_signs(),
     );
+    let version = match profiles {
+        Some(profiles) => {
+            let mut profiles = profiles.iter();
+            for &entry in child_classes {
+                if entropy::split_side(entry).1 {
+                    let p = profiles.next().map_or(&[][..], Vec::as_slice);
+                    entropy::write_profile(&mut e, ctx.group, p);
+                }
+            }
+            VERSION
+        }
+        None => UNPROFILED_VERSION,
+    };
     let payload = e.finish();
-    let head = (VERSION << 4) | ctx.n.trailing_zeros() as u8;
+    let head = (version << 4) | ctx.n.trailing_zeros() as u8;
     let crc = crc16(&[ctx.key, &[head], &payload]);
     let mut out = Vec::with_capacity(HEADER_BYTES + payload.len());
     out.push(head);
@@ -179,6 +223,17 @@ pub fn decode_into(
     model: &CodecModel,
     q: &mut Vec<i32>,
 ) -> Result<Vec<u8>, DecodeError> {
+    decode_profiled_into(bytes, ctx, model, q).map(|(classes, _)| classes)
+}
+
+/// [`decode_into`] with the bound profiles of version 6 (empty before): one per class
+/// flagged [`entropy::NO_DATA`], in order.
+pub fn decode_profiled_into(
+    bytes: &[u8],
+    ctx: &BlobContext<'_>,
+    model: &CodecModel,
+    q: &mut Vec<i32>,
+) -> Result<(Vec<u8>, Vec<Vec<u8>>), DecodeError> {
     if bytes.len() < HEADER_BYTES {
         return Err(DecodeError::TooShort(bytes.len()));
     }
@@ -209,8 +264,16 @@ pub fn decode_into(
         ctx.mask.map(DiamondMask::cells),
         ctx.hides_signs(),
     )?;
+    let mut profiles = Vec::new();
+    if head >> 4 >= 6 {
+        for &entry in &classes {
+            if entropy::split_side(entry).1 {
+                profiles.push(entropy::read_profile(&mut d, ctx.group));
+            }
+        }
+    }
     d.finish()?;
-    Ok(classes)
+    Ok((classes, profiles))
 }
 
 /// Decodes a blob.
@@ -272,5 +335,44 @@ mod tests {
             decode(&bytes[..2], &ctx, &model),
             Err(DecodeError::TooShort(2))
         ));
+    }
+
+    #[test]
+    fn profiles_round_trip_in_version_6_and_version_5_has_none() {
+        let model = CodecModel::default();
+        let ctx = BlobContext {
+            key: b"\x05abc",
+            n: 32,
+            group: 2,
+            mask: None,
+            owned_children: 4,
+            step: 256,
+        };
+        let q: Vec<i32> = (0..1024)
+            .map(|k: i32| if k % 29 == 0 { (k % 7) - 3 } else { 0 })
+            .collect();
+        let no_data = entropy::NO_DATA;
+        // Two children flagged no-data (one with an empty profile), one plain, one class 0.
+        let entries = [9 | no_data, 4, 0, 5 | no_data];
+        let profiles = vec![vec![8, 6, 6, 3, 1, 0], vec![]];
+        let bytes = encode_profiled(&ctx, &model, &entries, &q, &profiles);
+        assert_eq!(bytes[0] >> 4, VERSION);
+        let mut got_q = Vec::new();
+        let (classes, got) = decode_profiled_into(&bytes, &ctx, &model, &mut got_q).unwrap();
+        assert_eq!(
+            (classes.as_slice(), got_q.as_slice()),
+            (&entries[..], &q[..])
+        );
+        assert_eq!(got, profiles);
+        // The same content without profiles is version 5 and decodes to none.
+        let v5 = encode(&ctx, &model, &entries, &q);
+        assert_eq!(v5[0] >> 4, UNPROFILED_VERSION);
+        let (classes, got) = decode_profiled_into(&v5, &ctx, &model, &mut got_q).unwrap();
+        assert_eq!((classes.as_slice(), got.len()), (&entries[..], 0));
+        assert!(bytes.len() > v5.len());
+        // A class above the largest a profile holds is clamped, never wrapped.
+        let bytes = encode_profiled(&ctx, &model, &entries, &q, &[vec![200], vec![63]]);
+        let (_, got) = decode_profiled_into(&bytes, &ctx, &model, &mut got_q).unwrap();
+        assert_eq!(got, vec![vec![62], vec![62]]);
     }
 }

@@ -190,6 +190,7 @@ impl DetailSource<SphereId> for MadeUp {
             h,
             child_classes: Vec::new(),
             empty_children: Vec::new(),
+            child_profiles: Vec::new(),
         })))
     }
 }

@@ -203,6 +203,11 @@ impl<R: Refiner> Wire<R> for Details<R::Id> {
         for &c in &self.empty_children {
             w.key(R::key_of(c));
         }
+        w.count(self.child_profiles.len());
+        for (c, p) in &self.child_profiles {
+            w.key(R::key_of(*c));
+            w.bytes(p);
+        }
     }
 
     fn read(key: Key, r: &mut Reader<'_>) -> Result<Self, WireError> {
@@ -217,11 +222,17 @@ impl<R: Refiner> Wire<R> for Details<R::Id> {
         for _ in 0..n {
             empty_children.push(R::id_of(r.key()?));
         }
+        let n = r.count(28)?;
+        let mut child_profiles = Vec::with_capacity(n);
+        for _ in 0..n {
+            child_profiles.push((R::id_of(r.key()?), r.bytes()?.to_vec()));
+        }
         Ok(Details {
             id: R::id_of(key),
             h,
             child_classes,
             empty_children,
+            child_profiles,
         })
     }
 }

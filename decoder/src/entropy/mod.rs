@@ -394,6 +394,35 @@ pub fn read_gammas(d: &mut ModelDecoder<'_>, g: usize, count: usize) -> Vec<u8> 
         .collect()
 }
 
+/// Longest bound profile read (a class per level below a child: never more than the
+/// id space's levels).
+pub const MAX_PROFILE: usize = 64;
+
+/// Writes a bound profile (classes, at most [`MAX_PROFILE`]): each as the side entry
+/// `class + 1`, then a 0 that ends it.
+pub fn write_profile<S: BitSink>(s: &mut S, g: usize, profile: &[u8]) {
+    let entries: Vec<u8> = profile
+        .iter()
+        .take(MAX_PROFILE)
+        .map(|&c| c.min(62) + 1)
+        .chain([0])
+        .collect();
+    write_gammas(s, g, &entries);
+}
+
+/// Reads a bound profile (what [`write_profile`] wrote; at most [`MAX_PROFILE`] classes).
+pub fn read_profile(d: &mut ModelDecoder<'_>, g: usize) -> Vec<u8> {
+    let mut out = Vec::new();
+    while out.len() < MAX_PROFILE {
+        let e = read_gammas(d, g, 1)[0] & !NO_DATA;
+        if e == 0 {
+            break;
+        }
+        out.push(e - 1);
+    }
+    out
+}
+
 /// Activity classes of activities below 50 (50 and above: class 9).
 const ACTIVITY: [u8; 50] = {
     let mut t = [0u8; 50];

@@ -95,6 +95,9 @@ pub struct Refined<I = PlanarId> {
     /// Side information of the children whose blobs' bounds this diamond carries: a class
     /// per owned child (see [`crate::entropy::class_bound`]); empty without a blob.
     pub child_classes: Vec<(I, u8)>,
+    /// Bound profiles of owned children with nothing below them (see
+    /// [`Details::child_profiles`]).
+    pub child_profiles: Vec<(I, Vec<u8>)>,
 }
 
 /// A diamond's decoded blob: dequantised details and side information.
@@ -109,6 +112,10 @@ pub struct Details<I = PlanarId> {
     /// Owned children that have no blob, nor any descendant (their blobs need not be
     /// asked for: they are empty).
     pub empty_children: Vec<I>,
+    /// Of those, the ones whose bounds below them the blob gives (version 6): per level
+    /// below the child, from its children down, a class bounding every descendant of that
+    /// level; below a profile's end, nothing is said.
+    pub child_profiles: Vec<(I, Vec<u8>)>,
 }
 
 /// What a client needs to know about a diamond besides its grid.
@@ -173,6 +180,7 @@ impl Procedural {
             h,
             child_classes: Vec::new(),
             empty_children: Vec::new(),
+            child_profiles: Vec::new(),
         })
     }
 }
@@ -273,6 +281,18 @@ pub trait Refiner: Send + Sync + std::fmt::Debug + 'static {
     fn corners(&self, id: Self::Id) -> [[i64; 3]; 4];
     /// Decodes the blob of `id`.
     fn decode(&self, id: Self::Id, blob: &[u8]) -> Result<Details<Self::Id>, RefineError>;
+    /// The blob of `id` (version 6) with new side information and the same details
+    /// (`None`: a blob of zero details, which refines as no blob does): `entry` gives the
+    /// side entry of each child `id` owns (a class, flagged [`crate::entropy::NO_DATA`]
+    /// where nothing below it has a blob, and then its bound profile, see
+    /// [`crate::blob::encode_profiled`]). What a build's bound pass writes; blobs older
+    /// than version 5 are not coded again.
+    fn recode(
+        &self,
+        id: Self::Id,
+        blob: Option<&[u8]>,
+        entry: &dyn Fn(Self::Id) -> (u8, Vec<u8>),
+    ) -> Result<Vec<u8>, RefineError>;
     /// Refines `id` from its vertex grid and decoded details (`None`: zero details).
     fn synthesize(
         &self,
@@ -306,7 +326,7 @@ pub(crate) fn decode_details<I: Copy>(
     let mut q = Vec::with_capacity(ctx.n * ctx.n);
     // The level's step decides sign hiding.
     let ctx = crate::blob::BlobContext { step, ..*ctx };
-    let classes = blob::decode_into(blob, &ctx, model, &mut q)?;
+    let (classes, profiles) = blob::decode_profiled_into(blob, &ctx, model, &mut q)?;
     let h = q.iter().map(|&x| dequantize(x, step)).collect();
     let mut child_classes = Vec::with_capacity(classes.len());
     let mut empty_children = Vec::new();
@@ -317,12 +337,57 @@ pub(crate) fn decode_details<I: Copy>(
             empty_children.push(c);
         }
     }
+    let child_profiles = empty_children.iter().copied().zip(profiles).collect();
     Ok(Details {
         id,
         h,
         child_classes,
         empty_children,
+        child_profiles,
     })
+}
+
+/// [`Refiner::recode`] once the context is known: the blob's quantised details (zeros
+/// without one) coded again (version 6) with the same context and model, `entries` (one
+/// per owned child) and `profiles` (one per entry flagged no-data).
+pub(crate) fn recode_details(
+    blob: Option<&[u8]>,
+    ctx: &crate::blob::BlobContext<'_>,
+    model: &CodecModel,
+    step: u32,
+    entries: &[u8],
+    profiles: &[Vec<u8>],
+) -> Result<Vec<u8>, RefineError> {
+    let ctx = crate::blob::BlobContext { step, ..*ctx };
+    let mut q = vec![0; ctx.n * ctx.n];
+    if let Some(blob) = blob {
+        if let Some(&head) = blob.first()
+            && head >> 4 < blob::UNPROFILED_VERSION
+        {
+            return Err(DecodeError::Version(head >> 4).into());
+        }
+        blob::decode_into(blob, &ctx, model, &mut q)?;
+    }
+    if entries.len() != ctx.owned_children {
+        return Err(RefineError::WrongLength {
+            expected: ctx.owned_children,
+            got: entries.len(),
+        });
+    }
+    Ok(blob::encode_profiled(&ctx, model, entries, &q, profiles))
+}
+
+/// Side entries and the profiles of those flagged no-data, from `(entry, profile)` pairs.
+pub(crate) fn split_entries(pairs: impl Iterator<Item = (u8, Vec<u8>)>) -> (Vec<u8>, Vec<Vec<u8>>) {
+    let mut entries = Vec::new();
+    let mut profiles = Vec::new();
+    for (e, p) in pairs {
+        if crate::entropy::split_side(e).1 {
+            profiles.push(p);
+        }
+        entries.push(e);
+    }
+    (entries, profiles)
 }
 
 /// The `children` of `id` whose side information its blob carries: those whose first
@@ -376,6 +441,9 @@ pub(crate) fn synthesize_one<I: Copy>(
         vertices,
         cells,
         child_classes: details.map(|d| d.child_classes.clone()).unwrap_or_default(),
+        child_profiles: details
+            .map(|d| d.child_profiles.clone())
+            .unwrap_or_default(),
     })
 }
 
@@ -628,6 +696,17 @@ impl PlanarRefiner {
     /// Decodes the blob of `id` (checksum over key and content, the repository's model,
     /// dequantisation): the part of refinement that can run off the frame loop.
     pub fn decode(&self, id: PlanarId, blob: &[u8]) -> Result<Details, RefineError> {
+        self.with_context(id, |ctx, step, owned| {
+            decode_details(id, blob, ctx, &self.model, step, &owned)
+        })
+    }
+
+    /// Runs `f` with the blob context of `id`, its level's step and its owned children.
+    fn with_context<T>(
+        &self,
+        id: PlanarId,
+        f: impl FnOnce(&crate::blob::BlobContext<'_>, u32, Vec<PlanarId>) -> Result<T, RefineError>,
+    ) -> Result<T, RefineError> {
         let (level, slot) = self
             .geometry
             .slot(id)
@@ -635,7 +714,7 @@ impl PlanarRefiner {
         let owned = self.owned_children(id, level);
         let ctx = self.geometry.slot_context(level, &slot, owned.len());
         let step = self.steps.get(level).copied().unwrap_or(256);
-        decode_details(id, blob, &ctx, &self.model, step, &owned)
+        f(&ctx, step, owned)
     }
 
     /// Refines `id` from its vertex `grid` and its decoded details (`None`: no blob, the
@@ -778,6 +857,18 @@ impl Refiner for PlanarRefiner {
 
     fn decode(&self, id: PlanarId, blob: &[u8]) -> Result<Details, RefineError> {
         PlanarRefiner::decode(self, id, blob)
+    }
+
+    fn recode(
+        &self,
+        id: PlanarId,
+        blob: Option<&[u8]>,
+        entry: &dyn Fn(PlanarId) -> (u8, Vec<u8>),
+    ) -> Result<Vec<u8>, RefineError> {
+        self.with_context(id, |ctx, step, owned| {
+            let (entries, profiles) = split_entries(owned.into_iter().map(entry));
+            recode_details(blob, ctx, &self.model, step, &entries, &profiles)
+        })
     }
 
     fn synthesize(

@@ -8,7 +8,8 @@
 
 use super::{
     Details, DiamondInfo, Extension, Procedural, RefineError, Refined, Refiner, check_complete,
-    check_lattice, decode_details, id_text, owned_by, synthesize_one,
+    check_lattice, decode_details, id_text, owned_by, recode_details, split_entries,
+    synthesize_one,
 };
 use crate::coverage::Coverage;
 use crate::diamond::sphere::unfold;
@@ -232,6 +233,20 @@ impl Refiner for SphereRefiner {
         let ctx = self.geometry.slot_context(level, &slot, owned.len());
         let step = self.steps.get(level).copied().unwrap_or(256);
         decode_details(id, blob, &ctx, &self.model, step, &owned)
+    }
+
+    fn recode(
+        &self,
+        id: SphereId,
+        blob: Option<&[u8]>,
+        entry: &dyn Fn(SphereId) -> (u8, Vec<u8>),
+    ) -> Result<Vec<u8>, RefineError> {
+        let (level, slot) = self.slot_of(id)?;
+        let owned = self.owned_children(id, level);
+        let ctx = self.geometry.slot_context(level, &slot, owned.len());
+        let step = self.steps.get(level).copied().unwrap_or(256);
+        let (entries, profiles) = split_entries(owned.into_iter().map(entry));
+        recode_details(blob, &ctx, &self.model, step, &entries, &profiles)
     }
 
     fn synthesize(
