@@ -1879,9 +1879,33 @@ pub(crate) fn publish(
         inline_max_bytes: u32::try_from(args.inline_bytes).ok().filter(|&t| t > 0),
         static_export: false,
     };
-    builder
+    let meta = builder
         .publish(meta, args.overwrite)
-        .with_context(|| format!("publishing {}", args.output.display()))
+        .with_context(|| format!("publishing {}", args.output.display()))?;
+    // The encoder's side information bounds by a sum over levels; the published file's
+    // decode measures each diamond's own (`bounds`).
+    let Some((meta, t, child_peak_mb)) = crate::bounds::tighten_for_build(&args.output)
+        .with_context(|| format!("measuring the bounds of {}", args.output.display()))?
+    else {
+        return Ok(meta);
+    };
+    crate::layout::note_child_peak_mb(child_peak_mb);
+    tracing::info!(
+        diamonds = t.diamonds,
+        classes = t.classes,
+        lowered = t.lowered,
+        raised = t.raised,
+        added = t.added,
+        zero_detail_blobs = t.zero_detail_blobs,
+        profiled = t.profiled,
+        profile_classes = t.profile_classes,
+        median_ratio = t.median_ratio,
+        bytes_before = t.bytes.0,
+        bytes_after = t.bytes.1,
+        seconds = t.seconds,
+        "bounds measured"
+    );
+    Ok(meta)
 }
 
 fn file_name(p: &Path) -> String {

@@ -249,9 +249,22 @@ fn proc_status_kb(field: &str) -> Option<f64> {
         })
 }
 
-/// Peak resident memory of this process so far, MB (Linux; 0 elsewhere).
+/// The largest peak of a child process this one ran as part of its work (KB).
+static CHILD_PEAK_KB: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Records the peak resident memory of a child process that did part of this one's work
+/// (the build's bound pass), which [`peak_rss_mb`] then counts.
+pub fn note_child_peak_mb(mb: f64) {
+    let kb = (mb * 1024.0).ceil() as u64;
+    CHILD_PEAK_KB.fetch_max(kb, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// Peak resident memory of this process so far, or of a child that did part of its work
+/// if that was larger, MB (Linux; 0 elsewhere).
 pub fn peak_rss_mb() -> f64 {
-    proc_status_kb("VmHWM:").map_or(0.0, |kb| kb / 1024.0)
+    let own = proc_status_kb("VmHWM:").map_or(0.0, |kb| kb / 1024.0);
+    let child = CHILD_PEAK_KB.load(std::sync::atomic::Ordering::Relaxed) as f64 / 1024.0;
+    own.max(child)
 }
 
 /// Samples this process's resident memory every 50 ms on a thread of its own (reading

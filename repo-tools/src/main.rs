@@ -40,6 +40,16 @@ enum Command {
     /// Publish one repository from the parts of a sharded build (`build --shard K/N`):
     /// the same content hash as one `build` with the same options.
     Merge(shard::MergeArgs),
+    /// Measure every diamond's error bound against the repository's full-resolution
+    /// decode and write them into its blobs (the last step of every build; for
+    /// repositories built before it). Colour repositories are left as they are.
+    Bounds {
+        /// Repository directory (replaced in place, atomically).
+        repo: PathBuf,
+        /// One JSON object instead of text.
+        #[arg(long)]
+        json: bool,
+    },
     /// Print a repository's metadata, levels, blob counts and sizes.
     Info {
         /// Repository directory.
@@ -145,6 +155,7 @@ fn main() -> ExitCode {
             outln!("serving on {scheme}://{addr}/  (repositories: {scheme}://{addr}/repos)");
         })
         .map_err(anyhow::Error::from),
+        Command::Bounds { repo, json } => quincunx_repo_tools::bounds::run(&repo, json),
         Command::Info { repo, json } => info::run(&repo, json),
         Command::Verify(args) => verify::run(&args),
         Command::Export { repo, dir, name } => export::run(&repo, &dir, name.as_deref()),

@@ -48,10 +48,10 @@ use std::time::Instant;
 
 use common::bin;
 use quincunx_client::open::{planar_channel_refiner, sphere_channel_refiner};
-use quincunx_codec::diamond::sphere::{axes, chart_of};
 use quincunx_codec::entropy::class_bound;
-use quincunx_codec::incremental::{PlanarRefiner, Refined, Refiner, SphereRefiner};
+use quincunx_codec::incremental::Refined;
 use quincunx_codec::lifting::DiamondMask;
+use quincunx_repo_tools::bounds::{self, Charted, HalfFrame};
 use quincunx_store::{AttributeKind, Domain, Repository};
 use rayon::prelude::*;
 
@@ -71,112 +71,10 @@ fn demo_dir() -> &'static Path {
     })
 }
 
-/// What the check needs of a domain besides its refiner: the chart each half of a
-/// diamond lies in, and the decoded value of a chart point.
-trait Charted: Refiner {
-    /// The chart of a half (`lower`: vertices `i >= j`, the triangle `E1 P1 E2`; else
-    /// `i <= j`, `E1 P2 E2`) and its corners `[E1, P, E2]` there (id units = samples).
-    fn half_chart(&self, id: Self::Id, lower: bool) -> (u8, [[i64; 2]; 3]);
-    /// The chart's sample box `[x0, x1, y0, y1]` (inclusive).
-    fn chart_box(&self) -> [i64; 4];
-    /// Index in the full-resolution decode of sample `(x, y)` of `chart` (inside its box).
-    fn sample_index(&self, chart: u8, x: i64, y: i64) -> usize;
-    /// A child's vertex grid from its refined parents (the refiner's `child_grid`).
-    fn grid_of(&self, child: Self::Id, parents: &[&Refined<Self::Id>]) -> Vec<i32>;
-}
-
-impl Charted for PlanarRefiner {
-    fn half_chart(&self, id: Self::Id, lower: bool) -> (u8, [[i64; 2]; 3]) {
-        let c = Refiner::corners(self, id).map(|p| [p[0], p[1]]);
-        (0, [c[0], if lower { c[1] } else { c[3] }, c[2]])
-    }
-
-    fn chart_box(&self) -> [i64; 4] {
-        let (w, h) = self.raster_size();
-        [0, w as i64 - 1, 0, h as i64 - 1]
-    }
-
-    fn sample_index(&self, _chart: u8, x: i64, y: i64) -> usize {
-        y as usize * self.raster_size().0 + x as usize
-    }
-
-    fn grid_of(&self, child: Self::Id, parents: &[&Refined<Self::Id>]) -> Vec<i32> {
-        self.child_grid(child, parents).unwrap()
-    }
-}
-
-impl Charted for SphereRefiner {
-    fn half_chart(&self, id: Self::Id, lower: bool) -> (u8, [[i64; 2]; 3]) {
-        let c = Refiner::corners(self, id);
-        let tri = [c[0], if lower { c[1] } else { c[3] }, c[2]];
-        let s = self.domain().size();
-        // The face the whole triangle lies on (an edge diamond's halves are on two faces).
-        let face = (0..6u8)
-            .find(|&f| {
-                let ax = axes(f);
-                tri.iter().all(|p| p[ax.a] == ax.s * s)
-            })
-            .unwrap_or_else(|| panic!("half of {id:?} ({tri:?}) on no single face"));
-        (face, tri.map(|p| chart_of(face, p, s)))
-    }
-
-    fn chart_box(&self) -> [i64; 4] {
-        let side = self.frame().face_side() as i64;
-        [0, side, 0, side]
-    }
-
-    fn sample_index(&self, chart: u8, x: i64, y: i64) -> usize {
-        self.frame().cube_index(chart, x as usize, y as usize)
-    }
-
-    fn grid_of(&self, child: Self::Id, parents: &[&Refined<Self::Id>]) -> Vec<i32> {
-        self.child_grid(child, parents).unwrap()
-    }
-}
-
-/// A half's grid frame in its chart: vertex `(i, j)` at `e1 + (i a + j b) / N`.
-struct HalfFrame {
-    chart: u8,
-    e1: [i64; 2],
-    a: [i64; 2],
-    b: [i64; 2],
-    /// `|a|^2 = |b|^2`: grid coordinates are `I / d` with integer `I`.
-    d: i64,
-    lower: bool,
-    /// The triangle's sample box, clipped to the chart's.
-    bbox: [i64; 4],
-}
-
+/// The half frames and charts are the bound pass's ([`quincunx_repo_tools::bounds`]); the
+/// departure below is measured here, independently of its arithmetic.
 fn half_frame<R: Charted>(r: &R, id: R::Id, lower: bool) -> HalfFrame {
-    let (chart, [e1, p, e2]) = r.half_chart(id, lower);
-    // The square's fourth corner: P1 + P2 = E1 + E2.
-    let q = [e1[0] + e2[0] - p[0], e1[1] + e2[1] - p[1]];
-    let (p1, p2) = if lower { (p, q) } else { (q, p) };
-    let a = [p1[0] - e1[0], p1[1] - e1[1]];
-    let b = [p2[0] - e1[0], p2[1] - e1[1]];
-    let d = a[0] * a[0] + a[1] * a[1];
-    assert!(
-        d > 0 && d == b[0] * b[0] + b[1] * b[1] && a[0] * b[0] + a[1] * b[1] == 0,
-        "{id:?}: frame is not a square"
-    );
-    let [x0, x1, y0, y1] = r.chart_box();
-    let xs = [e1[0], p[0], e2[0]];
-    let ys = [e1[1], p[1], e2[1]];
-    let bbox = [
-        xs.iter().copied().min().unwrap().max(x0),
-        xs.iter().copied().max().unwrap().min(x1),
-        ys.iter().copied().min().unwrap().max(y0),
-        ys.iter().copied().max().unwrap().min(y1),
-    ];
-    HalfFrame {
-        chart,
-        e1,
-        a,
-        b,
-        d,
-        lower,
-        bbox,
-    }
+    bounds::half_frame(r, id, lower).unwrap()
 }
 
 /// How far a diamond's surface departs from the full-resolution decode.
@@ -339,6 +237,8 @@ struct Row<I> {
     dev: Deviation,
     /// Classes the diamond's blob carries for its owned children.
     child_classes: Vec<(I, u8)>,
+    /// Bound profiles its blob carries for owned children with nothing below them.
+    child_profiles: Vec<(I, Vec<u8>)>,
     /// Coded children.
     children: Vec<I>,
     refined: Refined<I>,
@@ -355,6 +255,8 @@ struct Report {
     unknown: u64,
     /// The largest departure (quanta) of those: a client takes their bound as 0.
     unknown_worst_quanta: f64,
+    /// Diamonds bounded by a parent's profile (nothing below their owner has a blob).
+    profiled: u64,
     checked: u64,
     /// Points compared against a known bound.
     points: u64,
@@ -398,6 +300,11 @@ fn check_channel<R: Charted>(r: &R, blob_of: &BlobOf<'_>, values: &[i32], sample
     rep.roots = current.len() as u64;
     // Classes of the current level's diamonds, from their owners' blobs.
     let mut classes: HashMap<R::Id, u8> = HashMap::new();
+    // Bound profiles of the current level's diamonds (their owners' blobs', or the rest of
+    // a parent's), and the classes their parents' profiles give them: a client's bound is
+    // the smaller of that and the owner's class.
+    let mut profiles: HashMap<R::Id, Vec<u8>> = HashMap::new();
+    let mut handed: HashMap<R::Id, u8> = HashMap::new();
     for level in 0..r.detail_levels() {
         let finest = level + 1 == r.detail_levels();
         let rows: Vec<Row<R::Id>> = current
@@ -423,7 +330,11 @@ fn check_channel<R: Charted>(r: &R, blob_of: &BlobOf<'_>, values: &[i32], sample
                     id,
                     level,
                     dev,
-                    child_classes: details.map(|d| d.child_classes).unwrap_or_default(),
+                    child_classes: details
+                        .as_ref()
+                        .map(|d| d.child_classes.clone())
+                        .unwrap_or_default(),
+                    child_profiles: details.map(|d| d.child_profiles).unwrap_or_default(),
                     children: info
                         .children
                         .into_iter()
@@ -447,7 +358,13 @@ fn check_channel<R: Charted>(r: &R, blob_of: &BlobOf<'_>, values: &[i32], sample
                 continue;
             }
             rep.points_all += row.dev.points;
-            let Some(&class) = classes.get(&row.id) else {
+            let class = [classes.get(&row.id), handed.get(&row.id)]
+                .into_iter()
+                .flatten()
+                .copied()
+                .min();
+            rep.profiled += u64::from(handed.contains_key(&row.id));
+            let Some(class) = class else {
                 rep.unknown += 1;
                 rep.unknown_worst_quanta = rep.unknown_worst_quanta.max(row.dev.quanta());
                 continue;
@@ -529,10 +446,34 @@ fn check_channel<R: Charted>(r: &R, blob_of: &BlobOf<'_>, values: &[i32], sample
                             .unwrap_or_else(|| panic!("parent {p:?} of {c:?} not refined"))
                     })
                     .collect();
-                (c, r.grid_of(c, &parents))
+                (c, r.grid_of(c, &parents).unwrap())
             })
             .collect();
         classes = next_classes;
+        let (mut next_profiles, mut next_handed) = (HashMap::new(), HashMap::new());
+        let mut tighter = |c: R::Id, p: &[u8]| {
+            let q: &mut Vec<u8> = next_profiles.entry(c).or_insert_with(|| p.to_vec());
+            for (k, &v) in p.iter().enumerate() {
+                match q.get_mut(k) {
+                    Some(x) => *x = (*x).min(v),
+                    None => q.push(v),
+                }
+            }
+        };
+        for row in &rows {
+            for (c, p) in &row.child_profiles {
+                tighter(*c, p);
+            }
+            if let Some(p) = profiles.get(&row.id).filter(|p| !p.is_empty()) {
+                for &c in &row.children {
+                    tighter(c, &p[1..]);
+                    let k: &mut u8 = next_handed.entry(c).or_insert(p[0]);
+                    *k = (*k).min(p[0]);
+                }
+            }
+        }
+        profiles = next_profiles;
+        handed = next_handed;
     }
     rep
 }
@@ -605,11 +546,13 @@ fn report(name: &str, channel: &str, mut rep: Report, elevation: bool, started: 
     let label = format!("{name}/{channel}");
     let med = median(&mut rep.ratios);
     eprintln!(
-        "{label}: {} diamonds ({} roots without a class, not checked; {} without a known \
+        "{label}: {} diamonds ({} roots without a class, not checked; {} bounded by a \
+         parent's profile; {} without a known \
          class: owner has no blob, departing by up to {:.2} quanta), {} checked over {} \
          points ({} in all non-root diamonds; {} samples, {} detail levels)",
         rep.diamonds,
         rep.roots,
+        rep.profiled,
         rep.unknown,
         rep.unknown_worst_quanta,
         rep.checked,
@@ -676,6 +619,13 @@ fn report(name: &str, channel: &str, mut rep: Report, elevation: bool, started: 
         rep.violations.len(),
         rep.violations[0]
     );
+    // The build measures the bounds (`quincunx_repo_tools::bounds`): a class rounds the
+    // monotone measure up by at most sqrt 2, so half of the diamonds sit well within 2x
+    // of theirs (the encoder's sum over levels was 4x at the median).
+    assert!(
+        !elevation || med >= 0.5,
+        "{label}: loose bounds: measured / bound is {med:.3} at the median"
+    );
     assert!(
         rep.monotone_violations.is_empty(),
         "{label}: {} classes not monotone, e.g. {}",
@@ -734,4 +684,76 @@ fn small_diamonds_cross_their_parents_edges_within_the_bound() {
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     check_repository_at("korea N=8 RMS 2 m", &dir);
+}
+
+/// The bound pass's full-resolution decode (the finest level's lattices, written point by
+/// point) is the whole-raster decoder's, every copy of every planet point included.
+#[test]
+fn the_bound_pass_decodes_what_verify_decodes() {
+    use quincunx_repo_tools::bounds::finest_values;
+    for name in ["korea", "earth"] {
+        let repo = Repository::open(demo_dir().join(name)).unwrap();
+        let meta = repo.metadata().clone();
+        let blob_of = |key: &[u8]| -> anyhow::Result<Option<Vec<u8>>> {
+            Ok(repo.get(key)?.map(|b| b.to_vec()))
+        };
+        let got = match meta.domain {
+            Domain::Planar => {
+                let r = planar_channel_refiner(name, &meta, 0).unwrap();
+                finest_values(&r, &blob_of, true).unwrap()
+            }
+            Domain::Sphere => {
+                let r = sphere_channel_refiner(name, &meta, 0).unwrap();
+                finest_values(&r, &blob_of, true).unwrap()
+            }
+        };
+        let want = quincunx_repo_tools::verify::decode_repository(&repo).unwrap();
+        let got = got.unwrap_or_else(|| panic!("{name}: points left unwritten"));
+        assert_eq!(got.len(), want.values[0].len(), "{name}");
+        let differ = got
+            .iter()
+            .zip(&want.values[0])
+            .filter(|(a, b)| a != b)
+            .count();
+        assert_eq!(differ, 0, "{name}: {differ} points differ");
+    }
+}
+
+/// The bounds a build measured are what `quincunx bounds` measures again: the pass is a
+/// fixed point (the same bytes), and it says why a colour repository is left alone.
+#[test]
+fn measuring_the_bounds_again_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["korea", "earth", "earth_colour"] {
+        let copy = dir.path().join(name);
+        std::fs::create_dir_all(&copy).unwrap();
+        let pack = "repository.pack";
+        std::fs::copy(demo_dir().join(name).join(pack), copy.join(pack)).unwrap();
+        let o = bin()
+            .arg("bounds")
+            .arg(&copy)
+            .arg("--json")
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let before = Repository::open(demo_dir().join(name)).unwrap();
+        let after = Repository::open(&copy).unwrap();
+        assert_eq!(
+            before.metadata().content_hash,
+            after.metadata().content_hash,
+            "{name}: {v}"
+        );
+        let b = &v["bounds"];
+        if name == "earth_colour" {
+            assert!(b.is_null(), "{v}");
+        } else {
+            assert!(b["diamonds"].as_u64().unwrap() > 100, "{v}");
+            assert_eq!(
+                (b["lowered"].as_u64(), b["raised"].as_u64()),
+                (Some(0), Some(0)),
+                "{v}"
+            );
+        }
+    }
 }
