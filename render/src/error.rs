@@ -165,6 +165,8 @@ pub struct GeometricError {
     pub max_px: f64,
     /// Mean, px.
     pub mean_px: f64,
+    /// Pixels whose error is above 1 px.
+    pub over_1px: usize,
     /// The pixel `[x, y]` of the largest error (the first in row-major order).
     pub max_at: Option<[u32; 2]>,
 }
@@ -206,6 +208,7 @@ impl ErrorMap {
             p99_px: rank(99),
             max_px: measured[n - 1],
             mean_px,
+            over_1px: n - measured.partition_point(|&e| e <= 1.0),
             max_at: max_at.map(|(k, _)| [(k % w) as u32, (k / w) as u32]),
         }
     }

@@ -260,6 +260,9 @@ pub struct ViewError {
     pub geometric_error_px_p99: f64,
     /// Largest.
     pub geometric_error_px_max: f64,
+    /// Pixels whose geometric error is above 1 px.
+    #[serde(default)]
+    pub geometric_pixels_over_1px: usize,
     /// Pixels showing terrain.
     pub pixels: usize,
     /// Of them, pixels with no reference surface on their vertical.
@@ -983,6 +986,7 @@ fn compare(
             geometric_error_px_p50: g.p50_px,
             geometric_error_px_p99: g.p99_px,
             geometric_error_px_max: g.max_px,
+            geometric_pixels_over_1px: g.over_1px,
             pixels: g.pixels,
             pixels_without_reference: g.pixels_without_reference,
             background_px,
