@@ -92,6 +92,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
             rms_m: s.rms_m,
             max_error_m: s.max_error_m,
             overwrite: true,
+            bounds: build::Bounds::Measured,
             ..BuildArgs::new(source.clone(), repo.clone())
         })?;
         outln!("verifying {} against {} ...", s.name, s.source);

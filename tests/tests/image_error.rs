@@ -55,12 +55,16 @@ fn served() -> &'static Served {
             planet: true,
             max_error_m: Some(2.0),
             overwrite: true,
+            bounds: build::Bounds::Measured,
             ..BuildArgs::new(
                 common::workspace_root().join("data/etopo20_global.json"),
                 &earth,
             )
         })
         .unwrap();
+        // The geometric metric's promise is checked on measured bounds (what `--bounds
+        // measured` and `quincunx demo` write).
+        quincunx_repo_tools::bounds::tighten(&korea).unwrap();
         let repos = [("korea", korea), ("earth", earth)]
             .into_iter()
             .map(|(name, path)| RepoConfig {
