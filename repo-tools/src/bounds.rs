@@ -57,8 +57,6 @@ pub trait Charted: Refiner {
     fn sample_index(&self, chart: u8, x: i64, y: i64) -> usize;
     /// A child's vertex grid from its refined parents (the refiner's `child_grid`).
     fn grid_of(&self, child: Self::Id, parents: &[&Refined<Self::Id>]) -> Result<Vec<i32>>;
-    /// Samples in the full-resolution decode that are distinct points of the domain.
-    fn samples(&self) -> u64;
     /// Length of the full-resolution decode (planets: every copy of a cube-edge point).
     fn sample_len(&self) -> usize;
 }
@@ -80,11 +78,6 @@ impl Charted for PlanarRefiner {
 
     fn grid_of(&self, child: Self::Id, parents: &[&Refined<Self::Id>]) -> Result<Vec<i32>> {
         Ok(self.child_grid(child, parents)?)
-    }
-
-    fn samples(&self) -> u64 {
-        let (w, h) = self.raster_size();
-        (w * h) as u64
     }
 
     fn sample_len(&self) -> usize {
@@ -120,10 +113,6 @@ impl Charted for SphereRefiner {
 
     fn grid_of(&self, child: Self::Id, parents: &[&Refined<Self::Id>]) -> Result<Vec<i32>> {
         Ok(self.child_grid(child, parents)?)
-    }
-
-    fn samples(&self) -> u64 {
-        self.frame().distinct_points() as u64
     }
 
     fn sample_len(&self) -> usize {
@@ -202,15 +191,6 @@ impl Departure {
             d,
             fine: (i32::MAX, i32::MIN),
             ..Departure::default()
-        }
-    }
-
-    /// The departure in value quanta.
-    pub fn quanta(&self) -> f64 {
-        if self.d == 0 {
-            0.0
-        } else {
-            self.worst as f64 / self.d as f64
         }
     }
 
