@@ -442,9 +442,12 @@ pub fn walk<R: Charted>(
         current =
             kids.into_par_iter()
                 .map(|c| {
+                    // Parents outside the data (the raster's border when it is not
+                    // 2^k + 1 on a side) hold no part of the child.
                     let parents =
                         r.parents(c)
                             .iter()
+                            .filter(|&&p| r.is_refinable(p))
                             .map(|p| {
                                 refined.get(p).copied().with_context(|| {
                                     format!("parent {p:?} of {c:?} was not decoded")

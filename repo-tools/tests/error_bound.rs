@@ -440,6 +440,7 @@ fn check_channel<R: Charted>(r: &R, blob_of: &BlobOf<'_>, values: &[i32], sample
                 let parents: Vec<&Refined<R::Id>> = r
                     .parents(c)
                     .iter()
+                    .filter(|&&p| r.is_refinable(p))
                     .map(|p| {
                         *refined
                             .get(p)
@@ -699,6 +700,36 @@ fn small_diamonds_cross_their_parents_edges_within_the_bound() {
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     check_repository_at("korea N=8 RMS 2 m", &dir);
+}
+
+/// A raster that is not `2^k + 1` on a side (a 700 x 450 crop of the bundled korea):
+/// diamonds on its border have a parent outside the data, which holds no part of them;
+/// the pass, like a client, cuts their grids from the parents inside alone.
+#[test]
+fn a_raster_of_any_size_gets_measured_bounds() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("error-bound-crop");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let raw =
+        std::fs::read(Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.i16"))
+            .unwrap();
+    let values: Vec<f64> = raw
+        .chunks_exact(2)
+        .map(|b| f64::from(i16::from_le_bytes([b[0], b[1]])))
+        .collect();
+    let tile = common::crop(&values, 1025, 300..=749, 200..=899, 1);
+    assert_eq!((tile.0, tile.1), (700, 450));
+    common::write_raw(&dir, "crop", &tile, 126.0, 38.0, 1.0 / 1200.0);
+    let out = dir.join("repo");
+    common::build(
+        &["--rms-m", "4", "--bounds", "measured"],
+        &dir.join("crop.json"),
+        &out,
+    );
+    let repo = Repository::open(&out).unwrap();
+    assert_eq!(repo.metadata().build["bounds"], "measured");
+    assert!(repo.metadata().coverage.is_none(), "the crop is dense");
+    check_repository_at("korea crop 700 x 450", &out);
 }
 
 /// The bound pass's full-resolution decode (the finest level's lattices, written point by
