@@ -5,45 +5,14 @@
 mod common;
 
 use std::collections::HashSet;
-use std::path::PathBuf;
+use std::path::Path;
 use std::process::{Command, Output};
-use std::sync::OnceLock;
 
-use common::stream::Served;
+use common::{bin, build, serve};
 use quincunx_render::offscreen::Image;
 
 /// The viewer's clear colour (`repo-tools/src/view.rs`).
 const BACKGROUND: [u8; 3] = [135, 170, 210];
-
-/// The `quincunx` binary of this build, built first if needed (cargo builds only this
-/// package's own binaries for its tests).
-fn quincunx() -> PathBuf {
-    static BIN: OnceLock<PathBuf> = OnceLock::new();
-    BIN.get_or_init(build_quincunx).clone()
-}
-
-fn build_quincunx() -> PathBuf {
-    let exe = std::env::current_exe().unwrap();
-    // target/<profile>/deps/view-<hash>
-    let profile_dir = exe.parent().and_then(|d| d.parent()).unwrap().to_path_buf();
-    let release = profile_dir.file_name().is_some_and(|n| n == "release");
-    let mut build = Command::new(env!("CARGO"));
-    build.current_dir(common::workspace_root()).args([
-        "build",
-        "-p",
-        "quincunx-repo-tools",
-        "--bin",
-        "quincunx",
-    ]);
-    if release {
-        build.arg("--release");
-    }
-    let status = build.status().expect("running cargo build");
-    assert!(status.success(), "cargo build of quincunx failed");
-    let bin = profile_dir.join("quincunx");
-    assert!(bin.exists(), "{} missing after the build", bin.display());
-    bin
-}
 
 fn show(out: &Output) -> String {
     format!(
@@ -78,21 +47,21 @@ fn view_under_xvfb_saves_a_screenshot_of_terrain() {
     {
         return;
     }
-    let bin = quincunx();
     let dir = tempfile::tempdir().unwrap();
     let repo = dir.path().join("korea");
-    common::build_bundled_korea(&repo);
-    let server = Served::one("127.0.0.1:0".parse().unwrap(), "korea", &repo);
+    let korea = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/korea_srtm3_1025.json");
+    build(&["--rms-m", "2"], &korea, &repo);
+    let server = serve(&[("korea", &repo)]);
     let shot = dir.path().join("view.png");
     let xdg = dir.path().join("xdg");
     std::fs::create_dir(&xdg).unwrap();
     let out = Command::new("xvfb-run")
         .args(["-a", "-s", "-screen 0 1024x768x24"])
-        .arg(&bin)
+        .arg(env!("CARGO_BIN_EXE_quincunx"))
         .args([
             "view",
             "--url",
-            &server.url(),
+            &server.url,
             "--repo",
             "korea",
             "--uv",
@@ -109,7 +78,7 @@ fn view_under_xvfb_saves_a_screenshot_of_terrain() {
         .env("XDG_RUNTIME_DIR", &xdg)
         .output()
         .unwrap();
-    server.kill();
+    drop(server);
     assert!(
         out.status.success(),
         "quincunx view failed:\n{}",
@@ -147,8 +116,7 @@ fn view_under_xvfb_saves_a_screenshot_of_terrain() {
 
 #[test]
 fn view_without_a_display_exits_1_with_a_clear_message() {
-    let bin = quincunx();
-    let out = Command::new(&bin)
+    let out = bin()
         .args([
             "view",
             "--url",
