@@ -6,7 +6,8 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/../.."
 data="${1:-../shared/data}"
-cargo build --release -q -p quincunx-repo-tools
+# QUINCUNX_PREBUILT=1: the release binaries are there already (.ci/run reuses its test build).
+[[ -n "${QUINCUNX_PREBUILT:-}" ]] || cargo build --release -q -p quincunx-repo-tools
 q="${CARGO_TARGET_DIR:-target}/release/quincunx"
 out="$(mktemp -d)"
 trap 'rm -rf "$out"' EXIT

@@ -19,7 +19,8 @@ data="${1:-../shared/data}"
 shift || true
 sides=("$@")
 [ ${#sides[@]} -gt 0 ] || sides=(2048 4096)
-cargo build --release -q -p quincunx-repo-tools --bin quincunx --example scale_mosaic
+# QUINCUNX_PREBUILT=1: the release binaries are there already (.ci/run reuses its test build).
+[[ -n "${QUINCUNX_PREBUILT:-}" ]] || cargo build --release -q -p quincunx-repo-tools --bin quincunx --example scale_mosaic
 target="${CARGO_TARGET_DIR:-target}/release"
 work="$(mktemp -d "${SCALE_WORK:-/tmp}/quincunx-scale.XXXXXX")"
 trap 'rm -rf "$work"' EXIT

@@ -11,7 +11,8 @@ quick="${QUICK:-0}"
 if [ "$quick" = 1 ]; then secs=3; long=5; reps=1; idle_n=2000; else secs=15; long=60; reps=3; idle_n=10000; fi
 command -v nginx >/dev/null || [ -x /usr/sbin/nginx ] || { echo "SKIP serving bench: nginx not installed" >&2; exit 0; }
 nginx_bin="$(command -v nginx || echo /usr/sbin/nginx)"
-cargo build --release -q -p quincunx-repo-tools -p quincunx-server
+# QUINCUNX_PREBUILT=1: the release binaries are there already (.ci/run reuses its test build).
+[[ -n "${QUINCUNX_PREBUILT:-}" ]] || cargo build --release -q -p quincunx-repo-tools -p quincunx-server
 bin="${CARGO_TARGET_DIR:-target}/release"
 work="${WORK:-${CARGO_TARGET_DIR:-target}/serving-bench}"
 mkdir -p "$work"
