@@ -11,7 +11,7 @@
 //! `REQUIRE_AZURITE` is set (CI installs both and sets both).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-mod common;
+use crate::common;
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};

@@ -1,7 +1,7 @@
 //! Dependency-direction invariants that `cargo tree` can check (see STYLE.md).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-mod common;
+use crate::common;
 
 use std::process::Command;
 

@@ -2,7 +2,7 @@
 //! configuration, and it serves from the `/data` volume on the port the image exposes.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-mod common;
+use crate::common;
 
 use quincunx_server::ServerConfig;
 

@@ -16,7 +16,7 @@
 //!   view) of at most the tolerance, on korea and on the planet.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-mod common;
+use crate::common;
 
 use std::path::PathBuf;
 use std::sync::OnceLock;

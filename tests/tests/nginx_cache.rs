@@ -9,7 +9,7 @@
 //! Prints `SKIP nginx_cache: ...` and passes when nginx is not installed.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-mod common;
+use crate::common;
 
 use std::net::SocketAddr;
 use std::path::Path;

@@ -10,7 +10,7 @@
 //!   as the local reference, with no crack in any frame, in fewer requests.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::time::{Duration, Instant};

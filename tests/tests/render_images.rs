@@ -17,7 +17,7 @@
 //!   says there is no terrain, and the same cut drawn without one patch shows a hole.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;

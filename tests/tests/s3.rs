@@ -9,7 +9,7 @@
 //!   query goes with every request; a forged signature is refused).
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::time::Duration;
