@@ -9,13 +9,15 @@
 //! in-memory, out-of-core and sharded builds publish the same bytes, so they get the
 //! same bounds), by what the decode measures:
 //!
-//! 1. The repository is decoded at full resolution, then every diamond top-down as a
-//!    client decodes it (the client's refiners: decode, synthesise, cut each child's grid
-//!    from its parents' lattices).
+//! 1. A tile at a time ([`TILE_SAMPLES`] a side, overlapping by one sample), the
+//!    diamonds over the tile and their ancestors are decoded top-down as a client decodes
+//!    them (the client's refiners: decode, synthesise, cut each child's grid from its
+//!    parents' lattices); the finest level's lattices fill the tile with the
+//!    full-resolution decode, and a second walk measures each diamond there.
 //! 2. A diamond's **departure** is the largest `|surface - decoded|` over its two halves
 //!    on the continuum ([`half_departure`]: every sample, and every centre of four
 //!    samples, where the two triangulations can cross), exact in integers and rounded up
-//!    to whole quanta.
+//!    to whole quanta: the largest over the tiles it meets.
 //! 3. Bottom-up, its **bound** is the largest of its departure and its coded children's
 //!    bounds (monotone up the DAG). A diamond with no valid sample of its own (sparse)
 //!    takes its subtree's whole range. The client's box, its grid's range widened by the
@@ -29,8 +31,10 @@
 //!    ask for anyway, gets a blob of zero details to carry its children's classes.
 //!
 //! Colour repositories keep the encoder's classes: their layer refines by its texel rule.
-//! The pass holds the full-resolution decode (4 bytes a sample), one level's lattices,
-//! a few figures per diamond and the repository's blobs.
+//! The pass holds one tile's decode and the lattices over it, the DAG and a few figures
+//! per diamond, and up to 1,024 blobs coded again (more wait in a file once the
+//! repository's blobs pass 8 MB): not the whole decode, so it keeps out-of-core builds'
+//! memory budgets. The bounds do not depend on the tiles' size.
 
 use std::collections::{HashMap, HashSet};
 use std::path::Path;
@@ -45,6 +49,29 @@ use quincunx_codec::lifting::DiamondMask;
 use quincunx_store::{AttributeKind, Domain, Metadata, Repository, RepositoryBuilder};
 use rayon::prelude::*;
 
+/// Side of the pass's tiles in samples, by default: it holds one tile's decode (4 MB) and
+/// the lattices of the diamonds over it.
+pub const TILE_SAMPLES: i64 = 1024;
+
+/// The tile side for a build's memory budget (MB; `None`: [`TILE_SAMPLES`]): the largest
+/// power of two up to [`TILE_SAMPLES`] with 128 bytes of budget a sample of the tile
+/// (256 at 16 MB: the pass's peak on the bundled korea crop is 12 MB; 512 at 32 MB: 25 MB
+/// on the 16.8 M samples of korea at RMS 9 m).
+pub fn tile_for_budget(budget_mb: Option<u64>) -> i64 {
+    let Some(mb) = budget_mb else {
+        return TILE_SAMPLES;
+    };
+    let mut tile = 64;
+    while tile < TILE_SAMPLES && (2 * tile) * (2 * tile) * 128 <= (mb as i64) << 20 {
+        tile *= 2;
+    }
+    tile
+}
+
+/// Repositories with more bytes of blobs than this have them coded again into a file,
+/// not memory.
+const SPILL_BYTES: u64 = 8 << 20;
+
 /// What the bound pass needs of a domain besides its refiner: the chart each half of a
 /// diamond lies in, and the decoded value of a chart point.
 pub trait Charted: Refiner {
@@ -53,6 +80,8 @@ pub trait Charted: Refiner {
     fn half_chart(&self, id: Self::Id, lower: bool) -> (u8, [[i64; 2]; 3]);
     /// The chart's sample box `[x0, x1, y0, y1]` (inclusive).
     fn chart_box(&self) -> [i64; 4];
+    /// The charts (planar: one; planets: the six faces).
+    fn charts(&self) -> Vec<u8>;
     /// Index in the full-resolution decode of sample `(x, y)` of `chart` (inside its box).
     fn sample_index(&self, chart: u8, x: i64, y: i64) -> usize;
     /// A child's vertex grid from its refined parents (the refiner's `child_grid`).
@@ -70,6 +99,10 @@ impl Charted for PlanarRefiner {
     fn chart_box(&self) -> [i64; 4] {
         let (w, h) = self.raster_size();
         [0, w as i64 - 1, 0, h as i64 - 1]
+    }
+
+    fn charts(&self) -> Vec<u8> {
+        vec![0]
     }
 
     fn sample_index(&self, _chart: u8, x: i64, y: i64) -> usize {
@@ -105,6 +138,10 @@ impl Charted for SphereRefiner {
     fn chart_box(&self) -> [i64; 4] {
         let side = self.frame().face_side() as i64;
         [0, side, 0, side]
+    }
+
+    fn charts(&self) -> Vec<u8> {
+        (0..6).collect()
     }
 
     fn sample_index(&self, chart: u8, x: i64, y: i64) -> usize {
@@ -212,8 +249,8 @@ impl Departure {
     }
 }
 
-/// The departure of one half of a diamond whose vertex grid is `grid`, from the decoded
-/// `values`, on the continuum: at every sample of the half, and at every centre of a
+/// The departure of one half of a diamond whose vertex grid is `grid`, from the decode
+/// in `window`, on the continuum: at every sample of the half, and at every centre of a
 /// square of four samples (`(x + 1/2, y + 1/2)`) in it.
 ///
 /// Both surfaces are linear on the two triangles of one diagonal of each such square:
@@ -225,19 +262,64 @@ impl Departure {
 /// candidates (which diagonal the decode takes is not assumed), this diamond's value
 /// there exactly. Points are compared where the cell triangle that holds them has three
 /// valid vertices (ties on the cell diagonal go to this half's side).
+///
+/// Only the half's points in `window` are compared (none when it is another chart's): a
+/// pass over tiles that overlap by one sample compares every point once or more.
 pub fn half_departure<R: Charted>(
     r: &R,
     f: &HalfFrame,
     grid: &[i32],
     mask: Option<&DiamondMask>,
-    values: &[i32],
+    window: &Window,
 ) -> Departure {
+    let [x0, x1, y0, y1] = f.bbox;
+    let [wx0, wx1, wy0, wy1] = window.bbox;
+    let bbox = [x0.max(wx0), x1.min(wx1), y0.max(wy0), y1.min(wy1)];
+    if f.chart != window.chart || bbox[0] > bbox[1] || bbox[2] > bbox[3] {
+        return Departure::none(2 * f.d);
+    }
     // Times `2d`, a surface value is at most `2d 2^31` and each product of the
     // interpolation `2d 2^32`: within `i64` while `2d < 2^28`.
     if 2 * f.d < 1 << 28 {
-        departure_in::<R, i64>(r, f, grid, mask, values)
+        departure_in::<R, i64>(r, f, grid, mask, window, bbox)
     } else {
-        departure_in::<R, i128>(r, f, grid, mask, values)
+        departure_in::<R, i128>(r, f, grid, mask, window, bbox)
+    }
+}
+
+/// A tile of one chart and its part of the full-resolution decode.
+pub struct Window {
+    /// The chart (planet face; 0 on a plane).
+    pub chart: u8,
+    /// Its samples `[x0, x1, y0, y1]` (inclusive).
+    pub bbox: [i64; 4],
+    /// Their decoded values, row by row.
+    pub values: Vec<i32>,
+}
+
+impl Window {
+    /// The tile `bbox` of `chart`, every value 0.
+    pub fn new(chart: u8, bbox: [i64; 4]) -> Window {
+        let [x0, x1, y0, y1] = bbox;
+        let len = usize::try_from((x1 - x0 + 1).max(0) * (y1 - y0 + 1).max(0)).unwrap_or(0);
+        Window {
+            chart,
+            bbox,
+            values: vec![0; len],
+        }
+    }
+
+    /// Index of sample `(x, y)` in [`Window::values`], if it is in the tile.
+    pub fn index(&self, chart: u8, x: i64, y: i64) -> Option<usize> {
+        let [x0, x1, y0, y1] = self.bbox;
+        let inside = chart == self.chart && (x0..=x1).contains(&x) && (y0..=y1).contains(&y);
+        inside.then(|| ((y - y0) * (x1 - x0 + 1) + (x - x0)) as usize)
+    }
+
+    /// The decoded value of sample `(x, y)` of the tile.
+    fn at(&self, x: i64, y: i64) -> i32 {
+        let [x0, x1, y0, _] = self.bbox;
+        self.values[((y - y0) * (x1 - x0 + 1) + (x - x0)) as usize]
     }
 }
 
@@ -266,7 +348,8 @@ fn departure_in<R: Charted, T: Wide>(
     f: &HalfFrame,
     grid: &[i32],
     mask: Option<&DiamondMask>,
-    values: &[i32],
+    window: &Window,
+    bbox: [i64; 4],
 ) -> Departure {
     let n = r.n() as i64;
     let w = r.n() + 1;
@@ -309,15 +392,15 @@ fn departure_in<R: Charted, T: Wide>(
         })
     };
     let d2 = T::from(2 * f.d);
-    let sample = |x: i64, y: i64| T::from(i64::from(values[r.sample_index(f.chart, x, y)]));
+    let sample = |x: i64, y: i64| T::from(i64::from(window.at(x, y)));
     let mut out = Departure::none(2 * f.d);
-    let [x0, x1, y0, y1] = f.bbox;
+    let [x0, x1, y0, y1] = bbox;
     for y in y0..=y1 {
         // Only the row's span inside the triangle (one more each side: `surface` decides).
         let (lo, hi) = row_span(f, n, 0, 2 * y);
         for x in (lo - 1).max(x0)..=(hi + 1).min(x1) {
             if let Some(s) = surface(2 * x, 2 * y) {
-                let value = values[r.sample_index(f.chart, x, y)];
+                let value = window.at(x, y);
                 out.worst = out
                     .worst
                     .max(abs(s - d2 * T::from(i64::from(value))).into());
@@ -404,27 +487,31 @@ pub struct Decoded<I> {
 /// A diamond's blob (one channel's part) by storage key.
 pub type BlobOf<'a> = dyn Fn(&[u8]) -> Result<Option<Vec<u8>>> + Sync + 'a;
 
-/// Decodes every coded diamond of one channel top-down, a level at a time, measuring
-/// each against the full-resolution `values` (`None`: no measure), and hands each level
-/// to `visit` (in the level's order of ids).
+/// Decodes the coded diamonds of one channel top-down, a level at a time (those in `keep`,
+/// which must hold the parents of each, or all), measuring each against the decode in
+/// `window` (`None`: no measure), and hands each level to `visit` (in the level's order
+/// of ids).
 pub fn walk<R: Charted>(
     r: &R,
     blob_of: &BlobOf<'_>,
-    values: Option<&[i32]>,
+    keep: Option<&HashSet<R::Id>>,
+    window: Option<&Window>,
     mut visit: impl FnMut(usize, &[Decoded<R::Id>]) -> Result<()>,
 ) -> Result<()> {
+    let kept = |id: &R::Id| keep.is_none_or(|k| k.contains(id));
     let mut current: Vec<(R::Id, Vec<i32>)> = r
         .roots()
         .into_iter()
+        .filter(|(id, _)| kept(id))
         .map(|(id, g)| (id, g.to_vec()))
         .collect();
     for level in 0..r.detail_levels() {
         // The finest level's lattices are only wanted without a measure (they are the
         // decode).
-        let lattices = level + 1 < r.detail_levels() || values.is_none();
+        let lattices = level + 1 < r.detail_levels() || window.is_none();
         let rows: Vec<Decoded<R::Id>> = current
             .into_par_iter()
-            .map(|(id, grid)| decode_one(r, blob_of, values, level, id, &grid, lattices))
+            .map(|(id, grid)| decode_one(r, blob_of, window, level, id, &grid, lattices))
             .collect::<Result<_>>()?;
         visit(level, &rows)?;
         if level + 1 == r.detail_levels() {
@@ -437,7 +524,7 @@ pub fn walk<R: Charted>(
         let kids: Vec<R::Id> = rows
             .iter()
             .flat_map(|row| row.children.iter().copied())
-            .filter(|&c| seen.insert(c))
+            .filter(|&c| kept(&c) && seen.insert(c))
             .collect();
         current =
             kids.into_par_iter()
@@ -464,7 +551,7 @@ pub fn walk<R: Charted>(
 fn decode_one<R: Charted>(
     r: &R,
     blob_of: &BlobOf<'_>,
-    values: Option<&[i32]>,
+    window: Option<&Window>,
     level: usize,
     id: R::Id,
     grid: &[i32],
@@ -498,10 +585,10 @@ fn decode_one<R: Charted>(
     };
     let mask = info.mask;
     let mut departure = Departure::none(0);
-    if let Some(values) = values {
+    if let Some(window) = window {
         for lower in [true, false] {
             let f = half_frame(r, id, lower)?;
-            departure.merge(half_departure(r, &f, grid, mask.as_ref(), values));
+            departure.merge(half_departure(r, &f, grid, mask.as_ref(), window));
         }
     }
     let w = r.n() + 1;
@@ -542,50 +629,185 @@ pub fn finest_values<R: Charted>(
     let len = r.sample_len();
     let mut values = vec![0i32; len];
     let mut written = vec![0u64; len.div_ceil(64)];
-    let n = r.n();
-    let n64 = n as i64;
     let [x0, x1, y0, y1] = r.chart_box();
-    walk(r, blob_of, None, |level, rows| {
+    walk(r, blob_of, None, None, |level, rows| {
         if level + 1 != r.detail_levels() {
             return Ok(());
         }
         for row in rows {
-            for lower in [true, false] {
-                let f = half_frame(r, row.id, lower)?;
-                let mine = |i: usize, j: usize| if lower { i >= j } else { i <= j };
-                // Doubled grid coordinates `(p2, q2)`: position `2N e1 + p2 a + q2 b`.
-                let mut put = |p2: i64, q2: i64, value: i32| {
-                    let x = 2 * n64 * f.e1[0] + p2 * f.a[0] + q2 * f.b[0];
-                    let y = 2 * n64 * f.e1[1] + p2 * f.a[1] + q2 * f.b[1];
-                    if x % (2 * n64) != 0 || y % (2 * n64) != 0 {
-                        return;
-                    }
-                    let (x, y) = (x / (2 * n64), y / (2 * n64));
-                    if (x0..=x1).contains(&x) && (y0..=y1).contains(&y) {
-                        let k = r.sample_index(f.chart, x, y);
-                        values[k] = value;
-                        written[k / 64] |= 1 << (k % 64);
-                    }
-                };
-                let mask = row.mask.as_ref();
-                for i in 0..=n {
-                    for j in 0..=n {
-                        if mine(i, j) && mask.is_none_or(|m| m.vertex(i, j)) {
-                            let v = row.refined.vertices[i * (n + 1) + j];
-                            put(2 * i as i64, 2 * j as i64, v);
-                        }
-                        if i < n && j < n && mine(i, j) && mask.is_none_or(|m| m.cell(i, j)) {
-                            let v = row.refined.cells[i * n + j];
-                            put(2 * i as i64 + 1, 2 * j as i64 + 1, v);
-                        }
-                    }
+            finest_points(r, row, |chart, x, y, value| {
+                if (x0..=x1).contains(&x) && (y0..=y1).contains(&y) {
+                    let k = r.sample_index(chart, x, y);
+                    values[k] = value;
+                    written[k / 64] |= 1 << (k % 64);
                 }
-            }
+            })?;
         }
         Ok(())
     })?;
     let all = (0..len).all(|k| written[k / 64] & (1 << (k % 64)) != 0);
     Ok((!dense || all).then_some(values))
+}
+
+/// Fills `window` with the decode, from the finest level of a [`walk`] over `keep` (which
+/// must hold every finest diamond over the tile); whether every sample was written.
+fn fill_window<R: Charted>(
+    r: &R,
+    blob_of: &BlobOf<'_>,
+    keep: &HashSet<R::Id>,
+    window: &mut Window,
+) -> Result<bool> {
+    let mut written = vec![false; window.values.len()];
+    walk(r, blob_of, Some(keep), None, |level, rows| {
+        if level + 1 != r.detail_levels() {
+            return Ok(());
+        }
+        for row in rows {
+            finest_points(r, row, |chart, x, y, value| {
+                if let Some(k) = window.index(chart, x, y) {
+                    window.values[k] = value;
+                    written[k] = true;
+                }
+            })?;
+        }
+        Ok(())
+    })?;
+    Ok(written.into_iter().all(|w| w))
+}
+
+/// Hands every sample of a finest-level diamond (the points of its refined lattices:
+/// vertices and cell centres, each half's own) to `put(chart, x, y, value)`.
+fn finest_points<R: Charted>(
+    r: &R,
+    row: &Decoded<R::Id>,
+    mut put: impl FnMut(u8, i64, i64, i32),
+) -> Result<()> {
+    let n = r.n();
+    let n64 = n as i64;
+    for lower in [true, false] {
+        let f = half_frame(r, row.id, lower)?;
+        let mine = |i: usize, j: usize| if lower { i >= j } else { i <= j };
+        // Doubled grid coordinates `(p2, q2)`: position `2N e1 + p2 a + q2 b`.
+        let mut at = |p2: i64, q2: i64, value: i32| {
+            let x = 2 * n64 * f.e1[0] + p2 * f.a[0] + q2 * f.b[0];
+            let y = 2 * n64 * f.e1[1] + p2 * f.a[1] + q2 * f.b[1];
+            if x % (2 * n64) == 0 && y % (2 * n64) == 0 {
+                put(f.chart, x / (2 * n64), y / (2 * n64), value);
+            }
+        };
+        let mask = row.mask.as_ref();
+        for i in 0..=n {
+            for j in 0..=n {
+                if mine(i, j) && mask.is_none_or(|m| m.vertex(i, j)) {
+                    at(
+                        2 * i as i64,
+                        2 * j as i64,
+                        row.refined.vertices[i * (n + 1) + j],
+                    );
+                }
+                if i < n && j < n && mine(i, j) && mask.is_none_or(|m| m.cell(i, j)) {
+                    at(
+                        2 * i as i64 + 1,
+                        2 * j as i64 + 1,
+                        row.refined.cells[i * n + j],
+                    );
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Every coded diamond of one channel by level, in the order [`walk`] reaches them, with
+/// its coded children.
+type Topology<I> = Vec<Vec<(I, Vec<I>)>>;
+
+/// A blob coded again, into the new repository: `(level, key, blob)`.
+type Put<'a> = dyn FnMut(u32, &[u8], &[u8]) -> Result<()> + 'a;
+
+/// The [`Topology`]: the DAG without decoding anything.
+fn topology<R: Charted>(r: &R) -> Topology<R::Id> {
+    let mut levels = Vec::new();
+    let mut current: Vec<R::Id> = r.roots().into_iter().map(|(id, _)| id).collect();
+    for level in 0..r.detail_levels() {
+        let rows: Vec<(R::Id, Vec<R::Id>)> = current
+            .iter()
+            .map(|&id| {
+                let kids = r
+                    .children(id)
+                    .unwrap_or_default()
+                    .into_iter()
+                    .filter(|&c| r.is_coded(c))
+                    .collect();
+                (id, kids)
+            })
+            .collect();
+        let mut seen = HashSet::new();
+        current = rows
+            .iter()
+            .flat_map(|(_, kids)| kids.iter().copied())
+            .filter(|&c| seen.insert(c))
+            .collect();
+        levels.push(rows);
+        if level + 1 == r.detail_levels() {
+            break;
+        }
+    }
+    levels
+}
+
+/// The diamonds a tile's pass decodes: those with a half over the tile `bbox` of `chart`
+/// (their halves tile it at every level), and their ancestors.
+fn over_tile<R: Charted>(
+    r: &R,
+    topology: &Topology<R::Id>,
+    chart: u8,
+    bbox: [i64; 4],
+) -> HashSet<R::Id> {
+    let [x0, x1, y0, y1] = bbox;
+    let over = |id: R::Id| {
+        [true, false].into_iter().any(|lower| {
+            let (c, tri) = r.half_chart(id, lower);
+            let lo = |k: usize| tri.iter().map(|p| p[k]).min().unwrap_or(i64::MAX);
+            let hi = |k: usize| tri.iter().map(|p| p[k]).max().unwrap_or(i64::MIN);
+            c == chart && lo(0) <= x1 && hi(0) >= x0 && lo(1) <= y1 && hi(1) >= y0
+        })
+    };
+    let mut keep = HashSet::new();
+    for rows in topology.iter().rev() {
+        for &(id, _) in rows {
+            if !keep.contains(&id) && over(id) {
+                keep.insert(id);
+            }
+        }
+        let parents: Vec<R::Id> = rows
+            .iter()
+            .filter(|(id, _)| keep.contains(id))
+            .flat_map(|&(id, _)| r.parents(id))
+            .filter(|&p| r.is_refinable(p))
+            .collect();
+        keep.extend(parents);
+    }
+    keep
+}
+
+/// The tiles of side `side` (samples) that cover `[x0, x1] x [y0, y1]`, overlapping by
+/// one sample so that every centre of four samples lies inside one.
+fn tiles([x0, x1, y0, y1]: [i64; 4], side: i64) -> Vec<[i64; 4]> {
+    let side = side.max(1);
+    let starts = |lo: i64, hi: i64| {
+        let mut out = vec![lo];
+        while let Some(&last) = out.last() {
+            if last + side >= hi {
+                break;
+            }
+            out.push(last + side);
+        }
+        out.into_iter().map(move |a| (a, (a + side).min(hi)))
+    };
+    starts(y0, y1)
+        .flat_map(|(ya, yb)| starts(x0, x1).map(move |(xa, xb)| [xa, xb, ya, yb]))
+        .collect()
 }
 
 /// A diamond's bound from its own figures and its children's results: `(bound, (lo, hi))`,
@@ -641,12 +863,14 @@ pub struct Tightened {
     pub bytes: (u64, u64),
     /// Seconds for the whole pass.
     pub seconds: f64,
+    /// Side of the tiles it measured, in samples.
+    pub tile_samples: u64,
 }
 
 /// `quincunx bounds`: [`tighten`] the repository at `repo` and print what it did (with
 /// this process's peak resident memory, `peak_rss_mb`).
-pub fn run(repo: &Path, json: bool) -> Result<()> {
-    let report = tighten(repo)?.map(|(_, t)| t);
+pub fn run(repo: &Path, json: bool, tile: i64) -> Result<()> {
+    let report = tighten(repo, tile)?.map(|(_, t)| t);
     let peak_rss_mb = crate::layout::peak_rss_mb();
     if json {
         let value = serde_json::json!({ "bounds": report, "peak_rss_mb": peak_rss_mb });
@@ -684,18 +908,20 @@ pub fn run(repo: &Path, json: bool) -> Result<()> {
 /// the `quincunx` tool (so the pass's memory is its own, not added to what the encoder
 /// leaves behind in this one), else here. Returns the report and the child's peak
 /// resident memory (MB; 0 when run here).
-pub fn tighten_for_build(path: &Path) -> Result<Option<(Metadata, Tightened, f64)>> {
+pub fn tighten_for_build(path: &Path, tile: i64) -> Result<Option<(Metadata, Tightened, f64)>> {
     let exe = std::env::current_exe().ok().filter(|e| {
         e.file_stem()
             .is_some_and(|s| s.to_string_lossy() == "quincunx")
     });
     let Some(exe) = exe else {
-        return Ok(tighten(path)?.map(|(m, t)| (m, t, 0.0)));
+        return Ok(tighten(path, tile)?.map(|(m, t)| (m, t, 0.0)));
     };
     let out = std::process::Command::new(&exe)
         .arg("bounds")
         .arg(path)
         .arg("--json")
+        .arg("--tile-samples")
+        .arg(tile.to_string())
         .stderr(std::process::Stdio::inherit())
         .output()
         .with_context(|| format!("running {} bounds", exe.display()))?;
@@ -722,10 +948,17 @@ pub fn tighten_for_build(path: &Path) -> Result<Option<(Metadata, Tightened, f64
 }
 
 /// Replaces the side-information classes of the elevation repository at `path` (just
-/// published by a build) by measured bounds and publishes it again in place. `None` for
-/// colour repositories, which keep theirs.
-pub fn tighten(path: &Path) -> Result<Option<(Metadata, Tightened)>> {
+/// published by a build) by measured bounds, tile by tile (`tile` samples a side), and
+/// publishes it again in place. `None` for colour repositories, which keep theirs.
+///
+/// Every blob is coded again with its classes replaced by measured bounds, and a blob of
+/// zero details is added for each diamond that has none but data below it (clients ask
+/// for it anyway; now it tells them its children's bounds).
+pub fn tighten(path: &Path, tile: i64) -> Result<Option<(Metadata, Tightened)>> {
     let started = Instant::now();
+    if tile < 2 {
+        bail!("--tile-samples {tile}: a tile is at least 2 samples a side");
+    }
     let repo = Repository::open(path).with_context(|| format!("opening {}", path.display()))?;
     let meta = repo.metadata().clone();
     if meta.attribute.kind == AttributeKind::Colour || meta.channels.len() != 1 {
@@ -736,27 +969,24 @@ pub fn tighten(path: &Path) -> Result<Option<(Metadata, Tightened)>> {
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_default();
     let dense = meta.coverage.is_none();
-    let blobs = match meta.domain {
+    let mut builder =
+        RepositoryBuilder::create(path).with_context(|| format!("creating {}", path.display()))?;
+    // Blobs beyond a few megabytes wait on disk, not in memory.
+    if meta.level_stats.iter().map(|s| s.bytes).sum::<u64>() > SPILL_BYTES {
+        builder = builder.spill_to_disk()?;
+    }
+    let mut put =
+        |level: u32, key: &[u8], blob: &[u8]| -> Result<()> { Ok(builder.put(level, key, blob)?) };
+    let mut report = match meta.domain {
         Domain::Planar => {
             let r = planar_channel_refiner(&name, &meta, 0)?;
-            recoded(&r, &repo, dense)?
+            recoded(&r, &repo, dense, tile, &mut put)?
         }
         Domain::Sphere => {
             let r = sphere_channel_refiner(&name, &meta, 0)?;
-            recoded(&r, &repo, dense)?
+            recoded(&r, &repo, dense, tile, &mut put)?
         }
     };
-    let (new_blobs, mut report) = blobs;
-    let mut builder =
-        RepositoryBuilder::create(path).with_context(|| format!("creating {}", path.display()))?;
-    if meta.level_stats.iter().map(|s| s.bytes).sum::<u64>() > 1 << 30 {
-        builder = builder.spill_to_disk()?;
-    }
-    for (level, key, blob) in &new_blobs {
-        report.bytes.1 += blob.len() as u64;
-        builder.put(*level, key, blob)?;
-    }
-    drop(new_blobs);
     drop(repo);
     let mut out = meta;
     if let Some(build) = out.build.as_object_mut() {
@@ -768,12 +998,6 @@ pub fn tighten(path: &Path) -> Result<Option<(Metadata, Tightened)>> {
     report.seconds = started.elapsed().as_secs_f64();
     Ok(Some((published, report)))
 }
-
-/// Every blob of the repository with its classes replaced by measured bounds, and a blob
-/// of zero details for each diamond that has none but data below it (clients ask for it
-/// anyway; now it tells them its children's bounds): `(level, key, blob)`, and the
-/// figures.
-type Recoded = (Vec<(u32, Vec<u8>, Vec<u8>)>, Tightened);
 
 /// What the bound pass keeps of a decoded diamond.
 struct Kept<I> {
@@ -795,35 +1019,98 @@ struct Below {
     data: bool,
 }
 
-fn recoded<R: Charted>(r: &R, repo: &Repository, dense: bool) -> Result<Recoded> {
+/// Every coded diamond, a level at a time in [`walk`]'s order, with its departure from
+/// the decode measured tile by tile (`tile` samples a side): each tile's pass decodes the
+/// diamonds over it and their ancestors, fills the tile from the finest level and
+/// measures them there; a diamond's departure is the largest over the tiles it meets.
+fn measured<R: Charted>(
+    r: &R,
+    repo: &Repository,
+    blob_of: &BlobOf<'_>,
+    dense: bool,
+    tile: i64,
+) -> Result<Vec<Vec<Kept<R::Id>>>> {
+    let topology = topology(r);
+    let mut found: HashMap<R::Id, Kept<R::Id>> = HashMap::new();
+    // The whole decode, only if a tile of a dense repository is left unwritten.
+    let mut whole: Option<Vec<i32>> = None;
+    for chart in r.charts() {
+        for bbox in tiles(r.chart_box(), tile) {
+            let keep = over_tile(r, &topology, chart, bbox);
+            if keep.is_empty() {
+                continue;
+            }
+            let mut window = Window::new(chart, bbox);
+            if !fill_window(r, blob_of, &keep, &mut window)? && dense {
+                if whole.is_none() {
+                    whole = Some(
+                        crate::verify::decode_repository(repo)?
+                            .values
+                            .swap_remove(0),
+                    );
+                }
+                if let Some(all) = &whole {
+                    let [x0, x1, y0, y1] = bbox;
+                    for y in y0..=y1 {
+                        for x in x0..=x1 {
+                            if let Some(k) = window.index(chart, x, y) {
+                                window.values[k] = all[r.sample_index(chart, x, y)];
+                            }
+                        }
+                    }
+                }
+            }
+            walk(r, blob_of, Some(&keep), Some(&window), |level, rows| {
+                for d in rows {
+                    match found.get_mut(&d.id) {
+                        Some(k) => k.departure.merge(d.departure),
+                        None => {
+                            found.insert(
+                                d.id,
+                                Kept {
+                                    id: d.id,
+                                    level: level as u32,
+                                    key: d.key.clone(),
+                                    has_blob: d.has_blob,
+                                    departure: d.departure,
+                                    grid_range: d.grid_range,
+                                    children: d.children.clone(),
+                                },
+                            );
+                        }
+                    }
+                }
+                Ok(())
+            })?;
+        }
+    }
+    let mut levels = Vec::with_capacity(topology.len());
+    for rows in &topology {
+        let mut level = Vec::with_capacity(rows.len());
+        for (id, _) in rows {
+            let k = found
+                .remove(id)
+                .with_context(|| format!("diamond {id:?} is over no tile"))?;
+            level.push(k);
+        }
+        levels.push(level);
+    }
+    Ok(levels)
+}
+
+fn recoded<R: Charted>(
+    r: &R,
+    repo: &Repository,
+    dense: bool,
+    tile: i64,
+    put: &mut Put<'_>,
+) -> Result<Tightened> {
     let blob_of =
         |key: &[u8]| -> Result<Option<Vec<u8>>> { Ok(repo.get(key)?.map(|b| b.to_vec())) };
-    let values = match finest_values(r, &blob_of, dense)? {
-        Some(v) => v,
-        None => crate::verify::decode_repository(repo)?
-            .values
-            .swap_remove(0),
-    };
-    let values = values.as_slice();
-    let mut levels: Vec<Vec<Kept<R::Id>>> = Vec::new();
-    walk(r, &blob_of, Some(values), |level, rows| {
-        levels.push(
-            rows.iter()
-                .map(|d| Kept {
-                    id: d.id,
-                    level: level as u32,
-                    key: d.key.clone(),
-                    has_blob: d.has_blob,
-                    departure: d.departure,
-                    grid_range: d.grid_range,
-                    children: d.children.clone(),
-                })
-                .collect(),
-        );
-        Ok(())
-    })?;
+    let levels = measured(r, repo, &blob_of, dense, tile)?;
     let mut report = Tightened {
         diamonds: levels.iter().map(|l| l.len() as u64).sum(),
+        tile_samples: tile as u64,
         ..Tightened::default()
     };
     let mut below: HashMap<R::Id, Below> = HashMap::new();
@@ -911,94 +1198,94 @@ fn recoded<R: Charted>(r: &R, repo: &Repository, dense: bool) -> Result<Recoded>
         }
     };
     type Written = (u32, Vec<u8>, Vec<u8>, Vec<(Option<u8>, u8, usize)>);
-    let out: Vec<Written> = writes
-        .into_par_iter()
-        .map(|k| {
-            let old = match k.has_blob {
-                true => blob_of(&k.key)?,
-                false => None,
-            };
-            // The encoder's entries, for children the walk did not reach.
-            let details = old
-                .as_deref()
-                .map(|b| r.decode(k.id, b))
-                .transpose()
-                .with_context(|| format!("decoding diamond {:?}", k.id))?;
-            let previous = |c: R::Id| {
-                details.as_ref().and_then(|d| {
-                    let class = d.child_classes.iter().find(|p| p.0 == c)?.1;
-                    let empty = d.empty_children.contains(&c);
-                    Some(if empty && class > 0 {
-                        class | NO_DATA
-                    } else {
-                        class
-                    })
+    let code = |k: &Kept<R::Id>| -> Result<Written> {
+        let old = match k.has_blob {
+            true => blob_of(&k.key)?,
+            false => None,
+        };
+        // The encoder's entries, for children the walk did not reach.
+        let details = old
+            .as_deref()
+            .map(|b| r.decode(k.id, b))
+            .transpose()
+            .with_context(|| format!("decoding diamond {:?}", k.id))?;
+        let previous = |c: R::Id| {
+            details.as_ref().and_then(|d| {
+                let class = d.child_classes.iter().find(|p| p.0 == c)?.1;
+                let empty = d.empty_children.contains(&c);
+                Some(if empty && class > 0 {
+                    class | NO_DATA
+                } else {
+                    class
                 })
-            };
-            let pairs = std::sync::Mutex::new(Vec::new());
-            let missing = std::sync::Mutex::new(None);
-            let entry = |c: R::Id| -> (u8, Vec<u8>) {
-                let (new, profile) = match below.get(&c) {
-                    Some(b) => {
-                        let class = gamma_class(b.bound);
-                        if !b.data && class > 0 {
-                            (class | NO_DATA, profile(c))
-                        } else {
-                            (class, Vec::new())
-                        }
-                    }
-                    None => (
-                        previous(c).unwrap_or_else(|| {
-                            *missing.lock().unwrap_or_else(|e| e.into_inner()) = Some(c);
-                            0
-                        }),
-                        Vec::new(),
-                    ),
-                };
-                pairs.lock().unwrap_or_else(|e| e.into_inner()).push((
-                    previous(c),
-                    new,
-                    profile.len(),
-                ));
-                (new, profile)
-            };
-            let blob = r
-                .recode(k.id, old.as_deref(), &entry)
-                .with_context(|| format!("coding diamond {:?} again", k.id))?;
-            if let Some(c) = missing.into_inner().unwrap_or_else(|e| e.into_inner()) {
-                bail!(
-                    "child {c:?} of {:?} has no measured bound and no class",
-                    k.id
-                );
-            }
-            let pairs = pairs.into_inner().unwrap_or_else(|e| e.into_inner());
-            Ok((k.level, k.key.clone(), blob, pairs))
-        })
-        .collect::<Result<_>>()?;
-    let mut ratios = Vec::new();
-    let mut blobs = Vec::with_capacity(out.len());
-    for (level, key, blob, pairs) in out {
-        report.blobs += 1;
-        for (old, new, profile) in pairs {
-            report.classes += 1;
-            report.profiled += u64::from(profile > 0);
-            report.profile_classes += profile as u64;
-            let new = split_side(new).0;
-            match old.map(|o| split_side(o).0) {
-                Some(old) => {
-                    report.lowered += u64::from(new < old);
-                    report.raised += u64::from(new > old);
-                    if class_bound(old) > 0 {
-                        ratios.push(class_bound(new) as f64 / class_bound(old) as f64);
+            })
+        };
+        let pairs = std::sync::Mutex::new(Vec::new());
+        let missing = std::sync::Mutex::new(None);
+        let entry = |c: R::Id| -> (u8, Vec<u8>) {
+            let (new, profile) = match below.get(&c) {
+                Some(b) => {
+                    let class = gamma_class(b.bound);
+                    if !b.data && class > 0 {
+                        (class | NO_DATA, profile(c))
+                    } else {
+                        (class, Vec::new())
                     }
                 }
-                None => report.added += 1,
-            }
+                None => (
+                    previous(c).unwrap_or_else(|| {
+                        *missing.lock().unwrap_or_else(|e| e.into_inner()) = Some(c);
+                        0
+                    }),
+                    Vec::new(),
+                ),
+            };
+            pairs
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .push((previous(c), new, profile.len()));
+            (new, profile)
+        };
+        let blob = r
+            .recode(k.id, old.as_deref(), &entry)
+            .with_context(|| format!("coding diamond {:?} again", k.id))?;
+        if let Some(c) = missing.into_inner().unwrap_or_else(|e| e.into_inner()) {
+            bail!(
+                "child {c:?} of {:?} has no measured bound and no class",
+                k.id
+            );
         }
-        blobs.push((level, key, blob));
+        let pairs = pairs.into_inner().unwrap_or_else(|e| e.into_inner());
+        Ok((k.level, k.key.clone(), blob, pairs))
+    };
+    let mut ratios = Vec::new();
+    // A chunk at a time, into the builder: the pass holds no more than a chunk of blobs.
+    for chunk in writes.chunks(1024) {
+        let out: Vec<Written> = chunk.par_iter().map(|&k| code(k)).collect::<Result<_>>()?;
+        for (level, key, blob, pairs) in out {
+            report.blobs += 1;
+            for (old, new, profile) in pairs {
+                report.classes += 1;
+                report.profiled += u64::from(profile > 0);
+                report.profile_classes += profile as u64;
+                let new = split_side(new).0;
+                match old.map(|o| split_side(o).0) {
+                    Some(old) => {
+                        report.lowered += u64::from(new < old);
+                        report.raised += u64::from(new > old);
+                        if class_bound(old) > 0 {
+                            ratios.push(class_bound(new) as f64 / class_bound(old) as f64);
+                        }
+                    }
+                    None => report.added += 1,
+                }
+            }
+            report.bytes.1 += blob.len() as u64;
+            put(level, &key, &blob)?;
+        }
     }
     report.zero_detail_blobs = report.blobs - stored;
     ratios.sort_by(f64::total_cmp);
     report.median_ratio = ratios.get(ratios.len() / 2).copied().unwrap_or(f64::NAN);
-    Ok((blobs, report))
+    Ok(report)
 }

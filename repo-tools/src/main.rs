@@ -49,6 +49,10 @@ enum Command {
         /// One JSON object instead of text.
         #[arg(long)]
         json: bool,
+        /// Side of the tiles the pass measures one at a time, in samples: it holds one
+        /// tile's decode and the lattices over it. The bounds do not depend on it.
+        #[arg(long, default_value_t = quincunx_repo_tools::bounds::TILE_SAMPLES)]
+        tile_samples: i64,
     },
     /// Print a repository's metadata, levels, blob counts and sizes.
     Info {
@@ -155,7 +159,11 @@ fn main() -> ExitCode {
             outln!("serving on {scheme}://{addr}/  (repositories: {scheme}://{addr}/repos)");
         })
         .map_err(anyhow::Error::from),
-        Command::Bounds { repo, json } => quincunx_repo_tools::bounds::run(&repo, json),
+        Command::Bounds {
+            repo,
+            json,
+            tile_samples,
+        } => quincunx_repo_tools::bounds::run(&repo, json, tile_samples),
         Command::Info { repo, json } => info::run(&repo, json),
         Command::Verify(args) => verify::run(&args),
         Command::Export { repo, dir, name } => export::run(&repo, &dir, name.as_deref()),

@@ -771,25 +771,7 @@ fn the_bound_pass_decodes_what_verify_decodes() {
 fn measuring_the_bounds_again_changes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     for name in ["korea", "earth", "earth_colour"] {
-        let copy = dir.path().join(name);
-        std::fs::create_dir_all(&copy).unwrap();
-        let pack = "repository.pack";
-        std::fs::copy(demo_dir().join(name).join(pack), copy.join(pack)).unwrap();
-        let o = bin()
-            .arg("bounds")
-            .arg(&copy)
-            .arg("--json")
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        let before = Repository::open(demo_dir().join(name)).unwrap();
-        let after = Repository::open(&copy).unwrap();
-        assert_eq!(
-            before.metadata().content_hash,
-            after.metadata().content_hash,
-            "{name}: {v}"
-        );
+        let v = measure_a_copy(dir.path(), name, &[]);
         let b = &v["bounds"];
         if name == "earth_colour" {
             assert!(b.is_null(), "{v}");
@@ -802,6 +784,54 @@ fn measuring_the_bounds_again_changes_nothing() {
             );
         }
     }
+}
+
+/// The pass measures a tile at a time; the bounds do not depend on the tiles: with tiles
+/// of 64 samples (256 on korea; on the planet 16 a face, with diamonds across tiles and
+/// cube faces) it writes the same bytes as with one tile.
+#[test]
+fn the_bounds_do_not_depend_on_the_tiles() {
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["korea", "earth"] {
+        let v = measure_a_copy(dir.path(), name, &["--tile-samples", "64"]);
+        assert_eq!(v["bounds"]["tile_samples"], 64, "{v}");
+    }
+    // Too small a tile is a clear error.
+    let o = bin()
+        .arg("bounds")
+        .arg(dir.path().join("korea"))
+        .args(["--tile-samples", "1"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(stderr.contains("at least 2 samples"), "{stderr}");
+}
+
+/// `quincunx bounds <copy> --json <extra>` on a copy (in `dir`) of the bundled `name`,
+/// which must leave its content hash as it was; what it printed.
+fn measure_a_copy(dir: &Path, name: &str, extra: &[&str]) -> serde_json::Value {
+    let copy = dir.join(name);
+    std::fs::create_dir_all(&copy).unwrap();
+    let pack = "repository.pack";
+    std::fs::copy(demo_dir().join(name).join(pack), copy.join(pack)).unwrap();
+    let o = bin()
+        .arg("bounds")
+        .arg(&copy)
+        .arg("--json")
+        .args(extra)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let before = Repository::open(demo_dir().join(name)).unwrap();
+    let after = Repository::open(&copy).unwrap();
+    assert_eq!(
+        before.metadata().content_hash,
+        after.metadata().content_hash,
+        "{name} {extra:?}: {v}"
+    );
+    v
 }
 
 /// Golden repositories: the bundled builds, bounds included (blob version 6), are these

@@ -64,7 +64,8 @@ fn served() -> &'static Served {
         .unwrap();
         // The geometric metric's promise is checked on measured bounds (what `--bounds
         // measured` and `quincunx demo` write).
-        quincunx_repo_tools::bounds::tighten(&korea).unwrap();
+        quincunx_repo_tools::bounds::tighten(&korea, quincunx_repo_tools::bounds::TILE_SAMPLES)
+            .unwrap();
         let repos = [("korea", korea), ("earth", earth)]
             .into_iter()
             .map(|(name, path)| RepoConfig {
