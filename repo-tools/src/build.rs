@@ -118,14 +118,17 @@ pub struct BuildArgs {
     /// The error bounds the blobs carry: `encoder` (a sum over levels, what the encoder
     /// knows as it goes) or `measured` (`quincunx bounds` once the repository is
     /// published: each diamond's departure from the full-resolution decode, 0.34x the
-    /// triangles at 1 px on korea; it holds about 9 bytes a sample, beyond what
-    /// out-of-core budgets allow, docs/building.md "Error bounds").
+    /// triangles at 1 px on korea; a tile at a time, within `--memory-budget-mb`;
+    /// docs/building.md "Error bounds").
     #[arg(long, value_enum, default_value = "encoder")]
     pub bounds: Bounds,
 }
 
 /// `--bounds`: which side-information bounds a build writes.
-#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[derive(
+    ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
 pub enum Bounds {
     /// The encoder's (blob version 5).
     #[default]
@@ -1905,7 +1908,8 @@ pub(crate) fn publish(
     if args.bounds == Bounds::Encoder {
         return Ok(meta);
     }
-    let Some((meta, t, child_peak_mb)) = crate::bounds::tighten_for_build(&args.output)
+    let tile = crate::bounds::tile_for_budget(args.memory_budget_mb);
+    let Some((meta, t, child_peak_mb)) = crate::bounds::tighten_for_build(&args.output, tile)
         .with_context(|| format!("measuring the bounds of {}", args.output.display()))?
     else {
         return Ok(meta);

@@ -105,6 +105,9 @@ struct BuildFacts {
     radius_m: Option<f64>,
     face_side: Option<usize>,
     sparse: bool,
+    /// `--bounds` (parts from before it: the encoder's).
+    #[serde(default)]
+    bounds: build::Bounds,
 }
 
 /// The `--json` summary of a shard.
@@ -232,6 +235,7 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
             radius_m,
             face_side: args.face_side,
             sparse: args.sparse,
+            bounds: args.bounds,
         };
         let (part, rows) = if args.planet {
             let ((mut part, rows), source) =
@@ -538,6 +542,7 @@ fn merge_parts(args: &MergeArgs) -> Result<build::BuildSummary> {
     bargs.radius_m = facts.radius_m;
     bargs.face_side = facts.face_side;
     bargs.sparse = facts.sparse;
+    bargs.bounds = facts.bounds;
     let mode = build::rate_mode(&bargs)?;
     let n = build::diamond_n(&bargs)?;
     build::check_output(&bargs)?;

@@ -109,6 +109,7 @@ fn merged_shards_publish_the_single_builds_content_hash() {
         &["--max-error-m", "2"][..],
         &["--lossless"][..],
         &["--max-error-m", "1", "--sparse"][..],
+        &["--max-error-m", "2", "--bounds", "measured"][..],
     ] {
         let tmp = tempfile::tempdir().unwrap();
         let one = single(tmp.path(), rate);
@@ -126,6 +127,29 @@ fn merged_shards_publish_the_single_builds_content_hash() {
                 "{rate:?}, {count} shards"
             );
             assert_eq!(merged["blob_count"], one["blob_count"]);
+        }
+        if rate.contains(&"measured") {
+            // The bound pass (its own process) keeps the budget too, and the in-memory
+            // build publishes the same bytes.
+            let peak = one["peak_rss_mb"].as_f64().unwrap();
+            assert!(peak <= 20.0, "peak {peak} MB over a 20 MB budget: {one}");
+            let mem = ok_json(
+                bin()
+                    .arg("build")
+                    .arg(korea())
+                    .args(rate)
+                    .arg("--json")
+                    .arg("-o")
+                    .arg(tmp.path().join("in-memory")),
+            );
+            assert_eq!(mem["content_hash"], one["content_hash"]);
+            let info = ok_json(
+                bin()
+                    .arg("info")
+                    .arg(tmp.path().join("single"))
+                    .arg("--json"),
+            );
+            assert_eq!(info["metadata"]["build"]["bounds"], "measured", "{info}");
         }
     }
 }
