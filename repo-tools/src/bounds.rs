@@ -61,8 +61,11 @@ pub fn tile_for_budget(budget_mb: Option<u64>) -> i64 {
     let Some(mb) = budget_mb else {
         return TILE_SAMPLES;
     };
+    let bytes = i64::try_from(mb)
+        .unwrap_or(i64::MAX)
+        .saturating_mul(1 << 20);
     let mut tile = 64;
-    while tile < TILE_SAMPLES && (2 * tile) * (2 * tile) * 128 <= (mb as i64) << 20 {
+    while tile < TILE_SAMPLES && (2 * tile) * (2 * tile) * 128 <= bytes {
         tile *= 2;
     }
     tile
@@ -1288,4 +1291,33 @@ fn recoded<R: Charted>(
     ratios.sort_by(f64::total_cmp);
     report.median_ratio = ratios.get(ratios.len() / 2).copied().unwrap_or(f64::NAN);
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_tile_follows_the_budget() {
+        assert_eq!(tile_for_budget(None), TILE_SAMPLES);
+        assert_eq!(tile_for_budget(Some(1)), 64);
+        assert_eq!(tile_for_budget(Some(16)), 256);
+        assert_eq!(tile_for_budget(Some(20)), 256);
+        assert_eq!(tile_for_budget(Some(32)), 512);
+        assert_eq!(tile_for_budget(Some(128)), 1024);
+        assert_eq!(tile_for_budget(Some(u64::MAX)), 1024);
+    }
+
+    #[test]
+    fn tiles_overlap_by_one_sample_and_cover_the_box() {
+        assert_eq!(tiles([0, 1024, 0, 1024], 1024), vec![[0, 1024, 0, 1024]]);
+        assert_eq!(
+            tiles([0, 100, 5, 5], 64),
+            vec![[0, 64, 5, 5], [64, 100, 5, 5]]
+        );
+        let t = tiles([0, 699, 0, 449], 256);
+        assert_eq!(t.len(), 3 * 2);
+        assert_eq!(t[2], [512, 699, 0, 256]);
+        assert_eq!(t[5], [512, 699, 256, 449]);
+    }
 }
