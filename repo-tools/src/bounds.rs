@@ -316,13 +316,18 @@ impl Window {
     pub fn index(&self, chart: u8, x: i64, y: i64) -> Option<usize> {
         let [x0, x1, y0, y1] = self.bbox;
         let inside = chart == self.chart && (x0..=x1).contains(&x) && (y0..=y1).contains(&y);
-        inside.then(|| ((y - y0) * (x1 - x0 + 1) + (x - x0)) as usize)
+        inside.then(|| self.offset(x, y))
     }
 
     /// The decoded value of sample `(x, y)` of the tile.
     fn at(&self, x: i64, y: i64) -> i32 {
+        self.values[self.offset(x, y)]
+    }
+
+    /// Where sample `(x, y)` of the tile is in [`Window::values`].
+    fn offset(&self, x: i64, y: i64) -> usize {
         let [x0, x1, y0, _] = self.bbox;
-        self.values[((y - y0) * (x1 - x0 + 1) + (x - x0)) as usize]
+        ((y - y0) * (x1 - x0 + 1) + (x - x0)) as usize
     }
 }
 
@@ -633,20 +638,12 @@ pub fn finest_values<R: Charted>(
     let mut values = vec![0i32; len];
     let mut written = vec![0u64; len.div_ceil(64)];
     let [x0, x1, y0, y1] = r.chart_box();
-    walk(r, blob_of, None, None, |level, rows| {
-        if level + 1 != r.detail_levels() {
-            return Ok(());
+    walk_finest(r, blob_of, None, |chart, x, y, value| {
+        if (x0..=x1).contains(&x) && (y0..=y1).contains(&y) {
+            let k = r.sample_index(chart, x, y);
+            values[k] = value;
+            written[k / 64] |= 1 << (k % 64);
         }
-        for row in rows {
-            finest_points(r, row, |chart, x, y, value| {
-                if (x0..=x1).contains(&x) && (y0..=y1).contains(&y) {
-                    let k = r.sample_index(chart, x, y);
-                    values[k] = value;
-                    written[k / 64] |= 1 << (k % 64);
-                }
-            })?;
-        }
-        Ok(())
     })?;
     let all = (0..len).all(|k| written[k / 64] & (1 << (k % 64)) != 0);
     Ok((!dense || all).then_some(values))
@@ -661,21 +658,31 @@ fn fill_window<R: Charted>(
     window: &mut Window,
 ) -> Result<bool> {
     let mut written = vec![false; window.values.len()];
-    walk(r, blob_of, Some(keep), None, |level, rows| {
-        if level + 1 != r.detail_levels() {
-            return Ok(());
+    walk_finest(r, blob_of, Some(keep), |chart, x, y, value| {
+        if let Some(k) = window.index(chart, x, y) {
+            window.values[k] = value;
+            written[k] = true;
         }
-        for row in rows {
-            finest_points(r, row, |chart, x, y, value| {
-                if let Some(k) = window.index(chart, x, y) {
-                    window.values[k] = value;
-                    written[k] = true;
-                }
-            })?;
-        }
-        Ok(())
     })?;
     Ok(written.into_iter().all(|w| w))
+}
+
+/// A [`walk`] over `keep` (or all) without measuring that hands every sample of the
+/// finest level to `put(chart, x, y, value)`.
+fn walk_finest<R: Charted>(
+    r: &R,
+    blob_of: &BlobOf<'_>,
+    keep: Option<&HashSet<R::Id>>,
+    mut put: impl FnMut(u8, i64, i64, i32),
+) -> Result<()> {
+    walk(r, blob_of, keep, None, |level, rows| {
+        if level + 1 == r.detail_levels() {
+            for row in rows {
+                finest_points(r, row, &mut put)?;
+            }
+        }
+        Ok(())
+    })
 }
 
 /// Hands every sample of a finest-level diamond (the points of its refined lattices:
@@ -721,9 +728,8 @@ fn finest_points<R: Charted>(
     Ok(())
 }
 
-/// Every coded diamond of one channel by level, in the order [`walk`] reaches them, with
-/// its coded children.
-type Topology<I> = Vec<Vec<(I, Vec<I>)>>;
+/// Every coded diamond of one channel by level, in the order [`walk`] reaches them.
+type Topology<I> = Vec<Vec<I>>;
 
 /// A blob coded again, into the new repository: `(level, key, blob)`.
 type Put<'a> = dyn FnMut(u32, &[u8], &[u8]) -> Result<()> + 'a;
@@ -733,25 +739,13 @@ fn topology<R: Charted>(r: &R) -> Topology<R::Id> {
     let mut levels = Vec::new();
     let mut current: Vec<R::Id> = r.roots().into_iter().map(|(id, _)| id).collect();
     for level in 0..r.detail_levels() {
-        let rows: Vec<(R::Id, Vec<R::Id>)> = current
-            .iter()
-            .map(|&id| {
-                let kids = r
-                    .children(id)
-                    .unwrap_or_default()
-                    .into_iter()
-                    .filter(|&c| r.is_coded(c))
-                    .collect();
-                (id, kids)
-            })
-            .collect();
         let mut seen = HashSet::new();
-        current = rows
+        let next = current
             .iter()
-            .flat_map(|(_, kids)| kids.iter().copied())
-            .filter(|&c| seen.insert(c))
+            .flat_map(|&id| r.children(id).unwrap_or_default())
+            .filter(|&c| r.is_coded(c) && seen.insert(c))
             .collect();
-        levels.push(rows);
+        levels.push(std::mem::replace(&mut current, next));
         if level + 1 == r.detail_levels() {
             break;
         }
@@ -778,15 +772,15 @@ fn over_tile<R: Charted>(
     };
     let mut keep = HashSet::new();
     for rows in topology.iter().rev() {
-        for &(id, _) in rows {
+        for &id in rows {
             if !keep.contains(&id) && over(id) {
                 keep.insert(id);
             }
         }
         let parents: Vec<R::Id> = rows
             .iter()
-            .filter(|(id, _)| keep.contains(id))
-            .flat_map(|&(id, _)| r.parents(id))
+            .filter(|id| keep.contains(id))
+            .flat_map(|&id| r.parents(id))
             .filter(|&p| r.is_refinable(p))
             .collect();
         keep.extend(parents);
@@ -1090,7 +1084,7 @@ fn measured<R: Charted>(
     let mut levels = Vec::with_capacity(topology.len());
     for rows in &topology {
         let mut level = Vec::with_capacity(rows.len());
-        for (id, _) in rows {
+        for id in rows {
             let k = found
                 .remove(id)
                 .with_context(|| format!("diamond {id:?} is over no tile"))?;
