@@ -116,11 +116,11 @@ pub struct BuildArgs {
     #[arg(long, value_parser = crate::shard::parse_spec, requires = "memory_budget_mb")]
     pub shard: Option<stream::ShardSpec>,
     /// The error bounds the blobs carry: `encoder` (a sum over levels, what the encoder
-    /// knows as it goes) or `measured` (`quincunx bounds` once the repository is
+    /// knows as it goes) or `measured` (the default: `quincunx bounds` once the repository is
     /// published: each diamond's departure from the full-resolution decode, 0.34x the
     /// triangles at 1 px on korea; a tile at a time, within `--memory-budget-mb`;
     /// docs/building.md "Error bounds").
-    #[arg(long, value_enum, default_value = "encoder")]
+    #[arg(long, value_enum, default_value = "measured")]
     pub bounds: Bounds,
 }
 
@@ -131,9 +131,9 @@ pub struct BuildArgs {
 #[serde(rename_all = "lowercase")]
 pub enum Bounds {
     /// The encoder's (blob version 5).
-    #[default]
     Encoder,
     /// Measured by `quincunx bounds` after publishing (blob version 6).
+    #[default]
     Measured,
 }
 
@@ -204,7 +204,7 @@ impl BuildArgs {
             inline_bytes: DEFAULT_INLINE_BYTES,
             stall_after_blobs: None,
             shard: None,
-            bounds: Bounds::Encoder,
+            bounds: Bounds::Measured,
         }
     }
 }
