@@ -49,7 +49,8 @@ pub struct StreamConfig {
     pub prefetch_max: usize,
     /// Levels below each wanted diamond whose blobs are requested ahead (as prefetch)
     /// while the wanted diamond's projected error says they will be wanted too (about
-    /// `error / sqrt(2)^depth` above the tolerance). This hides the round trip per level
+    /// `error / sqrt(2)^depth` above the tolerance; with the geometric metric, `error`
+    /// itself below a diamond whose bound has stopped shrinking). This hides the round trip per level
     /// a view would otherwise pay on its way down; 0 disables it. See also
     /// [`StreamConfig::lookahead_min_blobs`].
     pub lookahead_levels: usize,
@@ -675,8 +676,8 @@ impl<R: Domain> StreamCore<R> {
     }
 
     /// The descendants of wanted diamonds that will be wanted once these arrive, while
-    /// their projected error (about the parent's over `sqrt(2)` per level) exceeds the
-    /// tolerance, and that some layer would fetch.
+    /// their projected error (the wanted diamond's times [`StreamCore::child_error_ratio`]
+    /// per level) exceeds the tolerance, and that some layer would fetch.
     fn lookahead(
         &self,
         wanted: &HashMap<R::Id, f32>,
@@ -688,12 +689,14 @@ impl<R: Domain> StreamCore<R> {
             return Vec::new();
         }
         let mut out: HashMap<R::Id, f32> = HashMap::new();
-        let mut frontier: Vec<(R::Id, f64)> =
-            wanted.iter().map(|(&id, &p)| (id, f64::from(p))).collect();
+        let mut frontier: Vec<(R::Id, f64, f64)> = wanted
+            .iter()
+            .map(|(&id, &p)| (id, f64::from(p), self.child_error_ratio(id)))
+            .collect();
         for _ in 0..levels {
             let mut next = Vec::new();
-            for (id, p) in frontier {
-                let child_error = p / std::f64::consts::SQRT_2;
+            for (id, p, ratio) in frontier {
+                let child_error = p * ratio;
                 if child_error <= tolerance_px {
                     continue;
                 }
@@ -704,13 +707,31 @@ impl<R: Domain> StreamCore<R> {
                     let e = out.entry(c).or_insert(0.0);
                     if child_error as f32 > *e {
                         *e = child_error as f32;
-                        next.push((c, child_error));
+                        next.push((c, child_error, ratio));
                     }
                 }
             }
             frontier = next;
         }
         out.into_iter().collect()
+    }
+
+    /// What lookahead expects a child's projected error to be, over `id`'s: `1 /
+    /// sqrt(2)` (grid edges halve every two levels, and so do smooth surfaces' bounds),
+    /// except with the geometric metric where `id`'s own bound is as large as its
+    /// refined parents' (the same side-information class): there, near the finest
+    /// levels of rough ground, bounds stop shrinking for levels on end, and its
+    /// children are expected to keep it. Lookahead predicting `1 / sqrt(2)` would stop
+    /// one level short on each such chain and cost a round trip per level.
+    fn child_error_ratio(&self, id: R::Id) -> f64 {
+        let own = self.dag.node(id).and_then(|n| n.class);
+        let parents = self
+            .dag
+            .parents(id)
+            .into_iter()
+            .filter_map(|p| self.dag.node(p)?.class)
+            .max();
+        lookahead_ratio(self.metric(), own, parents)
     }
 
     /// Lookahead depth for the link as measured: lookahead hides round trips, which
@@ -1012,6 +1033,15 @@ impl<R: Domain> DetailSource<R::Id> for Source<'_, R> {
     }
 }
 
+/// [`StreamCore::child_error_ratio`] of a diamond of side-information class `own` whose
+/// refined parents' largest class is `parents`.
+fn lookahead_ratio(metric: Metric, own: Option<u8>, parents: Option<u8>) -> f64 {
+    match (metric, own, parents) {
+        (Metric::Geometric, Some(own), Some(parent)) if own >= parent && own > 0 => 1.0,
+        _ => std::f64::consts::FRAC_1_SQRT_2,
+    }
+}
+
 #[cfg(test)]
 #[allow(clippy::unwrap_used, clippy::expect_used)]
 mod tests {
@@ -1019,6 +1049,19 @@ mod tests {
 
     fn ms(v: u64) -> Duration {
         Duration::from_millis(v)
+    }
+
+    #[test]
+    fn lookahead_keeps_a_bound_that_stopped_shrinking() {
+        let half = std::f64::consts::FRAC_1_SQRT_2;
+        // As large as its parent's: its children are expected to keep it.
+        assert_eq!(lookahead_ratio(Metric::Geometric, Some(9), Some(9)), 1.0);
+        // Shrinking, unknown, zero, or the sampling metric: halving every two levels.
+        assert_eq!(lookahead_ratio(Metric::Geometric, Some(8), Some(9)), half);
+        assert_eq!(lookahead_ratio(Metric::Geometric, Some(9), None), half);
+        assert_eq!(lookahead_ratio(Metric::Geometric, None, Some(9)), half);
+        assert_eq!(lookahead_ratio(Metric::Geometric, Some(0), Some(0)), half);
+        assert_eq!(lookahead_ratio(Metric::Sampling, Some(9), Some(9)), half);
     }
 
     #[test]
