@@ -13,27 +13,18 @@ use quincunx_client::fetch::tls::ConnectOptions;
 use quincunx_client::flight::{
     self, BuiltinFlights, Flight, FlightReport, FlyOptions, FrameRecord,
 };
-use quincunx_client::refine::Metric;
 use quincunx_client::session::{AnySession, Session, SessionConfig};
 use quincunx_codec::incremental::Procedural;
+
+use crate::args::{RefineArgs, ServerArgs};
 
 /// `quincunx fly` options.
 #[derive(Args, Debug, Clone)]
 pub struct FlyArgs {
-    /// Server base URL, e.g. `http://127.0.0.1:8080` or `https://tiles.example.org`.
-    #[arg(long)]
-    pub url: String,
-    /// A PEM file of CA certificates trusted for `https://` besides the system's.
-    #[arg(long, value_parser = parse_ca_cert)]
-    pub ca_cert: Option<CaCert>,
-    /// Elevation repository name.
-    #[arg(long)]
-    pub repo: String,
-    /// Colour repository matched to the elevation (same domain; depths and diamond sizes
-    /// may differ).
-    #[arg(long)]
-    pub color: Option<String>,
-    /// With `--color`: detail made up below the shallower layer's finest level, as
+    /// Where to stream from.
+    #[command(flatten)]
+    pub server: ServerArgs,
+    /// With `--colour`: detail made up below the shallower layer's finest level, as
     /// zero-centred uniform noise of this amplitude (integer units of that layer; 0:
     /// zero detail, smooth interpolation).
     #[arg(long, default_value_t = 0)]
@@ -41,20 +32,15 @@ pub struct FlyArgs {
     /// `approach`, `low-flight`, `jump`, or a JSON flight file (see `docs/streaming.md`).
     #[arg(long, default_value = "jump")]
     pub path: String,
-    /// Screen-space tolerance, pixels.
-    #[arg(long, default_value_t = 1.0)]
-    pub tolerance_px: f64,
-    /// What the tolerance bounds: `geometric` (the projected error bound of the data: no
-    /// point drawn more than about the tolerance from the full-resolution surface; with
-    /// colour, texels at most the tolerance too) or `sampling` (projected grid spacing).
-    #[arg(long, default_value_t = Metric::Geometric)]
-    pub metric: Metric,
+    /// What the tolerance bounds.
+    #[command(flatten)]
+    pub refine: RefineArgs,
     /// `pipelined`, `plain` or `h2`.
     #[arg(long, default_value = "pipelined")]
     pub transport: Transport,
     /// Emulated link `KBIT_S,RTT_MS` (an in-process throttling proxy in front of the
     /// server), e.g. `4000,100`.
-    #[arg(long, value_parser = parse_link)]
+    #[arg(long, value_parser = crate::args::parse_link)]
     pub link: Option<(f64, f64)>,
     /// Persistent connections (pipelined and plain).
     #[arg(long, default_value_t = 2)]
@@ -134,14 +120,10 @@ impl FlyArgs {
     /// 1920x1080 at 60 frames/s, every frame checked, text output).
     pub fn new(url: impl Into<String>, repo: impl Into<String>, path: impl Into<String>) -> Self {
         FlyArgs {
-            url: url.into(),
-            ca_cert: None,
-            repo: repo.into(),
-            color: None,
+            server: ServerArgs::new(url, repo),
             procedural_noise: 0,
             path: path.into(),
-            tolerance_px: 1.0,
-            metric: Metric::default(),
+            refine: RefineArgs::default(),
             transport: Transport::Pipelined,
             link: None,
             connections: 2,
@@ -223,26 +205,6 @@ pub fn flight_failure(r: &FlightReport, full_quality: bool) -> Option<String> {
     }
 }
 
-/// Parses `KBIT_S,RTT_MS` (a positive rate, a non-negative round trip).
-pub fn parse_link(s: &str) -> Result<(f64, f64), String> {
-    let (a, b) = s
-        .split_once(',')
-        .ok_or_else(|| format!("{s:?} is not KBIT_S,RTT_MS"))?;
-    let parse = |t: &str| -> Result<f64, String> {
-        let v: f64 = t.trim().parse().map_err(|e| format!("{t:?}: {e}"))?;
-        if v.is_finite() && v >= 0.0 {
-            Ok(v)
-        } else {
-            Err(format!("{t:?} must be a non-negative number"))
-        }
-    };
-    let (kbit, rtt) = (parse(a)?, parse(b)?);
-    if kbit <= 0.0 {
-        return Err("the link rate must be positive".into());
-    }
-    Ok((kbit, rtt))
-}
-
 /// Parses `WxH` (each side 1..=16384).
 pub fn parse_viewport(s: &str) -> Result<[u32; 2], String> {
     let (w, h) = s
@@ -272,7 +234,7 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
             _ => Procedural::Zero,
         },
         refine: quincunx_client::refine::RefineConfig {
-            metric: args.metric,
+            metric: args.refine.metric,
             max_dag_bytes: args
                 .dag_budget_mb
                 .map(|mb| (mb.max(0.0) * 1_048_576.0) as usize),
@@ -280,7 +242,7 @@ pub fn session_config(args: &FlyArgs) -> SessionConfig {
         },
         timeout: Duration::from_secs_f64(args.timeout_s),
         request_deadline: Duration::from_secs_f64(args.deadline_s),
-        connect: link_options(args.ca_cert.as_ref(), None),
+        connect: link_options(args.server.ca_cert.as_ref(), None),
         ..SessionConfig::default()
     }
 }
@@ -291,7 +253,7 @@ pub fn fly_options(args: &FlyArgs) -> FlyOptions {
         fps: args.fps,
         frame_budget: Duration::from_secs_f64(args.frame_budget_ms.max(0.0) / 1e3),
         viewport_px: args.viewport,
-        tolerance_px: args.tolerance_px,
+        tolerance_px: args.refine.tolerance_px,
         check_every: args.check_every,
         check_max_share: (args.check_max_share > 0.0).then_some(args.check_max_share),
         ..FlyOptions::default()
@@ -382,9 +344,7 @@ pub fn run(args: &FlyArgs) -> Result<()> {
     if args.render && !cfg!(feature = "render") {
         bail!(RENDER_MISSING);
     }
-    if !(args.tolerance_px.is_finite() && args.tolerance_px > 0.0) {
-        bail!("--tolerance-px must be positive");
-    }
+    args.refine.check().map_err(anyhow::Error::msg)?;
     if !(args.check_max_share.is_finite() && args.check_max_share >= 0.0) {
         bail!(
             "--check-max-share {} must be 0 (no limit) or a positive share",
@@ -399,16 +359,29 @@ pub fn run(args: &FlyArgs) -> Result<()> {
             bail!("{name} {v} is out of range: give more than 0 and at most 86400 seconds");
         }
     }
-    let link = args.link.map(|l| start_link(&args.url, l)).transpose()?;
-    let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
+    let link = args
+        .link
+        .map(|l| start_link(&args.server.url, l))
+        .transpose()?;
+    let url = link
+        .as_ref()
+        .map_or(args.server.url.as_str(), |(_, u)| u.as_str());
     let opened = Instant::now();
     let mut config = session_config(args);
-    config.connect = link_options(args.ca_cert.as_ref(), link.as_ref().map(|(p, _)| p));
-    let session = AnySession::open_with_colour(url, &args.repo, args.color.as_deref(), config)
-        .with_context(|| match &args.color {
-            Some(c) => format!("opening {} with colour {c} at {}", args.repo, args.url),
-            None => format!("opening {} at {}", args.repo, args.url),
-        })?;
+    config.connect = link_options(args.server.ca_cert.as_ref(), link.as_ref().map(|(p, _)| p));
+    let session = AnySession::open_with_colour(
+        url,
+        &args.server.repo,
+        args.server.colour.as_deref(),
+        config,
+    )
+    .with_context(|| match &args.server.colour {
+        Some(c) => format!(
+            "opening {} with colour {c} at {}",
+            args.server.repo, args.server.url
+        ),
+        None => format!("opening {} at {}", args.server.repo, args.server.url),
+    })?;
     let session_open_ms = opened.elapsed().as_secs_f64() * 1e3;
     let (report, render) = match session {
         AnySession::Planar(s) => fly_session(s, args)?,
@@ -555,8 +528,8 @@ fn print_report(
             if let Some(render) = render {
                 obj.insert("render".into(), serde_json::to_value(render)?);
             }
-            obj.insert("repo".into(), args.repo.clone().into());
-            obj.insert("color".into(), args.color.clone().into());
+            obj.insert("repo".into(), args.server.repo.clone().into());
+            obj.insert("color".into(), args.server.colour.clone().into());
             obj.insert(
                 "link".into(),
                 args.link.map_or(
@@ -584,7 +557,7 @@ fn print_report(
         outln!(
             "flight {} over {} ({}), {:.1} s, {} frames ({:.1} frames/s)",
             r.flight,
-            args.repo,
+            args.server.repo,
             r.transport,
             r.seconds,
             r.frames,

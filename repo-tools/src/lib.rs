@@ -18,6 +18,7 @@ macro_rules! outln {
     }};
 }
 
+pub mod args;
 pub mod bounds;
 pub mod build;
 pub mod demo;

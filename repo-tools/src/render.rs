@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use quincunx_client::refine::{Metric, RefineConfig};
+use quincunx_client::refine::RefineConfig;
 use quincunx_client::session::{AnySession, Session, SessionConfig};
 use quincunx_render::domain::RenderDomain;
 use quincunx_render::offscreen::Gpu;
@@ -16,47 +16,21 @@ use quincunx_render::{Modes, RendererConfig};
 /// `quincunx render` options.
 #[derive(Args, Debug, Clone)]
 pub struct RenderArgs {
-    /// Server base URL, e.g. `http://127.0.0.1:8080`.
-    #[arg(long)]
-    pub url: String,
-    /// A PEM file of CA certificates trusted for `https://` besides the system's.
-    #[arg(long, value_parser = crate::fly::parse_ca_cert)]
-    pub ca_cert: Option<crate::fly::CaCert>,
-    /// Elevation repository name.
-    #[arg(long)]
-    pub repo: String,
-    /// Colour repository matched to the elevation.
-    #[arg(long, visible_alias = "color")]
-    pub colour: Option<String>,
-    /// Planet camera: `LAT,LON` in degrees.
-    #[arg(long, value_parser = parse_pair, allow_hyphen_values = true, conflicts_with = "uv")]
-    pub lat_lon: Option<(f64, f64)>,
-    /// Planar camera: `U,V` fractions of the raster (0,0 = north-west corner).
-    #[arg(long, value_parser = parse_pair, allow_hyphen_values = true)]
-    pub uv: Option<(f64, f64)>,
+    /// Where to stream from.
+    #[command(flatten)]
+    pub server: crate::args::ServerArgs,
+    /// Where the camera is and where it looks.
+    #[command(flatten)]
+    pub camera: crate::args::CameraArgs,
     /// Metres above the streamed terrain under the camera.
     #[arg(long)]
     pub height_m: f64,
-    /// Degrees clockwise from north.
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub heading_deg: f64,
-    /// Degrees above the horizon (-90 = straight down).
-    #[arg(long, default_value_t = -90.0, allow_hyphen_values = true)]
-    pub pitch_deg: f64,
-    /// Vertical field of view, degrees.
-    #[arg(long, default_value_t = 60.0)]
-    pub fov_deg: f64,
     /// Image size `WxH`.
     #[arg(long, default_value = "1920x1080", value_parser = crate::fly::parse_viewport)]
     pub size: [u32; 2],
-    /// Screen-space error tolerance, pixels.
-    #[arg(long, default_value_t = 1.0)]
-    pub tolerance_px: f64,
-    /// What the tolerance bounds: `geometric` (the projected error bound of the data: no
-    /// point drawn more than about the tolerance from the full-resolution surface; with
-    /// colour, texels at most the tolerance too) or `sampling` (projected grid spacing).
-    #[arg(long, default_value_t = Metric::Geometric)]
-    pub metric: Metric,
+    /// What the tolerance bounds.
+    #[command(flatten)]
+    pub refine: crate::args::RefineArgs,
     /// Background `R,G,B` (0-255).
     #[arg(long, default_value = "135,170,210", value_parser = parse_rgb)]
     pub background: [u8; 3],
@@ -80,15 +54,6 @@ pub struct RenderArgs {
     pub json: bool,
 }
 
-/// Parses `A,B` (two numbers): `--uv`, `--lat-lon`.
-pub fn parse_pair(s: &str) -> Result<(f64, f64), String> {
-    let (a, b) = s
-        .split_once(',')
-        .ok_or_else(|| format!("{s:?} is not two numbers A,B"))?;
-    let p = |t: &str| t.trim().parse::<f64>().map_err(|e| format!("{t:?}: {e}"));
-    Ok((p(a)?, p(b)?))
-}
-
 fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
     let parts: Vec<&str> = s.split(',').collect();
     if parts.len() != 3 {
@@ -106,7 +71,8 @@ fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
 
 /// Runs `quincunx render`.
 pub fn run(args: &RenderArgs) -> Result<()> {
-    let place = match (args.lat_lon, args.uv) {
+    args.refine.check().map_err(anyhow::Error::msg)?;
+    let place = match (args.camera.lat_lon, args.camera.uv) {
         (Some((lat, lon)), None) => Place::LatLon(lat, lon),
         (None, Some((u, v))) => Place::Uv(u, v),
         _ => bail!("give the camera's place: --lat-lon LAT,LON (planets) or --uv U,V (planar)"),
@@ -126,27 +92,27 @@ pub fn run(args: &RenderArgs) -> Result<()> {
     let shot = Shot {
         place,
         height_m: args.height_m,
-        heading_deg: args.heading_deg,
-        pitch_deg: args.pitch_deg,
-        fov_deg: args.fov_deg,
+        heading_deg: args.camera.heading_deg,
+        pitch_deg: args.camera.pitch_deg,
+        fov_deg: args.camera.fov_deg,
         size: args.size,
-        tolerance_px: args.tolerance_px,
+        tolerance_px: args.refine.tolerance_px,
     };
     shot.validate()?;
     let session = AnySession::open_with_colour(
-        &args.url,
-        &args.repo,
-        args.colour.as_deref(),
+        &args.server.url,
+        &args.server.repo,
+        args.server.colour.as_deref(),
         SessionConfig {
-            connect: crate::fly::link_options(args.ca_cert.as_ref(), None),
+            connect: crate::fly::link_options(args.server.ca_cert.as_ref(), None),
             refine: RefineConfig {
-                metric: args.metric,
+                metric: args.refine.metric,
                 ..RefineConfig::default()
             },
             ..SessionConfig::default()
         },
     )
-    .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
+    .with_context(|| format!("opening {} at {}", args.server.repo, args.server.url))?;
     // After the session: a repository the client refuses is named before a GPU is needed.
     let gpu = Gpu::headless().context("starting the renderer")?;
     let options = PictureOptions {
@@ -176,7 +142,7 @@ pub fn run(args: &RenderArgs) -> Result<()> {
         Some(format!(
             "not at full quality after --wait-s {} s ({} frames): the picture is coarser \
              than --tolerance-px {}",
-            args.wait_s, streamed.frames, args.tolerance_px
+            args.wait_s, streamed.frames, args.refine.tolerance_px
         ))
     } else {
         None

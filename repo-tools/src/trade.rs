@@ -43,6 +43,7 @@ use quincunx_render::scene::{Place, Shot, stream_to};
 use quincunx_render::{Camera, RendererConfig, TerrainRenderer};
 use serde::{Deserialize, Serialize};
 
+use crate::args::{EmulatedLink, RefineArgs, ServerArgs};
 use crate::fly::{FlyArgs, fly_options, parse_viewport, session_config, start_link};
 use crate::fly_render::FrameDrawer;
 use crate::plot::{Chart, Series};
@@ -53,18 +54,9 @@ const BACKGROUND: [u8; 3] = [135, 170, 210];
 /// `quincunx trade` options.
 #[derive(Args, Debug, Clone)]
 pub struct TradeArgs {
-    /// Server base URL, e.g. `http://127.0.0.1:8080`.
-    #[arg(long)]
-    pub url: String,
-    /// A PEM file of CA certificates trusted for `https://` besides the system's.
-    #[arg(long, value_parser = crate::fly::parse_ca_cert)]
-    pub ca_cert: Option<crate::fly::CaCert>,
-    /// Elevation repository name.
-    #[arg(long)]
-    pub repo: String,
-    /// Colour repository matched to the elevation.
-    #[arg(long, visible_alias = "color")]
-    pub colour: Option<String>,
+    /// Where to stream from.
+    #[command(flatten)]
+    pub server: ServerArgs,
     /// Tolerances to measure, pixels (0: the reference's refinement, every visible
     /// diamond at the finest level).
     #[arg(long, value_delimiter = ',', default_value = "0.5,1,2,4,8")]
@@ -77,8 +69,8 @@ pub struct TradeArgs {
     #[arg(long, default_value = "jump")]
     pub path: String,
     /// Emulated link of each flight, `KBIT_S,RTT_MS`, or `none`.
-    #[arg(long, default_value = "4000,100")]
-    pub link: String,
+    #[arg(long, default_value = "4000,100", value_parser = crate::args::parse_link_or_none)]
+    pub link: EmulatedLink,
     /// Views compared with the reference: this many legs' final views, spread over the
     /// flight (all legs when it has fewer).
     #[arg(long, default_value_t = 6)]
@@ -415,17 +407,17 @@ pub fn run(args: &TradeArgs) -> Result<()> {
     if !(args.warm_up_s.is_finite() && (0.0..=600.0).contains(&args.warm_up_s)) {
         bail!("--warm-up-s must be within 0..=600 seconds");
     }
-    let link = parse_link_arg(&args.link)?;
+    let link = args.link.0;
     let probe = quincunx_client::session::AnySession::open_with_colour(
-        &args.url,
-        &args.repo,
-        args.colour.as_deref(),
+        &args.server.url,
+        &args.server.repo,
+        args.server.colour.as_deref(),
         SessionConfig {
-            connect: crate::fly::link_options(args.ca_cert.as_ref(), None),
+            connect: crate::fly::link_options(args.server.ca_cert.as_ref(), None),
             ..SessionConfig::default()
         },
     )
-    .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
+    .with_context(|| format!("opening {} at {}", args.server.repo, args.server.url))?;
     let report = match probe {
         quincunx_client::session::AnySession::Planar(s) => study(s, args, link)?,
         quincunx_client::session::AnySession::Planet(s) => study(s, args, link)?,
@@ -438,45 +430,24 @@ pub fn run(args: &TradeArgs) -> Result<()> {
     printed
 }
 
-/// `KBIT_S,RTT_MS` or `none`.
-fn parse_link_arg(s: &str) -> Result<Option<(f64, f64)>> {
-    if s.eq_ignore_ascii_case("none") {
-        return Ok(None);
-    }
-    let (a, b) = s
-        .split_once(',')
-        .with_context(|| format!("--link {s:?} is not KBIT_S,RTT_MS or none"))?;
-    let p = |t: &str| -> Result<f64> {
-        let v: f64 = t
-            .trim()
-            .parse()
-            .with_context(|| format!("--link {s:?}: {t:?}"))?;
-        if !(v.is_finite() && v >= 0.0) {
-            bail!("--link {s:?}: {t:?} must be a non-negative number");
-        }
-        Ok(v)
-    };
-    let (kbit, rtt) = (p(a)?, p(b)?);
-    if kbit <= 0.0 {
-        bail!("--link {s:?}: the rate must be positive");
-    }
-    Ok(Some((kbit, rtt)))
-}
-
 /// The flight-like settings of one tolerance.
 fn fly_args(args: &TradeArgs, url: &str, metric: Metric, tolerance_px: f64) -> FlyArgs {
     FlyArgs {
-        color: args.colour.clone(),
-        tolerance_px,
-        metric,
+        server: ServerArgs {
+            url: url.into(),
+            ..args.server.clone()
+        },
+        refine: RefineArgs {
+            tolerance_px,
+            metric,
+        },
         viewport: args.viewport,
         seed: args.seed,
         check_every: args.check_every,
         spacing_m: args.spacing_m,
         render: true,
         gpu_budget_mb: args.gpu_budget_mb,
-        ca_cert: args.ca_cert.clone(),
-        ..FlyArgs::new(url, args.repo.clone(), args.path.clone())
+        ..FlyArgs::new(url, args.server.repo.clone(), args.path.clone())
     }
 }
 
@@ -497,7 +468,7 @@ fn exact_config(
         refine.flat_fraction = f;
     }
     SessionConfig {
-        connect: crate::fly::link_options(args.ca_cert.as_ref(), None),
+        connect: crate::fly::link_options(args.server.ca_cert.as_ref(), None),
         prefetch_ahead: Duration::ZERO,
         lookahead_levels: 0,
         package_factor: None,
@@ -566,12 +537,15 @@ fn study<R: TradeDomain>(
         aggregate(point, views, errors);
     }
     Ok(TradeReport {
-        label: args.label.clone().unwrap_or_else(|| match &args.colour {
-            Some(c) => format!("{}+{c}", args.repo),
-            None => args.repo.clone(),
-        }),
-        repo: args.repo.clone(),
-        colour: args.colour.clone(),
+        label: args
+            .label
+            .clone()
+            .unwrap_or_else(|| match &args.server.colour {
+                Some(c) => format!("{}+{c}", args.server.repo),
+                None => args.server.repo.clone(),
+            }),
+        repo: args.server.repo.clone(),
+        colour: args.server.colour.clone(),
         path: flight.name.clone(),
         link: link.map(|(k, r)| [k, r]),
         viewport: args.viewport,
@@ -709,9 +683,9 @@ fn fly_point<R: TradeDomain>(
         Ok(flight::needed_for_views(
             || {
                 R::open(
-                    &args.url,
-                    &args.repo,
-                    args.colour.as_deref(),
+                    &args.server.url,
+                    &args.server.repo,
+                    args.server.colour.as_deref(),
                     exact_config(args, metric, flat, Some(cut_budget_halves)),
                 )
             },
@@ -809,15 +783,20 @@ fn flight_session<R: TradeDomain>(
     tolerance_px: f64,
     bound: Option<Option<usize>>,
 ) -> Result<(Option<Link>, Session<R>, FlyArgs)> {
-    let proxy = link.map(|l| start_link(&args.url, l)).transpose()?;
+    let proxy = link.map(|l| start_link(&args.server.url, l)).transpose()?;
     let url = proxy
         .as_ref()
-        .map_or(args.url.as_str(), |(_, u)| u.as_str());
+        .map_or(args.server.url.as_str(), |(_, u)| u.as_str());
     let fa = fly_args(args, url, metric, tolerance_px);
     let mut config = session_config(&fa);
     config.connect =
-        crate::fly::link_options(args.ca_cert.as_ref(), proxy.as_ref().map(|(p, _)| p));
-    let mut session = R::open(url, &args.repo, args.colour.as_deref(), config)?;
+        crate::fly::link_options(args.server.ca_cert.as_ref(), proxy.as_ref().map(|(p, _)| p));
+    let mut session = R::open(
+        url,
+        &args.server.repo,
+        args.server.colour.as_deref(),
+        config,
+    )?;
     if let Some(bound) = bound {
         session.set_max_cut_halves(bound);
     }
@@ -885,9 +864,9 @@ fn reference_view<R: TradeDomain>(
     view: &View,
 ) -> Result<(ReferenceView, Image, DepthImage, SurfaceIndex)> {
     let mut session = R::open(
-        &args.url,
-        &args.repo,
-        args.colour.as_deref(),
+        &args.server.url,
+        &args.server.repo,
+        args.server.colour.as_deref(),
         // Sampling at 0 px: every visible diamond to the finest coded level, whatever
         // its bound says.
         exact_config(args, Metric::Sampling, None, None),
@@ -1243,15 +1222,6 @@ fn sanitize(label: &str) -> String {
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn links_parse_or_say_why() {
-        assert_eq!(parse_link_arg("none").unwrap(), None);
-        assert_eq!(parse_link_arg("4000,100").unwrap(), Some((4000.0, 100.0)));
-        for bad in ["", "4000", "0,100", "-1,5", "x,1", "1,inf"] {
-            assert!(parse_link_arg(bad).is_err(), "{bad}");
-        }
-    }
 
     #[test]
     fn jumps_pool_over_runs() {

@@ -14,7 +14,7 @@ use anyhow::{Context, Result, anyhow, bail};
 use clap::Args;
 use glam::DVec3;
 use quincunx_client::domain::World;
-use quincunx_client::refine::{Metric, RefineConfig};
+use quincunx_client::refine::RefineConfig;
 use quincunx_client::session::{AnySession, Session, SessionConfig};
 use quincunx_client::view::View;
 use quincunx_render::domain::RenderDomain;
@@ -52,45 +52,19 @@ overrides).";
 #[derive(Args, Debug, Clone)]
 #[command(after_help = CONTROLS)]
 pub struct ViewArgs {
-    /// Server base URL, e.g. `http://127.0.0.1:8080`.
-    #[arg(long)]
-    pub url: String,
-    /// A PEM file of CA certificates trusted for `https://` besides the system's.
-    #[arg(long, value_parser = crate::fly::parse_ca_cert)]
-    pub ca_cert: Option<crate::fly::CaCert>,
-    /// Elevation repository name.
-    #[arg(long)]
-    pub repo: String,
-    /// Colour repository matched to the elevation.
-    #[arg(long, visible_alias = "color")]
-    pub colour: Option<String>,
-    /// Planet target: `LAT,LON` in degrees (default 0,0 on a planet).
-    #[arg(long, value_parser = crate::render::parse_pair, allow_hyphen_values = true, conflicts_with = "uv")]
-    pub lat_lon: Option<(f64, f64)>,
-    /// Planar target: `U,V` fractions of the raster (0,0 = north-west; default 0.5,0.5).
-    #[arg(long, value_parser = crate::render::parse_pair, allow_hyphen_values = true)]
-    pub uv: Option<(f64, f64)>,
+    /// Where to stream from.
+    #[command(flatten)]
+    pub server: crate::args::ServerArgs,
+    /// Where the camera is and where it looks.
+    #[command(flatten)]
+    pub camera: crate::args::CameraArgs,
     /// Metres above the streamed terrain (default: half the raster's width, or one and
     /// a half radii over a planet).
     #[arg(long)]
     pub height_m: Option<f64>,
-    /// Degrees clockwise from north.
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub heading_deg: f64,
-    /// Degrees above the horizon (-90 = straight down).
-    #[arg(long, default_value_t = -90.0, allow_hyphen_values = true)]
-    pub pitch_deg: f64,
-    /// Vertical field of view, degrees.
-    #[arg(long, default_value_t = 60.0)]
-    pub fov_deg: f64,
-    /// Screen-space error tolerance, pixels.
-    #[arg(long, default_value_t = 1.0)]
-    pub tolerance_px: f64,
-    /// What the tolerance bounds: `geometric` (the projected error bound of the data: no
-    /// point drawn more than about the tolerance from the full-resolution surface; with
-    /// colour, texels at most the tolerance too) or `sampling` (projected grid spacing).
-    #[arg(long, default_value_t = Metric::Geometric)]
-    pub metric: Metric,
+    /// What the tolerance bounds.
+    #[command(flatten)]
+    pub refine: crate::args::RefineArgs,
     /// Window size `WxH` (physical pixels).
     #[arg(long, default_value = "1280x720", value_parser = crate::fly::parse_viewport)]
     pub size: [u32; 2],
@@ -110,6 +84,7 @@ pub struct ViewArgs {
 
 /// Runs `quincunx view`.
 pub fn run(args: &ViewArgs) -> Result<()> {
+    args.refine.check().map_err(anyhow::Error::msg)?;
     if !(args.gpu_budget_mb.is_finite()
         && args.gpu_budget_mb > 0.0
         && args.gpu_budget_mb <= 65_536.0)
@@ -135,19 +110,19 @@ pub fn run(args: &ViewArgs) -> Result<()> {
         )
     })?;
     let mut session = AnySession::open_with_colour(
-        &args.url,
-        &args.repo,
-        args.colour.as_deref(),
+        &args.server.url,
+        &args.server.repo,
+        args.server.colour.as_deref(),
         SessionConfig {
-            connect: crate::fly::link_options(args.ca_cert.as_ref(), None),
+            connect: crate::fly::link_options(args.server.ca_cert.as_ref(), None),
             refine: RefineConfig {
-                metric: args.metric,
+                metric: args.refine.metric,
                 ..RefineConfig::default()
             },
             ..SessionConfig::default()
         },
     )
-    .with_context(|| format!("opening {} at {}", args.repo, args.url))?;
+    .with_context(|| format!("opening {} at {}", args.server.repo, args.server.url))?;
     match &mut session {
         AnySession::Planar(s) => {
             s.warm_up(Duration::from_secs(5))?;
@@ -173,23 +148,23 @@ fn run_app<R: RenderDomain>(
             metres_per_fine,
             extent_fine,
         } => {
-            let (u, v) = args.uv.unwrap_or((0.5, 0.5));
+            let (u, v) = args.camera.uv.unwrap_or((0.5, 0.5));
             let width = extent_fine[0].max(extent_fine[1]) as f64 * metres_per_fine;
             (Place::Uv(u, v), 0.5 * width)
         }
         Geometry::Planet { radius_m, .. } => {
-            let (lat, lon) = args.lat_lon.unwrap_or((0.0, 0.0));
+            let (lat, lon) = args.camera.lat_lon.unwrap_or((0.0, 0.0));
             (Place::LatLon(lat, lon), 1.5 * radius_m)
         }
     };
     let shot = Shot {
         place,
         height_m: args.height_m.unwrap_or(default_height),
-        heading_deg: args.heading_deg,
-        pitch_deg: args.pitch_deg,
-        fov_deg: args.fov_deg,
+        heading_deg: args.camera.heading_deg,
+        pitch_deg: args.camera.pitch_deg,
+        fov_deg: args.camera.fov_deg,
         size: args.size,
-        tolerance_px: args.tolerance_px,
+        tolerance_px: args.refine.tolerance_px,
     };
     shot.validate()?;
     let (lo, hi) = session.height_range();
@@ -201,8 +176,12 @@ fn run_app<R: RenderDomain>(
     let rig = Rig {
         target: view.target,
         distance: (view.target - view.eye).length(),
-        heading: args.heading_deg.to_radians(),
-        pitch: args.pitch_deg.to_radians().clamp(MIN_PITCH, MAX_PITCH),
+        heading: args.camera.heading_deg.to_radians(),
+        pitch: args
+            .camera
+            .pitch_deg
+            .to_radians()
+            .clamp(MIN_PITCH, MAX_PITCH),
         datum,
     };
     let display = event_loop.owned_display_handle();
@@ -387,7 +366,7 @@ impl<R: RenderDomain> App<R> {
     fn start_gfx(&mut self, event_loop: &ActiveEventLoop) -> Result<Gfx<R>> {
         let [w, h] = self.args.size;
         let attrs = Window::default_attributes()
-            .with_title(format!("quincunx view {}", self.args.repo))
+            .with_title(format!("quincunx view {}", self.args.server.repo))
             .with_inner_size(PhysicalSize::new(w, h));
         let window = Arc::new(
             event_loop
@@ -687,7 +666,7 @@ impl<R: RenderDomain> App<R> {
             let fps = fig.frames as f64 / elapsed;
             let mut title = format!(
                 "quincunx view {} | {fps:.1} fps | {} triangles | {} patches | {} px | {}/s",
-                self.args.repo,
+                self.args.server.repo,
                 stats.triangles,
                 stats.patches,
                 self.view.tolerance_px,

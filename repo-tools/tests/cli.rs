@@ -1349,6 +1349,36 @@ fn bad_values_are_named_for_what_is_wrong_with_them() {
         e.contains("--duration-s 0 must be more than 0 seconds"),
         "{e}"
     );
+    // The shared refinement flags are checked alike by every command that takes them,
+    // before anything is fetched.
+    let at = [
+        "--url",
+        url.as_str(),
+        "--repo",
+        "korea",
+        "--tolerance-px",
+        "0",
+    ];
+    for cmd in [
+        vec!["fly"],
+        vec!["loadtest"],
+        vec![
+            "render",
+            "--uv",
+            "0.5,0.5",
+            "--height-m",
+            "100",
+            "-o",
+            "/nonexistent.png",
+        ],
+        vec!["view"],
+    ] {
+        let e = stderr_of(&[cmd.as_slice(), &at].concat());
+        assert!(
+            e.contains("--tolerance-px 0 must be positive"),
+            "{cmd:?}: {e}"
+        );
+    }
     // A metadata request that times out says so, with the URL, not an OS error code.
     let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = listener.local_addr().unwrap();

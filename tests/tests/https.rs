@@ -22,6 +22,7 @@ use quincunx_client::fetch::tls::ConnectOptions;
 use quincunx_client::fetch::{Remote, Transport};
 use quincunx_client::session::{Session, SessionConfig};
 use quincunx_codec::incremental::PlanarRefiner;
+use quincunx_repo_tools::args::ServerArgs;
 use quincunx_repo_tools::fly::{CaCert, FlyArgs};
 use quincunx_server::{RepoConfig, Server, ServerConfig, TlsConfig};
 use rcgen::{
@@ -334,7 +335,10 @@ fn fly_render_and_loadtest_run_over_https() {
     // fly, also through an emulated link (the proxy carries the TLS bytes).
     for link in [None, Some((20_000.0, 20.0))] {
         let args = FlyArgs {
-            ca_cert: Some(ca_cert.clone()),
+            server: ServerArgs {
+                ca_cert: Some(ca_cert.clone()),
+                ..ServerArgs::new(url.clone(), REPO)
+            },
             json: true,
             link,
             ..FlyArgs::new(url.clone(), REPO, "jump")

@@ -21,6 +21,7 @@ use common::{get, metric, workspace_root};
 use quincunx_client::flight::{self, Flight, FlyOptions};
 use quincunx_client::session::Session;
 use quincunx_codec::incremental::PlanarRefiner;
+use quincunx_repo_tools::args::RefineArgs;
 use quincunx_repo_tools::fly::{self, FlyArgs};
 use quincunx_server::{RepoConfig, Server, ServerConfig};
 use quincunx_testkit::skip::skip;
@@ -228,7 +229,10 @@ fn quincunx_fly_streams_a_static_export_from_plain_nginx() {
 
     // `quincunx fly` itself, then the same session and flight with its report.
     let args = FlyArgs {
-        tolerance_px: 2.0,
+        refine: RefineArgs {
+            tolerance_px: 2.0,
+            ..RefineArgs::default()
+        },
         ..FlyArgs::new(&url, REPO, "jump")
     };
     fly::run(&args).unwrap();

@@ -26,6 +26,7 @@ use quincunx_client::refine::{Refinement, SystemClock};
 use quincunx_client::session::{PlanetSession, SessionConfig};
 use quincunx_client::view::View;
 use quincunx_codec::incremental::{Refiner, SphereRefiner};
+use quincunx_repo_tools::args::RefineArgs;
 use quincunx_repo_tools::build::{self, BuildArgs};
 use quincunx_repo_tools::fly::{self, FlyArgs};
 use quincunx_store::Repository;
@@ -252,7 +253,10 @@ fn quincunx_fly_streams_a_planet() {
     let (built, _local) = build_earth(dir.path());
     let server = Served::one("127.0.0.1:0".parse().unwrap(), REPO, &built);
     let args = FlyArgs {
-        tolerance_px: 2.0,
+        refine: RefineArgs {
+            tolerance_px: 2.0,
+            ..RefineArgs::default()
+        },
         viewport: [1280, 720],
         check_every: 8,
         json: true,

@@ -31,6 +31,7 @@ use quincunx_client::fetch::{FetchStats, Key};
 use quincunx_client::refine::Clock;
 use quincunx_client::view::View;
 use quincunx_codec::incremental::{Details, PlanarRefiner, Procedural, Refiner};
+use quincunx_repo_tools::args::RefineArgs;
 use quincunx_repo_tools::fly::{self, FlyArgs};
 use quincunx_server::RepoConfig;
 use quincunx_store::Repository;
@@ -243,7 +244,10 @@ fn lookahead_follows_the_measured_link() {
 
 fn fly_args(url: &str, path: &str) -> FlyArgs {
     FlyArgs {
-        tolerance_px: 2.0,
+        refine: RefineArgs {
+            tolerance_px: 2.0,
+            ..RefineArgs::default()
+        },
         frame_budget_ms: 8.0,
         viewport: [1280, 720],
         json: true,
@@ -288,11 +292,11 @@ fn quincunx_fly_runs_a_flight_file_and_refuses_what_it_cannot_do() {
     std::fs::write(&bad, "{").unwrap();
     assert!(err(fly_args(&url, bad.to_str().unwrap())).contains("flight file"));
     let mut colour = fly_args(&url, "jump");
-    colour.color = Some("imagery".into());
+    colour.server.colour = Some("imagery".into());
     // A colour layer the server does not have.
     assert!(err(colour).contains("opening korea with colour imagery"));
     let mut missing = fly_args(&url, "jump");
-    missing.repo = "nope".into();
+    missing.server.repo = "nope".into();
     assert!(err(missing).contains("404"));
     assert!(err(fly_args("http://127.0.0.1:1", "jump")).contains("opening korea"));
     server.kill();

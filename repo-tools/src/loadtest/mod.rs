@@ -38,23 +38,14 @@ use serde::Serialize;
 use flight::{FlightPlan, Rng, Stream};
 use latency::Histogram;
 use quincunx_client::fetch::http1::{self, Connection, Endpoint, GetTemplate, Http1Error, Limits};
-use quincunx_client::refine::Metric;
 
 /// Options of `quincunx loadtest`.
 #[derive(Args, Debug, Clone)]
 pub struct LoadtestArgs {
-    /// Server base URL, e.g. `http://127.0.0.1:8080` or `https://127.0.0.1:8443`.
-    #[arg(long)]
-    pub url: String,
-    /// A PEM file of CA certificates trusted for `https://` besides the system's.
-    #[arg(long, value_parser = crate::fly::parse_ca_cert)]
-    pub ca_cert: Option<crate::fly::CaCert>,
-    /// Repository name (as in `/repos/<name>/...`).
-    #[arg(long)]
-    pub repo: String,
-    /// With `--mode fly`: a colour repository each session streams with the elevation.
-    #[arg(long)]
-    pub color: Option<String>,
+    /// Where to stream from (`--colour`: with `--mode fly`, a colour repository each
+    /// session streams with the elevation).
+    #[command(flatten)]
+    pub server: crate::args::ServerArgs,
     /// `requests` (replayed request streams, the default) or `fly` (real client
     /// sessions flying a built-in flight).
     #[arg(long, default_value = "requests", value_parser = ["requests", "fly"])]
@@ -66,14 +57,9 @@ pub struct LoadtestArgs {
     /// `jump`), seeded per client.
     #[arg(long)]
     pub path: Option<String>,
-    /// `--mode fly`: screen-space tolerance, pixels.
-    #[arg(long, default_value_t = 1.0)]
-    pub tolerance_px: f64,
-    /// What the tolerance bounds: `geometric` (the projected error bound of the data: no
-    /// point drawn more than about the tolerance from the full-resolution surface; with
-    /// colour, texels at most the tolerance too) or `sampling` (projected grid spacing).
-    #[arg(long, default_value_t = Metric::Geometric)]
-    pub metric: Metric,
+    /// `--mode fly`: what the tolerance bounds.
+    #[command(flatten)]
+    pub refine: crate::args::RefineArgs,
     /// `--mode fly`: check each client's cut for cracks every this many frames (0 never).
     #[arg(long, default_value_t = 10)]
     pub check_every: usize,
@@ -119,7 +105,7 @@ pub struct LoadtestArgs {
     pub legs: Option<usize>,
     /// `--mode fly`: an emulated link `KBIT_S,RTT_MS` of its own for each client (an
     /// in-process throttling proxy in front of the server, as `quincunx fly --link`).
-    #[arg(long, value_parser = crate::fly::parse_link)]
+    #[arg(long, value_parser = crate::args::parse_link)]
     pub link: Option<(f64, f64)>,
     /// `--mode fly`: run once per client count, in order (e.g. `1,4,16,64,256`), and
     /// report one point per count (`points` in the JSON) instead of `--clients`.
@@ -212,9 +198,9 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
             args.connections
         );
     }
-    let options = crate::fly::link_options(args.ca_cert.as_ref(), None);
-    let endpoint = Endpoint::from_url_with(&args.url, &options)
-        .with_context(|| format!("--url {:?}", args.url))?;
+    let options = crate::fly::link_options(args.server.ca_cert.as_ref(), None);
+    let endpoint = Endpoint::from_url_with(&args.server.url, &options)
+        .with_context(|| format!("--url {:?}", args.server.url))?;
     let threads = args.threads.unwrap_or_else(|| {
         std::thread::available_parallelism()
             .map(|n| n.get())
@@ -226,7 +212,7 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
         .enable_time()
         .build()
         .context("starting the tokio runtime")?;
-    let meta = runtime.block_on(fetch_metadata(&endpoint, &args.repo))?;
+    let meta = runtime.block_on(fetch_metadata(&endpoint, &args.server.repo))?;
     tracing::info!(domain = %meta.domain, m = meta.m, levels = meta.levels, "metadata");
     let flights = generate_flights(args, &meta)?;
     let stream_len_mean =
@@ -234,7 +220,10 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
     let hash16 = &meta.content_hash[..meta.content_hash.len().min(16)];
     let template = GetTemplate::new(
         &endpoint.host,
-        &format!("{}/repos/{}/v/{hash16}/d/", endpoint.prefix, args.repo),
+        &format!(
+            "{}/repos/{}/v/{hash16}/d/",
+            endpoint.prefix, args.server.repo
+        ),
     );
     let ctx = Arc::new(Ctx {
         endpoint: endpoint.clone(),
@@ -277,7 +266,7 @@ fn check_args(args: &LoadtestArgs) -> Result<()> {
     if args.connections == 0 {
         bail!("--connections must be at least 1");
     }
-    if args.color.is_some() && args.mode != "fly" {
+    if args.server.colour.is_some() && args.mode != "fly" {
         bail!("--color needs --mode fly (replayed request streams are of one repository)");
     }
     if args.mode != "fly" {
@@ -298,6 +287,7 @@ fn check_args(args: &LoadtestArgs) -> Result<()> {
     if !(1..=1024).contains(&args.pipeline_depth) {
         bail!("--pipeline-depth must be between 1 and 1024");
     }
+    args.refine.check().map_err(anyhow::Error::msg)?;
     for (name, v) in [
         ("--duration-s", args.duration_s),
         ("--timeout-s", args.timeout_s),
@@ -307,7 +297,7 @@ fn check_args(args: &LoadtestArgs) -> Result<()> {
     if args.threads == Some(0) || args.flights == 0 || args.max_stream == 0 {
         bail!("--threads, --flights and --max-stream must be at least 1");
     }
-    let name = &args.repo;
+    let name = &args.server.repo;
     if name.is_empty()
         || name.starts_with('.')
         || !name

@@ -266,7 +266,7 @@ pub fn run(args: &LoadtestArgs) -> Result<()> {
 /// Runs `clients` sessions in parallel threads, each with its own link under `--link`.
 fn run_point(args: &LoadtestArgs, path: &str, clients: usize) -> Result<FlyLoadReport> {
     let opts = FlyOptions {
-        tolerance_px: args.tolerance_px,
+        tolerance_px: args.refine.tolerance_px,
         check_every: args.check_every,
         check_max_share: (args.check_max_share > 0.0).then_some(args.check_max_share),
         ..FlyOptions::default()
@@ -402,23 +402,33 @@ fn fly_client(args: &LoadtestArgs, path: &str, i: usize, opts: &FlyOptions) -> R
     let started = Instant::now();
     let link: Option<(LinkProxy, String)> = args
         .link
-        .map(|l| crate::fly::start_link(&args.url, l))
+        .map(|l| crate::fly::start_link(&args.server.url, l))
         .transpose()
         .with_context(|| format!("client {i}"))?;
-    let url = link.as_ref().map_or(args.url.as_str(), |(_, u)| u.as_str());
+    let url = link
+        .as_ref()
+        .map_or(args.server.url.as_str(), |(_, u)| u.as_str());
     let config = SessionConfig {
-        connect: crate::fly::link_options(args.ca_cert.as_ref(), link.as_ref().map(|(p, _)| p)),
+        connect: crate::fly::link_options(
+            args.server.ca_cert.as_ref(),
+            link.as_ref().map(|(p, _)| p),
+        ),
         connections: 1,
         timeout: Duration::from_secs_f64(args.timeout_s),
         refine: quincunx_client::refine::RefineConfig {
-            metric: args.metric,
+            metric: args.refine.metric,
             max_dag_bytes: args.dag_budget_mb.map(|mb| (mb * 1_048_576.0) as usize),
             ..Default::default()
         },
         ..SessionConfig::default()
     };
-    let session = AnySession::open_with_colour(url, &args.repo, args.color.as_deref(), config)
-        .with_context(|| format!("client {i}: opening {}", args.repo))?;
+    let session = AnySession::open_with_colour(
+        url,
+        &args.server.repo,
+        args.server.colour.as_deref(),
+        config,
+    )
+    .with_context(|| format!("client {i}: opening {}", args.server.repo))?;
     let seed = args.seed + i as u64;
     // The session (and its connection) ends with `fly_builtin`, before the link is read.
     let report = match session {

@@ -11,6 +11,7 @@ use quincunx_client::fetch::tls::ConnectOptions;
 use quincunx_client::fetch::{FetchConfig, FetchStats, Fetched, Fetcher, Key, Remote, Transport};
 use quincunx_client::flight::{self, FlightReport};
 use quincunx_client::session::AnySession;
+use quincunx_repo_tools::args::{RefineArgs, ServerArgs};
 use quincunx_repo_tools::build::{self, BuildArgs};
 use quincunx_repo_tools::fly::{self, FlyArgs};
 use quincunx_store::Repository;
@@ -40,8 +41,14 @@ pub fn fly_checked_with(
     connect: ConnectOptions,
 ) -> FlightReport {
     let args = FlyArgs {
-        color: colour.map(Into::into),
-        tolerance_px: 2.0,
+        server: ServerArgs {
+            colour: colour.map(Into::into),
+            ..ServerArgs::new(url, repo)
+        },
+        refine: RefineArgs {
+            tolerance_px: 2.0,
+            ..RefineArgs::default()
+        },
         ..FlyArgs::new(url, repo, "jump")
     };
     let mut config = fly::session_config(&args);
