@@ -116,10 +116,10 @@ pub struct BuildArgs {
     #[arg(long, value_parser = crate::shard::parse_spec, requires = "memory_budget_mb")]
     pub shard: Option<stream::ShardSpec>,
     /// The error bounds the blobs carry: `encoder` (a sum over levels, what the encoder
-    /// knows as it goes) or `measured` (the default: `quincunx bounds` once the repository is
-    /// published: each diamond's departure from the full-resolution decode, 0.35x the
-    /// triangles at 1 px on korea; a tile at a time, within `--memory-budget-mb`;
-    /// docs/building.md "Error bounds").
+    /// knows as it goes) or `measured` (the default: `quincunx bounds` once the
+    /// repository is published: each diamond's departure from the full-resolution
+    /// decode, 0.35x the triangles at 1 px on korea; a tile at a time, within
+    /// `--memory-budget-mb`; docs/building.md "Error bounds").
     #[arg(long, value_enum, default_value = "measured")]
     pub bounds: Bounds,
 }

@@ -105,9 +105,15 @@ struct BuildFacts {
     radius_m: Option<f64>,
     face_side: Option<usize>,
     sparse: bool,
-    /// `--bounds` (parts from before it: the encoder's).
-    #[serde(default)]
+    /// `--bounds` (parts from before it: the encoder's, which they were built with; not
+    /// the build's default, which is now measured).
+    #[serde(default = "encoder_bounds")]
     bounds: build::Bounds,
+}
+
+/// What a part written before `BuildFacts::bounds` was built with.
+fn encoder_bounds() -> build::Bounds {
+    build::Bounds::Encoder
 }
 
 /// The `--json` summary of a shard.
