@@ -50,8 +50,8 @@ pub struct StreamConfig {
     /// Levels below each wanted diamond whose blobs are requested ahead (as prefetch)
     /// while the wanted diamond's projected error says they will be wanted too (about
     /// `error / sqrt(2)^depth` above the tolerance; with the geometric metric, `error`
-    /// itself below a diamond whose bound has stopped shrinking). This hides the round trip per level
-    /// a view would otherwise pay on its way down; 0 disables it. See also
+    /// itself below a diamond whose bound has stopped shrinking). This hides the round
+    /// trip per level a view would otherwise pay on its way down; 0 disables it. See also
     /// [`StreamConfig::lookahead_min_blobs`].
     pub lookahead_levels: usize,
     /// No lookahead while one round trip of the link (estimated bandwidth x RTT) carries
@@ -724,13 +724,14 @@ impl<R: Domain> StreamCore<R> {
     /// children are expected to keep it. Lookahead predicting `1 / sqrt(2)` would stop
     /// one level short on each such chain and cost a round trip per level.
     fn child_error_ratio(&self, id: R::Id) -> f64 {
-        let own = self.dag.node(id).and_then(|n| n.class);
-        let parents = self
-            .dag
-            .parents(id)
-            .into_iter()
-            .filter_map(|p| self.dag.node(p)?.class)
-            .max();
+        let own = || self.dag.node(id).and_then(|n| n.class);
+        let parents = || {
+            self.dag
+                .parents(id)
+                .into_iter()
+                .filter_map(|p| self.dag.node(p)?.class)
+                .max()
+        };
         lookahead_ratio(self.metric(), own, parents)
     }
 
@@ -1033,12 +1034,21 @@ impl<R: Domain> DetailSource<R::Id> for Source<'_, R> {
     }
 }
 
-/// [`StreamCore::child_error_ratio`] of a diamond of side-information class `own` whose
-/// refined parents' largest class is `parents`.
-fn lookahead_ratio(metric: Metric, own: Option<u8>, parents: Option<u8>) -> f64 {
-    match (metric, own, parents) {
-        (Metric::Geometric, Some(own), Some(parent)) if own >= parent && own > 0 => 1.0,
-        _ => std::f64::consts::FRAC_1_SQRT_2,
+/// [`StreamCore::child_error_ratio`] of a diamond of side-information class `own()` whose
+/// refined parents' largest class is `parents()` (looked up only for the geometric
+/// metric: this runs for every wanted diamond of every frame).
+fn lookahead_ratio(
+    metric: Metric,
+    own: impl FnOnce() -> Option<u8>,
+    parents: impl FnOnce() -> Option<u8>,
+) -> f64 {
+    let halving = std::f64::consts::FRAC_1_SQRT_2;
+    if metric != Metric::Geometric {
+        return halving;
+    }
+    match (own(), parents()) {
+        (Some(own), Some(parent)) if own >= parent && own > 0 => 1.0,
+        _ => halving,
     }
 }
 
@@ -1054,14 +1064,16 @@ mod tests {
     #[test]
     fn lookahead_keeps_a_bound_that_stopped_shrinking() {
         let half = std::f64::consts::FRAC_1_SQRT_2;
+        let ratio =
+            |m, own: Option<u8>, parents: Option<u8>| lookahead_ratio(m, || own, || parents);
         // As large as its parent's: its children are expected to keep it.
-        assert_eq!(lookahead_ratio(Metric::Geometric, Some(9), Some(9)), 1.0);
+        assert_eq!(ratio(Metric::Geometric, Some(9), Some(9)), 1.0);
         // Shrinking, unknown, zero, or the sampling metric: halving every two levels.
-        assert_eq!(lookahead_ratio(Metric::Geometric, Some(8), Some(9)), half);
-        assert_eq!(lookahead_ratio(Metric::Geometric, Some(9), None), half);
-        assert_eq!(lookahead_ratio(Metric::Geometric, None, Some(9)), half);
-        assert_eq!(lookahead_ratio(Metric::Geometric, Some(0), Some(0)), half);
-        assert_eq!(lookahead_ratio(Metric::Sampling, Some(9), Some(9)), half);
+        assert_eq!(ratio(Metric::Geometric, Some(8), Some(9)), half);
+        assert_eq!(ratio(Metric::Geometric, Some(9), None), half);
+        assert_eq!(ratio(Metric::Geometric, None, Some(9)), half);
+        assert_eq!(ratio(Metric::Geometric, Some(0), Some(0)), half);
+        assert_eq!(ratio(Metric::Sampling, Some(9), Some(9)), half);
     }
 
     #[test]
