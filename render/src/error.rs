@@ -28,6 +28,10 @@
 //! counted as [`GeometricError::pixels_without_reference`] (+inf in an [`ErrorMap`]).
 //! The statistics are over the measured pixels, percentiles by nearest rank (the `p`-th
 //! percentile of `n` sorted values is the `ceil(p n / 100)`-th).
+//!
+//! `X` comes from the rasteriser's depth, which for a triangle seen edge-on can lie off
+//! the triangle ([`recheck`]); [`recheck`] re-measures chosen pixels (those over a
+//! tolerance) at the exact first hit of their ray on the drawn triangles.
 
 use std::sync::Mutex;
 
@@ -260,6 +264,96 @@ pub fn error_map_with(
     reference: impl Fn(DVec3) -> Option<DVec3> + Sync,
 ) -> Result<ErrorMap, RenderError> {
     map_pixels(camera, test, reference_depth, || &reference)
+}
+
+/// What [`recheck`] did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Recheck {
+    /// Pixels re-measured at their ray's exact hit.
+    pub checked: usize,
+    /// Of those, pixels whose depth-buffer point lay off that hit by more than
+    /// [`RECHECK_DEPTH_TOLERANCE`] of its distance: the rasteriser's depth, not the
+    /// surface.
+    pub moved: usize,
+    /// Of those, pixels whose ray meets no drawn triangle (kept as measured).
+    pub no_hit: usize,
+    /// Pixels over the threshold left as measured (over the limit).
+    pub unchecked: usize,
+}
+
+/// Relative distance along a pixel's ray past which [`recheck`] counts a depth-buffer
+/// point as off the surface.
+pub const RECHECK_DEPTH_TOLERANCE: f64 = 1e-3;
+
+/// Re-measures the pixels of `map` whose error is above `above_px` (at most `limit` of
+/// them, the largest first) with `X` the exact first hit of the pixel centre's ray on the
+/// surface the test frame draws (`drawn`: the test cut's triangles,
+/// [`SurfaceIndex::first_hit`]) instead of the point its depth attachment gives.
+///
+/// A rasteriser places a triangle's depth at the pixel centres it covers after snapping
+/// its vertices to a sub-pixel grid and interpolating `z/w`; for a triangle seen edge-on
+/// (a crest grazed by the line of sight) a covered centre can lie off the triangle and
+/// its depth off the surface by any amount, which the measure would then read as an
+/// error of the surface. The ray's hit is what the pixel shows without a rasteriser in
+/// between. Pixels whose ray meets no drawn triangle keep their measured error.
+pub fn recheck(
+    map: &mut ErrorMap,
+    camera: &Camera,
+    test: &DepthImage,
+    reference: &SurfaceIndex,
+    drawn: &SurfaceIndex,
+    above_px: f64,
+    limit: usize,
+) -> Result<Recheck, RenderError> {
+    test.validate()?;
+    if (test.width, test.height) != (map.width, map.height)
+        || (test.width, test.height) != (camera.viewport_px[0], camera.viewport_px[1])
+    {
+        return Err(RenderError::Config(format!(
+            "recheck: error map {}x{}, depth image {}x{}, camera viewport {}x{}",
+            map.width,
+            map.height,
+            test.width,
+            test.height,
+            camera.viewport_px[0],
+            camera.viewport_px[1]
+        )));
+    }
+    let mut over: Vec<usize> = (0..map.error_px.len())
+        .filter(|&k| map.error_px[k].is_finite() && map.error_px[k] > above_px)
+        .collect();
+    over.sort_by(|&a, &b| map.error_px[b].total_cmp(&map.error_px[a]));
+    let mut done = Recheck {
+        unchecked: over.len().saturating_sub(limit),
+        ..Recheck::default()
+    };
+    let projector = Projector::new(camera, [test.width, test.height]);
+    let w = test.width as usize;
+    for &at in over.iter().take(limit) {
+        let (x, y) = ((at % w) as u32, (at / w) as u32);
+        let Some(p) = projector.unproject(x, y, test.data[at]) else {
+            continue;
+        };
+        done.checked += 1;
+        let dir = p - projector.eye;
+        let Some(hit) = drawn.first_hit(projector.eye, dir) else {
+            done.no_hit += 1;
+            continue;
+        };
+        if (hit - p).length() > RECHECK_DEPTH_TOLERANCE * dir.length() {
+            done.moved += 1;
+        }
+        map.error_px[at] = match (
+            projector.project(hit),
+            reference
+                .along(hit, reference.up(hit))
+                .and_then(|r| projector.project(r)),
+        ) {
+            (Some(a), Some(b)) => (a[0] - b[0]).hypot(a[1] - b[1]),
+            _ => f64::INFINITY,
+        };
+    }
+    Ok(done)
 }
 
 /// Rows per unit of work: each unit starts afresh (its own search hint), so the result

@@ -4,7 +4,7 @@
 //! error measures of [`crate::error`]).
 
 use std::collections::HashMap;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 use glam::DVec3;
 use quincunx_client::dag::{Dag, Half};
@@ -90,6 +90,8 @@ pub struct SurfaceIndex {
     /// Per face (planar: face 0), the bucket sizes in use.
     sizes: [Vec<u8>; 6],
     skipped: usize,
+    /// Each patch's bounding box (min, max corners), made by the first ray query.
+    boxes: OnceLock<Vec<[DVec3; 2]>>,
 }
 
 #[derive(Clone, Debug)]
@@ -173,6 +175,7 @@ impl SurfaceIndex {
             buckets: HashMap::new(),
             sizes: Default::default(),
             skipped: 0,
+            boxes: OnceLock::new(),
         };
         for (affine, half, grid) in patches {
             match index_patch(&world, affine, half, grid) {
@@ -254,7 +257,51 @@ impl SurfaceIndex {
             )));
         }
         self.world.value_offset_m += offset_m;
+        self.boxes = OnceLock::new();
         Ok(self)
+    }
+
+    /// The first point where the ray from `origin` along `dir` meets the surface's
+    /// triangles as drawn (the smallest positive parameter; exact in f64), `None` where
+    /// it meets none. What a pixel whose centre's ray this is shows, with no rasteriser
+    /// in between. Tests the triangles of every patch whose bounding box the ray meets
+    /// (the boxes are made by the first query): a pass over the patches per query, for
+    /// checking a few pixels ([`crate::error::recheck`]), not whole images.
+    pub fn first_hit(&self, origin: DVec3, dir: DVec3) -> Option<DVec3> {
+        if !(origin.is_finite() && dir.is_finite()) || dir == DVec3::ZERO {
+            return None;
+        }
+        let boxes = self.boxes.get_or_init(|| {
+            self.patches
+                .iter()
+                .map(|p| patch_box(&self.world, p))
+                .collect()
+        });
+        let n = self.world.n as usize;
+        let mut best: Option<(f64, DVec3)> = None;
+        for (p, b) in self.patches.iter().zip(boxes) {
+            let Some(enter) = ray_box(origin, dir, b) else {
+                continue;
+            };
+            if best.is_some_and(|(s, _)| enter > s) {
+                continue;
+            }
+            for i in 0..n {
+                for j in 0..n {
+                    for tri in cell_triangles(p.half, i, j).into_iter().flatten() {
+                        let v = tri.map(|(i, j)| vertex(&self.world, p, i, j));
+                        if let Some((s, r)) = line_triangle(origin, dir, v)
+                            && s > 0.0
+                            && drawn(&self.world, r)
+                            && best.is_none_or(|(b, _)| s < b)
+                        {
+                            best = Some((s, r));
+                        }
+                    }
+                }
+            }
+        }
+        best.map(|(_, r)| r)
     }
 
     /// The local up direction at `x` (unit): `+z` on the plane, radial from the planet's
@@ -457,6 +504,46 @@ fn drawn(world: &WorldFrame, r: DVec3) -> bool {
         }
         Geometry::Planet { .. } => true,
     }
+}
+
+/// The bounding box of a patch's vertices (its triangles are flat between them), grown
+/// by a relative 1e-9 for rounding.
+fn patch_box(world: &WorldFrame, p: &IndexedPatch) -> [DVec3; 2] {
+    let n = world.n as usize;
+    let (mut lo, mut hi) = (DVec3::INFINITY, DVec3::NEG_INFINITY);
+    for i in 0..=n {
+        for j in 0..=n {
+            let inside = match p.half {
+                Half::Lower => i >= j,
+                Half::Upper => i <= j,
+            };
+            if inside {
+                let v = vertex(world, p, i, j);
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+        }
+    }
+    let grow = DVec3::splat(1e-9 * lo.abs().max(hi.abs()).max_element().max(1.0));
+    [lo - grow, hi + grow]
+}
+
+/// Where the ray `origin + s dir` (`s >= 0`) enters the box, `None` if it misses it.
+fn ray_box(origin: DVec3, dir: DVec3, b: &[DVec3; 2]) -> Option<f64> {
+    let (mut enter, mut leave) = (0.0f64, f64::INFINITY);
+    for k in 0..3 {
+        let (o, d, lo, hi) = (origin[k], dir[k], b[0][k], b[1][k]);
+        if d == 0.0 {
+            if o < lo || o > hi {
+                return None;
+            }
+            continue;
+        }
+        let (a, c) = ((lo - o) / d, (hi - o) / d);
+        enter = enter.max(a.min(c));
+        leave = leave.min(a.max(c));
+    }
+    (enter <= leave).then_some(enter)
 }
 
 /// The planet face of axis `k` and sign (`2 k + positive`).

@@ -17,11 +17,13 @@ use std::sync::Arc;
 use glam::DVec3;
 use precision::{FACE_SIDE, MadeUp, N, Planet, converge, patch_changes, places, view_at};
 use quincunx_client::dag::Dag;
-use quincunx_render::error::{error_map, error_map_with, geometric_error_with};
+use quincunx_client::dag::Half;
+use quincunx_render::domain::AffinePatch;
+use quincunx_render::error::{error_map, error_map_with, geometric_error_with, recheck};
 use quincunx_render::offscreen::{DepthReadback, OFFSCREEN_FORMAT, gpu_for_test};
 use quincunx_render::{
-    Camera, DepthImage, Image, Offscreen, RendererConfig, SurfaceIndex, TerrainRenderer,
-    geometric_error, psnr_db, unproject,
+    Camera, DepthImage, Geometry, Image, Offscreen, RendererConfig, SurfaceIndex, TerrainRenderer,
+    WorldFrame, geometric_error, psnr_db, unproject,
 };
 
 const SIZE: [u32; 2] = [320, 200];
@@ -214,6 +216,97 @@ fn pixels_with_no_reference_are_counted_not_dropped() {
     // Pixels on the border may fall either side with the rounding of the depth.
     assert!(s.pixels.abs_diff(covered) < 10, "{s:?} vs {covered}");
     assert_eq!(s.pixels + s.pixels_without_reference, covered + uncovered);
+}
+
+/// The plane `z = 0` over `[0, 4096]^2` m as a cut of two halves of one 4 x 4 patch.
+fn flat_surface() -> SurfaceIndex {
+    let world = WorldFrame {
+        geometry: Geometry::Planar {
+            metres_per_fine: 1.0,
+            extent_fine: [4096, 4096],
+        },
+        value_scale_m: 1.0,
+        value_offset_m: 0.0,
+        n: 4,
+        colour_n: 0,
+    };
+    let affine = AffinePatch {
+        base: [0, 0, 0],
+        e1: [1024, 0, 0],
+        e2: [0, 1024, 0],
+        level: 0,
+    };
+    let grid = Arc::new(vec![0; 25]);
+    SurfaceIndex::from_patches(world, Half::BOTH.map(|h| (affine, h, Arc::clone(&grid))))
+}
+
+#[test]
+fn recheck_moves_a_depth_off_the_surface_onto_it_and_keeps_real_errors() {
+    let index = flat_surface();
+    // The exact first hit of a ray, and a ray that misses (past the raster's edge).
+    let hit = index
+        .first_hit(DVec3::new(100.0, 200.0, 50.0), DVec3::new(1.0, 2.0, -1.0))
+        .unwrap();
+    assert!(
+        (hit - DVec3::new(150.0, 300.0, 0.0)).length() < 1e-9,
+        "{hit}"
+    );
+    assert!(
+        index
+            .first_hit(DVec3::new(100.0, 200.0, 50.0), DVec3::new(1.0, 2.0, 1.0))
+            .is_none()
+    );
+    assert!(
+        index
+            .first_hit(DVec3::new(-10.0, 200.0, 50.0), DVec3::NEG_Z)
+            .is_none()
+    );
+    // Looking down the plane at a slant from 100 m.
+    let pitch = 40f64.to_radians();
+    let camera = Camera {
+        eye: DVec3::new(2_048.0, 1_000.0, 100.0),
+        forward: DVec3::new(0.0, pitch.cos(), -pitch.sin()),
+        up: DVec3::new(0.0, pitch.sin(), pitch.cos()),
+        fov_y_rad: 50f64.to_radians(),
+        viewport_px: SIZE,
+    };
+    let (mut depth, ground) = plane_depth(&camera);
+    assert!(
+        ground.iter().all(Option::is_some),
+        "the plane fills the view"
+    );
+    // One pixel's depth 1.85x nearer than the plane, as a rasteriser may store for a
+    // sliver it covers.
+    let k = (SIZE[1] / 2 * SIZE[0] + SIZE[0] / 3) as usize;
+    depth.data[k] *= 1.85;
+    let mut map = error_map(&camera, &depth, None, &index).unwrap();
+    let before = map.summary();
+    assert!(before.max_px > 10.0 && before.over_1px == 1, "{before:?}");
+    assert!(map.error_px[k] > 10.0);
+    let done = recheck(&mut map, &camera, &depth, &index, &index, 1.0, 100).unwrap();
+    assert_eq!(
+        (done.checked, done.moved, done.no_hit, done.unchecked),
+        (1, 1, 0, 0)
+    );
+    // The pixel exact, the others as the f32 depth of the plane rounds them.
+    assert!(map.error_px[k] < 1e-9, "{}", map.error_px[k]);
+    let after = map.summary();
+    assert!(after.max_px < 1e-4, "{after:?}");
+    // A surface truly 5 m off the reference: rechecked pixels keep their error.
+    let raised = flat_surface().with_offset_m(5.0).unwrap();
+    let depth = plane_depth(&camera).0;
+    let mut map = error_map(&camera, &depth, None, &raised).unwrap();
+    let want = map.clone();
+    let over = want.summary().over_1px;
+    assert!(over > 1_000, "{over}");
+    let done = recheck(&mut map, &camera, &depth, &raised, &index, 1.0, 50).unwrap();
+    assert_eq!(
+        (done.checked, done.moved, done.unchecked),
+        (50, 0, over - 50)
+    );
+    for (a, b) in map.error_px.iter().zip(&want.error_px) {
+        assert!((a - b).abs() < 1e-4, "{a} against {b}");
+    }
 }
 
 #[test]

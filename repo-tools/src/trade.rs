@@ -17,7 +17,10 @@
 //!   visible diamond down to the finest coded level; only frustum culling stays), drawn
 //!   with a large GPU budget. PSNR compares shaded frames; the geometric error
 //!   (`quincunx_render::error`) is, per pixel, the screen distance between the surface
-//!   point the pixel shows and the reference surface along the local vertical.
+//!   point the pixel shows and the reference surface along the local vertical. Pixels
+//!   over the tolerance are re-measured at the exact first hit of their ray on the
+//!   drawn cut's triangles (`quincunx_render::error::recheck`): a rasteriser can store,
+//!   for a crest triangle seen edge-on, a depth off the surface.
 //!
 //! `--path extremes` (planets): views 1 m above the ground (oblique and straight down),
 //! 100,000 km away, over the north pole and over a cube corner. Each view is also
@@ -36,7 +39,7 @@ use quincunx_client::session::{Session, SessionConfig, SessionError};
 use quincunx_client::view::View;
 use quincunx_codec::incremental::{PlanarRefiner, SphereRefiner};
 use quincunx_render::domain::RenderDomain;
-use quincunx_render::error::{error_map, psnr_db};
+use quincunx_render::error::{error_map, psnr_db, recheck};
 use quincunx_render::ground::SurfaceIndex;
 use quincunx_render::offscreen::{DepthImage, Gpu, Image, OFFSCREEN_FORMAT, Offscreen};
 use quincunx_render::scene::{Place, Shot, stream_to};
@@ -202,6 +205,14 @@ pub struct TradePoint {
     pub geometric_pixels: usize,
     /// Pixels without a reference surface.
     pub geometric_pixels_without_reference: usize,
+    /// The largest geometric error before re-measuring pixels over the tolerance at
+    /// their ray's exact hit (the depth attachment's points).
+    pub geometric_error_px_max_depth_buffer: f64,
+    /// Pixels over the tolerance whose depth-attachment point lay off the drawn surface
+    /// (re-measured at their ray's hit), over every view.
+    pub geometric_pixels_depth_off_surface: usize,
+    /// Pixels over the tolerance left as measured, over every view (must be 0).
+    pub geometric_pixels_not_rechecked: usize,
     /// Body bytes of the blobs of the final cuts (the cut at each leg's last frame).
     pub bytes_in_final_cuts: u64,
     /// Body bytes of the smallest blob set whose cuts meet the tolerance in the final
@@ -268,6 +279,18 @@ pub struct ViewError {
     pub finite: bool,
     /// Patches of the cut the renderer's GPU budget left out (drawn as holes).
     pub patches_missing: usize,
+    /// The largest error as the depth attachment places each pixel's point, before
+    /// pixels over the tolerance were re-measured at their ray's exact hit on the drawn
+    /// triangles ([`quincunx_render::error::recheck`]).
+    pub geometric_error_px_max_depth_buffer: f64,
+    /// Pixels re-measured (their error over the tolerance).
+    pub pixels_rechecked: usize,
+    /// Of them, pixels whose depth-attachment point lay off the drawn surface.
+    pub pixels_depth_off_surface: usize,
+    /// Of them, pixels whose ray meets no drawn triangle (kept as measured).
+    pub pixels_recheck_no_hit: usize,
+    /// Pixels over the tolerance not re-measured (over the limit).
+    pub pixels_not_rechecked: usize,
 }
 
 /// The reference of one view.
@@ -325,6 +348,9 @@ struct Capture {
     depth: DepthImage,
     jitter: Option<Image>,
     missing: usize,
+    /// The cut drawn, as triangles: pixels over the tolerance are re-measured on it.
+    drawn: SurfaceIndex,
+    tolerance_px: f64,
 }
 
 /// The domains a trade study runs on.
@@ -612,7 +638,16 @@ fn fly_point<R: TradeDomain>(
         .collect();
     let mut captures = Vec::new();
     let dag = session.dag();
+    let world = dag.refiner().world_frame(&session.world(), 0);
+    // The drawn cut, replayed alongside the renderer.
+    let mut cut = std::collections::HashMap::new();
     for (k, (changes, view, take_ms, leg)) in frames.into_iter().enumerate() {
+        for key in &changes.left {
+            cut.remove(key);
+        }
+        for p in &changes.entered {
+            cut.insert((p.id, p.half), p.clone());
+        }
         drawer
             .frame(dag.refiner(), dag.colour(), changes, &view, take_ms, k)
             .context("rendering the flight")?;
@@ -630,6 +665,13 @@ fn fly_point<R: TradeDomain>(
             } else {
                 None
             };
+            let drawn = SurfaceIndex::from_patches(
+                world,
+                cut.values().filter_map(|p| {
+                    let affine = dag.refiner().affine(p.id, &p.corners, p.half)?;
+                    Some((affine, p.half, std::sync::Arc::clone(&p.grid)))
+                }),
+            );
             captures.push(Capture {
                 leg,
                 view,
@@ -637,6 +679,8 @@ fn fly_point<R: TradeDomain>(
                 depth,
                 jitter,
                 missing: stats.missing,
+                drawn,
+                tolerance_px,
             });
         }
     }
@@ -932,6 +976,9 @@ fn reference_view<R: TradeDomain>(
     ))
 }
 
+/// Pixels over the tolerance re-measured per view, at most.
+const RECHECK_LIMIT: usize = 10_000;
+
 /// One captured view against its reference, and its measured pixels' errors.
 fn compare(
     cap: &Capture,
@@ -940,7 +987,17 @@ fn compare(
     index: &SurfaceIndex,
 ) -> Result<(ViewError, Vec<f32>)> {
     let camera = Camera::from_view(&cap.view);
-    let map = error_map(&camera, &cap.depth, Some(ref_depth), index)?;
+    let mut map = error_map(&camera, &cap.depth, Some(ref_depth), index)?;
+    let depth_buffer_max = map.summary().max_px;
+    let rechecked = recheck(
+        &mut map,
+        &camera,
+        &cap.depth,
+        index,
+        &cap.drawn,
+        cap.tolerance_px,
+        RECHECK_LIMIT,
+    )?;
     let g = map.summary();
     let errors: Vec<f32> = map
         .error_px
@@ -972,6 +1029,11 @@ fn compare(
             jitter_psnr_db: jitter,
             finite,
             patches_missing: cap.missing,
+            geometric_error_px_max_depth_buffer: depth_buffer_max,
+            pixels_rechecked: rechecked.checked,
+            pixels_depth_off_surface: rechecked.moved,
+            pixels_recheck_no_hit: rechecked.no_hit,
+            pixels_not_rechecked: rechecked.unchecked,
         },
         errors,
     ))
@@ -1008,6 +1070,13 @@ fn aggregate(point: &mut TradePoint, views: Vec<ViewError>, mut errors: Vec<f32>
     point.geometric_pixels = views.iter().map(|v| v.pixels).sum();
     point.geometric_pixels_without_reference =
         views.iter().map(|v| v.pixels_without_reference).sum();
+    point.geometric_error_px_max_depth_buffer = views
+        .iter()
+        .map(|v| v.geometric_error_px_max_depth_buffer)
+        .fold(0.0, f64::max);
+    point.geometric_pixels_depth_off_surface =
+        views.iter().map(|v| v.pixels_depth_off_surface).sum();
+    point.geometric_pixels_not_rechecked = views.iter().map(|v| v.pixels_not_rechecked).sum();
     point.views = views;
 }
 
