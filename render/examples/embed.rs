@@ -9,6 +9,10 @@
 //! cargo run --release -p quincunx-render --example embed -- http://127.0.0.1:8080 korea embed.png
 //! ```
 //!
+//! A fourth argument `N` then draws `N` more frames of the same view, each waited for,
+//! and prints their median time as one JSON line (the Bevy plugin's bench compares with
+//! it: `bevy/examples/bench.rs`).
+//!
 //! What the renderer wants from the app's device: `Features::INDIRECT_FIRST_INSTANCE` for
 //! one indirect draw per frame (without it, one `draw_indexed` per patch), and buffer
 //! limits large enough for its pool (it sizes the pool to `min(budget, device limits)`).
@@ -30,6 +34,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         .unwrap_or_else(|| "http://127.0.0.1:8080".into());
     let repo = args.next().unwrap_or_else(|| "korea".into());
     let out = args.next().unwrap_or_else(|| "embed.png".into());
+    let timed: Option<usize> = args.next().and_then(|a| a.parse().ok());
     let (width, height) = (960u32, 540u32);
 
     // --- The app's own GPU setup (nothing quincunx-specific). ---
@@ -91,7 +96,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
 
     // --- The app's frame loop. ---
     let start = Instant::now();
+    let mut frame_times = Vec::new();
     for frame in 0.. {
+        let began = Instant::now();
         let stats = session.update(&view, start.elapsed(), Duration::from_millis(4))?;
         terrain.sync(&mut session)?; // O(changes): patches in and out of the cut
         let drawn = terrain.prepare(&queue, &Camera::from_view(&view));
@@ -131,6 +138,23 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         queue.submit([encoder.finish()]);
         let done = stats.refine.full_quality && stats.wanted == 0 && drawn.current;
+        if let Some(n) = timed.filter(|_| done) {
+            // The timed frames: each waited for, as a frame that is shown must be.
+            device.poll(wgpu::PollType::wait_indefinitely())?;
+            frame_times.push(began.elapsed().as_secs_f64() * 1e3);
+            if frame_times.len() <= n + 60 {
+                continue;
+            }
+            let mut t = frame_times.split_off(60);
+            t.sort_by(f64::total_cmp);
+            println!(
+                "{{\"app\":\"embed\",\"frames\":{},\"frame_ms_median\":{:.3},\"frame_ms_p90\":{:.3},\"triangles\":{}}}",
+                t.len(),
+                t[t.len() / 2],
+                t[(t.len() - 1) * 9 / 10],
+                drawn.triangles
+            );
+        }
         if done || start.elapsed() > Duration::from_secs(30) {
             println!(
                 "frame {frame}: {} patches, {} triangles, {} draw call(s), full quality: {done}",
@@ -138,7 +162,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             );
             break;
         }
-        std::thread::sleep(Duration::from_millis(16));
+        if timed.is_none() {
+            std::thread::sleep(Duration::from_millis(16));
+        }
     }
     save_png(&device, &queue, &colour, [width, height], &out)?;
     println!("wrote {out}");
