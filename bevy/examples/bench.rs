@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 use bevy::core_pipeline::tonemapping::Tonemapping;
 use bevy::prelude::*;
 use bevy::window::{PresentMode, WindowResolution};
+use bevy::winit::{UpdateMode, WinitSettings};
 use glam::DVec3;
 use quincunx_bevy::{QuincunxPlugin, Terrain, TerrainCamera, TerrainOrigin, TerrainState};
 
@@ -47,6 +48,12 @@ fn main() {
         }),
         QuincunxPlugin,
     ))
+    // Frames as fast as they go, focused or not (an unfocused window, as under Xvfb,
+    // otherwise updates at most 60 times a second).
+    .insert_resource(WinitSettings {
+        focused_mode: UpdateMode::Continuous,
+        unfocused_mode: UpdateMode::Continuous,
+    })
     .insert_resource(ClearColor(Color::srgb(0.25, 0.4, 0.65)))
     .insert_resource(TerrainOrigin {
         recentre_beyond_m: None,
