@@ -1,4 +1,4 @@
-//! The `fly` example's app against a real server, under Xvfb: screenshots of the bundled
+//! The `fly` example's app against `quincunx serve`, under Xvfb: screenshots of the bundled
 //! korea crop and ETOPO20 planet, checked pixel by pixel.
 //!
 //! - korea straight down: terrain everywhere (0 background pixels), the cube the height
@@ -31,7 +31,6 @@ use bevy::prelude::*;
 use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured};
 use glam::DVec3;
 use quincunx_bevy::{Terrain, TerrainCamera, TerrainOrigin, TerrainState};
-use quincunx_server::{RepoConfig, Server, ServerConfig};
 
 const SIZE: (u32, u32) = (640, 400);
 const CHILD: &str = "QUINCUNX_BEVY_APP_CHILD";
@@ -75,48 +74,82 @@ fn workspace_root() -> PathBuf {
         .to_path_buf()
 }
 
-/// Builds the bundled repositories and serves them (the runtime lives as long as the
-/// returned value).
-fn serve(dir: &Path) -> (tokio::runtime::Runtime, SocketAddr) {
-    use quincunx_repo_tools::build::{self, BuildArgs};
+/// The `quincunx` binary: `$QUINCUNX_BIN`, else the one beside this test's target
+/// directory (`cargo test --release` at the top builds it; CI's test build did), else
+/// built now.
+fn quincunx_bin() -> PathBuf {
+    if let Some(bin) = std::env::var_os("QUINCUNX_BIN") {
+        return bin.into();
+    }
+    let exe = std::env::current_exe().unwrap();
+    let bin = exe.parent().unwrap().parent().unwrap().join("quincunx");
+    if !bin.exists() {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let status = Command::new(cargo)
+            .args(["build", "--release", "--bin", "quincunx"])
+            .current_dir(workspace_root())
+            .status()
+            .unwrap();
+        assert!(status.success(), "building quincunx: {status}");
+    }
+    bin
+}
+
+/// A `quincunx serve` process, killed on drop.
+struct Serve(std::process::Child);
+
+impl Drop for Serve {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Builds the bundled korea crop and ETOPO20 planet (as `quincunx demo` does) and serves
+/// them with `quincunx serve`.
+fn serve(dir: &Path) -> (Serve, SocketAddr) {
+    let bin = quincunx_bin();
     let root = workspace_root();
-    let korea = dir.join("korea");
-    build::run(&BuildArgs {
-        rms_m: Some(2.0),
-        ..BuildArgs::new(root.join("data/korea_srtm3_1025.json"), &korea)
-    })
-    .unwrap();
-    let earth = dir.join("earth");
-    build::run(&BuildArgs {
-        planet: true,
-        max_error_m: Some(2.0),
-        ..BuildArgs::new(root.join("data/etopo20_global.json"), &earth)
-    })
-    .unwrap();
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .enable_all()
-        .build()
-        .unwrap();
-    let config = ServerConfig {
-        addr: "127.0.0.1:0".parse().unwrap(),
-        repos: vec![
-            RepoConfig {
-                name: "korea".into(),
-                path: korea,
-            },
-            RepoConfig {
-                name: "earth".into(),
-                path: earth,
-            },
-        ],
-        workers: 1,
-        ..Default::default()
+    for (input, name, flags) in [
+        ("data/korea_srtm3_1025.json", "korea", &["--rms-m", "2"][..]),
+        (
+            "data/etopo20_global.json",
+            "earth",
+            &["--planet", "--max-error-m", "2"][..],
+        ),
+    ] {
+        let status = Command::new(&bin)
+            .arg("build")
+            .arg(root.join(input))
+            .arg("-o")
+            .arg(dir.join(name))
+            .args(flags)
+            .status()
+            .unwrap();
+        assert!(status.success(), "quincunx build {input}: {status}");
+    }
+    let addr: SocketAddr = {
+        let probe = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        probe.local_addr().unwrap()
     };
-    let server = runtime.block_on(Server::bind(config)).unwrap();
-    let addr = server.local_addr().unwrap();
-    runtime.spawn(server.run(std::future::pending()));
-    (runtime, addr)
+    let child = Command::new(&bin)
+        .args(["serve", "--log", "warn", "--addr", &addr.to_string()])
+        .arg("--repo")
+        .arg(format!("korea={}", dir.join("korea").display()))
+        .arg("--repo")
+        .arg(format!("earth={}", dir.join("earth").display()))
+        .spawn()
+        .unwrap();
+    let served = Serve(child);
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while std::net::TcpStream::connect(addr).is_err() {
+        assert!(
+            Instant::now() < deadline,
+            "quincunx serve did not listen on {addr}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    (served, addr)
 }
 
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -170,7 +203,7 @@ struct Script {
 
 fn child() {
     let dir = tempfile::tempdir().unwrap();
-    let (_runtime, addr) = serve(dir.path());
+    let (_server, addr) = serve(dir.path());
     let url = format!("http://{addr}");
     let shots = Arc::new(Mutex::new(Vec::new()));
     let failed = Arc::new(Mutex::new(None::<String>));
