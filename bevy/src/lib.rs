@@ -449,7 +449,7 @@ struct Batch<R: RenderDomain> {
     refiner: Arc<R>,
     colour: Option<Arc<ColourLayer<R>>>,
     world: WorldFrame,
-    tint_top_m: f64,
+    tint_m: (f64, f64),
     changes: PatchChanges<R::Id>,
 }
 
@@ -572,20 +572,14 @@ fn step<R: RenderDomain>(
     let colour = core.colour_layer().cloned();
     let colour_n = colour.as_ref().map_or(0, |c| c.n());
     let world = core.refiner().world_frame(&session.world(), colour_n);
-    let tint_top_m = core
-        .refiner()
-        .roots()
-        .iter()
-        .flat_map(|(_, grid)| grid.iter())
-        .map(|&v| world.value_offset_m + f64::from(v) * world.value_scale_m)
-        .fold(f64::NEG_INFINITY, f64::max);
+    let tint_m = quincunx_render::renderer::land_tint_m(&**core.refiner(), &world);
     Ok((
         stats,
         Some(Batch {
             refiner: Arc::clone(core.refiner()),
             colour,
             world,
-            tint_top_m,
+            tint_m,
             changes,
         }),
     ))
@@ -749,6 +743,6 @@ fn make<R: RenderDomain>(
     config: RendererConfig,
 ) -> Result<Box<TerrainRenderer<R>>, quincunx_render::RenderError> {
     let mut renderer = TerrainRenderer::new(device, batch.world, config)?;
-    renderer.lighting.tint_m = Some((0.0, batch.tint_top_m.max(50.0)));
+    renderer.lighting.tint_m = Some(batch.tint_m);
     Ok(Box::new(renderer))
 }

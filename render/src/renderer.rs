@@ -51,6 +51,19 @@ pub struct RendererConfig {
     pub fragment_depth: Option<bool>,
 }
 
+/// The height range the land tint spans (`Lighting::tint_m`): sea level to the highest
+/// height the roots' grids reach (at least 50 m). Fixed by the repository, whatever the
+/// cut is when a renderer is made.
+pub fn land_tint_m<R: RenderDomain>(domain: &R, world: &WorldFrame) -> (f64, f64) {
+    let top = domain
+        .roots()
+        .iter()
+        .flat_map(|(_, grid)| grid.iter())
+        .map(|&v| world.value_offset_m + f64::from(v) * world.value_scale_m)
+        .fold(f64::NEG_INFINITY, f64::max);
+    (0.0, top.max(50.0))
+}
+
 /// The depth format the renderer expects.
 pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 
@@ -404,17 +417,7 @@ impl<R: RenderDomain> TerrainRenderer<R> {
             .refiner()
             .world_frame(&session.world(), colour_n);
         let mut renderer = TerrainRenderer::new(device, world, config)?;
-        // The tint spans the land heights the roots' grids reach: fixed by the
-        // repository, whatever the cut is when the renderer is made.
-        let top = session
-            .dag()
-            .refiner()
-            .roots()
-            .iter()
-            .flat_map(|(_, grid)| grid.iter())
-            .map(|&v| world.value_offset_m + f64::from(v) * world.value_scale_m)
-            .fold(f64::NEG_INFINITY, f64::max);
-        renderer.lighting.tint_m = Some((0.0, top.max(50.0)));
+        renderer.lighting.tint_m = Some(land_tint_m(session.dag().refiner(), &world));
         Ok(renderer)
     }
 

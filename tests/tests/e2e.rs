@@ -1,6 +1,6 @@
 //! The end-to-end tests: one module per file of this folder, in one test binary (one
 //! link of the whole workspace instead of one per file). Run one file's tests with its
-//! module as the filter, e.g. `cargo test --workspace --release --test e2e -- web::`.
+//! module as the filter, e.g. `cargo test --release --test e2e -- web::`.
 
 mod common;
 
