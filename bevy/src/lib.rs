@@ -188,6 +188,39 @@ pub struct TerrainStats {
     pub patches_missing: usize,
 }
 
+/// A read-back of the terrain camera's depth attachment after the terrain pass (reversed
+/// Z: `near / distance`, 0 where nothing was drawn), for tests and tools: it costs a copy
+/// of the attachment and a wait for the GPU. [`DepthReadback::request`] asks for the
+/// next frame's; [`DepthReadback::take`] gives it a frame or two later. The camera needs
+/// `Msaa::Off` and a depth attachment that can be copied from (`Camera3d`'s
+/// `depth_texture_usages` with `TextureUsages::COPY_SRC`).
+#[derive(Resource, Clone, Default)]
+pub struct DepthReadback(Arc<Mutex<Readback>>);
+
+#[derive(Default)]
+struct Readback {
+    wanted: bool,
+    /// The buffer the copy went into: width, height, padded row bytes.
+    copied: Option<(wgpu::Buffer, u32, u32, u32)>,
+    done: Option<quincunx_render::DepthImage>,
+}
+
+impl DepthReadback {
+    /// Asks for the depth of the next frame drawn.
+    pub fn request(&self) {
+        if let Ok(mut r) = self.0.lock() {
+            r.wanted = true;
+            r.done = None;
+        }
+    }
+
+    /// The depth read back, once it is there (rows top to bottom, as
+    /// [`quincunx_render::DepthImage`]).
+    pub fn take(&self) -> Option<quincunx_render::DepthImage> {
+        self.0.lock().ok()?.done.take()
+    }
+}
+
 /// The streaming terrain in the main world: its state, its figures and the gameplay
 /// queries.
 #[derive(Resource, Default)]
@@ -354,6 +387,7 @@ impl Plugin for QuincunxPlugin {
         app.init_resource::<TerrainState>()
             .init_resource::<TerrainOrigin>()
             .init_resource::<Outbox>()
+            .init_resource::<DepthReadback>()
             .add_systems(
                 PostUpdate,
                 (
@@ -465,6 +499,7 @@ struct Outbox {
     camera: Option<(Entity, quincunx_render::Camera)>,
     epoch: u64,
     shared: Option<Arc<Shared>>,
+    gpu_budget_bytes: u64,
 }
 
 /// Refines the cut for the terrain camera and queues its changes for the renderer.
@@ -505,6 +540,7 @@ fn stream(
     };
     outbox.camera = Some((entity, quincunx_render::Camera::from_view(&view)));
     outbox.shared = Some(Arc::clone(&state.shared));
+    outbox.gpu_budget_bytes = terrain.gpu_budget_bytes;
     let shared = Arc::clone(&state.shared);
     state.lock(|i| {
         let Status::Open(s) = &mut i.status else {
@@ -599,6 +635,8 @@ struct Drawer {
     stale_epoch: Option<u64>,
     camera: Option<(Entity, quincunx_render::Camera)>,
     shared: Option<Arc<Shared>>,
+    gpu_budget_bytes: u64,
+    readback: Option<DepthReadback>,
 }
 
 enum AnyRenderer {
@@ -608,6 +646,7 @@ enum AnyRenderer {
 
 /// Moves the main world's queued changes and camera into the render world.
 fn extract(mut main: ResMut<MainWorld>, mut drawer: ResMut<Drawer>) {
+    drawer.readback = main.get_resource::<DepthReadback>().cloned();
     let Some(mut outbox) = main.get_resource_mut::<Outbox>() else {
         return;
     };
@@ -615,6 +654,7 @@ fn extract(mut main: ResMut<MainWorld>, mut drawer: ResMut<Drawer>) {
     drawer.epoch = outbox.epoch;
     drawer.camera = outbox.camera;
     drawer.shared.clone_from(&outbox.shared);
+    drawer.gpu_budget_bytes = outbox.gpu_budget_bytes;
     drawer.pending.extend(batches);
 }
 
@@ -638,6 +678,9 @@ fn draw(
     };
     if main_entity.id() != camera_entity {
         return;
+    }
+    if let Some(r) = &drawer.readback {
+        finish_readback(device.wgpu_device(), r);
     }
     let drawer = &mut *drawer;
     let made_for = (target.main_texture_format(), msaa.map_or(1, Msaa::samples));
@@ -663,6 +706,7 @@ fn draw(
     for (_, batch) in std::mem::take(&mut drawer.pending) {
         if drawer.renderer.is_none() {
             let config = RendererConfig {
+                gpu_budget_bytes: drawer.gpu_budget_bytes,
                 colour_format: made_for.0,
                 sample_count: made_for.1,
                 ..RendererConfig::default()
@@ -734,6 +778,99 @@ fn draw(
         AnyRenderer::Planar(r) => r.draw(&mut pass),
         AnyRenderer::Planet(r) => r.draw(&mut pass),
     }
+    drop(pass);
+    if let Some(r) = &drawer.readback {
+        start_readback(
+            device.wgpu_device(),
+            ctx.command_encoder(),
+            depth.texture(),
+            r,
+        );
+    }
+}
+
+/// Copies the depth attachment into a buffer when a read-back is wanted (mapped by
+/// [`finish_readback`] once this frame's commands were submitted).
+fn start_readback(
+    device: &wgpu::Device,
+    encoder: &mut wgpu::CommandEncoder,
+    texture: &wgpu::Texture,
+    readback: &DepthReadback,
+) {
+    let Ok(mut r) = readback.0.lock() else { return };
+    if !r.wanted || r.copied.is_some() {
+        return;
+    }
+    if texture.sample_count() != 1 || !texture.usage().contains(wgpu::TextureUsages::COPY_SRC) {
+        tracing::error!(
+            "depth read-back needs Msaa::Off and a depth attachment with COPY_SRC usage \
+             (Camera3d::depth_texture_usages)"
+        );
+        r.wanted = false;
+        return;
+    }
+    let (w, h) = (texture.width(), texture.height());
+    let padded =
+        (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("quincunx-bevy depth read-back"),
+        size: u64::from(padded) * u64::from(h),
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    encoder.copy_texture_to_buffer(
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect: wgpu::TextureAspect::DepthOnly,
+        },
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded),
+                rows_per_image: Some(h),
+            },
+        },
+        wgpu::Extent3d {
+            width: w,
+            height: h,
+            depth_or_array_layers: 1,
+        },
+    );
+    r.wanted = false;
+    r.copied = Some((buffer, w, h, padded));
+}
+
+/// Maps the buffer a previous frame copied the depth into and keeps its values.
+fn finish_readback(device: &wgpu::Device, readback: &DepthReadback) {
+    let Ok(mut r) = readback.0.lock() else { return };
+    let Some((buffer, w, h, padded)) = r.copied.take() else {
+        return;
+    };
+    buffer.slice(..).map_async(wgpu::MapMode::Read, |_| {});
+    if let Err(e) = device.poll(wgpu::PollType::wait_indefinitely()) {
+        tracing::error!("depth read-back: {e}");
+        return;
+    }
+    let Ok(bytes) = buffer.slice(..).get_mapped_range() else {
+        tracing::error!("depth read-back: the buffer did not map");
+        return;
+    };
+    let data = (0..h as usize)
+        .flat_map(|y| {
+            let row = &bytes[y * padded as usize..y * padded as usize + w as usize * 4];
+            row.chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect::<Vec<_>>()
+        })
+        .collect();
+    r.done = Some(quincunx_render::DepthImage {
+        width: w,
+        height: h,
+        data,
+    });
 }
 
 /// A renderer for a batch's repository.

@@ -30,7 +30,7 @@ use bevy::app::AppExit;
 use bevy::prelude::*;
 use bevy::render::view::screenshot::{Screenshot, ScreenshotCaptured};
 use glam::DVec3;
-use quincunx_bevy::{Terrain, TerrainCamera, TerrainOrigin, TerrainState};
+use quincunx_bevy::{DepthReadback, Terrain, TerrainCamera, TerrainOrigin, TerrainState};
 
 const SIZE: (u32, u32) = (640, 400);
 const CHILD: &str = "QUINCUNX_BEVY_APP_CHILD";
@@ -185,6 +185,17 @@ struct Shot {
     triangles: u64,
 }
 
+/// The depth read back in the in-sight view, against the queries, at a grid of pixels
+/// showing terrain: the largest screen distance (px) between the depth buffer's point
+/// and the ray's hit (their height difference, seen at the point), and between that
+/// point and `height_below` it; and how many pixels.
+#[derive(Clone, Copy, Debug, Default)]
+struct DepthCheck {
+    ray_px: f64,
+    height_px: f64,
+    pixels: usize,
+}
+
 #[derive(Resource)]
 struct Script {
     scene: usize,
@@ -194,6 +205,9 @@ struct Script {
     tries: usize,
     started: Instant,
     waiting_shot: bool,
+    /// The in-sight view's depth read-back was asked for, and its check.
+    depth_asked: bool,
+    depth: Option<DepthCheck>,
     shots: Arc<Mutex<Vec<Shot>>>,
     /// The planet's low camera: its position, quincunx frame.
     low_eye: Option<DVec3>,
@@ -209,12 +223,16 @@ fn child() {
     let failed = Arc::new(Mutex::new(None::<String>));
     let mut app = fly::app(&url, "korea", None, SIZE);
     let f2 = Arc::clone(&failed);
+    let depth = Arc::new(Mutex::new(None::<DepthCheck>));
+    let d2 = Arc::clone(&depth);
     app.insert_resource(Script {
         scene: 0,
         settled: 0,
         tries: 0,
         started: Instant::now(),
         waiting_shot: false,
+        depth_asked: false,
+        depth: None,
         shots: Arc::clone(&shots),
         low_eye: None,
         failed: None,
@@ -228,6 +246,9 @@ fn child() {
     .add_systems(Last, move |script: Res<Script>| {
         if let Some(f) = &script.failed {
             *f2.lock().unwrap() = Some(f.clone());
+        }
+        if let Some(d) = script.depth {
+            *d2.lock().unwrap() = Some(d);
         }
     });
     app.run();
@@ -250,6 +271,17 @@ fn child() {
     }
     eprintln!("screenshots in {}", keep.display());
     check(&shots);
+    let d = depth
+        .lock()
+        .unwrap()
+        .expect("the depth read-back of the in-sight view");
+    eprintln!(
+        "depth read-back against the queries at {} pixels: ray_hit within {:.4} px, \
+         height_below within {:.4} px",
+        d.pixels, d.ray_px, d.height_px
+    );
+    assert!(d.pixels > 200, "{d:?}");
+    assert!(d.ray_px <= 1.0 && d.height_px <= 1.0, "{d:?}");
 }
 
 /// The background colour as the window stores it.
@@ -272,8 +304,18 @@ fn script(
     mut terrain: ResMut<Terrain>,
     mut camera: Query<(&mut Transform, &Camera, &GlobalTransform), With<TerrainCamera>>,
     marker: Query<&Transform, (With<fly::Marker>, Without<TerrainCamera>)>,
+    mut camera3d: Query<&mut Camera3d, With<TerrainCamera>>,
+    readback: Res<DepthReadback>,
     mut exit: MessageWriter<AppExit>,
 ) {
+    // A depth attachment the read-back can copy from.
+    if let Ok(mut c) = camera3d.single_mut() {
+        let usages = bevy::render::render_resource::TextureUsages::RENDER_ATTACHMENT
+            | bevy::render::render_resource::TextureUsages::COPY_SRC;
+        if c.depth_texture_usages.0 != usages.bits() {
+            c.depth_texture_usages = usages.into();
+        }
+    }
     if script.failed.is_some() {
         exit.write(AppExit::error());
         return;
@@ -287,6 +329,12 @@ fn script(
         return;
     }
     if script.waiting_shot {
+        if script.depth_asked && script.depth.is_none() {
+            if let (Some(depth), Ok((_, cam, gt))) = (readback.take(), camera.single()) {
+                script.depth = Some(depth_check(&state, &origin, cam, gt, &depth));
+            }
+            return;
+        }
         if script.shots.lock().unwrap().len() > script.scene {
             script.waiting_shot = false;
             next_scene(&mut script);
@@ -414,6 +462,10 @@ fn script(
         triangles: s.triangles_drawn,
     });
     script.waiting_shot = true;
+    if scene == Scene::KoreaInSight {
+        readback.request();
+        script.depth_asked = true;
+    }
     let shots = Arc::clone(&script.shots);
     let pending = Arc::new(Mutex::new(pending));
     commands
@@ -467,6 +519,54 @@ fn sight(
     } else {
         None
     }
+}
+
+/// Compares the depth read back with `ray_hit` and `height_below` at a 32 x 20 grid of
+/// pixel centres.
+fn depth_check(
+    state: &TerrainState,
+    origin: &TerrainOrigin,
+    cam: &Camera,
+    gt: &GlobalTransform,
+    depth: &quincunx_render::DepthImage,
+) -> DepthCheck {
+    let near = quincunx_render::camera::NEAR_M as f32;
+    let forward = gt.forward().as_vec3();
+    let eye = gt.translation();
+    let project = |p: Vec3| cam.world_to_viewport(gt, p).ok();
+    let mut out = DepthCheck::default();
+    for gy in 0..20 {
+        for gx in 0..32 {
+            let x = (gx * depth.width / 32 + depth.width / 64) as f32 + 0.5;
+            let y = (gy * depth.height / 20 + depth.height / 40) as f32 + 0.5;
+            let d = depth.data[(y as u32 * depth.width + x as u32) as usize];
+            if d <= 0.0 {
+                continue;
+            }
+            let ray = cam.viewport_to_world(gt, Vec2::new(x, y)).unwrap();
+            let dir = ray.direction.as_vec3();
+            // Reversed Z, infinite far plane: depth = near / (distance along the axis).
+            let point = eye + dir * (near / (d * dir.dot(forward)));
+            let (Some(hit), Some(up), Some(ground)) = (
+                state.ray_hit(origin, eye, dir),
+                state.up_at(origin, point),
+                state.height_below(origin, point),
+            ) else {
+                continue;
+            };
+            let (Some(p), Some(r), Some(g)) = (
+                project(point),
+                project(point + up * (hit - point).dot(up)),
+                project(ground),
+            ) else {
+                continue;
+            };
+            out.ray_px = out.ray_px.max(f64::from(p.distance(r)));
+            out.height_px = out.height_px.max(f64::from(p.distance(g)));
+            out.pixels += 1;
+        }
+    }
+    out
 }
 
 fn next_scene(script: &mut Script) {
