@@ -77,6 +77,7 @@ use quincunx_decoder::incremental::{PlanarRefiner, SphereRefiner};
 use quincunx_render::camera::NEAR_M;
 use quincunx_render::domain::RenderDomain;
 use quincunx_render::ground::SurfaceIndex;
+use quincunx_render::offscreen::{copy_for_readback, map_read_on, readback_buffer};
 use quincunx_render::{RendererConfig, TerrainRenderer};
 
 pub use quincunx_client;
@@ -267,6 +268,8 @@ struct Streaming {
     surface: Option<Arc<SurfaceIndex>>,
     cut_changed: bool,
     epoch: u64,
+    /// The repository's world frame and land tint, once a batch needed them.
+    frame_of: Option<(WorldFrame, (f64, f64))>,
 }
 
 impl TerrainState {
@@ -466,6 +469,7 @@ fn open(terrain: Option<Res<Terrain>>, state: Res<TerrainState>) {
                         surface: None,
                         cut_changed: true,
                         epoch: i.epoch,
+                        frame_of: None,
                     }))
                 }
                 Some(Err(e)) => {
@@ -558,14 +562,24 @@ fn stream(
         let now = s.started.elapsed();
         let capacity = shared.capacity.load(Ordering::Acquire);
         let result = match &mut s.session {
-            AnySession::Planar(session) => {
-                step(session, &view, now, terrain.refine_budget, capacity)
-                    .map(|(f, b)| (f, b.map(AnyBatch::Planar)))
-            }
-            AnySession::Planet(session) => {
-                step(session, &view, now, terrain.refine_budget, capacity)
-                    .map(|(f, b)| (f, b.map(AnyBatch::Planet)))
-            }
+            AnySession::Planar(session) => step(
+                session,
+                &view,
+                now,
+                terrain.refine_budget,
+                capacity,
+                &mut s.frame_of,
+            )
+            .map(|(f, b)| (f, b.map(AnyBatch::Planar))),
+            AnySession::Planet(session) => step(
+                session,
+                &view,
+                now,
+                terrain.refine_budget,
+                capacity,
+                &mut s.frame_of,
+            )
+            .map(|(f, b)| (f, b.map(AnyBatch::Planet))),
         };
         match result {
             Ok((stats, batch)) => {
@@ -587,6 +601,7 @@ fn step<R: RenderDomain>(
     now: Duration,
     budget: Duration,
     capacity: usize,
+    frame_of: &mut Option<(WorldFrame, (f64, f64))>,
 ) -> Result<(TerrainStats, Option<Batch<R>>), SessionError> {
     if capacity > 0 && session.max_cut_halves().is_none_or(|m| m > capacity) {
         session.set_max_cut_halves(Some(capacity));
@@ -606,9 +621,15 @@ fn step<R: RenderDomain>(
     }
     let core = session.core();
     let colour = core.colour_layer().cloned();
-    let colour_n = colour.as_ref().map_or(0, |c| c.n());
-    let world = core.refiner().world_frame(&session.world(), colour_n);
-    let tint_m = quincunx_render::renderer::land_tint_m(&**core.refiner(), &world);
+    // The world frame and land tint: the repository's, made once per session.
+    let (world, tint_m) = *frame_of.get_or_insert_with(|| {
+        let colour_n = colour.as_ref().map_or(0, |c| c.n());
+        let world = core.refiner().world_frame(&session.world(), colour_n);
+        (
+            world,
+            quincunx_render::renderer::land_tint_m(&**core.refiner(), &world),
+        )
+    });
     Ok((
         stats,
         Some(Batch {
@@ -810,34 +831,13 @@ fn start_readback(
         return;
     }
     let (w, h) = (texture.width(), texture.height());
-    let padded =
-        (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-    let buffer = device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("quincunx-bevy depth read-back"),
-        size: u64::from(padded) * u64::from(h),
-        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-        mapped_at_creation: false,
-    });
-    encoder.copy_texture_to_buffer(
-        wgpu::TexelCopyTextureInfo {
-            texture,
-            mip_level: 0,
-            origin: wgpu::Origin3d::ZERO,
-            aspect: wgpu::TextureAspect::DepthOnly,
-        },
-        wgpu::TexelCopyBufferInfo {
-            buffer: &buffer,
-            layout: wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(padded),
-                rows_per_image: Some(h),
-            },
-        },
-        wgpu::Extent3d {
-            width: w,
-            height: h,
-            depth_or_array_layers: 1,
-        },
+    let (buffer, padded) = readback_buffer(device, [w, h], "quincunx-bevy depth read-back");
+    copy_for_readback(
+        encoder,
+        texture,
+        wgpu::TextureAspect::DepthOnly,
+        &buffer,
+        padded,
     );
     r.wanted = false;
     r.copied = Some((buffer, w, h, padded));
@@ -849,28 +849,12 @@ fn finish_readback(device: &wgpu::Device, readback: &DepthReadback) {
     let Some((buffer, w, h, padded)) = r.copied.take() else {
         return;
     };
-    buffer.slice(..).map_async(wgpu::MapMode::Read, |_| {});
-    if let Err(e) = device.poll(wgpu::PollType::wait_indefinitely()) {
-        tracing::error!("depth read-back: {e}");
-        return;
+    match map_read_on(device, &buffer, |b| {
+        quincunx_render::DepthImage::from_padded(b, w, h, padded)
+    }) {
+        Ok(depth) => r.done = Some(depth),
+        Err(e) => tracing::error!("depth read-back: {e}"),
     }
-    let Ok(bytes) = buffer.slice(..).get_mapped_range() else {
-        tracing::error!("depth read-back: the buffer did not map");
-        return;
-    };
-    let data = (0..h as usize)
-        .flat_map(|y| {
-            let row = &bytes[y * padded as usize..y * padded as usize + w as usize * 4];
-            row.chunks_exact(4)
-                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                .collect::<Vec<_>>()
-        })
-        .collect();
-    r.done = Some(quincunx_render::DepthImage {
-        width: w,
-        height: h,
-        data,
-    });
 }
 
 /// A renderer for a batch's repository.

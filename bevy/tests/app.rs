@@ -368,64 +368,35 @@ fn script(
     let s = state.stats();
     let current = s.full_quality && s.patches_drawn == s.cut_halves && s.patches_missing == 0;
     script.settled = if current { script.settled + 1 } else { 0 };
-    // The first frame of a scene (tries == 0) poses the camera.
-    if script.tries == 0 {
-        script.settled = 0;
-        pose(
-            scene,
-            &mut script,
-            &state,
-            &mut origin,
-            &mut fly,
-            &mut t,
-            min,
-            max,
-            0,
-        );
-        script.tries = script.tries.max(1);
-        return;
-    }
-    if script.settled < 30 {
-        return;
-    }
-    // Settled: check the scene's expectation on this cut, else try another pose.
+    // The first frame of a scene (tries == 0) poses the camera; once the cut settles,
+    // the scene's expectation is checked on it, and the camera posed again if it fails
+    // (the next candidate, or 1 m above the ground as now drawn: it refines as the
+    // camera nears it).
     let cube = m.translation;
     let eye = gt.translation();
-    let ok = match scene {
-        Scene::KoreaInSight | Scene::KoreaHidden => {
-            sight(&state, &origin, eye, m) == Some(scene == Scene::KoreaInSight)
-        }
-        Scene::PlanetLow | Scene::PlanetLowShifted => {
-            // 1 m above the ground as now drawn (it refines as the camera nears it).
-            let ground = state.height_below(&origin, eye).unwrap();
-            let up = state.up_at(&origin, eye).unwrap();
-            let height = (eye - ground).dot(up);
-            if (height - 1.0).abs() > 0.01 {
-                pose(
-                    scene,
-                    &mut script,
-                    &state,
-                    &mut origin,
-                    &mut fly,
-                    &mut t,
-                    min,
-                    max,
-                    0,
-                );
-                script.settled = 0;
-                return;
+    let again = if script.tries == 0 {
+        Some(0)
+    } else if script.settled < 30 {
+        return;
+    } else {
+        match scene {
+            Scene::KoreaInSight | Scene::KoreaHidden => (sight(&state, &origin, eye, m)
+                != Some(scene == Scene::KoreaInSight))
+            .then_some(script.tries),
+            Scene::PlanetLow | Scene::PlanetLowShifted => {
+                let ground = state.height_below(&origin, eye).unwrap();
+                let up = state.up_at(&origin, eye).unwrap();
+                ((eye - ground).dot(up) - 1.0).abs().gt(&0.01).then_some(0)
             }
-            true
+            _ => None,
         }
-        _ => true,
     };
-    if !ok {
+    if let Some(k) = again {
         script.settled = 0;
         if script.tries > 400 {
             script.failed = Some(format!("scene {scene:?}: no camera pose found"));
             return;
         }
-        let k = script.tries;
         pose(
             scene,
             &mut script,
@@ -437,6 +408,7 @@ fn script(
             max,
             k,
         );
+        script.tries = script.tries.max(1);
         return;
     }
     let project = |p: Vec3| cam.world_to_viewport(gt, p).ok();

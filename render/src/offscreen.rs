@@ -220,6 +220,25 @@ pub struct DepthImage {
 }
 
 impl DepthImage {
+    /// The `width x height` depths of a read-back buffer's bytes, rows `padded_row` bytes
+    /// apart ([`readback_buffer`]).
+    pub fn from_padded(bytes: &[u8], width: u32, height: u32, padded_row: u32) -> DepthImage {
+        let (row, padded) = (width as usize * 4, padded_row as usize);
+        let mut data = Vec::with_capacity(width as usize * height as usize);
+        for y in 0..height as usize {
+            data.extend(
+                bytes[y * padded..y * padded + row]
+                    .chunks_exact(4)
+                    .map(|c| f32::from_ne_bytes([c[0], c[1], c[2], c[3]])),
+            );
+        }
+        DepthImage {
+            width,
+            height,
+            data,
+        }
+    }
+
     /// The depth at `(x, y)` (`None` outside the image or when `data` is short).
     pub fn at(&self, x: u32, y: u32) -> Option<f32> {
         if x >= self.width || y >= self.height {
@@ -344,13 +363,7 @@ impl Offscreen {
                 | wgpu::TextureUsages::TEXTURE_BINDING,
             "quincunx offscreen depth",
         );
-        let padded_row = (w * 4).div_ceil(256) * 256;
-        let readback = gpu.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("quincunx readback"),
-            size: u64::from(padded_row) * u64::from(h),
-            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-            mapped_at_creation: false,
-        });
+        let (readback, padded_row) = readback_buffer(&gpu.device, [w, h], "quincunx readback");
         let timer = gpu
             .device
             .features()
@@ -526,26 +539,12 @@ impl Offscreen {
         let mut encoder = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
-        encoder.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo {
-                texture: &self.colour,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect: wgpu::TextureAspect::All,
-            },
-            wgpu::TexelCopyBufferInfo {
-                buffer: &self.readback,
-                layout: wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(self.padded_row),
-                    rows_per_image: Some(h),
-                },
-            },
-            wgpu::Extent3d {
-                width: w,
-                height: h,
-                depth_or_array_layers: 1,
-            },
+        copy_for_readback(
+            &mut encoder,
+            &self.colour,
+            wgpu::TextureAspect::All,
+            &self.readback,
+            self.padded_row,
         );
         gpu.queue.submit([encoder.finish()]);
         let row = (w * 4) as usize;
@@ -630,57 +629,13 @@ impl Offscreen {
             DepthReadback::Draw => wgpu::TextureAspect::All,
         };
         let [w, h] = self.size;
-        let row = w as usize * 4;
-        let padded = (w * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
-            * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
-        let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("quincunx depth readback"),
-            size: u64::from(padded) * u64::from(h),
-            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-            mapped_at_creation: false,
-        });
+        let (buffer, padded) = readback_buffer(&gpu.device, [w, h], "quincunx depth readback");
         let mut encoder = gpu
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
-        encoder.copy_texture_to_buffer(
-            wgpu::TexelCopyTextureInfo {
-                texture: source,
-                mip_level: 0,
-                origin: wgpu::Origin3d::ZERO,
-                aspect,
-            },
-            wgpu::TexelCopyBufferInfo {
-                buffer: &buffer,
-                layout: wgpu::TexelCopyBufferLayout {
-                    offset: 0,
-                    bytes_per_row: Some(padded),
-                    rows_per_image: Some(h),
-                },
-            },
-            wgpu::Extent3d {
-                width: w,
-                height: h,
-                depth_or_array_layers: 1,
-            },
-        );
+        copy_for_readback(&mut encoder, source, aspect, &buffer, padded);
         gpu.queue.submit([encoder.finish()]);
-        let padded = padded as usize;
-        let data = map_read(gpu, &buffer, |b| {
-            let mut out = Vec::with_capacity(w as usize * h as usize);
-            for y in 0..h as usize {
-                out.extend(
-                    b[y * padded..y * padded + row]
-                        .chunks_exact(4)
-                        .map(|c| f32::from_ne_bytes([c[0], c[1], c[2], c[3]])),
-                );
-            }
-            out
-        })?;
-        Ok(DepthImage {
-            width: w,
-            height: h,
-            data,
-        })
+        map_read(gpu, &buffer, |b| DepthImage::from_padded(b, w, h, padded))
     }
 }
 
@@ -774,6 +729,15 @@ pub fn map_read<T>(
     buffer: &wgpu::Buffer,
     f: impl FnOnce(&[u8]) -> T,
 ) -> Result<T, RenderError> {
+    map_read_on(&gpu.device, buffer, f)
+}
+
+/// [`map_read`] on any device (an app's own, Bevy's).
+pub fn map_read_on<T>(
+    device: &wgpu::Device,
+    buffer: &wgpu::Buffer,
+    f: impl FnOnce(&[u8]) -> T,
+) -> Result<T, RenderError> {
     let slice = buffer.slice(..);
     let (tx, rx) = std::sync::mpsc::channel();
     slice.map_async(wgpu::MapMode::Read, move |r| {
@@ -783,7 +747,7 @@ pub fn map_read<T>(
         what: "reading a buffer back",
         source: e,
     };
-    gpu.device
+    device
         .poll(wgpu::PollType::wait_indefinitely())
         .map_err(|e| fail(e.into()))?;
     rx.recv()
@@ -796,6 +760,52 @@ pub fn map_read<T>(
     buffer.unmap();
     Ok(out)
 }
+/// A buffer to read a `size` texture of 4-byte texels back into, and its row length in
+/// bytes (padded to wgpu's copy alignment).
+pub fn readback_buffer(device: &wgpu::Device, size: [u32; 2], label: &str) -> (wgpu::Buffer, u32) {
+    let padded_row = (size[0] * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT)
+        * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: u64::from(padded_row) * u64::from(size[1]),
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    (buffer, padded_row)
+}
+
+/// Records the copy of `aspect` of the whole of `texture` (4-byte texels) into `buffer`,
+/// rows `padded_row` bytes apart ([`readback_buffer`]).
+pub fn copy_for_readback(
+    encoder: &mut wgpu::CommandEncoder,
+    texture: &wgpu::Texture,
+    aspect: wgpu::TextureAspect,
+    buffer: &wgpu::Buffer,
+    padded_row: u32,
+) {
+    encoder.copy_texture_to_buffer(
+        wgpu::TexelCopyTextureInfo {
+            texture,
+            mip_level: 0,
+            origin: wgpu::Origin3d::ZERO,
+            aspect,
+        },
+        wgpu::TexelCopyBufferInfo {
+            buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(padded_row),
+                rows_per_image: Some(texture.height()),
+            },
+        },
+        wgpu::Extent3d {
+            width: texture.width(),
+            height: texture.height(),
+            depth_or_array_layers: 1,
+        },
+    );
+}
+
 /// Whether an adapter with downlevel `flags` can copy a depth texture to a buffer
 /// ([`DepthReadback::Copy`]; wgpu's GL backend cannot, and wgpu would panic).
 fn depth_copies(flags: wgpu::DownlevelFlags) -> bool {

@@ -19,7 +19,7 @@ use quincunx_client::session::{AnySession, Session, SessionConfig};
 use quincunx_client::view::View;
 use quincunx_render::domain::RenderDomain;
 use quincunx_render::ground::surface_height_m;
-use quincunx_render::offscreen::{Gpu, Image, map_read};
+use quincunx_render::offscreen::{Gpu, Image, copy_for_readback, map_read, readback_buffer};
 use quincunx_render::scene::{Place, Shot};
 use quincunx_render::{Camera, DEPTH_FORMAT, Geometry, RendererConfig, TerrainRenderer};
 use winit::application::ApplicationHandler;
@@ -638,7 +638,7 @@ impl<R: RenderDomain> App<R> {
                 t
             });
             let texture = own.as_ref().unwrap_or(&frame.texture);
-            Some(copy_to_buffer(&g.gpu, &mut encoder, texture, size))
+            Some(copy_to_buffer(&g.gpu, &mut encoder, texture))
         } else {
             None
         };
@@ -748,31 +748,15 @@ fn copy_to_buffer(
     gpu: &Gpu,
     encoder: &mut wgpu::CommandEncoder,
     texture: &wgpu::Texture,
-    size: wgpu::Extent3d,
 ) -> (wgpu::Buffer, u32) {
-    let padded_row = (size.width * 4).div_ceil(256) * 256;
-    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some("quincunx view screenshot"),
-        size: u64::from(padded_row) * u64::from(size.height),
-        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
-        mapped_at_creation: false,
-    });
-    encoder.copy_texture_to_buffer(
-        wgpu::TexelCopyTextureInfo {
-            texture,
-            mip_level: 0,
-            origin: wgpu::Origin3d::ZERO,
-            aspect: wgpu::TextureAspect::All,
-        },
-        wgpu::TexelCopyBufferInfo {
-            buffer: &buffer,
-            layout: wgpu::TexelCopyBufferLayout {
-                offset: 0,
-                bytes_per_row: Some(padded_row),
-                rows_per_image: Some(size.height),
-            },
-        },
-        size,
+    let size = [texture.width(), texture.height()];
+    let (buffer, padded_row) = readback_buffer(&gpu.device, size, "quincunx view screenshot");
+    copy_for_readback(
+        encoder,
+        texture,
+        wgpu::TextureAspect::All,
+        &buffer,
+        padded_row,
     );
     (buffer, padded_row)
 }
