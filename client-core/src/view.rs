@@ -129,6 +129,52 @@ impl View {
         }
         worst.min(most)
     }
+
+    /// How large a vertical step at a point of a box can look, relative to the same step
+    /// facing the camera at the box's nearest point ([`View::px_per_m`] of
+    /// [`Aabb::distance`]): a number in `(0, 1]`, to multiply with
+    /// [`View::off_axis_factor_of`].
+    ///
+    /// A step along the up direction `u` at a point `r` from the eye moves the image by its
+    /// component across the line of sight, `sin` of the angle between `u` and `r`, over
+    /// `|r|` (before the off-axis factor): looking straight down at flat ground a height
+    /// error does not move the image at all. `cone` is the box's up directions
+    /// ([`crate::domain::World::up_cone`]: an axis and the sine of their largest angle to
+    /// it); `None` gives 1. With `h` and `v` a point's distances across and along the
+    /// axis, `sin / |r| <= h / (h^2 + v^2) + sin(cone)/|r|`, bounded over the box by the
+    /// ranges of `h` (its largest at a corner, its smallest from the nearest distance and
+    /// the largest `|v|`) and `v` (exact, from the corners), each taken independently.
+    pub fn vertical_sight_of(&self, b: &Aabb, cone: Option<(DVec3, f64)>) -> f64 {
+        let Some((axis, sin_cone)) = cone else {
+            return 1.0;
+        };
+        let nearest = b.distance(self.eye).max(Self::NEAR_M);
+        let (mut v_min, mut v_max, mut h_max) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
+        for k in 0..8 {
+            let c = DVec3::new(
+                if k & 1 == 0 { b.min.x } else { b.max.x },
+                if k & 2 == 0 { b.min.y } else { b.max.y },
+                if k & 4 == 0 { b.min.z } else { b.max.z },
+            );
+            let r = c - self.eye;
+            let v = r.dot(axis);
+            (v_min, v_max) = (v_min.min(v), v_max.max(v));
+            h_max = h_max.max((r - v * axis).length());
+        }
+        let v_near = if v_min <= 0.0 && v_max >= 0.0 {
+            0.0
+        } else {
+            v_min.abs().min(v_max.abs())
+        };
+        let v_far = v_min.abs().max(v_max.abs());
+        let h_near = (nearest * nearest - v_far * v_far).max(0.0).sqrt();
+        // h / (h^2 + v^2) grows with h up to h = v, then falls; it is largest at the
+        // smallest |v|.
+        let h = v_near.clamp(h_near, h_max.max(h_near));
+        let across = h / (h * h + v_near * v_near);
+        let sight = nearest * across.min(1.0 / nearest) + sin_cone;
+        if sight.is_nan() { 1.0 } else { sight.min(1.0) }
+    }
 }
 
 /// Where a planar repository's ids and integer samples are in the world.
@@ -239,6 +285,108 @@ mod tests {
         // Behind the eye, or around it: the viewport's largest.
         assert_eq!(v.off_axis_factor_of(&at(v.eye - axis * 500.0, 1.0)), most);
         assert_eq!(v.off_axis_factor_of(&at(v.eye, 1.0)), most);
+    }
+
+    /// `sin(up, r) / |r|` times the box's nearest distance at points of the box, against
+    /// the bound, for boxes in every position around the eye, on the plane and on a
+    /// planet; and the bound is small seen from above, about 1 from the side.
+    #[test]
+    fn vertical_sight_bounds_every_point_of_the_box() {
+        use crate::domain::World;
+        let planar = PlanarWorld {
+            spacing_m: 1.0,
+            value_scale_m: 1.0,
+            value_offset_m: 0.0,
+        };
+        let sphere = SphereWorld {
+            radius_m: 6_371_000.0,
+            half_side: 1024.0,
+            value_scale_m: 1.0,
+            value_offset_m: 0.0,
+            occluder_radius_m: 0.0,
+        };
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut unit = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut v = view();
+        let mut checked = 0;
+        for case in 0..4000 {
+            let on_planet = case % 2 == 1;
+            let scale = [1.0, 100.0, 10_000.0, 1_000_000.0][case / 2 % 4];
+            let centre = if on_planet {
+                let d = DVec3::new(unit() - 0.5, unit() - 0.5, unit() - 0.5).normalize();
+                d * (sphere.radius_m + (unit() - 0.5) * scale)
+            } else {
+                DVec3::ZERO
+            };
+            let around = |u: f64| (u - 0.5) * 4.0 * scale;
+            v.eye = centre + DVec3::new(around(unit()), around(unit()), around(unit()));
+            let lo = centre + DVec3::new(around(unit()), around(unit()), around(unit()));
+            let size = DVec3::new(unit(), unit(), unit()) * scale;
+            let b = Aabb {
+                min: lo,
+                max: lo + size,
+            };
+            let cone = if on_planet {
+                sphere.up_cone(&b)
+            } else {
+                planar.up_cone(&b)
+            };
+            let sight = v.vertical_sight_of(&b, cone);
+            assert!(sight > 0.0 || size.x * size.y == 0.0, "{sight}");
+            assert!(sight <= 1.0, "{sight}");
+            let nearest = b.distance(v.eye).max(View::NEAR_M);
+            for k in 0..125 {
+                let t = DVec3::new(
+                    f64::from(k % 5) / 4.0,
+                    f64::from(k / 5 % 5) / 4.0,
+                    f64::from(k / 25) / 4.0,
+                );
+                let p = b.min + size * t;
+                let r = p - v.eye;
+                let up = if on_planet {
+                    sphere.up(p)
+                } else {
+                    planar.up(p)
+                };
+                let sin = r.normalize().cross(up).length();
+                if r.length() < View::NEAR_M || !sin.is_finite() {
+                    continue;
+                }
+                let seen = nearest * sin / r.length();
+                assert!(
+                    seen <= sight * (1.0 + 1e-9) + 1e-12,
+                    "case {case}: {seen} > {sight}"
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 400_000, "{checked}");
+        // 300 m above a 100 m square straight below: a fifth; far to the side: nearly 1.
+        v.eye = DVec3::new(0.0, 0.0, 300.0);
+        let below = Aabb {
+            min: DVec3::new(-50.0, -50.0, 0.0),
+            max: DVec3::new(50.0, 50.0, 10.0),
+        };
+        let sight = v.vertical_sight_of(&below, planar.up_cone(&below));
+        assert!(sight > 0.1 && sight < 0.3, "{sight}");
+        let aside = Aabb {
+            min: DVec3::new(5000.0, -50.0, 0.0),
+            max: DVec3::new(5100.0, 50.0, 10.0),
+        };
+        let sight = v.vertical_sight_of(&aside, planar.up_cone(&aside));
+        assert!(sight > 0.99, "{sight}");
+        // Around a planet's centre the up directions are not bounded.
+        let all = Aabb {
+            min: DVec3::splat(-7e6),
+            max: DVec3::splat(7e6),
+        };
+        assert_eq!(sphere.up_cone(&all), None);
+        assert_eq!(v.vertical_sight_of(&all, None), 1.0);
     }
 
     #[test]
