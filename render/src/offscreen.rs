@@ -409,7 +409,18 @@ impl Offscreen {
         background: [u8; 3],
         draw: impl FnOnce(&mut wgpu::RenderPass<'_>),
     ) -> Result<GpuTiming, RenderError> {
-        self.render_then(gpu, background, draw, || {})
+        self.render_then(gpu, Some(background), draw, || {})
+    }
+
+    /// [`Offscreen::render`] without clearing: draws over the colour and depth the last
+    /// pass left (depth-tested against them), so a scene too large for one renderer's
+    /// pool can be drawn in parts.
+    pub fn render_over(
+        &self,
+        gpu: &Gpu,
+        draw: impl FnOnce(&mut wgpu::RenderPass<'_>),
+    ) -> Result<GpuTiming, RenderError> {
+        self.render_then(gpu, None, draw, || {})
     }
 
     /// [`Offscreen::render`], storing in `cpu_ms` the milliseconds from `since` until the
@@ -422,7 +433,7 @@ impl Offscreen {
         cpu_ms: &mut f64,
         since: std::time::Instant,
     ) -> Result<GpuTiming, RenderError> {
-        self.render_then(gpu, background, draw, || {
+        self.render_then(gpu, Some(background), draw, || {
             *cpu_ms = since.elapsed().as_secs_f64() * 1e3;
         })
     }
@@ -439,19 +450,35 @@ impl Offscreen {
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
         {
-            let mut pass = self.begin(&mut encoder, background, None);
+            let mut pass = self.begin(&mut encoder, Some(background), None);
             draw(&mut pass);
         }
         encoder.finish()
     }
 
+    /// A pass over the colour and depth targets: cleared to `background` (and depth 0),
+    /// or, with `None`, drawing over what they hold.
     fn begin<'e>(
         &'e self,
         encoder: &'e mut wgpu::CommandEncoder,
-        background: [u8; 3],
+        background: Option<[u8; 3]>,
         timestamp_writes: Option<wgpu::RenderPassTimestampWrites<'e>>,
     ) -> wgpu::RenderPass<'e> {
-        let c = background.map(|x| f64::from(x) / 255.0);
+        let (colour_load, depth_load) = match background {
+            Some(background) => {
+                let c = background.map(|x| f64::from(x) / 255.0);
+                (
+                    wgpu::LoadOp::Clear(wgpu::Color {
+                        r: c[0],
+                        g: c[1],
+                        b: c[2],
+                        a: 1.0,
+                    }),
+                    wgpu::LoadOp::Clear(0.0),
+                )
+            }
+            None => (wgpu::LoadOp::Load, wgpu::LoadOp::Load),
+        };
         encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
             label: Some("quincunx offscreen"),
             color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -459,19 +486,14 @@ impl Offscreen {
                 depth_slice: None,
                 resolve_target: None,
                 ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color {
-                        r: c[0],
-                        g: c[1],
-                        b: c[2],
-                        a: 1.0,
-                    }),
+                    load: colour_load,
                     store: wgpu::StoreOp::Store,
                 },
             })],
             depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
                 view: &self.depth_view,
                 depth_ops: Some(wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(0.0),
+                    load: depth_load,
                     // Kept for `read_depth`.
                     store: wgpu::StoreOp::Store,
                 }),
@@ -486,7 +508,7 @@ impl Offscreen {
     fn render_then(
         &self,
         gpu: &Gpu,
-        background: [u8; 3],
+        background: Option<[u8; 3]>,
         draw: impl FnOnce(&mut wgpu::RenderPass<'_>),
         submitted: impl FnOnce(),
     ) -> Result<GpuTiming, RenderError> {

@@ -5,7 +5,8 @@
 //! `unproject` inverting `project` at pixel centres; bad input as errors. On the GPU: a
 //! frame of the in-memory planet of `examples/precision.rs` (deep levels, procedural
 //! detail, three cube faces in view) read back, its depth checked against its cut and
-//! measured against itself and its cut raised. The measures on rendered cuts of the
+//! measured against itself and its cut raised, and the same cut drawn in parts over one
+//! another (bit-identical). The measures on rendered cuts of the
 //! bundled repositories, streamed from a server, are in `tests/tests/image_error.rs`.
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
@@ -426,8 +427,9 @@ fn a_planet_frame_reads_back_onto_its_cut_and_measures_zero_against_itself() {
         colour_format: OFFSCREEN_FORMAT,
         ..Default::default()
     };
-    let mut renderer = TerrainRenderer::new(&gpu.device, planet.frame, config).unwrap();
+    let mut renderer = TerrainRenderer::new(&gpu.device, planet.frame, config.clone()).unwrap();
     let changes = patch_changes(&mut dag);
+    let cut = changes.entered.clone();
     renderer.apply(dag.refiner(), None, changes).unwrap();
     let mut stats = renderer.prepare(&gpu.queue, &camera);
     while stats.pending > 0 {
@@ -439,6 +441,40 @@ fn a_planet_frame_reads_back_onto_its_cut_and_measures_zero_against_itself() {
         .unwrap();
     let image = offscreen.read(&gpu).unwrap();
     let depth = offscreen.read_depth(&gpu).unwrap();
+
+    // The same cut drawn in three parts, each by a renderer of its own, depth-tested over
+    // the last (how `quincunx trade` draws references larger than a pool): the same
+    // pixels and depths, bit for bit.
+    let parted = Offscreen::new(&gpu, view.viewport_px).unwrap();
+    for (k, part) in cut.chunks(cut.len().div_ceil(3)).enumerate() {
+        let mut renderer = TerrainRenderer::new(&gpu.device, planet.frame, config.clone()).unwrap();
+        let changes = quincunx_client::dag::PatchChanges {
+            entered: part.to_vec(),
+            left: Vec::new(),
+        };
+        renderer.apply(dag.refiner(), None, changes).unwrap();
+        while renderer.prepare(&gpu.queue, &camera).pending > 0 {}
+        let draw = |pass: &mut wgpu::RenderPass<'_>| renderer.draw(pass);
+        if k == 0 {
+            parted.render(&gpu, MAGENTA, draw).unwrap();
+        } else {
+            parted.render_over(&gpu, draw).unwrap();
+        }
+    }
+    assert!(cut.len() >= 3);
+    assert!(
+        parted.read(&gpu).unwrap().rgba == image.rgba,
+        "parts drew other pixels"
+    );
+    let parted_depth = parted.read_depth(&gpu).unwrap();
+    assert!(
+        parted_depth
+            .data
+            .iter()
+            .zip(&depth.data)
+            .all(|(a, b)| a.to_bits() == b.to_bits()),
+        "parts left other depths"
+    );
     // Read by a draw (the path of adapters without depth copies, wgpu's GL one): the
     // same bits as the copy where the adapter has both.
     let drawn = offscreen

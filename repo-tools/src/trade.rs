@@ -32,6 +32,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use quincunx_client::dag::PatchChanges;
 use quincunx_client::fetch::link::LinkProxy;
 use quincunx_client::flight::{self, BuiltinFlights, Flight, Leg, NeededSet, Pose};
 use quincunx_client::refine::{Metric, RefineConfig};
@@ -942,23 +943,50 @@ fn reference_view<R: TradeDomain>(
         colour_format: OFFSCREEN_FORMAT,
         ..RendererConfig::default()
     };
-    let mut renderer = TerrainRenderer::for_session(&gpu.device, &session, config)?;
-    renderer.sync(&mut session)?;
+    // The whole cut, drawn in parts of at most one pool's capacity, each depth-tested over
+    // the last: a full-resolution cut can need more slots than the budget or one storage
+    // binding holds (colour layers of large diamonds). A part gets a renderer of its own,
+    // so nothing of the last part is kept resident beside it.
     let camera = Camera::from_view(&view);
-    let mut stats = renderer.prepare(&gpu.queue, &camera);
-    while stats.pending > 0 {
-        stats = renderer.prepare(&gpu.queue, &camera);
-    }
-    if stats.missing > 0 {
-        bail!(
-            "the reference of leg {leg} needs more GPU memory than --reference-gpu-budget-mb {} \
-             ({} patches left out)",
-            args.reference_gpu_budget_mb,
-            stats.missing
-        );
-    }
     let offscreen = Offscreen::new(gpu, view.viewport_px)?;
-    offscreen.render(gpu, BACKGROUND, |pass| renderer.draw(pass))?;
+    session.restart_cut_changes();
+    let cut = session.cut_changes().entered;
+    let capacity = TerrainRenderer::for_session(&gpu.device, &session, config.clone())?.capacity();
+    let dag = session.dag();
+    let mut triangles = 0;
+    for (k, part) in cut.chunks(capacity.max(1) as usize).enumerate() {
+        let mut renderer = TerrainRenderer::for_session(&gpu.device, &session, config.clone())?;
+        renderer.apply(
+            dag.refiner(),
+            dag.colour(),
+            PatchChanges {
+                entered: part.to_vec(),
+                left: Vec::new(),
+            },
+        )?;
+        let mut stats = renderer.prepare(&gpu.queue, &camera);
+        while stats.pending > 0 {
+            stats = renderer.prepare(&gpu.queue, &camera);
+        }
+        if stats.missing > 0 {
+            bail!(
+                "the reference of leg {leg}: {} patches of a part of {} did not fit a pool of \
+                 {capacity} slots (--reference-gpu-budget-mb {})",
+                stats.missing,
+                part.len(),
+                args.reference_gpu_budget_mb,
+            );
+        }
+        triangles += stats.triangles;
+        if k == 0 {
+            offscreen.render(gpu, BACKGROUND, |pass| renderer.draw(pass))?;
+        } else {
+            offscreen.render_over(gpu, |pass| renderer.draw(pass))?;
+        }
+    }
+    if cut.is_empty() {
+        offscreen.render(gpu, BACKGROUND, |_| {})?;
+    }
     let image = offscreen.read(gpu)?;
     let depth = offscreen.read_depth(gpu)?;
     let index = SurfaceIndex::new(&session);
@@ -968,7 +996,7 @@ fn reference_view<R: TradeDomain>(
             full_quality: frame.refine.full_quality,
             seconds,
             cut_halves: frame.refine.cut_halves,
-            triangles: stats.triangles,
+            triangles,
         },
         image,
         depth,
