@@ -35,6 +35,8 @@ need korea9 "$data/korea_srtm3_4097.json" --rms-m 9
 need korea2 "$data/korea_srtm3_4097.json" --max-error-m 2
 need etopo9 "$data/etopo5_global.json" --planet --rms-m 9
 need bmng8 "$data/bmng_global_5400x2700.jpg" --colour --planet --rms-m 8
+# Four texels per elevation grid edge instead of two (docs/trade.md, "Bytes on the planet").
+need bmng8d129 "$data/bmng_global_5400x2700.jpg" --colour --planet --rms-m 8 --diamond-size 129
 # The bundled repositories, as `quincunx demo` builds them.
 need korea data/korea_srtm3_1025.json --rms-m 2
 need earth data/etopo20_global.json --planet --max-error-m 2
@@ -43,6 +45,7 @@ need earth_colour data/bmng_global_1080x540.jpg --colour --planet --rms-m 4
 "$bin" serve --addr "127.0.0.1:$port" --log warn \
     --repo "korea9=$repos/korea9" --repo "korea2=$repos/korea2" \
     --repo "etopo9=$repos/etopo9" --repo "bmng8=$repos/bmng8" \
+    --repo "bmng8d129=$repos/bmng8d129" \
     --repo "korea=$repos/korea" --repo "earth=$repos/earth" \
     --repo "earth_colour=$repos/earth_colour" >&2 &
 server_pid=$!
@@ -106,6 +109,8 @@ planet_path=benches/trade/planet-jumps.json
 study "korea RMS 9 m" shared --repo korea9
 study "ETOPO5 planet RMS 9 m + Blue Marble" shared --repo etopo9 --colour bmng8 \
     --path "$planet_path"
+study "ETOPO5 + Blue Marble diamond size 129, 512 MB GPU budget" other --repo etopo9 \
+    --colour bmng8d129 --path "$planet_path" --gpu-budget-mb 512 --tolerances 1
 study "korea max 2 m" shared --repo korea2
 study "ETOPO5 extremes" other --repo etopo9 --colour bmng8 --path extremes --runs 1
 study "bundled korea crop" bundled --repo korea
