@@ -10,7 +10,9 @@
 //! - the planet 1 m above the ground, straight down: 0 background pixels; again with
 //!   Bevy's origin 1 km from the camera (the camera's f32 translation 1 km): the same
 //!   image within the translation's rounding;
-//! - the planet from 100,000 km: every pixel inside its disk is terrain.
+//! - the planet from 100,000 km: every pixel inside its disk is terrain; again with the
+//!   bundled Blue Marble colour layer: every pixel inside the disk terrain, most of them
+//!   other than without it, oceans blue and land not.
 //!
 //! Winit needs the main thread and one event loop per process, so this is a
 //! `harness = false` test that runs one app through every scene, and re-runs itself under
@@ -117,6 +119,11 @@ fn serve(dir: &Path) -> (Serve, SocketAddr) {
             "earth",
             &["--planet", "--max-error-m", "2"][..],
         ),
+        (
+            "data/bmng_global_1080x540.jpg",
+            "earth_colour",
+            &["--colour", "--planet", "--rms-m", "4"][..],
+        ),
     ] {
         let status = Command::new(&bin)
             .arg("build")
@@ -138,6 +145,11 @@ fn serve(dir: &Path) -> (Serve, SocketAddr) {
         .arg(format!("korea={}", dir.join("korea").display()))
         .arg("--repo")
         .arg(format!("earth={}", dir.join("earth").display()))
+        .arg("--repo")
+        .arg(format!(
+            "earth_colour={}",
+            dir.join("earth_colour").display()
+        ))
         .spawn()
         .unwrap();
     let served = Serve(child);
@@ -160,15 +172,17 @@ enum Scene {
     PlanetLow,
     PlanetLowShifted,
     PlanetFar,
+    PlanetColour,
 }
 
-const SCENES: [Scene; 6] = [
+const SCENES: [Scene; 7] = [
     Scene::KoreaDown,
     Scene::KoreaInSight,
     Scene::KoreaHidden,
     Scene::PlanetLow,
     Scene::PlanetLowShifted,
     Scene::PlanetFar,
+    Scene::PlanetColour,
 ];
 
 /// A screenshot and what the scene expected of it.
@@ -349,10 +363,16 @@ fn script(
     };
     let planet = matches!(
         scene,
-        Scene::PlanetLow | Scene::PlanetLowShifted | Scene::PlanetFar
+        Scene::PlanetLow | Scene::PlanetLowShifted | Scene::PlanetFar | Scene::PlanetColour
     );
-    if planet && terrain.repo != "earth" {
-        *terrain = Terrain::new(script.url.clone(), "earth");
+    let colour = scene == Scene::PlanetColour;
+    if planet && (terrain.repo != "earth" || terrain.colour.is_some() != colour) {
+        let earth = Terrain::new(script.url.clone(), "earth");
+        *terrain = if colour {
+            earth.with_colour("earth_colour")
+        } else {
+            earth
+        };
         fly.placed = false;
         return;
     }
@@ -413,7 +433,7 @@ fn script(
     }
     let project = |p: Vec3| cam.world_to_viewport(gt, p).ok();
     let ground = cube - m.rotation * Vec3::Y * (m.scale.y / 2.0);
-    let disk = (scene == Scene::PlanetFar).then(|| {
+    let disk = matches!(scene, Scene::PlanetFar | Scene::PlanetColour).then(|| {
         let centre = origin.to_bevy(DVec3::ZERO);
         let r = state.planet_radius_m().unwrap();
         let d = (centre - eye).length() as f64;
@@ -655,7 +675,7 @@ fn pose(
             *t = Transform::from_translation(quincunx_bevy::to_bevy(offset).as_vec3())
                 .looking_to(down, side);
         }
-        Scene::PlanetFar => {
+        Scene::PlanetFar | Scene::PlanetColour => {
             let r = state.planet_radius_m().unwrap();
             let dir = DVec3::new(0.3, -0.8, 0.5).normalize();
             fly.spot = Some(dir * r);
@@ -715,7 +735,7 @@ fn check(shots: &[Shot]) {
             Scene::PlanetLow | Scene::PlanetLowShifted => {
                 assert_eq!(background, 0, "1 m above the planet, straight down");
             }
-            Scene::PlanetFar => {
+            Scene::PlanetFar | Scene::PlanetColour => {
                 let (c, r) = s.disk.unwrap();
                 let mut inside = 0;
                 for y in 0..s.height {
@@ -750,4 +770,48 @@ fn check(shots: &[Shot]) {
     let psnr = 10.0 * (255f64.powi(2) / diff.max(1e-12)).log10();
     eprintln!("the planet 1 m up, origin at the camera against 1 km away: PSNR {psnr:.1} dB");
     assert!(psnr > 30.0, "PSNR {psnr} dB");
+
+    // The same far view with the colour layer: inside the disk, most pixels other than
+    // the shading without it; the imagery's oceans blue, its land not.
+    let (plain, coloured) = (&shots[5], &shots[6]);
+    let (c, r) = coloured.disk.unwrap();
+    let (mut inside, mut changed, mut blue, mut land) = (0usize, 0usize, 0usize, 0usize);
+    for y in 0..coloured.height {
+        for x in 0..coloured.width {
+            if Vec2::new(x as f32 + 0.5, y as f32 + 0.5).distance(c) >= r - 2.0 {
+                continue;
+            }
+            let k = (y * coloured.width + x) as usize;
+            let (p, q) = (coloured.rgba[k], plain.rgba[k]);
+            // The cube stands on the disk in both.
+            if is_red(p) {
+                continue;
+            }
+            inside += 1;
+            if (0..3).any(|i| p[i].abs_diff(q[i]) > 24) {
+                changed += 1;
+            }
+            if i32::from(p[2]) > i32::from(p[0]) + 20 {
+                blue += 1;
+            } else if p[0] >= p[2] {
+                land += 1;
+            }
+        }
+    }
+    let share = |n: usize| n as f64 / inside as f64;
+    eprintln!(
+        "the planet with colour: {inside} disk pixels, {:.0} % other than without colour, \
+         {:.0} % blue, {:.0} % land",
+        100.0 * share(changed),
+        100.0 * share(blue),
+        100.0 * share(land)
+    );
+    assert!(
+        share(changed) > 0.5,
+        "the colour layer drawn: {changed} of {inside}"
+    );
+    assert!(
+        share(blue) > 0.2 && share(land) > 0.05,
+        "{blue} blue, {land} land"
+    );
 }
