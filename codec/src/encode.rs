@@ -201,11 +201,11 @@ pub enum EncodeError {
         got: usize,
     },
     /// The streaming encoder's row source failed.
-    #[error("reading rows: {0}")]
-    Source(String),
-    /// The streaming encoder's blob sink failed.
-    #[error("writing blobs: {0}")]
-    Sink(String),
+    #[error("reading rows")]
+    Source(#[source] crate::stream::IoCause),
+    /// The streaming encoder's blob sink or its stores failed.
+    #[error("writing blobs")]
+    Sink(#[source] crate::stream::IoCause),
     /// The memory budget is smaller than the streaming encoder's smallest working set.
     #[error(
         "memory budget of {budget} bytes is below the {needed} bytes out-of-core encoding needs"

@@ -33,6 +33,7 @@
 //! (not the data) may differ.
 
 use std::ops::Range;
+use std::sync::Arc;
 
 use rayon::prelude::*;
 
@@ -58,6 +59,72 @@ pub use cube::{
 };
 pub use shard::{Merge, ShardFigures, ShardPart, ShardSpec, encode_shard};
 
+/// What the streaming encoders' sources, sinks and stores fail with: any error (an
+/// `std::io::Error`, a message), kept as the cause of [`EncodeError::Source`] or
+/// [`EncodeError::Sink`].
+pub type IoError = Box<dyn std::error::Error + Send + Sync + 'static>;
+
+/// An [`IoError`] that says what was being done when `source` happened.
+#[derive(Debug, thiserror::Error)]
+#[error("{what}")]
+pub struct IoContext {
+    /// What was being done.
+    pub what: String,
+    /// What went wrong.
+    #[source]
+    pub source: IoError,
+}
+
+/// `source`, saying what was being done.
+pub fn io_context(what: impl Into<String>, source: IoError) -> IoError {
+    Box::new(IoContext {
+        what: what.into(),
+        source,
+    })
+}
+
+/// An [`IoError`], shared so that [`EncodeError`] stays `Clone`: the cause of
+/// [`EncodeError::Source`] and [`EncodeError::Sink`]. It shows as the error it holds, whose
+/// cause is its cause; two compare equal when their messages do.
+#[derive(Clone, Debug)]
+pub struct IoCause(pub Arc<dyn std::error::Error + Send + Sync + 'static>);
+
+impl std::fmt::Display for IoCause {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.0.fmt(f)
+    }
+}
+
+impl std::error::Error for IoCause {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        self.0.source()
+    }
+}
+
+impl PartialEq for IoCause {
+    fn eq(&self, other: &IoCause) -> bool {
+        self.to_string() == other.to_string()
+    }
+}
+
+impl From<IoError> for IoCause {
+    fn from(e: IoError) -> IoCause {
+        IoCause(Arc::from(e))
+    }
+}
+
+impl EncodeError {
+    /// [`EncodeError::Source`] of `e`.
+    pub fn reading(e: IoError) -> EncodeError {
+        EncodeError::Source(e.into())
+    }
+
+    /// [`EncodeError::Sink`] of `e`.
+    pub fn writing(e: IoError) -> EncodeError {
+        EncodeError::Sink(e.into())
+    }
+}
+
 /// Rows of a planar raster, read on demand (row 0 = north). May be called several times
 /// over the same rows (the encoder makes more than one pass).
 pub trait RowSource {
@@ -67,7 +134,7 @@ pub trait RowSource {
     fn height(&self) -> usize;
     /// Fills `out` (len = width * count) with rows `first .. first + count` in metres,
     /// NaN = nodata.
-    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String>;
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), IoError>;
     /// Known quantum (1 m for int16), like [`crate::encode::Grid::quantum_m`].
     fn quantum_m(&self) -> Option<f64>;
 }
@@ -75,7 +142,7 @@ pub trait RowSource {
 /// Receives blobs as they are coded (any order).
 pub trait BlobSink {
     /// Stores the blob of diamond `index` of detail level `level` (storage key `key`).
-    fn put(&mut self, level: usize, index: usize, key: &[u8], blob: &[u8]) -> Result<(), String>;
+    fn put(&mut self, level: usize, index: usize, key: &[u8], blob: &[u8]) -> Result<(), IoError>;
 }
 
 /// Settings of the streaming encoder.
@@ -172,11 +239,11 @@ pub fn encode_streaming(
 /// two attempts in slots 1 and 2.
 pub trait IndexSpill: Sync {
     /// Empties slot `slot`.
-    fn clear(&mut self, slot: usize) -> Result<(), String>;
+    fn clear(&mut self, slot: usize) -> Result<(), IoError>;
     /// Appends `bytes` to slot `slot`; their offset in it.
-    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, String>;
+    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, IoError>;
     /// Reads `len` bytes at `offset` of slot `slot`.
-    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, String>;
+    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, IoError>;
     /// Bytes held in memory (for the encoder's accounting).
     fn held(&self) -> usize;
 }
@@ -188,7 +255,7 @@ pub struct MemorySpill {
 }
 
 impl IndexSpill for MemorySpill {
-    fn clear(&mut self, slot: usize) -> Result<(), String> {
+    fn clear(&mut self, slot: usize) -> Result<(), IoError> {
         self.slots
             .get_mut(slot)
             .ok_or_else(|| format!("no spill slot {slot}"))?
@@ -196,7 +263,7 @@ impl IndexSpill for MemorySpill {
         Ok(())
     }
 
-    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, String> {
+    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, IoError> {
         let s = self
             .slots
             .get_mut(slot)
@@ -206,15 +273,17 @@ impl IndexSpill for MemorySpill {
         Ok(at)
     }
 
-    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, String> {
+    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, IoError> {
         let s = self
             .slots
             .get(slot)
             .ok_or_else(|| format!("no spill slot {slot}"))?;
-        let start = usize::try_from(offset).map_err(|e| e.to_string())?;
+        let start = usize::try_from(offset)?;
         s.get(start..start + len)
             .map(<[u8]>::to_vec)
-            .ok_or_else(|| format!("spill slot {slot} has no bytes {start}..{}", start + len))
+            .ok_or_else(|| {
+                format!("spill slot {slot} has no bytes {start}..{}", start + len).into()
+            })
     }
 
     fn held(&self) -> usize {
@@ -368,7 +437,7 @@ fn prepare(source: &mut dyn RowSource, opts: &StreamOptions) -> Result<Prepared,
 }
 
 /// Receives decoded rows in order: `(row, values)`.
-pub type RowSink<'a> = dyn FnMut(usize, &[i32]) -> Result<(), String> + 'a;
+pub type RowSink<'a> = dyn FnMut(usize, &[i32]) -> Result<(), IoError> + 'a;
 
 /// What [`decode_rows`] decodes: a planar encoding without its blobs.
 #[derive(Clone, Copy, Debug)]
@@ -389,12 +458,12 @@ pub struct RowDecode<'a> {
 /// the same integers as [`crate::encode::decode_integers`].
 pub fn decode_rows(
     d: RowDecode<'_>,
-    blob: &(dyn Fn(usize, usize) -> Result<Option<Vec<u8>>, String> + Sync),
+    blob: &(dyn Fn(usize, usize) -> Result<Option<Vec<u8>>, IoError> + Sync),
     emit: &mut RowSink<'_>,
 ) -> Result<(), EncodeError> {
     let n = d.geom.n();
     let details = |l: usize, i: usize, h: &mut [i32]| -> Result<bool, EncodeError> {
-        let Some(bytes) = blob(l, i).map_err(EncodeError::Source)? else {
+        let Some(bytes) = blob(l, i).map_err(EncodeError::reading)? else {
             return Ok(false);
         };
         let step = d.steps.get(l).copied().unwrap_or(256);
@@ -404,7 +473,7 @@ pub fn decode_rows(
         };
         let mut q = Vec::with_capacity(n * n);
         blob::decode_into(&bytes, &ctx, d.model, &mut q)
-            .map_err(|e| EncodeError::Source(format!("blob ({l}, {i}): {e}")))?;
+            .map_err(|e| EncodeError::reading(io_context(format!("blob ({l}, {i})"), e.into())))?;
         let mut any = false;
         for (dst, &x) in h.iter_mut().zip(q.iter()) {
             any |= x != 0;
@@ -421,7 +490,7 @@ pub fn decode_rows(
                 .enumerate()
                 .map(|(x, &v)| if d.geom.is_valid(x, row) { v } else { 0 }),
         );
-        emit(row, &line).map_err(EncodeError::Sink)?;
+        emit(row, &line).map_err(EncodeError::writing)?;
         row += 1;
         Ok(())
     })
@@ -621,7 +690,7 @@ fn scan(
         let out = &mut buf[..count * w];
         source
             .read_rows(first, count, out)
-            .map_err(EncodeError::Source)?;
+            .map_err(EncodeError::reading)?;
         if let Some(cov) = coverage.as_deref_mut() {
             for (r, row) in out.chunks_exact(w).enumerate() {
                 cov.mark_row(first + r, |x| row[x].is_finite());
@@ -666,7 +735,7 @@ impl Fill {
 type Piece = (u64, f64);
 
 /// Receives the details of a shard's diamonds: `(level, index, details)`.
-pub type DetailsOut<'a> = dyn FnMut(usize, usize, &[i32]) -> Result<(), String> + 'a;
+pub type DetailsOut<'a> = dyn FnMut(usize, usize, &[i32]) -> Result<(), IoError> + 'a;
 
 /// Errors of the integerised values against the source, over valid samples.
 #[derive(Default)]
@@ -923,7 +992,7 @@ fn run_octaves(
             if let Some(w) = window
                 && first == w.read.start
             {
-                reader.prime(source, first).map_err(EncodeError::Source)?;
+                reader.prime(source, first).map_err(EncodeError::reading)?;
             }
             let fill_bytes = reader.load(source, first, count, map, fill, errors, target)?;
             meter.note(base + fill_bytes);
@@ -975,7 +1044,7 @@ impl Reader {
     /// Starts reading at row `first` as a reader that had read every row before it would:
     /// its context rows, which the caller has checked hold no nodata (so their fills are
     /// their values).
-    fn prime(&mut self, source: &mut dyn RowSource, first: usize) -> Result<(), String> {
+    fn prime(&mut self, source: &mut dyn RowSource, first: usize) -> Result<(), IoError> {
         let w = self.width;
         let k = CONTEXT_ROWS.min(first);
         source.read_rows(first - k, k, &mut self.vals[..k * w])?;
@@ -1017,7 +1086,7 @@ impl Reader {
         let (ctx, total) = (self.context * w, (self.context + count) * w);
         source
             .read_rows(first, count, &mut self.vals[ctx..total])
-            .map_err(EncodeError::Source)?;
+            .map_err(EncodeError::reading)?;
         let (vals, valid) = (&mut self.vals[..total], &mut self.valid[..total]);
         valid[..ctx].iter_mut().for_each(|b| *b = true);
         valid[ctx..]
@@ -1572,7 +1641,7 @@ impl Octave {
                                     ));
                                 }
                                 if data {
-                                    (keep.details)(level, i, &r.h).map_err(EncodeError::Sink)?;
+                                    (keep.details)(level, i, &r.h).map_err(EncodeError::writing)?;
                                 }
                             }
                         }
@@ -1608,7 +1677,7 @@ impl Octave {
                     for (&i, r) in batch.iter().zip(&results) {
                         if let Some(b) = &r.blob {
                             sink.put(level, i, &slots[i].key, b)
-                                .map_err(EncodeError::Sink)?;
+                                .map_err(EncodeError::writing)?;
                             coded.count += 1;
                             coded.bytes += b.len();
                         }

@@ -12,8 +12,8 @@ use quincunx_codec::encode::{
 };
 use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_codec::stream::{
-    BlobSink, CubeEncoded, CubeMerge, CubeOptions, CubeSource, MemorySpill, MemoryTiles, ShardPart,
-    ShardSpec, TileStore, encode_cube, encode_cube_shard,
+    BlobSink, CubeEncoded, CubeMerge, CubeOptions, CubeSource, IoError, MemorySpill, MemoryTiles,
+    ShardPart, ShardSpec, TileStore, encode_cube, encode_cube_shard,
 };
 
 /// A [`CubeGrid`] read a band of rows at a time.
@@ -34,7 +34,7 @@ impl CubeSource for GridRows<'_> {
         first: usize,
         count: usize,
         out: &mut [f64],
-    ) -> Result<(), String> {
+    ) -> Result<(), IoError> {
         self.reads += 1;
         if self.fail_at == Some(self.reads) {
             return Err("disk on fire".into());
@@ -54,10 +54,10 @@ impl CubeSource for GridRows<'_> {
 struct Blobs(Vec<Vec<Option<Vec<u8>>>>);
 
 impl BlobSink for Blobs {
-    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), String> {
+    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), IoError> {
         let slot = &mut self.0[level][index];
         if slot.is_some() {
-            return Err(format!("blob ({level}, {index}) put twice"));
+            return Err(format!("blob ({level}, {index}) put twice").into());
         }
         *slot = Some(blob.to_vec());
         Ok(())
@@ -333,7 +333,7 @@ fn bad_settings_and_failing_sources_are_errors_not_panics() {
         .unwrap_err();
         assert_eq!(
             err,
-            EncodeError::Source("disk on fire".into()),
+            EncodeError::reading("disk on fire".into()),
             "read {fail_at}"
         );
     }

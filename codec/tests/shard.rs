@@ -10,8 +10,8 @@ mod common;
 use common::{bundled_korea, grid};
 use quincunx_codec::encode::{EncodeError, Grid, RateMode};
 use quincunx_codec::stream::{
-    BlobSink, Merge, RowSource, ShardPart, ShardSpec, StreamEncoded, StreamOptions, encode_shard,
-    encode_streaming,
+    BlobSink, IoError, Merge, RowSource, ShardPart, ShardSpec, StreamEncoded, StreamOptions,
+    encode_shard, encode_streaming,
 };
 
 struct GridSource<'a>(&'a Grid);
@@ -23,7 +23,7 @@ impl RowSource for GridSource<'_> {
     fn height(&self) -> usize {
         self.0.height
     }
-    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String> {
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), IoError> {
         let w = self.0.width;
         out.copy_from_slice(&self.0.values_m[first * w..(first + count) * w]);
         Ok(())
@@ -38,7 +38,7 @@ impl RowSource for GridSource<'_> {
 struct Blobs(std::collections::BTreeMap<(usize, usize), Vec<u8>>);
 
 impl BlobSink for Blobs {
-    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), String> {
+    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), IoError> {
         assert!(
             self.0.insert((level, index), blob.to_vec()).is_none(),
             "blob ({level}, {index}) put twice"

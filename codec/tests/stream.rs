@@ -13,7 +13,7 @@ use quincunx_codec::encode::decode_integers;
 use quincunx_codec::encode::{EncodeError, EncodeOptions, Grid, RateMode, RdoMode, decode, encode};
 use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::stream::{
-    BlobSink, IndexSpill, MemorySpill, RowDecode, RowSource, StreamEncoded, StreamOptions,
+    BlobSink, IndexSpill, IoError, MemorySpill, RowDecode, RowSource, StreamEncoded, StreamOptions,
     decode_rows, encode_streaming, encode_streaming_with,
 };
 
@@ -43,11 +43,11 @@ impl RowSource for GridSource<'_> {
     fn height(&self) -> usize {
         self.grid.height
     }
-    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String> {
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), IoError> {
         self.reads += 1;
         self.max_rows = self.max_rows.max(count);
         if self.fail_at_row.is_some_and(|r| first + count > r) {
-            return Err(format!("disk on fire at row {first}"));
+            return Err(format!("disk on fire at row {first}").into());
         }
         let w = self.grid.width;
         assert_eq!(out.len(), w * count);
@@ -80,7 +80,7 @@ impl Blobs {
 }
 
 impl BlobSink for Blobs {
-    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), String> {
+    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), IoError> {
         if self.fail_after.is_some_and(|k| self.puts >= k) {
             return Err("store is full".into());
         }
@@ -496,14 +496,18 @@ fn a_failing_source_or_sink_is_an_error_not_a_panic() {
         src.fail_at_row = Some(fail_at_row);
         let err = encode_streaming(&mut src, opts, &mut Blobs::new(&g, 32)).unwrap_err();
         assert!(
-            matches!(err, EncodeError::Source(ref m) if m.contains("disk on fire")),
+            matches!(err, EncodeError::Source(ref m) if m.to_string().contains("disk on fire")),
             "{err}"
         );
     }
     let mut sink = Blobs::new(&g, 32);
     sink.fail_after = Some(5);
     let err = encode_streaming(&mut GridSource::new(&g), opts, &mut sink).unwrap_err();
-    assert_eq!(err, EncodeError::Sink("store is full".into()));
+    assert_eq!(err, EncodeError::writing("store is full".into()));
+    // The sink's error is the cause, not part of the message.
+    assert_eq!(err.to_string(), "writing blobs");
+    let cause = std::error::Error::source(&err).map(ToString::to_string);
+    assert_eq!(cause.as_deref(), Some("store is full"));
 }
 
 #[test]
@@ -759,17 +763,17 @@ struct BrokenSpill {
 }
 
 impl IndexSpill for BrokenSpill {
-    fn clear(&mut self, slot: usize) -> Result<(), String> {
+    fn clear(&mut self, slot: usize) -> Result<(), IoError> {
         self.inner.clear(slot)
     }
-    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, String> {
+    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, IoError> {
         if self.fail_reads {
             self.inner.append(slot, bytes)
         } else {
             Err("disk full".into())
         }
     }
-    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, String> {
+    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, IoError> {
         if self.fail_reads {
             Err("bad sector".into())
         } else {
@@ -801,8 +805,15 @@ fn a_failing_index_spill_is_an_error_not_a_panic() {
             &mut Blobs::new(&g, 32),
             &mut spill,
         )
-        .unwrap_err()
-        .to_string();
+        .unwrap_err();
+        // The spill's error is the cause, with what was being done.
+        let mut err_chain = err.to_string();
+        let mut cause = std::error::Error::source(&err);
+        while let Some(c) = cause {
+            err_chain = format!("{err_chain}: {c}");
+            cause = c.source();
+        }
+        let err = err_chain;
         let want = if fail_reads {
             "bad sector"
         } else {

@@ -11,7 +11,8 @@ use quincunx_codec::raster::RasterGeometry;
 use quincunx_codec::sphere_raster::SphereFrame;
 use quincunx_codec::sphere_raster::SphereGeometry;
 use quincunx_codec::stream::{
-    self, BlobSink, CubeOptions, CubeSource, IndexSpill, RowSource, StreamOptions, TileStore,
+    self, BlobSink, CubeOptions, CubeSource, IndexSpill, IoError, RowSource, StreamOptions,
+    TileStore, io_context,
 };
 use quincunx_store::{
     Attribute, AttributeKind, ChannelCoding, Metadata, NodataHandling, NodataPolicy,
@@ -370,10 +371,8 @@ impl<'a> StoreSink<'a> {
 }
 
 impl BlobSink for StoreSink<'_> {
-    fn put(&mut self, level: usize, _index: usize, key: &[u8], blob: &[u8]) -> Result<(), String> {
-        self.builder
-            .put(level as u32, key, blob)
-            .map_err(|e| e.to_string())?;
+    fn put(&mut self, level: usize, _index: usize, key: &[u8], blob: &[u8]) -> Result<(), IoError> {
+        self.builder.put(level as u32, key, blob)?;
         self.stored += 1;
         if self.stored.is_multiple_of(256) {
             self.spin.set_message(format!("{} blobs", self.stored));
@@ -684,25 +683,25 @@ impl FileTiles {
 }
 
 impl TileStore for FileTiles {
-    fn read(&mut self, offset: u64, out: &mut [i32]) -> Result<(), String> {
+    fn read(&mut self, offset: u64, out: &mut [i32]) -> Result<(), IoError> {
         use std::os::unix::fs::FileExt;
         self.bytes.resize(out.len() * 4, 0);
         self.file
             .read_exact_at(&mut self.bytes, offset * 4)
-            .map_err(|e| format!("reading the planet's tiles: {e}"))?;
+            .map_err(|e| io_context("reading the planet's tiles", e.into()))?;
         for (x, b) in out.iter_mut().zip(self.bytes.chunks_exact(4)) {
             *x = i32::from_le_bytes([b[0], b[1], b[2], b[3]]);
         }
         Ok(())
     }
 
-    fn write(&mut self, offset: u64, data: &[i32]) -> Result<(), String> {
+    fn write(&mut self, offset: u64, data: &[i32]) -> Result<(), IoError> {
         use std::os::unix::fs::FileExt;
         self.bytes.clear();
         self.bytes.extend(data.iter().flat_map(|x| x.to_le_bytes()));
         self.file
             .write_all_at(&self.bytes, offset * 4)
-            .map_err(|e| format!("writing the planet's tiles: {e}"))
+            .map_err(|e| io_context("writing the planet's tiles", e.into()))
     }
 }
 
@@ -719,7 +718,7 @@ impl RowSource for ChannelRows<'_> {
     fn height(&self) -> usize {
         self.image.height
     }
-    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String> {
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), IoError> {
         let w = self.image.width;
         let pixels = self
             .image
@@ -744,7 +743,7 @@ struct ChannelBlobs {
 }
 
 impl BlobSink for ChannelBlobs {
-    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), String> {
+    fn put(&mut self, level: usize, index: usize, _key: &[u8], blob: &[u8]) -> Result<(), IoError> {
         self.blobs.insert((level, index), blob.to_vec());
         Ok(())
     }
@@ -912,28 +911,28 @@ impl FileSpill {
 }
 
 impl IndexSpill for FileSpill {
-    fn clear(&mut self, slot: usize) -> Result<(), String> {
-        self.slot(slot)?.set_len(0).map_err(|e| e.to_string())?;
+    fn clear(&mut self, slot: usize) -> Result<(), IoError> {
+        self.slot(slot)?.set_len(0)?;
         self.lens[slot] = 0;
         Ok(())
     }
 
-    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, String> {
+    fn append(&mut self, slot: usize, bytes: &[u8]) -> Result<u64, IoError> {
         use std::os::unix::fs::FileExt;
         let at = self.lens[slot.min(2)];
         self.slot(slot)?
             .write_all_at(bytes, at)
-            .map_err(|e| format!("writing the index spill: {e}"))?;
+            .map_err(|e| io_context("writing the index spill", e.into()))?;
         self.lens[slot] = at + bytes.len() as u64;
         Ok(at)
     }
 
-    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, String> {
+    fn read(&self, slot: usize, offset: u64, len: usize) -> Result<Vec<u8>, IoError> {
         use std::os::unix::fs::FileExt;
         let mut buf = vec![0; len];
         self.slot(slot)?
             .read_exact_at(&mut buf, offset)
-            .map_err(|e| format!("reading the index spill: {e}"))?;
+            .map_err(|e| io_context("reading the index spill", e.into()))?;
         Ok(buf)
     }
 

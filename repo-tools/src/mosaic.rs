@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use quincunx_codec::encode::{CubeGrid, Grid, round};
 use quincunx_codec::sphere_raster::{SphereFrame, SphereGeometry};
-use quincunx_codec::stream::CubeSource;
+use quincunx_codec::stream::{CubeSource, IoError};
 use rayon::prelude::*;
 
 use crate::build::BUILD_BYTES_PER_SAMPLE;
@@ -642,9 +642,9 @@ impl quincunx_codec::stream::RowSource for MosaicRows<'_> {
     fn height(&self) -> usize {
         self.plane.height
     }
-    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String> {
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), IoError> {
         self.fill(first, &mut out[..count * self.plane.width])
-            .map_err(|e| format!("{e:#}"))
+            .map_err(Into::into)
     }
     fn quantum_m(&self) -> Option<f64> {
         self.reader.quantum.flatten()
@@ -793,11 +793,11 @@ impl CubeSource for MosaicCube<'_> {
         first: usize,
         count: usize,
         out: &mut [f64],
-    ) -> Result<(), String> {
+    ) -> Result<(), IoError> {
         let w = self.face_side + 1;
         planet::check_band(self.face_side, face, (first, count), out.len())?;
         self.fill(face, first, &mut out[..count * w])
-            .map_err(|e| format!("{e:#}"))
+            .map_err(Into::into)
     }
 
     fn quantum_m(&self) -> Option<f64> {

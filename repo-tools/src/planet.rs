@@ -15,7 +15,7 @@ use quincunx_codec::colour::rgb_to_ycocg_r;
 use quincunx_codec::diamond::sphere::{cube_to_unit_sphere, unit_sphere_to_cube};
 use quincunx_codec::encode::{CubeGrid, round};
 use quincunx_codec::sphere_raster::{SphereFrame, SphereGeometry};
-use quincunx_codec::stream::CubeSource;
+use quincunx_codec::stream::{CubeSource, IoError};
 use rayon::prelude::*;
 
 use crate::input::{Georef, HeightRaster, Projection, Registration, RgbImage};
@@ -305,7 +305,7 @@ impl CubeSource for EquirectRows<'_> {
         first: usize,
         count: usize,
         out: &mut [f64],
-    ) -> Result<(), String> {
+    ) -> Result<(), IoError> {
         check_band(self.face_side, face, (first, count), out.len())?;
         self.angles.map_rows(face, first, out, |lat, lon| {
             self.grid.cube_sample(lat, lon, self.quantum)
@@ -633,7 +633,7 @@ impl CubeSource for EquirectRgbRows<'_> {
         first: usize,
         count: usize,
         out: &mut [f64],
-    ) -> Result<(), String> {
+    ) -> Result<(), IoError> {
         let mut rgb = vec![[0u8; 3]; out.len()];
         self.rgb_rows(face, (first, count), &mut rgb)?;
         let c = self.channel;

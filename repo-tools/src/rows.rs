@@ -7,7 +7,7 @@ use quincunx_codec::colour::ycocg_r_to_rgb;
 use quincunx_codec::stream::{self, RowDecode};
 
 /// Gives a diamond's blob of one channel: `(level, index) -> bytes` (`None`: no blob).
-pub type BlobOf<'a> = dyn Fn(usize, usize) -> Result<Option<Vec<u8>>, String> + Sync + 'a;
+pub type BlobOf<'a> = dyn Fn(usize, usize) -> Result<Option<Vec<u8>>, stream::IoError> + Sync + 'a;
 
 /// Receives row `r` of every channel, as decoded integers ([`StepChannel::units`] turns
 /// them into units).
@@ -51,7 +51,7 @@ pub fn decode_in_step(
             receivers.push(rx);
             workers.push(scope.spawn(move || {
                 stream::decode_rows(ch.decode, ch.blob, &mut |_, row| {
-                    tx.send(row.to_vec()).map_err(|e| e.to_string())
+                    tx.send(row.to_vec()).map_err(Into::into)
                 })
             }));
         }

@@ -16,7 +16,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use quincunx_codec::encode::RateMode;
-use quincunx_codec::stream::{self, CubeMerge, Merge, RowSource, ShardPart, ShardSpec};
+use quincunx_codec::stream::{self, CubeMerge, IoError, Merge, RowSource, ShardPart, ShardSpec};
 use serde::{Deserialize, Serialize};
 
 use crate::build::{self, BuildArgs, FileSpill, FileTiles, Rdo, StreamFacts};
@@ -213,14 +213,14 @@ pub fn build_part(args: &BuildArgs, spec: ShardSpec) -> Result<()> {
         let spin = progress::spinner("shard");
         let mut record = Vec::new();
         let mut written = 0u64;
-        let mut put = |level: usize, index: usize, h: &[i32]| -> Result<(), String> {
+        let mut put = |level: usize, index: usize, h: &[i32]| -> Result<(), IoError> {
             record.clear();
             record.extend_from_slice(&(level as u32).to_le_bytes());
             record.extend_from_slice(&(index as u64).to_le_bytes());
             for &x in h {
                 put_varint(&mut record, ((x << 1) ^ (x >> 31)) as u32);
             }
-            details.write_all(&record).map_err(|e| e.to_string())?;
+            details.write_all(&record)?;
             written += 1;
             build::stall_hook(args, written);
             Ok(())

@@ -46,6 +46,7 @@ impl Default for Limits {
 
 /// Why a response could not be read.
 #[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum Http1Error {
     /// The socket failed.
     #[error("connection: {0}")]

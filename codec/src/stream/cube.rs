@@ -32,6 +32,7 @@
 //! streaming encoder does), where the in-memory encoder fills whole faces, so voids'
 //! fills may differ.
 
+use crate::stream::IoError;
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::ops::Range;
@@ -72,7 +73,7 @@ pub trait CubeSource {
         first: usize,
         count: usize,
         out: &mut [f64],
-    ) -> Result<(), String>;
+    ) -> Result<(), IoError>;
     /// Known quantum, like [`crate::encode::CubeGrid::quantum_m`].
     fn quantum_m(&self) -> Option<f64>;
 }
@@ -81,9 +82,9 @@ pub trait CubeSource {
 /// values. Reads only what was written.
 pub trait TileStore: Send {
     /// Reads `out.len()` values from `offset`.
-    fn read(&mut self, offset: u64, out: &mut [i32]) -> Result<(), String>;
+    fn read(&mut self, offset: u64, out: &mut [i32]) -> Result<(), IoError>;
     /// Writes `data` at `offset`.
-    fn write(&mut self, offset: u64, data: &[i32]) -> Result<(), String>;
+    fn write(&mut self, offset: u64, data: &[i32]) -> Result<(), IoError>;
 }
 
 /// Tiles in memory (tests; small planets).
@@ -91,7 +92,7 @@ pub trait TileStore: Send {
 pub struct MemoryTiles(Vec<i32>);
 
 impl TileStore for MemoryTiles {
-    fn read(&mut self, offset: u64, out: &mut [i32]) -> Result<(), String> {
+    fn read(&mut self, offset: u64, out: &mut [i32]) -> Result<(), IoError> {
         let start = offset as usize;
         let src = self
             .0
@@ -101,7 +102,7 @@ impl TileStore for MemoryTiles {
         Ok(())
     }
 
-    fn write(&mut self, offset: u64, data: &[i32]) -> Result<(), String> {
+    fn write(&mut self, offset: u64, data: &[i32]) -> Result<(), IoError> {
         let start = offset as usize;
         if self.0.len() < start + data.len() {
             self.0.resize(start + data.len(), 0);
@@ -175,7 +176,7 @@ impl DecodedTiles {
         tiles: &mut dyn TileStore,
         (face, first, count): (usize, usize, usize),
         out: &mut [i32],
-    ) -> Result<(), String> {
+    ) -> Result<(), IoError> {
         let w = self.face_side + 1;
         if face >= 6 || first + count > w || out.len() != count * w {
             return Err(format!(
@@ -183,7 +184,8 @@ impl DecodedTiles {
                 first + count,
                 out.len(),
                 self.face_side
-            ));
+            )
+            .into());
         }
         Lattice::new(self.face_side, self.t, 0, 0).read_rows(tiles, (face, first, count), out)
     }
@@ -591,7 +593,7 @@ fn code_blobs(
                     count += 1;
                     bytes += b.len();
                     sink.put(l, i, &geom.level(l)[i].key, &b)
-                        .map_err(EncodeError::Sink)?;
+                        .map_err(EncodeError::writing)?;
                 }
             }
         }
@@ -699,7 +701,7 @@ fn read_band(
 ) -> Result<(), EncodeError> {
     source
         .read_face_rows(face, first, count, band)
-        .map_err(EncodeError::Source)?;
+        .map_err(EncodeError::reading)?;
     borders.apply(face, (first, count), band, canon, true)
 }
 
@@ -829,7 +831,7 @@ fn write_integers(
                 }
                 tiles
                     .write(lattice.offset(k), &tile)
-                    .map_err(EncodeError::Sink)?;
+                    .map_err(EncodeError::writing)?;
             }
             let keep = CONTEXT_ROWS.min(context + count);
             vals.copy_within(total - keep * w..total, 0);
@@ -936,7 +938,7 @@ impl Lattice {
         tiles: &mut dyn TileStore,
         (face, first, count): (usize, usize, usize),
         out: &mut [i32],
-    ) -> Result<(), String> {
+    ) -> Result<(), IoError> {
         let (t, w) = (self.t, self.side());
         let mut tile = vec![0i32; t * t];
         for tv in first / t..(first + count).div_ceil(t) {
@@ -958,7 +960,7 @@ impl Lattice {
         tiles: &mut dyn TileStore,
         face: usize,
         rows: &[i32],
-    ) -> Result<(), String> {
+    ) -> Result<(), IoError> {
         let (t, w) = (self.t, self.side());
         let mut tile = vec![0i32; t * t];
         for tv in 0..self.per {
@@ -1063,7 +1065,7 @@ impl Cache {
                 let mut data = vec![0i32; self.tile_values].into_boxed_slice();
                 store
                     .read(lattice.offset(k), &mut data)
-                    .map_err(EncodeError::Source)?;
+                    .map_err(EncodeError::reading)?;
                 self.slots[k] = Some(data);
                 self.held += 1;
             }
@@ -1081,7 +1083,7 @@ impl Cache {
             if self.dirty[k] {
                 store
                     .write(lattice.offset(k), &data)
-                    .map_err(EncodeError::Sink)?;
+                    .map_err(EncodeError::writing)?;
                 self.dirty[k] = false;
             }
             self.held -= 1;
@@ -1095,7 +1097,7 @@ impl Cache {
             if let (true, Some(data)) = (self.dirty[k], &self.slots[k]) {
                 store
                     .write(lattice.offset(k), data)
-                    .map_err(EncodeError::Sink)?;
+                    .map_err(EncodeError::writing)?;
                 self.dirty[k] = false;
             }
         }
@@ -1313,7 +1315,7 @@ fn compact(
                     if src < from.per && has(0, from.tile_no(face, src, tu)) {
                         store
                             .read(from.offset(from.tile_no(face, src, tu)), buf)
-                            .map_err(EncodeError::Source)?;
+                            .map_err(EncodeError::reading)?;
                     } else {
                         buf.iter_mut().for_each(|x| *x = 0);
                     }
@@ -1338,7 +1340,7 @@ fn compact(
                 }
                 store
                     .write(to.offset(to.tile_no(face, tv, tu)), &out)
-                    .map_err(EncodeError::Sink)?;
+                    .map_err(EncodeError::writing)?;
             }
         }
     }
@@ -1491,7 +1493,7 @@ impl Synth<'_> {
         for k in 0..lattice.tiles() {
             self.tiles
                 .write(lattice.offset(k), &zeros)
-                .map_err(EncodeError::Sink)?;
+                .map_err(EncodeError::writing)?;
         }
         let mut cache = Cache::new(&lattice, self.cache_bytes);
         let all: Vec<usize> = (0..lattice.tiles()).collect();
@@ -1676,7 +1678,7 @@ impl CubeVerifier<'_> {
                         (face, first, count),
                         &mut ints[..count * w],
                     )
-                    .map_err(EncodeError::Source)?;
+                    .map_err(EncodeError::reading)?;
                 let start = (face * w + first) * w;
                 let (done, _) = piece_errors(
                     geom,
@@ -1775,7 +1777,7 @@ fn expand(
                         from.offset(from.tile_no(face, stv, tu)),
                         &mut src[tu * tv_len..(tu + 1) * tv_len],
                     )
-                    .map_err(EncodeError::Source)?;
+                    .map_err(EncodeError::reading)?;
             }
             // Output rows of tiles 2 stv and 2 stv + 1 take source rows of tiles stv.
             for r in 0..2 {
@@ -1797,7 +1799,7 @@ fn expand(
                     }
                     store
                         .write(to.offset(to.tile_no(face, tv, tu)), &out)
-                        .map_err(EncodeError::Sink)?;
+                        .map_err(EncodeError::writing)?;
                 }
             }
         }

@@ -181,7 +181,7 @@ impl Spill {
     }
 
     pub(super) fn clear(&mut self, store: &mut dyn IndexSpill) -> Result<(), EncodeError> {
-        store.clear(self.slot).map_err(EncodeError::Sink)?;
+        store.clear(self.slot).map_err(EncodeError::writing)?;
         self.index.iter_mut().flatten().for_each(|e| *e = None);
         Ok(())
     }
@@ -213,7 +213,9 @@ impl Spill {
             }
             spans.push((index, start, bytes.len() - start));
         }
-        let base = store.append(self.slot, &bytes).map_err(EncodeError::Sink)?;
+        let base = store
+            .append(self.slot, &bytes)
+            .map_err(EncodeError::writing)?;
         for (index, start, len) in spans {
             self.index[level][index] = Some((base + start as u64, len as u32));
         }
@@ -239,7 +241,7 @@ impl Spill {
         };
         let data = store
             .read(self.slot, offset, len as usize)
-            .map_err(EncodeError::Source)?;
+            .map_err(EncodeError::reading)?;
         let mut bytes = &data[..];
         let mut k = 0usize;
         while !bytes.is_empty() {
@@ -401,7 +403,7 @@ impl StreamVerifier<'_> {
                     src_rows = chunk.min(height - row);
                     source
                         .read_rows(src_first, src_rows, &mut src[..src_rows * w])
-                        .map_err(EncodeError::Source)?;
+                        .map_err(EncodeError::reading)?;
                 }
                 let vs = &src[(row - src_first) * w..(row - src_first + 1) * w];
                 for (&d, &v) in decoded.iter().zip(vs) {
@@ -542,7 +544,7 @@ pub(crate) fn encode_rms<'a>(
                 if let Some(b) = blob {
                     let i = start + k;
                     sink.put(l, i, &geom.level(l)[i].key, b)
-                        .map_err(EncodeError::Sink)?;
+                        .map_err(EncodeError::writing)?;
                     blob_count += 1;
                     blob_bytes += b.len();
                 }

@@ -365,7 +365,7 @@ pub fn encode_shard(
         let buf = &mut ctx[..rows * plan.width];
         source
             .read_rows(from - rows, rows, buf)
-            .map_err(EncodeError::Source)?;
+            .map_err(EncodeError::reading)?;
         if buf.iter().all(|v| v.is_finite()) {
             break;
         }
@@ -605,7 +605,7 @@ impl Merge {
             .collect();
         for ((l, i, _), b) in items.iter().zip(&blobs) {
             sink.put(*l, *i, &geom.level(*l)[*i].key, b)
-                .map_err(EncodeError::Sink)?;
+                .map_err(EncodeError::writing)?;
             self.coded.count += 1;
             self.coded.bytes += b.len();
         }

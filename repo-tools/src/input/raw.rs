@@ -11,6 +11,7 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use quincunx_codec::encode::{Grid, RawType};
+use quincunx_codec::stream::IoError;
 use serde_json::{Map, Value};
 
 use super::{
@@ -311,7 +312,7 @@ impl quincunx_codec::stream::RowSource for RawRows {
         self.file.height
     }
 
-    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), String> {
+    fn read_rows(&mut self, first: usize, count: usize, out: &mut [f64]) -> Result<(), IoError> {
         use std::io::{Seek, SeekFrom};
         let f = &self.file;
         let item = if f.ty == RawType::I16 { 2 } else { 4 };
@@ -321,14 +322,17 @@ impl quincunx_codec::stream::RowSource for RawRows {
                 first + count,
                 f.height,
                 out.len()
-            ));
+            )
+            .into());
         }
         let start = (first * f.width * item) as u64;
         self.buf.resize(count * f.width * item, 0);
         self.handle
             .seek(SeekFrom::Start(start))
             .and_then(|_| self.handle.read_exact(&mut self.buf))
-            .map_err(|e| format!("{}: {e}", f.data_path.display()))?;
+            .map_err(|e| {
+                quincunx_codec::stream::io_context(f.data_path.display().to_string(), e.into())
+            })?;
         for (dst, c) in out.iter_mut().zip(self.buf.chunks_exact(item)) {
             let raw = match f.ty {
                 RawType::I16 => i16::from_le_bytes([c[0], c[1]]) as f64,

@@ -371,7 +371,7 @@ pub fn encode_cube_shard(
             entries.push((l, i, side.gamma[l][i], data, bounds));
             if data {
                 store.get(spill, l, i, &mut h)?;
-                details(l, i, &h).map_err(EncodeError::Sink)?;
+                details(l, i, &h).map_err(EncodeError::writing)?;
             }
         }
     }
@@ -480,7 +480,7 @@ fn pass_one_bands(
             let buf = &mut rows[..c * w];
             source
                 .read_face_rows(face, first - c, c, buf)
-                .map_err(EncodeError::Source)?;
+                .map_err(EncodeError::reading)?;
             borders.apply(face, (first - c, c), buf, &mut known, false)?;
             if buf.iter().all(|v| v.is_finite()) {
                 break;
@@ -517,7 +517,7 @@ fn read_rows(
         let o = (r - rows.start) * ws;
         lattice
             .read_rows(tiles, (face, y, count), &mut out[o..o + count * ws])
-            .map_err(EncodeError::Source)?;
+            .map_err(EncodeError::reading)?;
         r += count;
     }
     Ok(out)
@@ -602,7 +602,7 @@ impl CubeMerge {
         let top = lattice_at(face_side, t, split, second);
         for (face, rows) in joined.coarse.chunks_exact(ws * ws).enumerate() {
             top.write_face(tiles, face, rows)
-                .map_err(EncodeError::Sink)?;
+                .map_err(EncodeError::writing)?;
         }
         let store = detail_spill(&geom, spill)?;
         Ok(CubeMerge {
