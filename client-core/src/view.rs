@@ -36,6 +36,17 @@ impl Aabb {
         let d = (self.min - p).max(p - self.max).max(DVec3::ZERO);
         d.length()
     }
+
+    /// Its eight corners.
+    pub fn corners(&self) -> [DVec3; 8] {
+        std::array::from_fn(|k| {
+            DVec3::new(
+                if k & 1 == 0 { self.min.x } else { self.max.x },
+                if k & 2 == 0 { self.min.y } else { self.max.y },
+                if k & 4 == 0 { self.min.z } else { self.max.z },
+            )
+        })
+    }
 }
 
 /// Six clip planes `(a, b, c, d)` with `a x + b y + c z + d >= 0` inside.
@@ -113,12 +124,7 @@ impl View {
         let most = self.off_axis_factor();
         let axis = (self.target - self.eye).normalize_or_zero();
         let mut worst = 1.0f64;
-        for k in 0..8 {
-            let c = DVec3::new(
-                if k & 1 == 0 { b.min.x } else { b.max.x },
-                if k & 2 == 0 { b.min.y } else { b.max.y },
-                if k & 4 == 0 { b.min.z } else { b.max.z },
-            );
+        for c in b.corners() {
             let d = c - self.eye;
             let cos = d.dot(axis) / d.length();
             // Behind the eye, at it, or not a number: the viewport's bound.
@@ -150,12 +156,7 @@ impl View {
         };
         let nearest = b.distance(self.eye).max(Self::NEAR_M);
         let (mut v_min, mut v_max, mut h_max) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
-        for k in 0..8 {
-            let c = DVec3::new(
-                if k & 1 == 0 { b.min.x } else { b.max.x },
-                if k & 2 == 0 { b.min.y } else { b.max.y },
-                if k & 4 == 0 { b.min.z } else { b.max.z },
-            );
+        for c in b.corners() {
             let r = c - self.eye;
             let v = r.dot(axis);
             (v_min, v_max) = (v_min.min(v), v_max.max(v));
