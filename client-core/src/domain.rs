@@ -61,10 +61,6 @@ pub trait World: Copy + std::fmt::Debug + PartialEq + Send + Sync + 'static {
     /// The up direction of a camera at `eye` (`+z` on the plane, away from a planet's
     /// centre).
     fn up(&self, eye: DVec3) -> DVec3;
-    /// The up directions over a box: an axis and the sine of the largest angle between
-    /// it and the up direction at any point of the box, for [`View::vertical_sight_of`];
-    /// `None` when they are not bounded (a box around a planet's centre).
-    fn up_cone(&self, b: &Aabb) -> Option<(DVec3, f64)>;
 }
 
 impl World for PlanarWorld {
@@ -82,10 +78,6 @@ impl World for PlanarWorld {
 
     fn up(&self, _eye: DVec3) -> DVec3 {
         DVec3::Z
-    }
-
-    fn up_cone(&self, _b: &Aabb) -> Option<(DVec3, f64)> {
-        Some((DVec3::Z, 0.0))
     }
 }
 
@@ -110,15 +102,6 @@ impl World for SphereWorld {
     fn up(&self, eye: DVec3) -> DVec3 {
         let up = eye.normalize_or_zero();
         if up == DVec3::ZERO { DVec3::Z } else { up }
-    }
-
-    fn up_cone(&self, b: &Aabb) -> Option<(DVec3, f64)> {
-        // Every point of the box lies within half its diagonal of its centre, so its
-        // direction from the planet's centre is within asin(half / |centre|) of the
-        // centre's.
-        let centre = (b.min + b.max) / 2.0;
-        let (half, distance) = ((b.max - b.min).length() / 2.0, centre.length());
-        (half.is_finite() && distance > half).then(|| (centre / distance, half / distance))
     }
 }
 

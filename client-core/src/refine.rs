@@ -20,11 +20,9 @@
 //! - [`Metric::Geometric`] (the default): the diamond's error bound (the side information:
 //!   how far the finest decoded surface, and every one between, departs from the surface
 //!   it draws; `docs/blob-format.md`) projected there, times the box's off-axis factor
-//!   ([`View::off_axis_factor_of`]: a vertical step off the view's axis looks larger) and
-//!   its vertical sight ([`View::vertical_sight_of`]: a vertical step seen from above
-//!   looks smaller, down to nothing straight down), so a tolerance of 1 px means no point
-//!   of the surface drawn is more than 1 px from where the full-resolution surface would
-//!   put it. With a colour layer, the larger of that and the projected size
+//!   ([`View::off_axis_factor_of`]: a vertical step off the view's axis looks larger), so
+//!   a tolerance of 1 px means no point of the surface drawn is more than 1 px from where
+//!   the full-resolution surface would put it. With a colour layer, the larger of that and the projected size
 //!   of its texels (the texel rule: a colour texel is at most the tolerance).
 //! - [`Metric::Sampling`] (the paper's): `max(edge, texel)`, the mean projected edge length
 //!   of its grid and, with a colour layer, the projected size of its texels. The side
@@ -329,20 +327,16 @@ impl<W: World, I: Copy + Eq + std::hash::Hash> Projector<'_, W, I> {
                 // The bound, 0 below the data's finest level (nothing finer is coded
                 // there; procedural detail is not counted). A vertical step of that size
                 // at the box's nearest point, off the view's axis, looks up to the box's
-                // off-axis factor larger than on it, and seen along the line of sight
-                // smaller (the box's vertical sight); both change as the camera turns,
-                // so deferrals assume the viewport's largest factor and a sight of 1.
-                // Unknown (the roots, or blobs without side information): the sampling
-                // error.
+                // off-axis factor larger than on it; the box's factor changes as the
+                // camera turns, so deferrals assume the viewport's largest. Unknown (the
+                // roots, or blobs without side information): the sampling error.
                 let (geometric_m, most_m) = if !dag.refiner().is_coded(id) {
                     (0.0, 0.0)
                 } else {
                     match node.bound_class {
                         Some(k) => {
                             let b = class_bound(k) as f64 * w.value_scale_m().abs();
-                            let seen = self.view.off_axis_factor_of(&bbox)
-                                * self.view.vertical_sight_of(&bbox, w.up_cone(&bbox));
-                            (b * seen, b * self.off_axis)
+                            (b * self.view.off_axis_factor_of(&bbox), b * self.off_axis)
                         }
                         None => (edge_m, edge_m),
                     }
