@@ -559,27 +559,19 @@ fn stream(
             }
         }
         outbox.epoch = s.epoch;
-        let now = s.started.elapsed();
-        let capacity = shared.capacity.load(Ordering::Acquire);
+        let tick = Tick {
+            view: &view,
+            now: s.started.elapsed(),
+            budget: terrain.refine_budget,
+            capacity: shared.capacity.load(Ordering::Acquire),
+        };
         let result = match &mut s.session {
-            AnySession::Planar(session) => step(
-                session,
-                &view,
-                now,
-                terrain.refine_budget,
-                capacity,
-                &mut s.frame_of,
-            )
-            .map(|(f, b)| (f, b.map(AnyBatch::Planar))),
-            AnySession::Planet(session) => step(
-                session,
-                &view,
-                now,
-                terrain.refine_budget,
-                capacity,
-                &mut s.frame_of,
-            )
-            .map(|(f, b)| (f, b.map(AnyBatch::Planet))),
+            AnySession::Planar(p) => {
+                step(p, &tick, &mut s.frame_of).map(|(f, b)| (f, b.map(AnyBatch::Planar)))
+            }
+            AnySession::Planet(p) => {
+                step(p, &tick, &mut s.frame_of).map(|(f, b)| (f, b.map(AnyBatch::Planet)))
+            }
         };
         match result {
             Ok((stats, batch)) => {
@@ -594,19 +586,26 @@ fn stream(
     });
 }
 
-/// One session frame: refine, and the cut's changes if any.
-fn step<R: RenderDomain>(
-    session: &mut Session<R>,
-    view: &View,
+/// What one session frame runs under: the view, the session's clock, the refinement
+/// budget and the renderer's capacity in halves (0 until known).
+struct Tick<'a> {
+    view: &'a View,
     now: Duration,
     budget: Duration,
     capacity: usize,
+}
+
+/// One session frame: refine, and the cut's changes if any.
+fn step<R: RenderDomain>(
+    session: &mut Session<R>,
+    tick: &Tick<'_>,
     frame_of: &mut Option<(WorldFrame, (f64, f64))>,
 ) -> Result<(TerrainStats, Option<Batch<R>>), SessionError> {
+    let capacity = tick.capacity;
     if capacity > 0 && session.max_cut_halves().is_none_or(|m| m > capacity) {
         session.set_max_cut_halves(Some(capacity));
     }
-    let frame = session.update(view, now, budget)?;
+    let frame = session.update(tick.view, tick.now, tick.budget)?;
     let stats = TerrainStats {
         cut_halves: frame.refine.cut_halves,
         full_quality: frame.refine.full_quality,

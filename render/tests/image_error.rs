@@ -29,6 +29,15 @@ use quincunx_render::{
 
 const SIZE: [u32; 2] = [320, 200];
 
+/// Whether two depth images hold the same bits at every pixel.
+fn same_bits(a: &DepthImage, b: &DepthImage) -> bool {
+    a.data.len() == b.data.len()
+        && a.data
+            .iter()
+            .zip(&b.data)
+            .all(|(x, y)| x.to_bits() == y.to_bits())
+}
+
 /// An oblique camera 120 m above the plane `z = 0`, looking down 15 degrees (the
 /// horizon across the frame).
 fn oblique() -> Camera {
@@ -467,25 +476,14 @@ fn a_planet_frame_reads_back_onto_its_cut_and_measures_zero_against_itself() {
         "parts drew other pixels"
     );
     let parted_depth = parted.read_depth(&gpu).unwrap();
-    assert!(
-        parted_depth
-            .data
-            .iter()
-            .zip(&depth.data)
-            .all(|(a, b)| a.to_bits() == b.to_bits()),
-        "parts left other depths"
-    );
+    assert!(same_bits(&parted_depth, &depth), "parts left other depths");
     // Read by a draw (the path of adapters without depth copies, wgpu's GL one): the
     // same bits as the copy where the adapter has both.
     let drawn = offscreen
         .read_depth_with(&gpu, DepthReadback::Draw)
         .unwrap();
     assert!(
-        drawn
-            .data
-            .iter()
-            .zip(&depth.data)
-            .all(|(a, b)| a.to_bits() == b.to_bits()),
+        same_bits(&drawn, &depth),
         "depth read by a draw differs from read_depth"
     );
     if gpu
@@ -498,11 +496,7 @@ fn a_planet_frame_reads_back_onto_its_cut_and_measures_zero_against_itself() {
             .read_depth_with(&gpu, DepthReadback::Copy)
             .unwrap();
         assert!(
-            copied
-                .data
-                .iter()
-                .zip(&drawn.data)
-                .all(|(a, b)| a.to_bits() == b.to_bits()),
+            same_bits(&copied, &drawn),
             "depth read by a draw differs from the copy"
         );
         println!("depth read by a draw: bit-identical to the copy");

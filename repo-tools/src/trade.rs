@@ -951,11 +951,20 @@ fn reference_view<R: TradeDomain>(
     let offscreen = Offscreen::new(gpu, view.viewport_px)?;
     session.restart_cut_changes();
     let cut = session.cut_changes().entered;
-    let capacity = TerrainRenderer::for_session(&gpu.device, &session, config.clone())?.capacity();
+    let mut first = Some(TerrainRenderer::for_session(
+        &gpu.device,
+        &session,
+        config.clone(),
+    )?);
+    let capacity = first.as_ref().map_or(1, TerrainRenderer::capacity);
     let dag = session.dag();
     let mut triangles = 0;
     for (k, part) in cut.chunks(capacity.max(1) as usize).enumerate() {
-        let mut renderer = TerrainRenderer::for_session(&gpu.device, &session, config.clone())?;
+        // The last part's renderer is dropped before the next one's pool is made.
+        let mut renderer = match first.take() {
+            Some(r) => r,
+            None => TerrainRenderer::for_session(&gpu.device, &session, config.clone())?,
+        };
         renderer.apply(
             dag.refiner(),
             dag.colour(),
